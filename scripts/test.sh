@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Set up .venv (see setup_env.sh) and run the test suite. Extra arguments go to pytest.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="$(bash "$root/scripts/setup_env.sh" | tail -n 1)"
+cd "$root"
+export PATH="$venv/bin:$PATH"
+exec "$venv/bin/python" -m pytest -q test "$@"
