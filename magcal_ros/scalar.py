@@ -177,7 +177,7 @@ def ml_fit(
         return sol.x, res, jmat
 
     p, res, jmat = solve(p0, 1.0)
-    sigma = float(np.sqrt(np.mean(res**2)))
+    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))  # robust to outliers
     if bias_correction and sigma > 1e-4:
         p, res, jmat = solve(p, 1.0 + sigma**2)
         res = res + sigma**2
