@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros import joint
 from magcal_ros.alignment import ALIGNERS, affine_regression
 from magcal_ros.calibration import ArrayCalibration
 from magcal_ros.errors import CalibrationFailed, InputError, ObservabilityError
@@ -47,6 +48,8 @@ class SolveOptions:
     pso_particles: int = 50
     pso_iterations: int = 400
     seed: int | None = 0
+    joint: bool = True
+    """Refine method ml jointly over the array (skipped with a robust loss)."""
     max_relative_std: float = 1e-2
     """Reject a calibration whose parameters are this uncertain (fraction of F)."""
 
@@ -90,14 +93,16 @@ class Method:
     reference: str
     """``centre`` (virtual centre sensor) or ``first`` (sensor 1)."""
     needs_reference_field: bool
+    joint: bool = False
+    """Finish with the joint array maximum likelihood (:mod:`magcal_ros.joint`)."""
 
 
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("ml", "magcal_ros", "closed-form start, maximum likelihood (Levenberg-Marquardt), "
-               "Procrustes alignment to the array centre; works without a reference field",
-               "ml", "procrustes", "centre", False),
+        Method("ml", "magcal_ros", "closed-form start, per-sensor maximum likelihood, Procrustes alignment, "
+               "then joint maximum likelihood over the array; works without a reference field",
+               "ml", "procrustes", "centre", False, joint=True),
         Method("linear", "paper 000 (Li et al. 2018)", "linear quadric fit decoded in closed form, "
                "least-squares Euler angles to the array centre", "linear", "angles", "centre", True),
         Method("pso", "paper 002 (Ding 2024)", "improved particle swarm on the TMI residual, "
@@ -214,6 +219,9 @@ def calibrate_array(
         matrices.append(rot @ fit.matrix)
         offsets.append(fit.offset)
         stds.append(fit.std if fit.std is not None else np.full(9, np.nan))
+    if spec.joint and opts.joint and opts.loss == "linear":
+        refined, offs, _ = joint.refine(r, np.stack(matrices), np.stack(offsets), intensity)
+        matrices, offsets = list(refined), list(offs)
     std = np.stack(stds)
     rel_std = np.concatenate([std[:, :6], std[:, 6:] / intensity], axis=1)
     if np.any(rel_std > opts.max_relative_std):

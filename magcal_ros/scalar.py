@@ -106,7 +106,7 @@ def algebraic_fit(readings: ArrayLike, intensity: float | None = None) -> Scalar
     f = _target(r, intensity)
     centre = r.mean(axis=0)
     scale = float(np.median(np.linalg.norm(r - centre, axis=1)))
-    _, _, vt = np.linalg.svd(quadric_design(r), full_matrices=False)
+    _, _, vt = np.linalg.svd(np.linalg.qr(quadric_design(r), mode="r"))
     m, o = decode_quadric(vt[-1], centre, scale, f)
     res = np.linalg.norm((r - o) @ m.T, axis=1) - f
     return ScalarFit(m, o, f, float(np.sqrt(np.mean(res**2))), method="linear")

@@ -191,3 +191,25 @@ def test_wrong_reference_field_fails_the_residual_check():
     rec, _ = dip.run(uniform_random(300, 1), 1)  # far from uniform: a strong source 0.3 m away
     with pytest.raises((CalibrationFailed, ObservabilityError)):
         calibrate_array(rec.vectors, CROSS, F, options=SolveOptions())
+
+
+def test_48_random_attitudes_reach_within_15_percent_of_the_floor():
+    """Few attitudes: the joint array ML keeps the tensor near the floor on fresh data."""
+    ratios = []
+    for seed in range(4):
+        sim = simulation(seed)
+        rec, _ = sim.run(uniform_random(48, 100 + seed), 200 + seed)
+        cal = calibrate_array(rec.vectors, CROSS, F).calibration
+        fresh, truth = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
+        floor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
+        ratios.append(tensor_rms(gradient_difference(cal.apply(fresh.vectors), CROSS)) / floor)
+        assert ratios[-1] < 1.15
+    without_joint = []
+    for seed in range(4):
+        sim = simulation(seed)
+        rec, _ = sim.run(uniform_random(48, 100 + seed), 200 + seed)
+        cal = calibrate_array(rec.vectors, CROSS, F, options=SolveOptions(joint=False)).calibration
+        fresh, truth = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
+        floor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
+        without_joint.append(tensor_rms(gradient_difference(cal.apply(fresh.vectors), CROSS)) / floor)
+    assert np.mean(ratios) < np.mean(without_joint)
