@@ -23,7 +23,7 @@ setup(
     description="Calibration of a magnetic gradient tensor array: core math, ROS 2 nodes, offline tools",
     license="Apache-2.0",
     python_requires=">=3.10",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},
     entry_points={
         "console_scripts": [
             "magcal = magcal_ros.cli:main",
