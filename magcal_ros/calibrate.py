@@ -164,6 +164,16 @@ def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
     return r
 
 
+def _tensor_residual(vectors: Array, geometry: ArrayGeometry, method: str) -> float:
+    """Tensor RMS (T/m) of a uniform-field recording; NaN for fewer than 4 sensors (no tensor).
+
+    A two-sensor gradiometer (paper 001) is calibrated like any array but has no full tensor.
+    """
+    if geometry.size < 4:
+        return float("nan")
+    return tensor_rms(gradient(vectors, geometry, method))
+
+
 def calibrate_array(
     raw: ArrayLike,
     geometry: ArrayGeometry,
@@ -242,8 +252,6 @@ def calibrate_array(
             "the field was not uniform during the manoeuvre, the reference field is wrong, or a sensor is faulty"
         )
     tmi_before = tmi_rms(r, intensity)
-    g_before = gradient(r, geometry, opts.gradient_method)
-    g_after = gradient(corrected, geometry, opts.gradient_method)
     result = CalibrationResult(
         calibration=cal,
         method=method,
@@ -252,8 +260,8 @@ def calibrate_array(
         relative=f_ref is None,
         tmi_before=tmi_before,
         tmi_after=tmi_after,
-        tensor_before=tensor_rms(g_before),
-        tensor_after=tensor_rms(g_after),
+        tensor_before=_tensor_residual(r, geometry, opts.gradient_method),
+        tensor_after=_tensor_residual(corrected, geometry, opts.gradient_method),
         excitation=exc,
         std=std,
         seconds=time.perf_counter() - t0,

@@ -65,22 +65,24 @@ class Excitation:
     def problem(self) -> str | None:
         """Why a calibration cannot be solved from these readings, or None if it can."""
         others = " or ".join(a for a in _AXIS_NAMES if a != self.axis_name)
-        if self.samples < MIN_SAMPLES:
-            return (
-                f"only {self.samples} synchronized sets; need at least {MIN_SAMPLES}, "
-                "collected while turning the array about at least two axes"
-            )
+        if self.samples < 3:
+            return f"only {self.samples} synchronized sets; turn the array about at least two axes while collecting"
         if self.spread[0] < MIN_SPREAD:
             return (
                 "the readings barely change (the array hardly rotated); turn it through large angles "
                 "about at least two axes"
             )
-        if self.thickness < MIN_THICKNESS or self.quadric_ratio < MIN_QUADRIC_RATIO:
+        if self.thickness < MIN_THICKNESS or (self.samples >= 10 and self.quadric_ratio < MIN_QUADRIC_RATIO):
             return (
                 f"all readings lie in one plane: the array was rotated about one axis only "
                 f"(about {self.axis_name}, normal {np.round(self.normal, 2).tolist()}); "
                 f"a full calibration also needs a rotation about {others}"
                 + (": pitch or roll the vehicle, not only yaw" if self.axis_name == "z" else "")
+            )
+        if self.samples < MIN_SAMPLES:
+            return (
+                f"only {self.samples} synchronized sets; need at least {MIN_SAMPLES}, "
+                "collected while turning the array about at least two axes"
             )
         return None
 

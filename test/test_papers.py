@@ -1,0 +1,320 @@
+"""Reproduce the five papers' simulations with their own parameters (METHODS.md, digest).
+
+Truth always comes from the simulator (its platform field, its true corrections), never
+from the solver under test. Noise floors are measured on the same noisy data by applying
+the true correction, so each tolerance is stated relative to what noise allows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magcal_ros.alignment import align_procrustes, paper000_angles
+from magcal_ros.attitudes import paper000_grid, paper004_grid, three_rotations, uniform_random
+from magcal_ros.calibrate import CalibrationResult, calibrate_array
+from magcal_ros.errors import ObservabilityError
+from magcal_ros.methods import scenarios as sc
+from magcal_ros.methods.paired import j_index, matrix_to_q, paired_fit, q_to_angles
+from magcal_ros.methods.pso import pso_fit
+from magcal_ros.metrics import tensor_component_rms, tensor_floor, tmi_rms
+from magcal_ros.recording import Recording
+from magcal_ros.rotation import matrix_to_euler
+from magcal_ros.scalar import ml_fit
+from magcal_ros.sensor_model import SensorErrors
+from magcal_ros.simulate import ArraySimulation, Truth
+from magcal_ros.tensor import gradient
+from magcal_ros.units import NT
+
+# ---------------------------------------------------------------------------------------
+# Paper 000: 1728-set grid, sigma = 1 nT on the orthogonal sensor output.
+
+
+@pytest.fixture(scope="module")
+def p000() -> tuple[ArraySimulation, Recording, Truth]:
+    sim = sc.paper000_simulation()
+    rec, truth = sim.run(paper000_grid(), rng=1)
+    return sim, rec, truth
+
+
+@pytest.fixture(scope="module")
+def p000_ml(p000: tuple[ArraySimulation, Recording, Truth]) -> CalibrationResult:
+    sim, rec, _ = p000
+    return calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method="ml")
+
+
+@pytest.mark.parametrize("method", ["ml", "linear"])
+def test_paper000_table1_sensor_parameters(p000, method: str) -> None:
+    """All 36 sensor parameters. With N = 1728 and sigma/F = 1.7e-5 the fit's 1-sigma is
+    about 1e-6 (relative) for gains, 6e-5 deg for angles and 0.05 nT for offsets (the fit's
+    own ``std``); the bounds are ~10 sigma. The paper's PMED (its Table 1) is 2e-5..4e-3 %."""
+    sim, rec, _ = p000
+    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method=method)
+    for i, true in enumerate(sim.sensors):
+        est = SensorErrors.from_correction(res.calibration.matrices[i], res.calibration.offsets[i])
+        assert np.degrees(np.abs(est.angles - true.angles)).max() < 1e-3
+        assert np.abs(est.scale / true.scale - 1.0).max() < 1e-5
+        assert np.abs(est.offset - true.offset).max() < 0.5 * NT
+
+
+def test_paper000_table2_tmi(p000, p000_ml: CalibrationResult) -> None:
+    """TMI RMSE per sensor: paper 0.98..1.02 nT after, 6715..9042 nT before."""
+    _, rec, truth = p000
+    floor = tmi_rms(truth.calibration.apply(rec.vectors), sc.PAPER000_F)
+    assert np.all(np.abs(floor / NT - 1.0) < 0.05)  # sigma = 1 nT by construction
+    after = p000_ml.tmi_after
+    assert np.all(np.abs(after / NT - 1.0) < 0.05)
+    assert np.all(np.abs(after / floor - 1.0) < 0.02)
+    before = p000_ml.tmi_before / NT
+    assert np.allclose(before, sc.REPORTED["000"]["tmi_before"], rtol=0.15)
+
+
+@pytest.mark.parametrize("samples", [[0, 4, 8], list(range(12))])
+def test_paper000_table3_misalignment(p000, samples: list[int]) -> None:
+    """Misalignment angles from 3 samples 120 deg apart (and 12, 30 deg apart) on the first
+    z turn, aligned to the simulator's platform field B_oc as the paper does. One sample's
+    direction noise is sigma/F = 1.7e-5 rad; over 30 noise seeds the worst error was 6e-5."""
+    _, rec, truth = p000
+    for i, preset in enumerate(sc.PAPER000_MISALIGNMENT_RAD):
+        fit = ml_fit(rec.vectors[:, i], sc.PAPER000_F)
+        b = fit.apply(rec.vectors[samples, i])
+        b_oc = truth.field[samples, i]
+        assert np.abs(np.array(paper000_angles(b, b_oc)) - preset).max() < 1e-4
+        assert np.abs(np.array(matrix_to_euler(align_procrustes(b, b_oc))) - preset).max() < 1e-4
+
+
+def test_paper000_table4_tensor(p000, p000_ml: CalibrationResult) -> None:
+    """Six tensor components: paper 3.47..3.96 nT/m after alignment (floor 3.54), tens of
+    thousands before and still thousands after scalar calibration only."""
+    sim, rec, _ = p000
+    floor = tensor_floor(1 * NT, sc.PAPER000_BASELINE)
+    assert floor / NT == pytest.approx(3.5355, abs=1e-3)
+    g_after = p000_ml.calibration.field_and_gradient(rec.vectors)[2]
+    after = tensor_component_rms(g_after)
+    assert np.all(np.abs(after / floor - 1.0) < 0.10)
+    before = tensor_component_rms(gradient(rec.vectors, sim.geometry)) / NT
+    assert np.all((before > 1e4) & (before < 1e5))
+    scalar_only = np.stack([ml_fit(rec.vectors[:, i], sc.PAPER000_F).apply(rec.vectors[:, i]) for i in range(4)], 1)
+    assert np.all(tensor_component_rms(gradient(scalar_only, sim.geometry)) / NT > 1e3)
+
+
+def test_paper000_single_z_rotation_refused(p000) -> None:
+    """Pitfall B: the paper's samples from one z turn cannot determine 9 parameters."""
+    sim, rec, _ = p000
+    with pytest.raises(ObservabilityError, match=r"rotation about x or y"):
+        calibrate_array(rec.vectors[:12], sim.geometry, sc.PAPER000_F)
+    with pytest.raises(ObservabilityError):
+        calibrate_array(rec.vectors[:10], sim.geometry, sc.PAPER000_F)  # the paper's 10 samples
+
+
+def test_paper000_fresh_data(p000, p000_ml: CalibrationResult) -> None:
+    """Calibrate on the grid, evaluate on 500 new attitudes with new noise."""
+    sim, _, _ = p000
+    fresh, truth = sim.run(uniform_random(500, 11), rng=12)
+    est = p000_ml.calibration.field_and_gradient(fresh.vectors)
+    ideal = truth.calibration.field_and_gradient(fresh.vectors)
+    ratio = tensor_component_rms(est[2]) / tensor_component_rms(ideal[2])
+    assert np.all(np.abs(ratio - 1.0) < 0.05)
+    tmi = tmi_rms(est[0], sc.PAPER000_F) / tmi_rms(ideal[0], sc.PAPER000_F)
+    assert np.all(tmi < 1.02)
+
+
+def test_random_48_attitudes_fresh_data() -> None:
+    """48 random attitudes (a short manoeuvre): on new data within 15 % of the floor."""
+    sim = sc.paper000_simulation()
+    rec, _ = sim.run(uniform_random(48, 21), rng=22)
+    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method="ml")
+    fresh, truth = sim.run(uniform_random(500, 23), rng=24)
+    g = res.calibration.field_and_gradient(fresh.vectors)[2]
+    g_ideal = truth.calibration.field_and_gradient(fresh.vectors)[2]
+    assert float(np.sqrt(np.mean(tensor_component_rms(g) ** 2) / np.mean(tensor_component_rms(g_ideal) ** 2))) < 1.15
+    tmi = tmi_rms(res.calibration.apply(fresh.vectors), sc.PAPER000_F)
+    assert np.all(tmi / tmi_rms(truth.calibration.apply(fresh.vectors), sc.PAPER000_F) < 1.15)
+
+
+# ---------------------------------------------------------------------------------------
+# Paper 002: 300 random attitudes, uniform noise of peak-to-peak a on the raw output.
+
+
+def _p002_sensor0(table: int, a_nt: float) -> tuple[np.ndarray, float, float]:
+    """Sensor-0 readings, the truth floor on them (T) and the raw TMI RMS (T)."""
+    sim = sc.paper002_simulation(table, a_nt * NT)
+    rec, truth = sim.run(uniform_random(300, 7), rng=3)
+    r = rec.vectors[:, 0]
+    m, o = sim.sensors[0].correction()
+    floor = float(np.sqrt(np.mean((np.linalg.norm((r - o) @ m.T, axis=1) - sc.PAPER002_F) ** 2)))
+    before = float(np.sqrt(np.mean((np.linalg.norm(r, axis=1) - sc.PAPER002_F) ** 2)))
+    return r, floor, before
+
+
+@pytest.mark.parametrize("table", [1, 2])
+@pytest.mark.parametrize("a_nt", sc.PAPER002_NOISE_PP_NT)
+def test_paper002_ml_at_noise_floor(table: int, a_nt: float) -> None:
+    """Paper: 0.58 / 1.42 / 2.84 (Table 1), 0.532 / 1.329 / 2.659 nT (Table 2) = a/sqrt(12)."""
+    r, floor, _ = _p002_sensor0(table, a_nt)
+    fit = ml_fit(r, sc.PAPER002_F)
+    if a_nt == 0:
+        assert fit.residual_rms < 1e-12 * sc.PAPER002_F
+        return
+    sd = a_nt * NT / np.sqrt(12)
+    assert abs(floor / sd - 1.0) < 0.15  # hull soft iron scales the raw noise by ~10 %
+    # 9 fitted parameters absorb 9/300 of the noise power: the fit sits ~1.5 % below the floor.
+    assert 0.95 < fit.residual_rms / floor < 1.0
+
+
+@pytest.mark.parametrize("table", [1, 2])
+@pytest.mark.parametrize("a_nt", sc.PAPER002_NOISE_PP_NT)
+def test_paper002_array_ml(table: int, a_nt: float) -> None:
+    """The array pipeline, default method: 4 sensors with the paper's errors (and random
+    2-deg misalignments), on the fit data and on 500 new attitudes with new noise."""
+    sim = sc.paper002_simulation(table, a_nt * NT)
+    rec, truth = sim.run(uniform_random(300, 7), rng=3)
+    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER002_F, method="ml")
+    if a_nt == 0:
+        assert np.all(res.tmi_after < 1e-12 * sc.PAPER002_F)
+        return
+    floor = tmi_rms(truth.calibration.apply(rec.vectors), sc.PAPER002_F)
+    assert np.all(np.abs(res.tmi_after / floor - 1.0) < 0.05)
+    # New data: 9 parameters from 300 sets add ~9/600 = 1.5 % in expectation; per sensor
+    # the excess scatters (measured up to 3.7 %), over the array it stays within 2 %.
+    fresh, fresh_truth = sim.run(uniform_random(500, 8), rng=9)
+    new = tmi_rms(res.calibration.apply(fresh.vectors), sc.PAPER002_F)
+    ideal = tmi_rms(fresh_truth.calibration.apply(fresh.vectors), sc.PAPER002_F)
+    assert np.all(new / ideal < 1.05)
+    assert np.sqrt(np.mean(new**2) / np.mean(ideal**2)) < 1.02
+
+
+@pytest.mark.parametrize("a_nt", sc.PAPER002_NOISE_PP_NT)
+def test_paper002_pso_small_budget(a_nt: float) -> None:
+    """Improved PSO, 30 particles x 150 iterations (the paper's budget is larger).
+
+    Measured on Table 1 over 10 seeds at this budget: 0.03..0.8 nT at a = 0 (raw 6825 nT);
+    for a >= 2 nT the median is within 2 % of the floor, the worst seed up to 4.5x it.
+    Plain PSO at the same budget: median 1.9..3.2 nT. Both reach the ML optimum at 50 x 400.
+    """
+    r, floor, before = _p002_sensor0(1, a_nt)
+    improved = [pso_fit(r, sc.PAPER002_F, 30, 150, seed=s).residual_rms for s in range(5)]
+    plain = [pso_fit(r, sc.PAPER002_F, 30, 150, seed=s, improved=False).residual_rms for s in range(5)]
+    assert max(improved) < before / 100
+    assert np.median(improved) <= np.median(plain)
+    if a_nt > 0:
+        assert np.median(improved) < 1.25 * floor
+
+
+@pytest.mark.parametrize("table", [1, 2])
+def test_paper002_pso_default_budget(table: int) -> None:
+    """With the default 50 x 400 both PSO variants reach the ML optimum (a = 2 nT)."""
+    r, floor, _ = _p002_sensor0(table, 2.0)
+    best = ml_fit(r, sc.PAPER002_F).residual_rms
+    for improved in (True, False):
+        fit = pso_fit(r, sc.PAPER002_F, seed=0, improved=improved)
+        assert fit.residual_rms / best - 1.0 < 1e-3
+        assert fit.residual_rms < floor
+
+
+# ---------------------------------------------------------------------------------------
+# Paper 003: no reference field, strong noise, index J over (theta, phi, psi, k'xz, k'yz).
+
+
+def _p003_j(sd_units: float, seeds: range) -> tuple[float, float]:
+    """Mean J of the paired method (paper's 5-parameter model) and of ML over ``seeds``."""
+    sim = sc.paper003_simulation(sd_units)
+    jp, jm = [], []
+    for seed in seeds:
+        rec, _ = sim.run(three_rotations(480), rng=seed)  # 2N = 1440, N = 720 pairs
+        r = rec.vectors[:, 0]
+        pf = paired_fit(r, None, seed=seed, fit_offset=False)
+        jp.append(j_index(q_to_angles(matrix_to_q(pf.matrix)), sc.PAPER003_TRUTH))
+        jm.append(j_index(q_to_angles(matrix_to_q(ml_fit(r, None).matrix)), sc.PAPER003_TRUTH))
+    return float(np.mean(jp)), float(np.mean(jm))
+
+
+def test_paper003_noise_free() -> None:
+    jp, jm = _p003_j(0.0, range(1))
+    assert jp < 1e-10 and jm < 1e-10
+
+
+def test_paper003_strong_noise() -> None:
+    """sd = 1e-2 units (100 nT, 0.5 % of |B|). The extracted paper gives no J values.
+
+    Measured over 20 seeds: median J 0.021 (paired) and 0.020 (ML, which also fits an
+    offset); J grows linearly with sd (0.0021 at sd 1e-3), so neither is breaking down.
+    """
+    jp, jm = _p003_j(1e-2, range(6))
+    assert jp < 0.04 and jm < 0.04
+    assert jm < 1.25 * jp
+    jp3, _ = _p003_j(1e-3, range(6))
+    assert 5.0 < jp / jp3 < 20.0
+
+
+# ---------------------------------------------------------------------------------------
+# Paper 001: two sensors, three turns of 10 points, regression of sensor 2 onto sensor 1.
+
+
+def _ptp(values: np.ndarray) -> np.ndarray:
+    return np.ptp(values, axis=0) / NT
+
+
+def test_paper001_regression() -> None:
+    """Peak-to-peak over 30 points varies a lot between runs: medians over 20 runs.
+
+    Paper: TMI 3138.6 -> 4.6 and 2633.0 -> 4.1 nT; difference after 5.4 / 5.6 / 5.9 nT.
+    Measured (sd 1 nT): before 3131 / 2472, after ~3.4 / 4.1, difference ~5.4 / 5.3 / 5.3.
+    """
+    sim = sc.paper001_simulation()
+    f = float(np.linalg.norm(sim.earth))
+    rows = []
+    for seed in range(20):
+        rec, _ = sim.run(three_rotations(10), rng=seed)
+        res = calibrate_array(rec.vectors, sim.geometry, f, method="regression")
+        raw, b = rec.vectors, res.calibration.apply(rec.vectors)
+        rows.append(
+            np.concatenate(
+                [
+                    _ptp(np.linalg.norm(raw, axis=2) - f),
+                    _ptp(np.linalg.norm(b, axis=2) - f),
+                    _ptp(raw[:, 0] - raw[:, 1]),
+                    _ptp(b[:, 0] - b[:, 1]),
+                ]
+            )
+        )
+        assert np.isnan(res.tensor_after)  # two sensors: no tensor
+    med = np.median(rows, axis=0)
+    rep = sc.REPORTED["001"]
+
+    def within(values: np.ndarray, reported: tuple[float, ...], low: float, high: float) -> bool:
+        ref = np.array(reported)
+        return bool(np.all((values > low * ref) & (values < high * ref)))
+
+    assert within(med[0:2], rep["tmi_ptp_before"], 0.5, 2.0)
+    assert within(med[2:4], rep["tmi_ptp_after"], 0.5, 1.5)
+    assert within(med[4:7], rep["diff_ptp_before"], 0.5, 2.0)
+    assert within(med[7:10], rep["diff_ptp_after"], 0.5, 1.5)
+
+
+# ---------------------------------------------------------------------------------------
+# Paper 004: 144-attitude grid, F 48750 nT, residual axis angle between sensors.
+
+
+def axis_angles_deg(matrices: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Angle (deg) between each corrected axis of sensor i and the same axis of sensor 1.
+
+    ``E_i = M_i K_i`` maps the true platform field to sensor i's corrected output; its
+    rows are the directions the corrected axes measure along, in the true platform frame.
+    """
+    e = np.einsum("sij,sjk->sik", matrices, forward)
+    u = e / np.linalg.norm(e, axis=2, keepdims=True)
+    cos = np.clip(np.einsum("sjk,jk->sj", u, u[0]), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+@pytest.mark.parametrize("method", ["reference", "ml"])
+def test_paper004_axis_angle(method: str) -> None:
+    """Paper: about 1 deg (up to 2) before, < 0.01 deg after alignment."""
+    sim = sc.paper004_simulation()
+    rec, _ = sim.run(paper004_grid(), rng=5)
+    forward = np.stack([s.forward()[0] for s in sim.sensors])
+    before = axis_angles_deg(np.tile(np.eye(3), (4, 1, 1)), forward)
+    assert 0.5 < before.max() < 5.0
+    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F, method=method)
+    assert axis_angles_deg(res.calibration.matrices, forward).max() < 0.01
