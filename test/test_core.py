@@ -209,3 +209,10 @@ def test_48_random_attitudes_reach_within_15_percent_of_the_floor():
     assert max(joint) < 1.15
     per_sensor = [_fresh_tensor_ratio(seed, 48, SolveOptions(joint=False)) for seed in range(4)]
     assert np.mean(joint) < np.mean(per_sensor)
+
+
+def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
+    """METHODS pitfall B: paper 000's own 10 samples (one z turn) cannot determine M."""
+    rec, _ = simulation().run(single_axis("z", 12)[:10], 1)
+    with pytest.raises(ObservabilityError, match=r"one axis only \(about z.*x or y"):
+        calibrate_array(rec.vectors, CROSS, F)
