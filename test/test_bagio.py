@@ -1,0 +1,419 @@
+"""rosbag2 I/O: byte-exact CDR batches, synchronisation, bag round trips, correct_bag."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+from magcal_ros import bagio, bagsource, cdr
+from magcal_ros.calibration import ArrayCalibration
+from magcal_ros.errors import InputError
+from magcal_ros.geometry import ArrayGeometry
+from magcal_ros.recording import Recording
+from magcal_ros.sync import SetSynchronizer
+
+NAMES = ("mag1", "mag2", "mag3", "mag4")
+NS = 1_000_000_000
+
+
+def ts():  # type: ignore[no-untyped-def]
+    return cdr.typestore()
+
+
+def read_all(path: Path) -> list[tuple[str, str, int, object]]:
+    """(topic, type, bag time, message) of every message of a bag, in bag order."""
+    out = []
+    with Reader(path) as reader:
+        for conn, t, data in reader.messages():
+            out.append((conn.topic, conn.msgtype, t, ts().deserialize_cdr(data, conn.msgtype)))
+    return out
+
+
+def stamp_ns(msg: object) -> int:
+    return msg.header.stamp.sec * NS + msg.header.stamp.nanosec  # type: ignore[attr-defined]
+
+
+def random_recording(n: int = 300, seed: int = 0, start: float = 1.7e9) -> Recording:
+    rng = np.random.default_rng(seed)
+    return Recording(NAMES, start + np.arange(n) * 0.01, rng.normal(0, 4e-5, (n, 4, 3)))
+
+
+def random_calibration(seed: int = 1) -> ArrayCalibration:
+    rng = np.random.default_rng(seed)
+    geo = ArrayGeometry.cross()
+    mats = np.eye(3) + rng.normal(0, 0.02, (4, 3, 3))
+    return ArrayCalibration(geo, mats, rng.normal(0, 2e-7, (4, 3)), {})
+
+
+# --------------------------------------------------------------------------- CDR
+
+
+@pytest.mark.parametrize("frame_id", ["", "m", "mag1", "magcal_array", "a/very/long/frame_id_with_17"])
+def test_magnetic_field_encoding_is_byte_exact(frame_id: str) -> None:
+    rng = np.random.default_rng(len(frame_id))
+    stamps = rng.integers(0, 2**31 - 1, 50) * NS + rng.integers(0, NS, 50)
+    vecs = rng.normal(0, 5e-5, (50, 3))
+    enc = cdr.magnetic_field_template(frame_id).encode(stamps, vecs)
+    for row, s, v in zip(enc, stamps, vecs):
+        msg = cdr.magnetic_field_message(int(s // NS), int(s % NS), frame_id, v)
+        assert bytes(row) == bytes(ts().serialize_cdr(msg, cdr.MAGNETIC_FIELD, little_endian=True))
+
+
+def test_gradient_encoding_is_byte_exact() -> None:
+    g = np.random.default_rng(3).normal(0, 1e-6, (20, 3, 3))
+    enc = cdr.gradient_template().encode(g)
+    for row, gi in zip(enc, g):
+        expected = ts().serialize_cdr(cdr.gradient_message(gi), cdr.FLOAT64_MULTI_ARRAY, little_endian=True)
+        assert bytes(row) == bytes(expected)
+        back = ts().deserialize_cdr(bytes(row), cdr.FLOAT64_MULTI_ARRAY)
+        assert [(d.label, d.size, d.stride) for d in back.layout.dim] == [("row", 3, 9), ("col", 3, 3)]
+        np.testing.assert_array_equal(back.data.reshape(3, 3), gi)
+
+
+def test_decode_mixed_frames_and_endianness_matches_rosbags() -> None:
+    rng = np.random.default_rng(4)
+    frames = ["", "x", "mag1", "mag12", "sensor_frame_long", "mag1"]
+    msgs, expected = [], []
+    for i in range(120):
+        frame = frames[i % len(frames)]
+        s, ns_ = int(rng.integers(0, 2**31 - 1)), int(rng.integers(0, NS))
+        v = rng.normal(0, 5e-5, 3)
+        m = cdr.magnetic_field_message(s, ns_, frame, v, covariance=rng.normal(size=9))
+        msgs.append(bytes(ts().serialize_cdr(m, cdr.MAGNETIC_FIELD, little_endian=bool(i % 3))))
+        expected.append((s * NS + ns_, v))
+    stamps, vecs = cdr.decode_magnetic_fields(msgs)
+    assert stamps.tolist() == [e[0] for e in expected]
+    np.testing.assert_array_equal(vecs, np.array([e[1] for e in expected]))
+    # One group only (the common case) takes the reshape path.
+    same = [m for m in msgs[2::6]]
+    s2, v2 = cdr.decode_magnetic_fields(same)
+    np.testing.assert_array_equal(s2, stamps[2::6])
+
+
+def test_decode_rejects_other_types() -> None:
+    grad = bytes(cdr.gradient_template().template)
+    with pytest.raises(InputError, match="MagneticField"):
+        cdr.decode_magnetic_fields([grad, grad])
+    with pytest.raises(InputError):
+        cdr.decode_magnetic_fields([b"\x00\x01\x00\x00" + b"\x00" * 10])
+
+
+def test_stamp_conversion() -> None:
+    t = np.array([0.0, 1.5, 1.7e9 + 0.123456789, 12.999999999])
+    ns_ = cdr.seconds_to_ns(t)
+    assert ns_[1] == 1_500_000_000
+    np.testing.assert_allclose(cdr.ns_to_seconds(ns_), t, rtol=0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- sync
+
+
+def brute_force_sets(streams: list[np.ndarray], tol: int) -> set[tuple[int, ...]]:
+    """Reference: for each reference stamp, nearest message per stream within tol, used once."""
+    ref = np.sort(streams[0])
+    chosen: list[list[int]] = [[int(r)] for r in ref]
+    ok = [True] * len(ref)
+    for s in streams[1:]:
+        s = np.sort(s)
+        best = []
+        for r in ref:
+            j = int(np.argmin(np.abs(s - r))) if len(s) else -1
+            best.append((j, abs(int(s[j]) - int(r)) if j >= 0 else None))
+        claims: dict[int, list[int]] = {}
+        for i, (j, d) in enumerate(best):
+            if d is not None and d <= tol:
+                claims.setdefault(j, []).append(i)
+            else:
+                ok[i] = False
+        for j, refs in claims.items():
+            keep = min(refs, key=lambda i: (best[i][1], i))
+            for i in refs:
+                if i != keep:
+                    ok[i] = False
+                else:
+                    chosen[i].append(int(s[j]))
+    return {tuple(c) for c, good in zip(chosen, ok) if good and max(c) - min(c) <= tol}
+
+
+@pytest.mark.parametrize("chunk", [7, 50, 10_000])
+def test_synchronizer_matches_brute_force(chunk: int) -> None:
+    rng = np.random.default_rng(5)
+    n, tol = 400, 2_000_000  # 100 Hz, 2 ms tolerance
+    base = 1_700_000_000 * NS + np.arange(n) * 10_000_000
+    streams = []
+    for k in range(4):
+        jitter = rng.integers(-3_000_000, 3_000_000, n)  # some beyond the tolerance
+        keep = rng.random(n) > 0.05  # dropped messages
+        streams.append((base + jitter)[keep])
+    sync = SetSynchronizer(4, tolerance=tol / NS, lag=0.05)
+    got: set[tuple[int, ...]] = set()
+    # Feed interleaved in chunks, like a bag in bag-time order.
+    events = sorted((int(t), k) for k, s in enumerate(streams) for t in s)
+    for a in range(0, len(events), chunk):
+        part = events[a : a + chunk]
+        for k in range(4):
+            st = np.array([t for t, kk in part if kk == k], dtype=np.int64)
+            sync.add(k, st, np.zeros((len(st), 3)) + k)
+        batch = sync.pop()
+        got |= {tuple(int(x) for x in row) for row in batch.stamps}
+        assert np.all(batch.vectors[:, :, 0] == np.arange(4))
+    got |= {tuple(int(x) for x in row) for row in sync.pop(final=True).stamps}
+    assert got == brute_force_sets(streams, tol)
+    total = sum(len(s) for s in streams)
+    assert sync.stats.sets == len(got)
+    assert sync.stats.dropped_messages == total - 4 * len(got)
+    assert sync.pending() == 0
+
+
+# --------------------------------------------------------------------------- bags
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_write_and_read_recording(tmp_path: Path, storage: str) -> None:
+    rec = random_recording()
+    out = tmp_path / "raw"
+    bagio.write_recording_bag(out, rec, storage)  # type: ignore[arg-type]
+    assert not [p for p in tmp_path.iterdir() if p.name != "raw"], "temporary files left behind"
+    with Reader(out) as r:
+        assert {c.topic: c.msgtype for c in r.connections} == {f"/{n}/raw": cdr.MAGNETIC_FIELD for n in NAMES}
+        assert r.message_count == 4 * len(rec)
+        assert r.storage.storages[0].__class__.__name__.lower().startswith(storage[:4])
+    msgs = read_all(out)
+    expected_ns = cdr.seconds_to_ns(rec.stamps)
+    for i, (topic, _, t, m) in enumerate(msgs):
+        k = i % 4
+        assert topic == f"/{NAMES[k]}/raw" and m.header.frame_id == NAMES[k]
+        assert t == stamp_ns(m) == expected_ns[i // 4]
+        assert [m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] == rec.vectors[i // 4, k].tolist()
+        assert not np.any(m.magnetic_field_covariance)
+    back = bagio.read_bag_recording(out)
+    assert back.names == NAMES
+    np.testing.assert_array_equal(back.vectors, rec.vectors)
+    np.testing.assert_array_equal(cdr.seconds_to_ns(back.stamps), expected_ns)
+    sub = bagio.read_bag_recording(out, names=["mag3", "mag1"])
+    np.testing.assert_array_equal(sub.vectors, rec.vectors[:, [2, 0]])
+    tops = bagio.read_bag_recording(out, topics=["/mag2/raw", "/mag4/raw"])
+    assert tops.names == ("mag2", "mag4")
+
+
+def write_messages(path: Path, storage: str, items: list[tuple[str, str, int, bytes]]) -> None:
+    """A bag from raw (topic, type, bag time, bytes) items, via plain rosbags."""
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        conns = {}
+        for topic, typ, t, data in items:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, typ, typestore=ts())
+            w.write(conns[topic], t, data)
+
+
+def field_bytes(stamp: int, frame: str, v: object) -> bytes:
+    m = cdr.magnetic_field_message(stamp // NS, stamp % NS, frame, v)
+    return bytes(ts().serialize_cdr(m, cdr.MAGNETIC_FIELD))
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_read_synchronises_with_jitter_and_drops(tmp_path: Path, storage: str) -> None:
+    rng = np.random.default_rng(6)
+    n = 200
+    base = 1_700_000_000 * NS + np.arange(n) * 100_000_000
+    items = []
+    vecs = rng.normal(0, 4e-5, (n, 4, 3))
+    for i in range(n):
+        for k, name in enumerate(NAMES):
+            if i == 17 and k == 2:
+                continue  # incomplete set
+            if i == 40 and k == 1:
+                vecs[i, k, 0] = np.nan  # non-finite reading
+            s = int(base[i] + (rng.integers(-400_000, 400_000) if k else 0))
+            items.append((f"/{name}/raw", cdr.MAGNETIC_FIELD, s + 1_000_000, field_bytes(s, name, vecs[i, k])))
+    items.append(("/other", "std_msgs/msg/Float64MultiArray", int(base[5]), bytes(cdr.gradient_template().template)))
+    items.sort(key=lambda x: x[2])
+    bag = tmp_path / "jitter"
+    write_messages(bag, storage, items)
+    rec, stats = bagio.read_bag_sets(bag, tolerance=1e-3)
+    assert stats.dropped_messages == 3 and stats.nonfinite_sets == 1 and stats.sets == n - 2
+    keep = np.setdiff1d(np.arange(n), [17, 40])
+    np.testing.assert_array_equal(rec.vectors, vecs[keep])
+    # Float seconds at epoch scale resolve ~0.2 us.
+    assert np.max(np.abs(cdr.seconds_to_ns(rec.stamps) - base[keep])) < 1000
+    with pytest.raises(InputError, match="NaN"):
+        bagio.read_bag_sets(bag, tolerance=1e-3, nonfinite="error")
+    # A tolerance below the jitter leaves no complete set: a clear error, not an empty recording.
+    with pytest.raises(InputError, match="no complete synchronized sets.*dropped"):
+        bagio.read_bag_sets(bag, tolerance=1e-6)
+
+
+def test_missing_and_wrong_topics(tmp_path: Path) -> None:
+    bag = tmp_path / "raw"
+    bagio.write_recording_bag(bag, random_recording(20))
+    with pytest.raises(InputError, match="no topic /mag9/raw"):
+        bagio.read_bag_recording(bag, names=["mag1", "mag9"])
+    other = tmp_path / "other"
+    write_messages(other, "sqlite3", [("/imu", "std_msgs/msg/Float64MultiArray", 1, bytes(cdr.gradient_template().template))])
+    with pytest.raises(InputError, match="no /<name>/raw"):
+        bagio.read_bag_recording(other)
+    wrong = tmp_path / "wrong"
+    write_messages(wrong, "sqlite3", [("/mag1/raw", "std_msgs/msg/Float64MultiArray", 1, bytes(cdr.gradient_template().template))])
+    with pytest.raises(InputError, match="has type std_msgs/msg/Float64MultiArray"):
+        bagio.read_bag_recording(wrong, names=["mag1"])
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_corrupt_bags_give_input_errors(tmp_path: Path, storage: str) -> None:
+    bag = tmp_path / "raw"
+    bagio.write_recording_bag(bag, random_recording(2000), storage)  # type: ignore[arg-type]
+    data = next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+    raw = data.read_bytes()
+    data.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(InputError, match="corrupt or unreadable"):
+        bagio.read_bag_recording(bag)
+    data.write_bytes(b"garbage" * 100)
+    with pytest.raises(InputError):
+        bagio.read_bag_recording(bag)
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(InputError, match="not a rosbag2 directory"):
+        bagio.read_bag_recording(bag)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError):
+        bagio.read_bag_recording(empty)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_correct_bag_matches_rosbags_serialisation(tmp_path: Path, storage: str) -> None:
+    rec = random_recording(300)
+    cal = random_calibration()
+    raw = tmp_path / "raw"
+    bagio.write_recording_bag(raw, rec, storage)  # type: ignore[arg-type]
+    out = tmp_path / "out"
+    calls: list[int] = []
+    report = bagio.correct_bag(raw, cal, out, progress=calls.append)
+    assert report.stats.sets == 300 and report.storage == storage and sum(calls) == 1200
+    b, centre, g = cal.field_and_gradient(rec.vectors)
+    stamps = cdr.seconds_to_ns(rec.stamps)
+    msgs = read_all(out)
+    assert len(msgs) == 6 * 300
+    with Reader(out) as r:
+        types = {c.topic: c.msgtype for c in r.connections}
+        files = [p.suffix for p in out.iterdir()]
+    assert types == {**{f"/{n}/corrected": cdr.MAGNETIC_FIELD for n in NAMES}, "/field": cdr.MAGNETIC_FIELD,
+                     "/gradient": cdr.FLOAT64_MULTI_ARRAY}
+    assert (".mcap" if storage == "mcap" else ".db3") in files
+    order = [f"/{n}/corrected" for n in NAMES] + ["/field", "/gradient"]
+    for i in range(300):
+        block = msgs[6 * i : 6 * i + 6]
+        assert [m[0] for m in block] == order, "field must precede gradient, per set"
+        assert all(m[2] == stamps[i] for m in block)
+        for k in range(4):
+            m = block[k][3]
+            assert m.header.frame_id == "magcal_array" and stamp_ns(m) == stamps[i]
+            np.testing.assert_array_equal([m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z], b[i, k])
+        f = block[4][3]
+        np.testing.assert_array_equal([f.magnetic_field.x, f.magnetic_field.y, f.magnetic_field.z], centre[i])
+        np.testing.assert_array_equal(block[5][3].data.reshape(3, 3), g[i])
+    # Byte-exact against rosbags' serializer.
+    with Reader(out) as r:
+        for conn, t, data in r.messages():
+            obj = ts().deserialize_cdr(data, conn.msgtype)
+            assert bytes(ts().serialize_cdr(obj, conn.msgtype, little_endian=True)) == bytes(data)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_fast_paths_equal_plain_rosbags_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, storage: str) -> None:
+    """Batch reading and writing give the same bag as rosbags' per-message Reader/Writer."""
+    rec = random_recording(5000)
+    cal = random_calibration()
+    raw = tmp_path / "raw"
+    bagio.write_recording_bag(raw, rec, storage)  # type: ignore[arg-type]
+    with bagio.open_bag(raw) as reader:
+        fast_source = bagsource._plain_sqlite_files(reader) or bagsource._indexed_mcaps(reader, reader.connections)
+        assert fast_source, "the fast reader must be used for bags we write"
+    bagio.correct_bag(raw, cal, tmp_path / "fast")
+    monkeypatch.setattr(bagio.BagSink, "_detect_fast", lambda self: None)
+    monkeypatch.setattr(bagsource, "_plain_sqlite_files", lambda reader: None)
+    monkeypatch.setattr(bagsource, "_indexed_mcaps", lambda reader, conns: None)
+    bagio.correct_bag(raw, cal, tmp_path / "slow")
+    with Reader(tmp_path / "fast") as a, Reader(tmp_path / "slow") as b:
+        fa = [(c.topic, t, bytes(d)) for c, t, d in a.messages()]
+        fb = [(c.topic, t, bytes(d)) for c, t, d in b.messages()]
+    assert fa == fb
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_correct_bag_copies_topics_and_converts_storage(tmp_path: Path, storage: str) -> None:
+    rec = random_recording(40)
+    raw = tmp_path / "raw"
+    items = []
+    stamps = cdr.seconds_to_ns(rec.stamps)
+    for i in range(40):
+        for k, name in enumerate(NAMES):
+            items.append((f"/{name}/raw", cdr.MAGNETIC_FIELD, int(stamps[i]), field_bytes(int(stamps[i]), name, rec.vectors[i, k])))
+        items.append(("/imu", cdr.FLOAT64_MULTI_ARRAY, int(stamps[i]) + 7, bytes(cdr.gradient_template().template)))
+    write_messages(raw, storage, items)
+    cal = random_calibration()
+    out = tmp_path / "out"
+    other = "sqlite3" if storage == "mcap" else "mcap"
+    report = bagio.correct_bag(raw, cal, out, storage=other, copy_topics=["/imu"])
+    assert report.copied_messages == 40
+    msgs = read_all(out)
+    imu = [m for m in msgs if m[0] == "/imu"]
+    assert [m[2] for m in imu] == [int(s) + 7 for s in stamps]
+    assert sum(1 for m in msgs if m[0] == "/gradient") == 40
+    assert any(p.suffix == (".mcap" if other == "mcap" else ".db3") for p in out.iterdir())
+    imu_bytes = {bytes(cdr.gradient_template().template)}
+    with Reader(out) as r:
+        assert {bytes(d) for c, _, d in r.messages() if c.topic == "/imu"} == imu_bytes
+    out2 = tmp_path / "out2"
+    report2 = bagio.correct_bag(raw, cal, out2, copy_topics="all")
+    topics = {m[0] for m in read_all(out2)}
+    assert {"/imu", "/mag1/raw", "/mag1/corrected", "/field", "/gradient"} <= topics
+    assert report2.copied_messages == 200
+    with pytest.raises(InputError, match="no topic /gps"):
+        bagio.correct_bag(raw, cal, tmp_path / "out3", copy_topics=["/gps"])
+    assert not (tmp_path / "out3").exists()
+
+
+def test_outputs_are_atomic_and_safe(tmp_path: Path) -> None:
+    rec = random_recording(30)
+    raw = tmp_path / "raw"
+    bagio.write_recording_bag(raw, rec)
+    precious = tmp_path / "precious"
+    precious.mkdir()
+    (precious / "notes.txt").write_text("keep me")
+    with pytest.raises(InputError, match="not a rosbag2 directory"):
+        bagio.correct_bag(raw, random_calibration(), precious)
+    assert (precious / "notes.txt").read_text() == "keep me"
+    with pytest.raises(InputError, match="differ"):
+        bagio.correct_bag(raw, random_calibration(), raw)
+    # A calibration naming a sensor the bag lacks: nothing written.
+    geo = ArrayGeometry.cross(names=("mag1", "mag2", "mag3", "mag5"))
+    cal = ArrayCalibration(geo, np.tile(np.eye(3), (4, 1, 1)), np.zeros((4, 3)))
+    with pytest.raises(InputError, match="/mag5/raw"):
+        bagio.correct_bag(raw, cal, tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["precious", "raw"]
+    # Rewriting an existing bag replaces it.
+    bagio.write_recording_bag(raw, random_recording(10))
+    assert len(bagio.read_bag_recording(raw)) == 10
+    shutil.rmtree(raw)
+
+
+def test_write_failures_are_one_line_and_leave_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sqlite3
+
+    from magcal_ros.errors import MagcalError
+
+    raw = tmp_path / "raw"
+    bagio.write_recording_bag(raw, random_recording(30))
+
+    def full_disk(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(bagio.BagSink, "_sqlite_sets", full_disk)
+    with pytest.raises(MagcalError, match="cannot write bag .*disk is full"):
+        bagio.correct_bag(raw, random_calibration(), tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
