@@ -1,0 +1,83 @@
+"""Bounded store of synchronized raw sets that keeps a spread of attitudes (no ROS import).
+
+Each set is filed under the sphere cell (one of :data:`CELLS` roughly uniform
+directions) nearest to the direction of its array-centre raw reading, which is the field
+direction in the array frame and so a proxy for the attitude. Below ``capacity`` every
+set is kept; when full, a new set replaces a random set of the most crowded cell (its
+own cell if that is the most crowded), so a long stationary stretch cannot push out the
+rare attitudes a calibration needs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+CELLS: int = 42
+
+
+def _cell_directions(count: int = CELLS) -> NDArray[np.float64]:
+    """Unit vectors of a Fibonacci sphere (count, 3)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    phi = np.pi * (1.0 + 5**0.5) * k
+    rho = np.sqrt(1.0 - z * z)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+class SetBuffer:
+    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns)."""
+
+    def __init__(self, capacity: int, sensors: int, seed: int | None = 0) -> None:
+        if capacity < 1:
+            raise ValueError("capacity must be >= 1")
+        self.capacity = capacity
+        self.sensors = sensors
+        self._raw = np.empty((capacity, sensors, 3))
+        self._stamps = np.zeros(capacity, dtype=np.int64)
+        self._cells = np.zeros(capacity, dtype=np.int64)
+        self._counts = np.zeros(CELLS, dtype=np.int64)
+        self._dirs = _cell_directions()
+        self._rng = np.random.default_rng(seed)
+        self._size = 0
+        self.offered = 0
+        """Sets offered since the last clear (kept or not)."""
+
+    def __len__(self) -> int:
+        return self._size
+
+    def clear(self) -> None:
+        """Forget every set."""
+        self._size = 0
+        self._counts[:] = 0
+        self.offered = 0
+
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...]) -> None:
+        """Store one set (S raw vectors, T), replacing a crowded one when full."""
+        raw = np.asarray(values, dtype=float)
+        cell = int(np.argmax(self._dirs @ raw.sum(axis=0)))
+        self.offered += 1
+        if self._size < self.capacity:
+            slot = self._size
+            self._size += 1
+        else:
+            target = int(np.argmax(self._counts))
+            if self._counts[cell] >= self._counts[target]:
+                target = cell
+            members = np.flatnonzero(self._cells[: self._size] == target)
+            slot = int(members[self._rng.integers(len(members))])
+            self._counts[target] -= 1
+        self._raw[slot] = raw
+        self._stamps[slot] = stamp_ns
+        self._cells[slot] = cell
+        self._counts[cell] += 1
+
+    def snapshot(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Copies of the stored stamps (N,) ns and raw sets (N, S, 3) T, in stamp order."""
+        order = np.argsort(self._stamps[: self._size], kind="stable")
+        return self._stamps[order].copy(), self._raw[order].copy()
+
+    @property
+    def cells_visited(self) -> int:
+        """Number of sphere cells holding at least one set."""
+        return int(np.count_nonzero(self._counts))

@@ -1,0 +1,198 @@
+"""Test harness for the node tests: node processes, a private ROS domain, synthetic data.
+
+The nodes under test always run as separate processes started from their installed
+executables with ``--ros-args``; the test talks to them only over DDS through
+:class:`magcal_ros.nodes.driver.ArrayDriver` (publishers, subscriptions, service
+clients). Waits are on discovery and on data, with generous timeouts.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from magcal_ros.attitudes import single_axis, uniform_random
+from magcal_ros.field import earth_field
+from magcal_ros.geometry import ArrayGeometry
+from magcal_ros.nodes.driver import (
+    ArrayDriver,
+    NodeProcess,
+    RawMessage,
+    pick_domain_id,
+    recording_messages,
+    ros_args,
+    ros_environment,
+)
+from magcal_ros.recording import Recording
+from magcal_ros.simulate import ArraySimulation, Truth, random_sensor_errors
+from magcal_ros.units import NT
+
+INTENSITY = 51_500 * NT
+NOISE = 1.0 * NT
+BASELINE = 0.4
+STARTUP_TIMEOUT = 60.0
+DISCOVERY_TIMEOUT = 60.0
+REPLAY_RATE = 400.0
+CORRECTION = "magcal_correction"
+CALIBRATION = "magcal_calibration"
+
+
+@dataclass
+class Data:
+    """Synthetic recordings of one simulated array (uniform field, so the true tensor is 0)."""
+
+    sim: ArraySimulation
+    manoeuvre: Recording
+    """Random attitudes for the calibration."""
+    check: Recording
+    """Fresh attitudes and noise, never used for a calibration."""
+    check_truth: Truth
+    single_axis: Recording
+    """A rotation about z only: a calibration must refuse it."""
+    faulty: list[RawMessage]
+    faulty_good: list[int]
+    """Original stamps (ns) of the faulty replay's sets that are complete and finite."""
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.sim.geometry.names
+
+
+def make_data(seed: int = 11, sets: int = 800, check_sets: int = 400) -> Data:
+    """Simulate the recordings used by the node tests."""
+    rng = np.random.default_rng(seed)
+    geometry = ArrayGeometry.cross(BASELINE)
+    sensors = tuple(random_sensor_errors(rng) for _ in geometry.names)
+    sim = ArraySimulation(geometry, sensors, earth_field(INTENSITY, 60.0, 5.0), noise=NOISE)
+    manoeuvre, _ = sim.run(uniform_random(sets, rng), rng, rate=50.0)
+    check, check_truth = sim.run(uniform_random(check_sets, rng), rng, rate=50.0, start=1000.0)
+    axis, _ = sim.run(single_axis("z", 360), rng, rate=50.0, start=2000.0)
+    faulty_rec, _ = sim.run(uniform_random(200, rng), rng, rate=50.0, start=3000.0)
+    faulty, good = faulty_messages(faulty_rec)
+    return Data(sim, manoeuvre, check, check_truth, axis, faulty, good)
+
+
+def faulty_messages(rec: Recording) -> tuple[list[RawMessage], list[int]]:
+    """Raw messages with NaN and infinite readings, a silent sensor, a repeat and a stale stamp.
+
+    Sets 20-29: mag2 has a NaN; 50-59: mag3 reads +inf; 100-139: mag4 is silent; set 150
+    repeats mag1's message; after set 160 a stale mag1 message (set 155's stamp) arrives.
+    Returns the messages and the original stamps of the sets that should come through.
+    """
+    msgs = recording_messages(rec.names, rec.stamps, rec.vectors)
+    out: list[RawMessage] = []
+    good: list[int] = []
+    per_set = len(rec.names)
+    for k in range(len(rec)):
+        bad_set = False
+        for m in msgs[k * per_set : (k + 1) * per_set]:
+            v = m.vector
+            if 20 <= k < 30 and m.name == "mag2":
+                v, bad_set = (v[0], float("nan"), v[2]), True
+            if 50 <= k < 60 and m.name == "mag3":
+                v, bad_set = (float("inf"), v[1], v[2]), True
+            if 100 <= k < 140 and m.name == "mag4":
+                bad_set = True
+                continue
+            out.append(RawMessage(m.name, m.stamp_ns, v))
+            if k == 150 and m.name == "mag1":
+                out.append(RawMessage(m.name, m.stamp_ns, v))
+        if k == 160:
+            stale = msgs[155 * per_set]
+            out.append(stale)
+        if not bad_set:
+            good.append(msgs[k * per_set].stamp_ns)
+    return out, good
+
+
+@dataclass
+class RosRun:
+    """A private ROS domain with node processes and a driver node talking to them."""
+
+    workdir: Path
+    domain_id: int = field(default_factory=pick_domain_id)
+    processes: list[NodeProcess] = field(default_factory=list)
+    drivers: list[ArrayDriver] = field(default_factory=list)
+
+    @property
+    def env(self) -> dict[str, str]:
+        return ros_environment(self.domain_id)
+
+    def start(
+        self,
+        executable: str,
+        params: Mapping[str, Any] | None = None,
+        params_files: Sequence[str | os.PathLike[str]] = (),
+        log_name: str | None = None,
+        ready_text: str | None = None,
+    ) -> NodeProcess:
+        """Start an installed node executable and wait for its start-up log line."""
+        log = self.workdir / f"{log_name or executable}.log"
+        proc = NodeProcess(executable, ros_args(params=params, params_files=params_files), self.env, log)
+        self.processes.append(proc)
+        text = ready_text or ("correcting" if executable == "correction_node" else "listening to")
+        if not proc.wait_for_log(text, STARTUP_TIMEOUT):
+            raise AssertionError(f"{executable} did not start:\n{proc.log()}")
+        return proc
+
+    def driver(self, names: Sequence[str]) -> ArrayDriver:
+        """A driver node on this domain, waited on until it sees the nodes' topics."""
+        d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}")
+        self.drivers.append(d)
+        return d
+
+    def close(self) -> dict[str, int]:
+        """Close drivers, stop processes (Ctrl-C); exit codes by log name."""
+        for d in self.drivers:
+            d.close()
+        self.drivers.clear()
+        codes = {p.log_path.stem: p.stop() for p in self.processes}
+        self.processes.clear()
+        return codes
+
+
+def wait_discovered(driver: ArrayDriver, subscribers: int) -> None:
+    """Every raw topic matched by ``subscribers`` nodes and every output topic by a publisher."""
+    assert driver.wait_for_subscribers(subscribers, DISCOVERY_TIMEOUT), "raw topics not matched by the nodes"
+    assert driver.wait_for_output_publishers(DISCOVERY_TIMEOUT), "output topics not matched"
+    assert driver.prime(DISCOVERY_TIMEOUT), "the correction node does not answer probe sets"
+
+
+def replay_recording(driver: ArrayDriver, rec: Recording, rate: float = REPLAY_RATE) -> dict[int, int]:
+    """Replay complete sets; returns {original stamp ns: published stamp ns}."""
+    return driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=rate)
+
+
+def original_stamps(rec: Recording) -> list[int]:
+    """Set stamps of a recording in ns, as the driver keys them."""
+    return [int(t) for t in np.round(rec.stamps * 1e9).astype(np.int64)]
+
+
+def outputs_by_original(
+    driver: ArrayDriver,
+    mapping: dict[int, int],
+    stamps: Sequence[int],
+    wait_for: Sequence[int] | None = None,
+) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """Gradients and corrected vectors received for ``stamps`` (original ns), keyed by original stamp.
+
+    Waits for the outputs of ``wait_for`` (original stamps; default ``stamps``) first.
+    """
+    waited = [mapping[t] for t in (stamps if wait_for is None else wait_for) if t in mapping]
+    driver.wait_for_outputs(waited, timeout=60.0)
+    published = [mapping[t] for t in stamps if t in mapping]
+    back = {mapping[t]: t for t in stamps if t in mapping}
+    g = {back[t]: v for t, v in driver.gradients(published).items()}
+    c = {back[t]: v for t, v in driver.corrected(published).items()}
+    return g, c
+
+
+def chunked(values: Sequence[Any], n: int) -> Iterator[Sequence[Any]]:
+    """Slices of ``n``."""
+    for a in range(0, len(values), n):
+        yield values[a : a + n]
