@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +70,17 @@ class ArrayGeometry:
         return self.positions.mean(axis=0)
 
     def cross_layout(self, tolerance: float = 1e-6) -> CrossLayout | None:
-        """The cross indices if the sensors form a planar cross about the centre, else None."""
+        """The cross indices if the sensors form a planar cross about the centre, else None.
+
+        Computed once per geometry for the default tolerance (the correction hot path).
+        """
+        return self._default_cross if tolerance == 1e-6 else self._find_cross(tolerance)
+
+    @functools.cached_property
+    def _default_cross(self) -> CrossLayout | None:
+        return self._find_cross(1e-6)
+
+    def _find_cross(self, tolerance: float) -> CrossLayout | None:
         if self.size != 4:
             return None
         rel = self.positions - self.centre
