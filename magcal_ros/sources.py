@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from magcal_ros.errors import InputError
 from magcal_ros.recording import Recording, read_csv
@@ -19,17 +19,9 @@ def is_csv(path: str | os.PathLike[str]) -> bool:
     return str(path).lower().endswith(".csv")
 
 
-def read_recording(
-    path: str | os.PathLike[str],
-    names: tuple[str, ...] | None = None,
-    start: float | None = None,
-    end: float | None = None,
-    tolerance: float | None = None,
-    nonfinite: str = "drop",
-    progress: Callable[[int], None] | None = None,
-) -> Recording:
-    """Synchronized raw sets from ``path``; see :func:`open_recording`."""
-    return open_recording(path, names, start, end, tolerance, nonfinite, progress)[0]
+def read_recording(path: str | os.PathLike[str], **options: Any) -> Recording:
+    """Synchronized raw sets from ``path`` (options as :func:`open_recording`)."""
+    return open_recording(path, **options)[0]
 
 
 def open_recording(
