@@ -78,8 +78,8 @@ def refine(
         g_theta = np.concatenate([g_k, g_o], axis=1).reshape(-1)
         # Cross terms B_k (12 S x 2): d e_a/dK_ab = u_b, so B[(s, a, b), c] = u_b jd[s, a, c]
         b_kk = np.einsum("nb,nsac->nsabc", u, jd).reshape(n, s, 9, 2)
-        b_oo = jd  # (N, S, 3, 2)
-        bmat = np.concatenate([b_kk, b_oo], axis=2).reshape(n, 12 * s, 2)
+        bmat = np.concatenate([b_kk, jd], axis=2).reshape(n, 12 * s, 2)  # offsets: d e_a/d o_a = 1
+        flat_b = bmat.transpose(1, 0, 2).reshape(12 * s, -1)
         cmat = np.einsum("nsai,nsaj->nij", jd, jd)  # (N, 2, 2)
         g_d = np.einsum("nsai,nsa->ni", jd, e)  # (N, 2)
         while True:
@@ -87,7 +87,6 @@ def refine(
             c_inv = np.linalg.inv(c_l)
             bc = np.einsum("nij,njk->nik", bmat, c_inv)  # (N, 12S, 2)
             flat_bc = bc.transpose(1, 0, 2).reshape(12 * s, -1)
-            flat_b = bmat.transpose(1, 0, 2).reshape(12 * s, -1)
             schur = big_a + lam * np.diag(np.diag(big_a)) - flat_bc @ flat_b.T
             rhs = g_theta - np.einsum("nik,nk->i", bc, g_d)
             step = -np.linalg.lstsq(schur + 1e-12 * np.trace(schur) / len(schur) * eye12, rhs, rcond=None)[0]
