@@ -230,18 +230,12 @@ def read_bag_sets(
     return rec, stats
 
 
-def read_bag_recording(
-    path: str | os.PathLike[str],
-    names: Sequence[str] | None = None,
-    topics: Sequence[str] | None = None,
-    tolerance: float = DEFAULT_SYNC_TOLERANCE,
-    nonfinite: NonFinite = "drop",
-) -> Recording:
+def read_bag_recording(path: str | os.PathLike[str], names: Sequence[str] | None = None, **options: Any) -> Recording:
     """Synchronized raw sets of a rosbag2 directory (sqlite3 or mcap) as a :class:`Recording`.
 
-    See :func:`read_bag_sets` (which also returns how many messages were dropped).
+    Options as :func:`read_bag_sets` (which also returns how many messages were dropped).
     """
-    return read_bag_sets(path, names, topics, tolerance, nonfinite)[0]
+    return read_bag_sets(path, names, **options)[0]
 
 
 # --------------------------------------------------------------------------- writing
