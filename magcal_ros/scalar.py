@@ -16,7 +16,7 @@ reading norm and :attr:`ScalarFit.intensity` reports the scale used.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -194,10 +194,3 @@ def ml_fit(
         std = np.full(9, np.inf)
     rms = float(np.sqrt(np.mean(res**2))) * f
     return ScalarFit(m, o, f, rms, std, "ml")
-
-
-def relative_to(fit: ScalarFit, intensity: float) -> ScalarFit:
-    """The same calibration rescaled so that its target norm is ``intensity`` (T)."""
-    k = intensity / fit.intensity
-    std = None if fit.std is None else fit.std.copy()
-    return replace(fit, matrix=fit.matrix * k, intensity=intensity, residual_rms=fit.residual_rms * k, std=std)
