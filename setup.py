@@ -17,6 +17,7 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["numpy", "scipy", "PyYAML", "rosbags", "matplotlib"],
+    package_data={PACKAGE: ["py.typed"]},
     zip_safe=True,
     maintainer="magcal_ros developers",
     maintainer_email="dev@magcal.invalid",
@@ -26,7 +27,7 @@ setup(
     extras_require={"test": ["pytest"]},
     entry_points={
         "console_scripts": [
-            "magcal = magcal_ros.cli:main",
+            "magcal = magcal_ros.app.cli:main",
             "correction_node = magcal_ros.nodes.correction_node:main",
             "calibration_node = magcal_ros.nodes.calibration_node:main",
         ],

@@ -30,20 +30,25 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from magcal_ros.alignment import paper000_angles  # noqa: E402
-from magcal_ros.attitudes import paper000_grid, paper004_grid, three_rotations, uniform_random  # noqa: E402
-from magcal_ros.calibrate import CalibrationResult, calibrate_array  # noqa: E402
+from magcal_ros.core.alignment import paper000_angles  # noqa: E402
+from magcal_ros.core.field import earth_field  # noqa: E402
+from magcal_ros.core.geometry import ArrayGeometry  # noqa: E402
+from magcal_ros.core.metrics import tensor_component_rms, tensor_rms, tmi_rms  # noqa: E402
+from magcal_ros.core.scalar_fit import ml_fit  # noqa: E402
+from magcal_ros.core.tensor import gradient  # noqa: E402
+from magcal_ros.core.units import NT  # noqa: E402
 from magcal_ros.errors import MagcalError  # noqa: E402
-from magcal_ros.field import earth_field  # noqa: E402
-from magcal_ros.geometry import ArrayGeometry  # noqa: E402
-from magcal_ros.methods import scenarios as sc  # noqa: E402
 from magcal_ros.methods.paired import j_index, matrix_to_q, paired_fit, q_to_angles  # noqa: E402
+from magcal_ros.methods.pipeline import CalibrationResult, calibrate_array  # noqa: E402
 from magcal_ros.methods.pso import pso_fit  # noqa: E402
-from magcal_ros.metrics import tensor_component_rms, tensor_rms, tmi_rms  # noqa: E402
-from magcal_ros.scalar import ml_fit  # noqa: E402
-from magcal_ros.tensor import gradient  # noqa: E402
-from magcal_ros.simulate import ArraySimulation, random_sensor_errors  # noqa: E402
-from magcal_ros.units import NT  # noqa: E402
+from magcal_ros.sim import scenarios as sc  # noqa: E402
+from magcal_ros.sim.attitudes import (  # noqa: E402
+    paper000_grid,
+    paper004_grid,
+    three_rotations,
+    uniform_random,
+)
+from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors  # noqa: E402
 
 METHODS: tuple[str, ...] = ("ml", "linear", "pso", "paired", "regression", "reference")
 FRESH_SETS: int = 500
@@ -68,13 +73,13 @@ def random_array(seed: int = 5) -> ArraySimulation:
 
 
 def scenarios() -> list[Scenario]:
-    """Paper 000's grid, paper 002's tables at each noise level, short and long random runs."""
-    out = [Scenario("paper 000 grid (1728 sets, sigma 1 nT)", sc.paper000_simulation(), paper000_grid(), sc.PAPER000_F)]
+    """Li et al. (2018)'s grid, Ding's (2024) tables at each noise level, short and long random runs."""
+    out = [Scenario("Li et al. (2018) grid (1728 sets, sigma 1 nT)", sc.paper000_simulation(), paper000_grid(), sc.PAPER000_F)]
     for table in (1, 2):
         for a in sc.PAPER002_NOISE_PP_NT:
             out.append(
                 Scenario(
-                    f"paper 002 Table {table}, noise {a:g} nT p-p (300 random sets)",
+                    f"Ding (2024) Table {table}, noise {a:g} nT p-p (300 random sets)",
                     sc.paper002_simulation(table, a * NT),
                     uniform_random(300, 7),
                     sc.PAPER002_F,
@@ -185,12 +190,12 @@ def fmt(values: np.ndarray | tuple, spec: str = ".4g") -> str:
 
 
 def paper000_reproduction() -> None:
-    """Paper 000 Tables 2-4 with method ml (Table 1 is covered by test_papers.py)."""
+    """Li et al. (2018) Tables 2-4 with method ml (Table 1 is covered by test_papers.py)."""
     sim = sc.paper000_simulation()
     rec, truth = sim.run(paper000_grid(), rng=1)
     res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F)
     rep = sc.REPORTED["000"]
-    print("\npaper 000 (ml on the full grid; the paper used 10 samples of one z turn, see pitfall B)")
+    print("\nLi et al. (2018) (ml on the full grid; the paper used 10 samples of one z turn, see pitfall B)")
     print(f"  TMI before nT   ours {fmt(res.tmi_before / NT, '.1f')}   paper {fmt(rep['tmi_before'], '.1f')}")
     print(f"  TMI after nT    ours {fmt(res.tmi_after / NT)}   paper {fmt(rep['tmi_after'])}")
     before = tensor_component_rms(gradient(rec.vectors, sim.geometry)) / NT
@@ -208,7 +213,7 @@ def paper000_reproduction() -> None:
 
 
 def paper001_reproduction(runs: int = 50) -> None:
-    """Paper 001: medians over ``runs`` noise seeds of the peak-to-peak errors (nT)."""
+    """The two-fluxgate gradiometer paper: medians over ``runs`` noise seeds of the peak-to-peak errors (nT)."""
     sim = sc.paper001_simulation()
     f = float(np.linalg.norm(sim.earth))
     rows = []
@@ -221,7 +226,7 @@ def paper001_reproduction(runs: int = 50) -> None:
                                     np.ptp(raw[:, 0] - raw[:, 1], axis=0), np.ptp(b[:, 0] - b[:, 1], axis=0)]) / NT)
     med = np.median(rows, axis=0)
     rep = sc.REPORTED["001"]
-    print(f"\npaper 001 (regression, 2 sensors, sd 1 nT; medians of {runs} runs, peak-to-peak nT)")
+    print(f"\nthe two-fluxgate gradiometer paper (regression, 2 sensors, sd 1 nT; medians of {runs} runs, peak-to-peak nT)")
     print(f"  TMI before  ours {fmt(med[0:2], '.1f')}   paper {fmt(rep['tmi_ptp_before'], '.1f')}")
     print(f"  TMI after   ours {fmt(med[2:4], '.2f')}   paper {fmt(rep['tmi_ptp_after'], '.2f')}")
     print(f"  diff before ours {fmt(med[4:7], '.1f')}   paper {fmt(rep['diff_ptp_before'], '.1f')}")
@@ -229,8 +234,8 @@ def paper001_reproduction(runs: int = 50) -> None:
 
 
 def paper002_pso(seeds: int = 5) -> None:
-    """Paper 002 single sensor: ML and both PSO variants at two budgets (TMI RMS, nT)."""
-    print("\npaper 002 single sensor, TMI RMS nT (PSO small budget: median of 5 seeds)")
+    """Ding (2024) single sensor: ML and both PSO variants at two budgets (TMI RMS, nT)."""
+    print("\nDing (2024) single sensor, TMI RMS nT (PSO small budget: median of 5 seeds)")
     print(f"  {'case':12s} {'floor':>9s} {'ml':>9s} {'imp 50x400':>10s} {'plain 50x400':>12s} "
           f"{'imp 30x150':>10s} {'plain 30x150':>12s} {'paper imp':>9s} {'paper plain':>11s}")
     rep = sc.REPORTED["002"]
@@ -252,8 +257,8 @@ def paper002_pso(seeds: int = 5) -> None:
 
 
 def paper003_j(seeds: int = 10) -> None:
-    """Paper 003: mean J over ``seeds`` (2N = 1440 samples, three full turns)."""
-    print("\npaper 003 index J (mean of 10 seeds; the extracted paper prints no J values)")
+    """Wu et al. (2013): mean J over ``seeds`` (2N = 1440 samples, three full turns)."""
+    print("\nWu et al. (2013) index J (mean of 10 seeds; the extracted paper prints no J values)")
     print(f"  {'sd (1e4 nT)':>11s} {'paired (paper)':>14s} {'paired+offset':>13s} {'ml':>9s}")
     for sd in (1e-4, 1e-3, 1e-2, 3e-2):
         sim = sc.paper003_simulation(sd)
@@ -267,11 +272,11 @@ def paper003_j(seeds: int = 10) -> None:
 
 
 def paper004_axis() -> None:
-    """Paper 004: worst inter-sensor axis angle (deg) before and after, per method."""
+    """The JNWPU 2022 coaxial calibration paper: worst inter-sensor axis angle (deg) before and after, per method."""
     sim = sc.paper004_simulation()
     rec, _ = sim.run(paper004_grid(), rng=5)
     forward = np.stack([s.forward()[0] for s in sim.sensors])
-    print("\npaper 004 worst axis angle to sensor 1 (deg; paper: ~1-2 before, < 0.01 after)")
+    print("\nthe JNWPU 2022 coaxial calibration paper worst axis angle to sensor 1 (deg; paper: ~1-2 before, < 0.01 after)")
     print(f"  before {axis_error_deg(np.tile(np.eye(3), (4, 1, 1)), forward):.3f}")
     for method in METHODS:
         cal = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F, method=method).calibration

@@ -3,7 +3,7 @@
 Not a test. Builds a simulated recording of ``--messages`` raw messages (4 sensors, so
 messages/4 sets), then, each in its own process so peak RSS is per run:
 
-- ``fast``: ``python -m magcal_ros.cli correct`` (batch CDR decoding/encoding, batch
+- ``fast``: ``python -m magcal_ros.app.cli correct`` (batch CDR decoding/encoding, batch
   storage inserts);
 - ``plain``: the straightforward path: ``Reader.messages`` -> ``deserialize_cdr`` per
   message -> sets matched by stamp -> the same numpy correction, in batches of 1024 sets ->
@@ -36,11 +36,11 @@ if str(ROOT) not in sys.path:
 def make_recording(path: Path, sets: int, storage: str, cal_path: Path) -> float:
     """Simulated raw bag of ``sets`` x 4 messages and its true calibration; returns seconds."""
     import numpy as np
+    from magcal_ros.io.bags import write_recording_bag
 
-    from magcal_ros import calfile
-    from magcal_ros.attitudes import uniform_random
-    from magcal_ros.bagio import write_recording_bag
-    from magcal_ros.synthetic import SimulationSpec, build
+    from magcal_ros.io import calibration_file as calfile
+    from magcal_ros.sim.attitudes import uniform_random
+    from magcal_ros.sim.spec import SimulationSpec, build
 
     t0 = time.perf_counter()
     sim, _ = build(SimulationSpec(count=1))
@@ -56,8 +56,8 @@ def plain_correct(in_path: str, cal_path: str, out_path: str, storage: str) -> N
     import numpy as np
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
-    from magcal_ros import calfile
-    from magcal_ros.cdr import FLOAT64_MULTI_ARRAY, MAGNETIC_FIELD, typestore
+    from magcal_ros.io import calibration_file as calfile
+    from magcal_ros.io.cdr import FLOAT64_MULTI_ARRAY, MAGNETIC_FIELD, typestore
 
     ts = typestore()
     t = ts.types
@@ -156,7 +156,7 @@ def main() -> int:
             os.sync()
             out = work / f"fast_{n}"
             shutil.rmtree(out, ignore_errors=True)
-            wall, rss = timed([py, "-m", "magcal_ros.cli", "correct", str(bag), "-c", str(cal), "-o", str(out),
+            wall, rss = timed([py, "-m", "magcal_ros.app.cli", "correct", str(bag), "-c", str(cal), "-o", str(out),
                                "--storage", args.storage, "--quiet"])
             results[n] = (wall, rss)
             rows.append((f"fast  magcal correct, {4 * n} msgs", 4 * n / wall, wall, rss))

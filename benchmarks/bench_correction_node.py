@@ -113,7 +113,7 @@ def node_counters(driver, node: str) -> dict[str, int]:  # type: ignore[no-untyp
     """The correction node's ~/status counters (next message)."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from magcal_ros.nodes.driver import status_values
+    from magcal_ros.app.ros_driver import status_values
 
     msg = driver.wait_for_message(DiagnosticStatus, f"/{node}/status", None, 10.0)
     if msg is None:
@@ -125,7 +125,12 @@ def throughput(rates: list[float], seconds: float, workdir: Path, domain: int) -
     """Correction node at each rate: sets/s, drops, latency, CPU, RSS."""
     import psutil
 
-    from magcal_ros.nodes.driver import ArrayDriver, NodeProcess, ros_args, ros_environment
+    from magcal_ros.app.ros_driver import (
+        ArrayDriver,
+        NodeProcess,
+        ros_args,
+        ros_environment,
+    )
 
     env = ros_environment(domain)
     node = NodeProcess("correction_node", ros_args(), env, workdir / "correction_node.log")
@@ -139,7 +144,7 @@ def throughput(rates: list[float], seconds: float, workdir: Path, domain: int) -
               f"warm-up, {os.cpu_count()} CPUs")
         from diagnostic_msgs.msg import DiagnosticStatus
 
-        from magcal_ros.nodes.driver import status_values
+        from magcal_ros.app.ros_driver import status_values
 
         ages: list[dict[str, str]] = []
         driver.node.create_subscription(
@@ -184,7 +189,13 @@ def memory(minutes: float, rate: float, max_samples: int, workdir: Path, domain:
     """Both nodes for ``minutes`` at 4 x ``rate`` Hz with the calibration node collecting."""
     import psutil
 
-    from magcal_ros.nodes.driver import ArrayDriver, NodeProcess, ros_args, ros_environment, wait_for_samples
+    from magcal_ros.app.ros_driver import (
+        ArrayDriver,
+        NodeProcess,
+        ros_args,
+        ros_environment,
+        wait_for_samples,
+    )
 
     env = ros_environment(domain)
     nodes = {
@@ -251,7 +262,7 @@ def main() -> int:
     if args.publish:
         publish(args.publish[0], args.publish[1], args.domain, args.wait_subscribers)
         return 0
-    from magcal_ros.nodes.driver import pick_domain_id
+    from magcal_ros.app.ros_driver import pick_domain_id
 
     domain = pick_domain_id()
     with tempfile.TemporaryDirectory(prefix="magcal_bench_") as tmp:

@@ -1,38 +1,39 @@
-"""magcal_ros: calibration of a magnetic gradient tensor array of fluxgates.
+"""magcal_ros: calibration of a magnetic gradient tensor array of fluxgates, with ROS 2 nodes.
 
-The math (everything importable from here) uses numpy and scipy only, no ROS. ROS 2
-nodes live in :mod:`magcal_ros.nodes`, rosbag2 I/O in :mod:`magcal_ros.bagio`, the
-``magcal`` command in :mod:`magcal_ros.cli`. Names below are imported on first use, so
-that ``import magcal_ros.<module>`` stays cheap.
+Layers, lowest first; a module imports only from its own layer or lower ones:
+
+- :mod:`magcal_ros.core`: the math on numpy arrays (error model, fits, alignment, tensor,
+  the calibration object, the set synchroniser, the ``Recording`` type). No I/O, no ROS.
+- :mod:`magcal_ros.methods`: the calibration pipeline and the selectable methods.
+- :mod:`magcal_ros.sim`: simulated arrays, manoeuvres and the papers' scenarios.
+- :mod:`magcal_ros.io`: files and messages: CDR codec, rosbag2, CSV, calibration files.
+- :mod:`magcal_ros.nodes`: the two ROS 2 nodes (rclpy).
+- :mod:`magcal_ros.app`: the ``magcal`` command, the demo, plots and the replay driver.
+
+The most used names are importable from here, loaded on first use.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from magcal_ros._lazy import lazy_exports
 
 __version__ = "0.1.0"
 
-_EXPORTS = {
-    "ArrayCalibration": "magcal_ros.calibration",
-    "ArrayGeometry": "magcal_ros.geometry",
-    "CalibrationFailed": "magcal_ros.errors",
-    "CalibrationResult": "magcal_ros.calibrate",
-    "DEFAULT_METHOD": "magcal_ros.calibrate",
-    "InputError": "magcal_ros.errors",
-    "METHODS": "magcal_ros.calibrate",
-    "MagcalError": "magcal_ros.errors",
-    "ObservabilityError": "magcal_ros.errors",
-    "Recording": "magcal_ros.recording",
-    "SensorErrors": "magcal_ros.sensor_model",
-    "SolveOptions": "magcal_ros.calibrate",
-    "calibrate_array": "magcal_ros.calibrate",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'magcal_ros' has no attribute {name!r}")
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "ArrayCalibration": "magcal_ros.core.calibration",
+        "ArrayGeometry": "magcal_ros.core.geometry",
+        "CalibrationFailed": "magcal_ros.errors",
+        "CalibrationResult": "magcal_ros.methods.pipeline",
+        "DEFAULT_METHOD": "magcal_ros.methods.strategies",
+        "InputError": "magcal_ros.errors",
+        "METHODS": "magcal_ros.methods.strategies",
+        "MagcalError": "magcal_ros.errors",
+        "ObservabilityError": "magcal_ros.errors",
+        "Recording": "magcal_ros.core.recording",
+        "SensorErrors": "magcal_ros.core.sensor_model",
+        "SolveOptions": "magcal_ros.methods.pipeline",
+        "calibrate_array": "magcal_ros.methods.pipeline",
+    },
+)

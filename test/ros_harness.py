@@ -2,7 +2,7 @@
 
 The nodes under test always run as separate processes started from their installed
 executables with ``--ros-args``; the test talks to them only over DDS through
-:class:`magcal_ros.nodes.driver.ArrayDriver` (publishers, subscriptions, service
+:class:`magcal_ros.app.ros_driver.ArrayDriver` (publishers, subscriptions, service
 clients). Waits are on discovery and on data, with generous timeouts.
 """
 
@@ -16,10 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from magcal_ros.attitudes import single_axis, uniform_random
-from magcal_ros.field import earth_field
-from magcal_ros.geometry import ArrayGeometry
-from magcal_ros.nodes.driver import (
+from magcal_ros.app.ros_driver import (
     ArrayDriver,
     NodeProcess,
     RawMessage,
@@ -28,9 +25,12 @@ from magcal_ros.nodes.driver import (
     ros_args,
     ros_environment,
 )
-from magcal_ros.recording import Recording
-from magcal_ros.simulate import ArraySimulation, Truth, random_sensor_errors
-from magcal_ros.units import NT
+from magcal_ros.core.field import earth_field
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.units import NT
+from magcal_ros.sim.attitudes import single_axis, uniform_random
+from magcal_ros.sim.simulator import ArraySimulation, Truth, random_sensor_errors
 
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT
@@ -170,7 +170,7 @@ def replay_recording(driver: ArrayDriver, rec: Recording, rate: float = REPLAY_R
 
 def original_stamps(rec: Recording) -> list[int]:
     """Set stamps of a recording in ns, as the driver keys them."""
-    return [int(t) for t in np.round(rec.stamps * 1e9).astype(np.int64)]
+    return [int(t) for t in rec.stamps]
 
 
 def outputs_by_original(

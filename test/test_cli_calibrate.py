@@ -10,21 +10,21 @@ import numpy as np
 import pytest
 import yaml
 
-from magcal_ros import calfile
-from magcal_ros.attitudes import uniform_random
-from magcal_ros.field import earth_field
-from magcal_ros.geometry import ArrayGeometry
-from magcal_ros.metrics import tensor_rms, tmi_rms
-from magcal_ros.recording import write_csv
-from magcal_ros.simulate import ArraySimulation, random_sensor_errors
-from magcal_ros.tensor import gradient_difference
-from magcal_ros.units import NT
+from magcal_ros.core.field import earth_field
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.metrics import tensor_rms, tmi_rms
+from magcal_ros.core.tensor import gradient_difference
+from magcal_ros.core.units import NT
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io.csv_recording import write_csv
+from magcal_ros.sim.attitudes import uniform_random
+from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 
 F = 51_500 * NT
 
 
 def run_magcal(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "magcal_ros.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "magcal_ros.app.cli", *args], capture_output=True, text=True, timeout=120)
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +113,7 @@ def test_bad_input_gives_one_line_nonzero_exit_and_no_output(tmp_path, rotation_
 
 
 def test_single_axis_recording_is_refused_with_guidance(tmp_path, sim):
-    from magcal_ros.attitudes import single_axis
+    from magcal_ros.sim.attitudes import single_axis
 
     path = tmp_path / "yaw.csv"
     write_csv(path, sim.run(single_axis("z", 90), 1)[0])

@@ -5,18 +5,32 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal_ros.attitudes import paper000_grid, single_axis, three_rotations, uniform_random
-from magcal_ros.calibrate import SolveOptions, calibrate_array
+from magcal_ros.core.field import Dipole, earth_field
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.metrics import tensor_floor, tensor_rms, tmi_rms
+from magcal_ros.core.rotation import (
+    euler_to_matrix,
+    matrix_to_euler,
+    procrustes,
+    rotation_angle,
+)
+from magcal_ros.core.scalar_fit import algebraic_fit, ml_fit
+from magcal_ros.core.sensor_model import SensorErrors
+from magcal_ros.core.tensor import (
+    gradient_difference,
+    gradient_least_squares,
+    invariants,
+)
+from magcal_ros.core.units import NT
 from magcal_ros.errors import CalibrationFailed, InputError, ObservabilityError
-from magcal_ros.field import Dipole, earth_field
-from magcal_ros.geometry import ArrayGeometry
-from magcal_ros.metrics import tensor_floor, tensor_rms, tmi_rms
-from magcal_ros.rotation import euler_to_matrix, matrix_to_euler, procrustes, rotation_angle
-from magcal_ros.scalar import algebraic_fit, ml_fit
-from magcal_ros.sensor_model import SensorErrors
-from magcal_ros.simulate import ArraySimulation, random_sensor_errors
-from magcal_ros.tensor import gradient_difference, gradient_least_squares, invariants
-from magcal_ros.units import NT
+from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
+from magcal_ros.sim.attitudes import (
+    paper000_grid,
+    single_axis,
+    three_rotations,
+    uniform_random,
+)
+from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 
 F = 50_000 * NT
 EARTH = earth_field(F, 60.0, -5.0)
@@ -95,7 +109,7 @@ def test_least_squares_tensor_for_a_non_cross_geometry():
 
 
 def test_algebraic_fit_normalisation_is_not_trivial_and_exact_without_noise():
-    """METHODS pitfall A: the fit must not return the trivial [0,...,0,F^2] solution."""
+    """docs/methods.md, pitfall A: the fit must not return the trivial [0,...,0,F^2] solution."""
     sim = simulation(noise=0.0)
     rec, truth = sim.run(three_rotations(12), 0)
     fit = algebraic_fit(rec.vectors[:, 0], F)
@@ -212,7 +226,7 @@ def test_48_random_attitudes_reach_within_15_percent_of_the_floor():
 
 
 def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
-    """METHODS pitfall B: paper 000's own 10 samples (one z turn) cannot determine M."""
+    """docs/methods.md, pitfall B: Li et al.'s (2018) own 10 samples (one z turn) cannot determine M."""
     rec, _ = simulation().run(single_axis("z", 12)[:10], 1)
     with pytest.raises(ObservabilityError, match=r"one axis only \(about z.*x or y"):
         calibrate_array(rec.vectors, CROSS, F)

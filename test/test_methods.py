@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal_ros.attitudes import paper000_grid, uniform_random
-from magcal_ros.calibrate import SolveOptions, calibrate_array
+from magcal_ros.core.metrics import tmi_rms
+from magcal_ros.core.sensor_model import SensorErrors
+from magcal_ros.core.units import NT
 from magcal_ros.errors import CalibrationFailed, InputError
-from magcal_ros.methods import scenarios as sc
 from magcal_ros.methods.paired import (
     angles_to_q,
     j_index,
@@ -18,10 +18,18 @@ from magcal_ros.methods.paired import (
     q_to_matrix,
     split_pairs,
 )
-from magcal_ros.methods.pso import chaotic_unit, circle_map, features, fitness, pso_fit, search_box, upper_triangular
-from magcal_ros.metrics import tmi_rms
-from magcal_ros.sensor_model import SensorErrors
-from magcal_ros.units import NT
+from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
+from magcal_ros.methods.pso import (
+    chaotic_unit,
+    circle_map,
+    features,
+    fitness,
+    pso_fit,
+    search_box,
+    upper_triangular,
+)
+from magcal_ros.sim import scenarios as sc
+from magcal_ros.sim.attitudes import paper000_grid, uniform_random
 
 F = 50_000 * NT
 
@@ -107,7 +115,7 @@ def test_pso_bad_arguments() -> None:
 
 def test_q_angles_round_trip() -> None:
     q = angles_to_q(*sc.PAPER003_TRUTH)
-    # Paper 003's true G (digest, checked with sympy).
+    # Wu et al. (2013)'s true G (digest, checked with sympy).
     expected = [[0.954766, -0.084247, -0.063473], [0.0, 1.050841, 0.040021], [0.0, 0.0, 1.0]]
     assert np.allclose(q_to_matrix(q), expected, atol=1e-6)
     assert np.allclose(q_to_angles(q), sc.PAPER003_TRUTH, atol=1e-14)

@@ -16,15 +16,19 @@ from typing import Any
 
 import numpy as np
 import pytest
-
+import ros_harness as h  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
-import ros_harness as h  # noqa: E402
-from magcal_ros import calfile  # noqa: E402
-from magcal_ros.bagio import write_recording_bag  # noqa: E402
-from magcal_ros.calibration import ArrayCalibration  # noqa: E402
-from magcal_ros.metrics import rms, tensor_floor, tmi_rms  # noqa: E402
-from magcal_ros.nodes.driver import bag_messages, status_values, wait_for_samples, write_messages_bag  # noqa: E402
+from magcal_ros.app.ros_driver import (  # noqa: E402
+    bag_messages,
+    status_values,
+    wait_for_samples,
+    write_messages_bag,
+)
+from magcal_ros.core.calibration import ArrayCalibration  # noqa: E402
+from magcal_ros.core.metrics import rms, tensor_floor, tmi_rms  # noqa: E402
+from magcal_ros.io import calibration_file as calfile  # noqa: E402
+from magcal_ros.io.bag_writer import write_recording_bag  # noqa: E402
 
 CALIBRATION_PARAMS = ["sensor_names", "positions"] + [
     f"mag{i}.{s}" for i in range(1, 5) for s in ("matrix", "offset")
@@ -127,7 +131,7 @@ def test_outputs_follow_the_contract(calibrated: dict[str, Any], driver: Any) ->
     t = calibrated["stamps"][0]
     b = calibrated["corrected"][t]
     # The tensor is what the core computes from the corrected vectors (difference formula).
-    from magcal_ros.tensor import gradient
+    from magcal_ros.core.tensor import gradient
 
     assert np.allclose(gradient(b[None], cal.geometry)[0], calibrated["gradients"][t], rtol=1e-9, atol=1e-18)
 
@@ -206,11 +210,11 @@ def test_bad_samples_are_dropped_and_good_sets_corrected(
     assert int(progress["samples"]) == len(data.faulty_good) or int(progress["samples"]) >= 0.95 * len(
         data.faulty_good)
     status = driver.wait_for_message(
-        DiagnosticStatus, f"/{h.CORRECTION}/status", lambda m: int(status_values(m)["bad_value"]) >= 20, 30.0
+        DiagnosticStatus, f"/{h.CORRECTION}/status", lambda m: int(status_values(m)["nonfinite"]) >= 20, 30.0
     )
     assert status is not None, "the correction node's ~/status never counted the bad samples"
     counters = status_values(status)
-    assert int(counters["bad_value"]) >= 20 and int(counters["incomplete"]) >= 60
+    assert int(counters["nonfinite"]) >= 20 and int(counters["unmatched"]) >= 60
     assert int(counters["duplicate"]) >= 1 and int(counters["out_of_order"]) >= 1
     assert all(p.alive() for p in run.processes)
     assert run.processes[0].wait_for_log("dropped since last report", 15.0)

@@ -10,24 +10,29 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal_ros.alignment import align_procrustes, paper000_angles
-from magcal_ros.attitudes import paper000_grid, paper004_grid, three_rotations, uniform_random
-from magcal_ros.calibrate import CalibrationResult, calibrate_array
+from magcal_ros.core.alignment import align_procrustes, paper000_angles
+from magcal_ros.core.metrics import tensor_component_rms, tensor_floor, tmi_rms
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.rotation import matrix_to_euler
+from magcal_ros.core.scalar_fit import ml_fit
+from magcal_ros.core.sensor_model import SensorErrors
+from magcal_ros.core.tensor import gradient
+from magcal_ros.core.units import NT
 from magcal_ros.errors import ObservabilityError
-from magcal_ros.methods import scenarios as sc
 from magcal_ros.methods.paired import j_index, matrix_to_q, paired_fit, q_to_angles
+from magcal_ros.methods.pipeline import CalibrationResult, calibrate_array
 from magcal_ros.methods.pso import pso_fit
-from magcal_ros.metrics import tensor_component_rms, tensor_floor, tmi_rms
-from magcal_ros.recording import Recording
-from magcal_ros.rotation import matrix_to_euler
-from magcal_ros.scalar import ml_fit
-from magcal_ros.sensor_model import SensorErrors
-from magcal_ros.simulate import ArraySimulation, Truth
-from magcal_ros.tensor import gradient
-from magcal_ros.units import NT
+from magcal_ros.sim import scenarios as sc
+from magcal_ros.sim.attitudes import (
+    paper000_grid,
+    paper004_grid,
+    three_rotations,
+    uniform_random,
+)
+from magcal_ros.sim.simulator import ArraySimulation, Truth
 
 # ---------------------------------------------------------------------------------------
-# Paper 000: 1728-set grid, sigma = 1 nT on the orthogonal sensor output.
+# Li et al. (2018): 1728-set grid, sigma = 1 nT on the orthogonal sensor output.
 
 
 @pytest.fixture(scope="module")
@@ -133,7 +138,7 @@ def test_random_48_attitudes_fresh_data() -> None:
 
 
 # ---------------------------------------------------------------------------------------
-# Paper 002: 300 random attitudes, uniform noise of peak-to-peak a on the raw output.
+# Ding (2024): 300 random attitudes, uniform noise of peak-to-peak a on the raw output.
 
 
 def _p002_sensor0(table: int, a_nt: float) -> tuple[np.ndarray, float, float]:
@@ -213,7 +218,7 @@ def test_paper002_pso_default_budget(table: int) -> None:
 
 
 # ---------------------------------------------------------------------------------------
-# Paper 003: no reference field, strong noise, index J over (theta, phi, psi, k'xz, k'yz).
+# Wu et al. (2013): no reference field, strong noise, index J over (theta, phi, psi, k'xz, k'yz).
 
 
 def _p003_j(sd_units: float, seeds: range) -> tuple[float, float]:
@@ -248,7 +253,7 @@ def test_paper003_strong_noise() -> None:
 
 
 # ---------------------------------------------------------------------------------------
-# Paper 001: two sensors, three turns of 10 points, regression of sensor 2 onto sensor 1.
+# The two-fluxgate gradiometer paper: two sensors, three turns of 10 points, regression of sensor 2 onto sensor 1.
 
 
 def _ptp(values: np.ndarray) -> np.ndarray:
@@ -293,7 +298,7 @@ def test_paper001_regression() -> None:
 
 
 # ---------------------------------------------------------------------------------------
-# Paper 004: 144-attitude grid, F 48750 nT, residual axis angle between sensors.
+# The JNWPU 2022 coaxial calibration paper: 144-attitude grid, F 48750 nT, residual axis angle between sensors.
 
 
 def axis_angles_deg(matrices: np.ndarray, forward: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
-"""Reference-free paired-norm calibration (paper 003, Wu et al. 2013; METHODS section 2).
+"""Reference-free paired-norm calibration (Wu et al. 2013; docs/methods.md, section 2).
 
-Paper 003's correction is ``b = G r`` with the upper-triangular
+Wu et al. (2013)'s correction is ``b = G r`` with the upper-triangular
 ``G = [[q1, q2, q3], [0, q4, q5], [0, 0, 1]]``: five parameters, gains relative to the z
 axis, no offset and no absolute scale. With no reference field, the 2N readings are split
 into two groups and ``sum_i (|G r1_i|^2 - |G r2_i|^2)^2`` is minimised: every pair of
@@ -22,10 +22,10 @@ Implementation choices (the paper names no solver and no split):
   corrected norm equals ``intensity`` (T), or, without a reference, the mean norm of
   the offset-free readings ``mean |r - o|`` (sensor units).
 
-:func:`q_to_angles` and :func:`angles_to_q` map ``q1..q5`` to and from paper 003's
+:func:`q_to_angles` and :func:`angles_to_q` map ``q1..q5`` to and from Wu et al.'s (2013)
 physical parameters ``(theta, phi, psi, k'xz, k'yz)`` (its eq. 4, typos corrected),
-and :func:`j_index` is its accuracy index (eq. 16). Paper 003's angle names differ from
-papers 000/002: its ``theta`` is the elevation of the x axis and ``phi`` the azimuth of
+and :func:`j_index` is its accuracy index (eq. 16). Wu et al. (2013)'s angle names differ from
+Li et al. and Ding: its ``theta`` is the elevation of the x axis and ``phi`` the azimuth of
 its projection, so ``SensorErrors(scale=[1/k'xz, 1/k'yz, 1], angles=(theta, phi, psi))``
 is the same sensor.
 """
@@ -36,13 +36,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from magcal_ros.core.scalar_fit import ScalarFit, _readings, _target
 from magcal_ros.errors import CalibrationFailed, InputError
-from magcal_ros.scalar import ScalarFit, _readings, _target
 
 Array = NDArray[np.float64]
 
 PARAMETER_NAMES: tuple[str, ...] = ("theta", "phi", "psi", "kxz", "kyz")
-"""Paper 003's physical parameters: angles (rad) and gains relative to z."""
+"""Wu et al. (2013)'s physical parameters: angles (rad) and gains relative to z."""
 
 
 def q_to_matrix(q: ArrayLike) -> Array:
@@ -58,7 +58,7 @@ def matrix_to_q(matrix: ArrayLike) -> Array:
 
 
 def angles_to_q(theta: float, phi: float, psi: float, kxz: float, kyz: float) -> Array:
-    """``q1..q5`` of paper 003 eq. 4 from its angles (rad) and relative gains."""
+    """``q1..q5`` of Wu et al. (2013) eq. 4 from its angles (rad) and relative gains."""
     return np.array(
         [
             kxz / (np.cos(theta) * np.cos(phi)),
@@ -82,7 +82,7 @@ def q_to_angles(q: ArrayLike) -> Array:
 
 
 def j_index(estimate: ArrayLike, truth: ArrayLike) -> float:
-    """Paper 003's index ``J = sqrt(sum(((p - p_hat) / p)^2))`` over its five parameters."""
+    """Wu et al. (2013)'s index ``J = sqrt(sum(((p - p_hat) / p)^2))`` over its five parameters."""
     p = np.asarray(truth, dtype=float)
     return float(np.sqrt(np.sum(((p - np.asarray(estimate, dtype=float)) / p) ** 2)))
 
@@ -137,7 +137,7 @@ def paired_fit(
     seed: int | None = 0,
     fit_offset: bool = True,
 ) -> ScalarFit:
-    """Paper 003's reference-free calibration of readings (N, 3) in T.
+    """Wu et al. (2013)'s reference-free calibration of readings (N, 3) in T.
 
     Returns an upper-triangular matrix ``s G`` (``s`` sets the mean corrected norm to
     ``intensity``, or to ``mean |r - o|`` when None), the offset (T; zeros when

@@ -1,4 +1,4 @@
-"""Particle swarm scalar calibration (paper 002, Ding 2024; METHODS section 2).
+"""Particle swarm scalar calibration (Ding 2024; docs/methods.md, section 2).
 
 Minimises the TMI fitness ``RMS_k(|P (r_k - o)| - F)`` over the 12 entries of a general
 3x3 inverse matrix ``P`` and the offset ``o`` with a particle swarm. Work is done in units
@@ -8,7 +8,7 @@ Improved PSO (``improved=True``, the paper's method):
 
 - inertia ``w`` decreases linearly from ``W_RANGE[0]`` to ``W_RANGE[1]``; the cognitive
   factor ``c1`` decreases from ``C1_RANGE[0]`` to ``C1_RANGE[1]`` and the social factor
-  ``c2`` increases from ``C2_RANGE[0]`` to ``C2_RANGE[1]`` (paper 002 eqs 12-14);
+  ``c2`` increases from ``C2_RANGE[0]`` to ``C2_RANGE[1]`` (Ding (2024) eqs 12-14);
 - the initial positions come from the Circle chaotic map as printed in the paper,
   ``z <- mod(2 z + 0.2 - 0.7 / (2 pi) cos(2 pi z + pi / 2), 1)``, iterated across the
   particles from a seeded random start per dimension, mapped linearly into the bounds.
@@ -20,9 +20,9 @@ Choices the paper does not give (it prints no numbers for them):
 
 - factor ranges: the common literature values w 0.9 -> 0.4, c1 2.5 -> 0.5, c2 0.5 -> 2.5;
 - search box: ``P`` within ``identity +- matrix_span`` (default 0.5, i.e. gains 0.67..2 and
-  cross terms up to 0.5: paper 000's scale factors 0.80..1.31 and paper 002's hull soft
+  cross terms up to 0.5: Li et al.'s (2018) scale factors 0.80..1.31 and Ding's (2024) hull soft
   iron up to 0.15 fit with room), ``o`` within ``+- offset_span * F`` (default 2 % of F,
-  about 1000 nT in the Earth's field: paper 002's offsets plus hard iron reach 500 nT);
+  about 1000 nT in the Earth's field: Ding's (2024) offsets plus hard iron reach 500 nT);
 - velocity clamp ``VMAX_FRACTION`` (20 %) of the box width per dimension; particles that
   leave the box are put back on its wall with zero velocity in that dimension;
 - ``r1, r2`` drawn per particle and per dimension.
@@ -32,7 +32,7 @@ If the best offset ends on the wall of the box the true offset may lie outside i
 
 The rotation part of ``P`` is not observable from the TMI (any ``Q P`` with ``Q``
 orthogonal has the same fitness); the result is reduced to the upper-triangular factor of
-``P = Q U`` (QR, positive diagonal), as every scalar fit in :mod:`magcal_ros.scalar`.
+``P = Q U`` (QR, positive diagonal), as every scalar fit in :mod:`magcal_ros.core.scalar_fit`.
 The swarm's precision is limited by its budget: it approaches, but unlike ``ml`` does not
 reliably reach, the noise floor (see ``benchmarks/bench_calibration.py``).
 """
@@ -42,8 +42,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core.scalar_fit import ScalarFit, _readings, _target
 from magcal_ros.errors import CalibrationFailed, InputError
-from magcal_ros.scalar import ScalarFit, _readings, _target
 
 Array = NDArray[np.float64]
 
@@ -62,7 +62,7 @@ VMAX_FRACTION: float = 0.2
 
 
 def circle_map(z: Array) -> Array:
-    """One step of paper 002's Circle chaotic map on values in [0, 1)."""
+    """One step of Ding's (2024) Circle chaotic map on values in [0, 1)."""
     return np.mod(2.0 * z + 0.2 - 0.7 / (2.0 * np.pi) * np.cos(2.0 * np.pi * z + 0.5 * np.pi), 1.0)
 
 
@@ -172,7 +172,7 @@ def pso_fit(
     matrix_span: float = 0.5,
     offset_span: float = 0.02,
 ) -> ScalarFit:
-    """Scalar calibration of readings (N, 3) in T by particle swarm (paper 002).
+    """Scalar calibration of readings (N, 3) in T by particle swarm (Ding (2024)).
 
     ``intensity`` is F in T (None: relative, F = mean norm of the centred readings).
     ``matrix_span`` and ``offset_span`` set the search box (fractions of F, see the

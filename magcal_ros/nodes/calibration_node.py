@@ -5,7 +5,7 @@ while collecting, keeps up to ``max_samples`` synchronized sets spread over the
 attitudes. Services (std_srvs/srv/Trigger):
 
 - ``~/start``: forget collected sets and start collecting;
-- ``~/calibrate``: solve with the core (:func:`magcal_ros.calibrate.calibrate_array`),
+- ``~/calibrate``: solve with the core (:func:`magcal_ros.methods.pipeline.calibrate_array`),
   set the result on the running correction node through its
   ``set_parameters_atomically`` service (all or nothing), then write the calibration
   file (atomic, previous file kept as ``.bak``); answers the one-line summary, or
@@ -46,14 +46,22 @@ from rclpy.task import Future
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
-from magcal_ros import calfile
-from magcal_ros.calibrate import DEFAULT_METHOD, METHODS, CalibrationResult, SolveOptions, calibrate_array
+from magcal_ros.core import sync
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.observability import excitation
+from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.errors import InputError, MagcalError
-from magcal_ros.geometry import ArrayGeometry
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io import topics
+from magcal_ros.methods.pipeline import (
+    DEFAULT_METHOD,
+    METHODS,
+    CalibrationResult,
+    SolveOptions,
+    calibrate_array,
+)
 from magcal_ros.nodes import common
 from magcal_ros.nodes.buffer import SetBuffer
-from magcal_ros.nodes.sync import SetSynchronizer
-from magcal_ros.observability import excitation
 
 NODE_NAME = "magcal_calibration"
 DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
@@ -94,7 +102,7 @@ class CalibrationNode(Node):
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
         self.get_logger().info(
-            f"listening to {', '.join(common.raw_topic(n) for n in self._geometry.names)}; "
+            f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}; "
             f"{'collecting' if self._collecting else 'idle: call ~/start to collect'}; "
             f"method {self.get_parameter('method').value}, results go to "
             f"/{self._target().lstrip('/')} and {self._calibration_path() or '(no file)'}"
@@ -129,7 +137,7 @@ class CalibrationNode(Node):
             d("most synchronized sets kept; when full, sets of the most visited attitudes are replaced"),
         )
         self.declare_parameter(
-            "sync_tolerance", common.DEFAULT_SYNC_TOLERANCE,
+            "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
             d("largest spread (s) of header stamps within one set", numbers=True),
         )
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
@@ -196,7 +204,7 @@ class CalibrationNode(Node):
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size)
         self._subs = [
             self.create_subscription(
-                MagneticField, common.raw_topic(n), self._raw_callback(i), self._raw_qos
+                MagneticField, topics.raw(n), self._raw_callback(i), self._raw_qos
             )
             for i, n in enumerate(geo.names)
         ]
@@ -211,7 +219,7 @@ class CalibrationNode(Node):
             st = msg.header.stamp
             f = msg.magnetic_field
             with self._lock:
-                synced = self._sync.add(index, st.sec * common.NS_PER_S + st.nanosec, f.x, f.y, f.z)
+                synced = self._sync.add(index, common.stamp_ns(st), f.x, f.y, f.z)
                 if synced is not None and self._collecting:
                     self._buffer.add(synced.stamp, synced.values)
 
@@ -244,7 +252,7 @@ class CalibrationNode(Node):
             _, raw = self._buffer.snapshot()
             collecting, offered, capacity = self._collecting, self._buffer.offered, self._buffer.capacity
             stats = self._sync.stats.as_dict()
-        self._drops.update(stats, f"{stats['complete']} complete sets")
+        self._drops.update(stats, f"{stats['sets']} complete sets")
         exc = excitation(raw.mean(axis=1)) if len(raw) else excitation(np.zeros((0, 3)))
         problem = exc.problem()
         values = {
@@ -256,8 +264,8 @@ class CalibrationNode(Node):
             "thickness": f"{exc.thickness:.3f}",
             "ready": str(problem is None).lower(),
             "problem": problem or "",
-            "incomplete_sets": str(stats["incomplete"]),
-            "bad_samples": str(stats["bad_value"] + stats["out_of_order"] + stats["duplicate"]),
+            "unmatched": str(stats["unmatched"]),
+            "bad_samples": str(stats["nonfinite"] + stats["out_of_order"] + stats["duplicate"] + stats["zero_stamp"]),
         }
         if problem is None:
             message = f"ready: {len(raw)} sets, coverage {exc.coverage:.0%}; call ~/calibrate"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import struct
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -12,17 +11,16 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from magcal_ros.core import sync
+from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
+from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
-from magcal_ros.geometry import DEFAULT_NAMES, ArrayGeometry
 
 DEFAULT_SENSOR_NAMES: list[str] = list(DEFAULT_NAMES)
 DEFAULT_POSITIONS: list[float] = [float(x) for x in ArrayGeometry.cross().positions.reshape(-1)]
 IDENTITY: list[float] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 ZEROS: list[float] = [0.0, 0.0, 0.0]
 RELIABILITIES: tuple[str, ...] = ("best_effort", "reliable")
-NS_PER_S: int = 1_000_000_000
-DEFAULT_SYNC_TOLERANCE: float = 1e-3
-"""Default largest spread (s) of header stamps in one set (the offline tools use the same)."""
 
 SENSOR_NAMES_DOC = "sensor names; each subscribes <name>/raw (sensor_msgs/MagneticField, T)"
 POSITIONS_DOC = "sensor positions, 3 per sensor in sensor_names order (m, platform frame)"
@@ -53,11 +51,6 @@ def check_number_array(param: Parameter) -> str | None:
     return None
 
 
-def raw_topic(name: str) -> str:
-    """Topic of a sensor's raw readings (relative: follows the node's namespace)."""
-    return f"{name}/raw"
-
-
 def raw_qos(reliability: str, depth: int) -> QoSProfile:
     """QoS of the raw subscriptions."""
     if reliability not in RELIABILITIES:
@@ -78,41 +71,9 @@ def stamp_ns(stamp: Any) -> int:
     return stamp.sec * NS_PER_S + stamp.nanosec
 
 
-_LE = struct.Struct("<iII")
-_BE = struct.Struct(">iII")
-_LE3 = struct.Struct("<3d")
-_BE3 = struct.Struct(">3d")
-
-
-def decode_magnetic_field(data: bytes) -> tuple[int, float, float, float]:
-    """Header stamp (ns) and field (T) of a serialized sensor_msgs/MagneticField (CDR).
-
-    Reads the fixed layout directly (encapsulation, stamp, frame_id, three doubles), which
-    is ~50 times faster than building the Python message; other encodings fall back to
-    rclpy's deserializer.
-    """
-    kind = data[1]
-    if data[0] == 0 and kind in (0, 1):
-        head, vec = (_LE, _LE3) if kind == 1 else (_BE, _BE3)
-        sec, nsec, length = head.unpack_from(data, 4)
-        x, y, z = vec.unpack_from(data, 4 + ((12 + length + 7) & ~7))
-        return sec * NS_PER_S + nsec, x, y, z
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import MagneticField
-
-    msg = deserialize_message(data, MagneticField)
-    f = msg.magnetic_field
-    return stamp_ns(msg.header.stamp), f.x, f.y, f.z
-
-
 def set_stamp(stamp: Any, ns: int) -> None:
     """Write integer nanoseconds into a builtin_interfaces/Time in place."""
     stamp.sec, stamp.nanosec = divmod(ns, NS_PER_S)
-
-
-def seconds(ns: int) -> float:
-    """Nanoseconds as float seconds."""
-    return ns / NS_PER_S
 
 
 def tolerance_ns(seconds_value: Any) -> int:
@@ -123,7 +84,7 @@ def tolerance_ns(seconds_value: Any) -> int:
         raise InputError(f"sync_tolerance must be a number of seconds, got {seconds_value!r}") from None
     if not (0.0 < t < 1.0):
         raise InputError(f"sync_tolerance must be between 0 and 1 s (less than half the sample period), got {t}")
-    return int(round(t * NS_PER_S))
+    return sync.tolerance_ns(t)
 
 
 def geometry(names: Sequence[str], positions: Sequence[float]) -> ArrayGeometry:
@@ -152,7 +113,7 @@ def flatten_parameters(params: dict[str, Any], prefix: str = "") -> dict[str, An
     return out
 
 
-DROP_COUNTERS: tuple[str, ...] = ("incomplete", "bad_value", "out_of_order", "duplicate", "time_jumps")
+DROP_COUNTERS: tuple[str, ...] = tuple(k for k in sync.SyncStats().as_dict() if k != "sets")
 LOG_PERIOD: float = 5.0
 """Shortest interval (s) between two drop reports in the log."""
 
@@ -199,7 +160,10 @@ def run_node(make_node: Callable[[], Any], make_executor: Callable[[], Any], arg
     A node that cannot start (invalid parameters) logs one clear line and gives exit code 1.
     """
     import rclpy
-    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.exceptions import (
+        InvalidParameterTypeException,
+        InvalidParameterValueException,
+    )
     from rclpy.executors import ExternalShutdownException
 
     logger = rclpy.logging.get_logger("magcal")

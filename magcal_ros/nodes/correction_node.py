@@ -39,11 +39,14 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import MagneticField
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from magcal_ros.calibration import ArrayCalibration
+from magcal_ros.core import sync
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.sync import SetSynchronizer, SyncedSet
+from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
+from magcal_ros.io import topics
+from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.nodes import common
-from magcal_ros.nodes.sync import SetSynchronizer, SyncedSet
-from magcal_ros.tensor import GRADIENT_METHODS, gradient
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = ("sensor_names", "positions", "frame_id", "sync_tolerance", "gradient_method")
@@ -118,8 +121,8 @@ class CorrectionNode(Node):
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
         self._out_qos = common.output_qos(depth)
-        self._field_pub = self.create_publisher(MagneticField, "field", self._out_qos)
-        self._gradient_pub = self.create_publisher(Float64MultiArray, "gradient", self._out_qos)
+        self._field_pub = self.create_publisher(MagneticField, topics.FIELD, self._out_qos)
+        self._gradient_pub = self.create_publisher(Float64MultiArray, topics.GRADIENT, self._out_qos)
         self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10)
         self._field_msg = MagneticField()
         self._gradient_msg = _gradient_message()
@@ -157,7 +160,7 @@ class CorrectionNode(Node):
             )
         self.declare_parameter("frame_id", "magcal_array", d("frame of all outputs (platform frame)"))
         self.declare_parameter(
-            "sync_tolerance", common.DEFAULT_SYNC_TOLERANCE,
+            "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
             d("largest spread (s) of header stamps within one synchronized set; keep it below half the "
               "sample period", numbers=True),
         )
@@ -245,12 +248,12 @@ class CorrectionNode(Node):
         self._sync = SetSynchronizer(len(state.names), state.tolerance_ns)
         self._drops.reset()
         self._corrected_pubs = [
-            self.create_publisher(MagneticField, f"{n}/corrected", self._out_qos) for n in state.names
+            self.create_publisher(MagneticField, topics.corrected(n), self._out_qos) for n in state.names
         ]
         self._corrected_msgs = [MagneticField() for _ in state.names]
         self._subs = [
             self.create_subscription(
-                MagneticField, common.raw_topic(n), self._raw_callback(i), self._raw_qos, raw=True
+                MagneticField, topics.raw(n), self._raw_callback(i), self._raw_qos, raw=True
             )
             for i, n in enumerate(state.names)
         ]
@@ -263,13 +266,13 @@ class CorrectionNode(Node):
         self._subs, self._corrected_pubs = [], []
 
     def _raw_callback(self, index: int) -> Any:
-        add, decode = self._sync.add, common.decode_magnetic_field
+        add, decode = self._sync.add, decode_magnetic_field
 
         def callback(data: bytes) -> None:
             try:
                 sample = decode(data)
-            except (struct.error, IndexError, ValueError):
-                self._sync.stats.bad_value += 1
+            except (InputError, struct.error):
+                self._sync.stats.malformed += 1
                 return
             synced = add(index, *sample)
             if synced is not None:

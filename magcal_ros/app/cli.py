@@ -1,0 +1,406 @@
+"""The ``magcal`` command: offline calibration tools over CSV and rosbag2 recordings."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+
+from magcal_ros.app.progress import ProgressBar
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.scalar_fit import LOSSES
+from magcal_ros.core.stamps import parse_seconds
+from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
+from magcal_ros.core.units import NT
+from magcal_ros.errors import InputError, MagcalError
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io import topics
+from magcal_ros.io.recordings import is_csv, open_recording
+from magcal_ros.methods.pipeline import (
+    DEFAULT_METHOD,
+    METHODS,
+    SolveOptions,
+    calibrate_array,
+)
+
+EPILOG_CALIBRATE = """examples:
+  magcal calibrate rotation.csv -o calibration.yaml --reference-field 5.15e-5
+  magcal calibrate rotation_bag/ -o cal.yaml                 # relative (no reference)
+  magcal calibrate rotation.csv -o cal.yaml --method linear --reference-field 6e-5
+  magcal calibrate rotation_bag/ -o cal.yaml --sensors mag1,mag2,mag3,mag4 \\
+      --start 1700000010 --end 1700000100 --plot calibration.png
+
+input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
+topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
+stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+
+methods:
+""" + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
+
+EPILOG_SIMULATE = """examples:
+  magcal simulate rotation_bag                       # 1000 random attitudes, sqlite3 bag
+  magcal simulate rotation.mcap_bag --storage mcap --schedule paper000
+  magcal simulate rotation.csv --count 2000 --noise 2e-9 --seed 7
+  magcal simulate survey_bag --schedule single-axis --axis z --count 360 \\
+      --dipole 3,1,0.5,20,0,50 --position 0,0,0   # same --seed: same sensors as rotation_bag
+
+output files (OUT without a trailing slash):
+  OUT              the raw recording: rosbag2 directory with /<name>/raw
+                   (sensor_msgs/MagneticField, T, frame_id = sensor name, bag time =
+                   header stamp), or CSV (stamp,mag1.x,...) when OUT ends in .csv
+  OUT.truth.yaml   the true calibration as a calibration file (magcal_correction block,
+                   usable with 'magcal correct --calibration') plus a magcal_simulation
+                   block with all parameters and each sensor's true errors
+  OUT.truth.npz    per set, platform frame: stamps (N,) s, field (N,S,3) T at each sensor,
+                   centre (N,3) T, gradient (N,3,3) T/m with G[i,j] = dB_j/dx_i,
+                   attitudes (N,3,3) platform to world, names, positions (S,3) m, earth (3,) T
+
+Sensor errors are drawn from --seed and the spreads only: two recordings with the same
+--seed share the same sensors (calibrate one, correct the other). World frame NED.
+schedules: single-axis (one turn about --axis, --count steps), paper000 (12^3 grid of 30
+deg steps, 1728 sets), paper004 (144-attitude grid), three-axes (a turn about each axis,
+--count in total), random (--count uniform attitudes)."""
+
+EPILOG_CORRECT = """examples:
+  magcal correct survey_bag --calibration cal.yaml -o corrected_bag
+  magcal correct survey_bag -c cal.yaml -o corrected_bag --storage mcap --copy-topics /imu,/gps/fix
+  magcal correct survey_bag -c cal.yaml -o corrected_bag --copy-all
+  magcal correct survey.csv -c cal.yaml -o corrected.csv
+  magcal correct survey_bag -c cal.yaml -o corrected.csv     # bag in, CSV out
+
+bag output (same topics and types as the live correction node; bag time = set stamp):
+  /<name>/corrected  sensor_msgs/MagneticField  matrix (raw - offset), T, frame --frame-id,
+                     header stamp of that sensor's raw message
+  /field             sensor_msgs/MagneticField  centre field (mean of the sensors), T,
+                     stamped with the set's stamp (the first sensor's)
+  /gradient          std_msgs/Float64MultiArray  3x3 row-major G[i][j] = dB_j/dx_i, T/m,
+                     layout dims row (size 3, stride 9), col (size 3, stride 3); written
+                     right after /field of the same set
+CSV output header:
+  stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
+  gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
+  gradient.zx,gradient.zy,gradient.zz
+The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist."""
+
+
+def _positions(text: str | None, names: tuple[str, ...]) -> ArrayGeometry:
+    if text is None:
+        if len(names) != 4:
+            raise InputError(f"{len(names)} sensors in the recording: give --positions (3 numbers per sensor, m)")
+        return ArrayGeometry.cross(names=names)
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise InputError("--positions must be numbers (m), 3 per sensor") from None
+    return ArrayGeometry(names, np.asarray(values))
+
+
+def _numbers(text: str, count: int, option: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"{option} must be {count} numbers separated by commas, got {text!r}") from None
+    if len(values) != count or not np.all(np.isfinite(values)):
+        raise InputError(f"{option} must be {count} finite numbers separated by commas, got {text!r}")
+    return values
+
+
+def _progress(args: argparse.Namespace, label: str) -> ProgressBar:
+    """A progress bar on stderr unless --quiet (drawn only on a terminal; the bag sets its total)."""
+    return ProgressBar(None, label, enabled=False if args.quiet else None)
+
+
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Options every command has."""
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar (it is only drawn on a terminal anyway)")
+
+
+def add_input_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by commands that read a recording."""
+    p.add_argument("input", help="recording: rosbag2 directory (sqlite3 or mcap) or .csv file")
+    p.add_argument("--sensors", help="comma-separated sensor names, topics /<name>/raw (default: all in the recording)")
+    add_window_options(p)
+    p.add_argument("--positions", help="sensor positions, 3 per sensor in m (default: 0.4 m planar cross)")
+    add_sync_options(p)
+
+
+def _stamp(text: str) -> int:
+    """An argparse type: decimal seconds to exact integer nanoseconds."""
+    try:
+        return parse_seconds(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_window_options(p: argparse.ArgumentParser) -> None:
+    """--start/--end: a window of header stamps (decimal seconds, exact to the nanosecond)."""
+    p.add_argument("--start", type=_stamp, metavar="SECONDS", help="ignore sets stamped before this time (s, header stamp)")
+    p.add_argument("--end", type=_stamp, metavar="SECONDS", help="ignore sets stamped after this time (s, header stamp)")
+
+
+def add_sync_options(p: argparse.ArgumentParser) -> None:
+    """Bag synchronisation options."""
+    p.add_argument("--sync-tolerance", type=float, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
+                   help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="skip bag sets with NaN/inf readings instead of refusing the input")
+
+
+def _report_sync(stats: SyncStats | None) -> None:
+    """One note on stderr when synchronisation dropped anything."""
+    if stats is not None and stats.dropped():
+        print(f"  note: {stats.describe()}", file=sys.stderr)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Solve a calibration from a recording and write the calibration file."""
+    names = tuple(n.strip() for n in args.sensors.split(",") if n.strip()) if args.sensors else None
+    with _progress(args, "read") as bar:
+        rec, stats = open_recording(
+            args.input, names, args.start, args.end, args.sync_tolerance,
+            "drop" if args.drop_nonfinite else "error", bar,
+        )
+    _report_sync(stats)
+    geometry = _positions(args.positions, rec.names)
+    opts = SolveOptions(loss=args.loss, gradient_method=args.gradient_method, seed=args.seed)
+    result = calibrate_array(rec.vectors, geometry, args.reference_field, args.method, opts)
+    if args.plot:
+        from magcal_ros.app.plots import plot_calibration
+
+        plot_calibration(args.plot, rec, result)
+    calfile.write(args.output, result.calibration)
+    print(result.summary())
+    for name, before, after in zip(geometry.names, result.tmi_before, result.tmi_after):
+        print(f"  {name}: TMI RMS {before / NT:10.2f} -> {after / NT:8.3f} nT")
+    print(f"  solve time {result.seconds * 1e3:.1f} ms; written {args.output}")
+    if args.plot:
+        print(f"  plot {args.plot}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Write a synthetic rotation recording and its ground truth."""
+    from magcal_ros.io.truth_file import write_simulation
+    from magcal_ros.sim import spec as synthetic
+
+    dipoles = tuple(_numbers(d, 6, "--dipole") for d in (args.dipole or []))
+    spec = synthetic.SimulationSpec(
+        schedule=args.schedule, count=args.count, axis=args.axis, intensity=args.intensity,
+        inclination=args.inclination, declination=args.declination, scale_sd=args.scale_sd,
+        angle_sd=args.angle_sd, offset_sd=args.offset_sd, misalignment_sd=args.misalignment_sd,
+        hard_iron_sd=args.hard_iron_sd, soft_iron_sd=args.soft_iron_sd, noise=args.noise,
+        noise_kind=args.noise_kind, noise_domain=args.noise_domain, dipoles=dipoles,
+        position=_numbers(args.position, 3, "--position"),  # type: ignore[arg-type]
+        rate=args.rate, start_time=args.start_time, seed=args.seed, baseline=args.baseline,
+    )
+    if not is_csv(args.output):
+        from magcal_ros.io.bag_writer import check_bag_output
+
+        check_bag_output(args.output)
+    truth, ypath, npath = write_simulation(args.output, spec, args.storage)
+    kind = "CSV" if is_csv(args.output) else f"rosbag2 ({args.storage})"
+    print(
+        f"wrote {args.output}: {kind}, {len(truth.centre)} sets x {len(spec.names)} sensors at {spec.rate:g} Hz "
+        f"(schedule {spec.schedule}, F {spec.intensity / NT:.1f} nT, noise {spec.noise / NT:g} nT, "
+        f"{len(spec.dipoles)} dipoles)"
+    )
+    print(f"  truth {ypath} and {npath}")
+    return 0
+
+
+def _read_calibration(path: str) -> ArrayCalibration:
+    """The calibration file, every error naming the file."""
+    try:
+        return calfile.read(path)
+    except InputError as exc:
+        raise (exc if path in str(exc) else InputError(f"{path}: {exc}")) from None
+
+
+def cmd_correct(args: argparse.Namespace) -> int:
+    """Apply a calibration to a recording: corrected vectors, centre field and tensor."""
+    cal = _read_calibration(args.calibration)
+    out_csv = is_csv(args.output)
+    copy = "all" if args.copy_all else tuple(t.strip() for t in (args.copy_topics or "").split(",") if t.strip())
+    if is_csv(args.input) or out_csv:
+        if copy:
+            raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
+        return _correct_via_recording(args, cal, out_csv)
+    from magcal_ros.app.correct import correct_bag
+
+    with _progress(args, "correct") as bar:
+        report = correct_bag(
+            args.input, cal, args.output, storage=args.storage, copy_topics=copy, progress=bar,
+            frame_id=args.frame_id, gradient_method=args.gradient_method, tolerance=args.sync_tolerance,
+            nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
+        )
+    _report_sync(report.stats)
+    extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
+    print(
+        f"corrected {report.input_messages} sets of {len(cal.geometry.names)} sensors -> {args.output} "
+        f"({report.storage}: /<name>/corrected, /field, /gradient{extra})"
+    )
+    return 0
+
+
+def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool) -> int:
+    with _progress(args, "read") as bar:
+        rec, stats = open_recording(
+            args.input, cal.geometry.names, args.start, args.end, args.sync_tolerance,
+            "drop" if args.drop_nonfinite else "error", bar,
+        )
+    _report_sync(stats)
+    if out_csv:
+        from magcal_ros.app.correct import correct_recording_csv
+
+        correct_recording_csv(args.output, rec, cal, args.gradient_method)
+        kind = "CSV"
+    else:
+        from magcal_ros.app.correct import write_corrected_bag
+
+        storage = args.storage or "sqlite3"
+        write_corrected_bag(args.output, rec, cal, storage, args.frame_id, args.gradient_method)
+        kind = storage
+    print(f"corrected {len(rec)} sets of {len(rec.names)} sensors -> {args.output} ({kind})")
+    return 0
+
+
+def _subcommand(sub: argparse._SubParsersAction, name: str, summary: str, description: str,  # type: ignore[type-arg]
+                epilog: str) -> argparse.ArgumentParser:
+    """A subcommand parser whose epilog (examples) keeps its line breaks."""
+    return sub.add_parser(name, help=summary, description=description, epilog=epilog,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = _subcommand(
+        sub, "calibrate", "solve a calibration from a rotation recording",
+        "Solve the array calibration from a recording of the vehicle turning in a uniform field, "
+        "write it as a ROS 2 parameters file the correction node loads, and print a summary.",
+        EPILOG_CALIBRATE,
+    )
+    add_input_options(p)
+    p.add_argument("-o", "--output", required=True, help="calibration file to write (YAML)")
+    p.add_argument("--reference-field", type=float, default=None, metavar="TESLA",
+                   help="total field intensity F in T (e.g. 5.15e-5); omit for a relative calibration")
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS), help=f"default {DEFAULT_METHOD}")
+    p.add_argument("--loss", default="linear", choices=list(LOSSES), help="robust loss for method ml")
+    p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"])
+    p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (pso)")
+    p.add_argument("--plot", metavar="FILE.png",
+                   help="draw TMI per sensor, tensor components and corrected vectors before/after (PNG)")
+    add_common_options(p)
+    p.set_defaults(func=cmd_calibrate)
+
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from magcal_ros.sim.spec import SCHEDULE_NAMES, SimulationSpec
+
+    d = SimulationSpec()
+    p = _subcommand(
+        sub, "simulate", "write a synthetic rotation recording with ground truth",
+        "Simulate four fluxgates on a turning platform in the Earth's field (plus optional dipoles) "
+        "with known sensor errors, hull iron and noise; write the raw recording and the truth beside it.",
+        EPILOG_SIMULATE,
+    )
+    p.add_argument("output", metavar="OUT", help="rosbag2 directory to create, or a .csv file")
+    g = p.add_argument_group("attitudes")
+    g.add_argument("--schedule", default=d.schedule, choices=SCHEDULE_NAMES, help=f"rotation schedule (default {d.schedule})")
+    g.add_argument("--count", type=int, default=d.count, help=f"attitudes for single-axis/three-axes/random (default {d.count})")
+    g.add_argument("--axis", default=d.axis, choices=["x", "y", "z"], help="rotation axis of single-axis (default z)")
+    g.add_argument("--rate", type=float, default=d.rate, metavar="HZ", help=f"sets per second (default {d.rate:g})")
+    g.add_argument("--start-time", type=float, default=d.start_time, metavar="SECONDS",
+                   help=f"stamp of the first set (default {d.start_time:.0f})")
+    g = p.add_argument_group("field (world frame NED)")
+    g.add_argument("--intensity", type=float, default=d.intensity, metavar="TESLA", help=f"total intensity F (default {d.intensity:g} T)")
+    g.add_argument("--inclination", type=float, default=d.inclination, metavar="DEG", help=f"default {d.inclination:g} deg")
+    g.add_argument("--declination", type=float, default=d.declination, metavar="DEG", help=f"default {d.declination:g} deg")
+    g.add_argument("--dipole", action="append", metavar="X,Y,Z,MX,MY,MZ",
+                   help="a point dipole: world position (m) and moment (A m^2); repeat for more")
+    g.add_argument("--position", default="0,0,0", metavar="X,Y,Z", help="array centre in the world frame (m, default 0,0,0)")
+    g = p.add_argument_group("sensor errors (1-sigma spreads, drawn per sensor from --seed)")
+    g.add_argument("--scale-sd", type=float, default=d.scale_sd, help=f"scale factor spread (default {d.scale_sd:g})")
+    g.add_argument("--angle-sd", type=float, default=d.angle_sd, metavar="DEG", help=f"non-orthogonality (default {d.angle_sd:g} deg)")
+    g.add_argument("--offset-sd", type=float, default=d.offset_sd, metavar="TESLA", help=f"offset (default {d.offset_sd:g} T)")
+    g.add_argument("--misalignment-sd", type=float, default=d.misalignment_sd, metavar="DEG",
+                   help=f"sensor-to-platform misalignment (default {d.misalignment_sd:g} deg)")
+    g.add_argument("--hard-iron-sd", type=float, default=d.hard_iron_sd, metavar="TESLA", help="hull hard iron (default 0 T)")
+    g.add_argument("--soft-iron-sd", type=float, default=d.soft_iron_sd, help="hull soft iron matrix entries (default 0)")
+    g.add_argument("--noise", type=float, default=d.noise, metavar="TESLA", help=f"noise per axis, 1-sigma (default {d.noise:g} T)")
+    g.add_argument("--noise-kind", default=d.noise_kind, choices=["gaussian", "uniform"], help="noise distribution")
+    g.add_argument("--noise-domain", default=d.noise_domain, choices=["raw", "sensor"],
+                   help="add noise to the reading (raw) or before scale and non-orthogonality (sensor, Li et al. (2018))")
+    g = p.add_argument_group("output")
+    g.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default sqlite3)")
+    g.add_argument("--seed", type=int, default=d.seed, help="random seed of errors, attitudes and noise (default 0)")
+    g.add_argument("--baseline", type=float, default=d.baseline, metavar="METRES", help=f"cross baseline d (default {d.baseline:g} m)")
+    add_common_options(p)
+    p.set_defaults(func=cmd_simulate)
+
+
+def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = _subcommand(
+        sub, "correct", "apply a calibration: corrected vectors, centre field and gradient tensor",
+        "Apply a calibration file to every synchronized set of a recording and write the corrected "
+        "vectors, the centre field and the gradient tensor (a bag with the live node's topics, or CSV).",
+        EPILOG_CORRECT,
+    )
+    p.add_argument("input", help="recording: rosbag2 directory (sqlite3 or mcap) or .csv file")
+    p.add_argument("-c", "--calibration", required=True, metavar="CALIBRATION.yaml", help="calibration file")
+    p.add_argument("-o", "--output", required=True, help="rosbag2 directory to write, or a .csv file")
+    copy = p.add_mutually_exclusive_group()
+    copy.add_argument("--copy-topics", metavar="T1,T2", help="also copy these input topics unchanged (bag to bag)")
+    copy.add_argument("--copy-all", action="store_true", help="also copy every input topic unchanged (bag to bag)")
+    p.add_argument("--storage", choices=["sqlite3", "mcap"], help="output storage (default: the input's; sqlite3 for CSV input)")
+    p.add_argument("--frame-id", default=topics.DEFAULT_FRAME_ID,
+                   help=f"platform frame of the output (default {topics.DEFAULT_FRAME_ID})")
+    p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"],
+                   help="cross difference formula or constrained least squares (any geometry)")
+    add_window_options(p)
+    add_sync_options(p)
+    add_common_options(p)
+    p.set_defaults(func=cmd_correct)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``magcal`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="magcal",
+        description="Calibrate, correct and inspect recordings of a magnetic gradient tensor array "
+        "(four fluxgates, Tesla on every topic and in every file).",
+        epilog="examples:\n"
+        "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
+        "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
+        "  magcal COMMAND --help      # options and examples of a command",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    _add_simulate(sub)
+    _add_calibrate(sub)
+    _add_correct(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: one clear line on stderr and exit 2 for any bad input."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except MagcalError as exc:
+        print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"magcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"magcal {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

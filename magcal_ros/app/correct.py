@@ -1,0 +1,213 @@
+"""Offline correction (``magcal correct``): a calibration applied to every set of a recording.
+
+Bag to bag streams in chunks through :class:`~magcal_ros.io.bag_reader.SetReader` and
+:class:`~magcal_ros.io.bag_writer.BagSink` (memory stays flat); anything involving CSV
+goes through an in-memory :class:`~magcal_ros.core.recording.Recording`. Outputs carry the
+same topics and types as the live correction node, every stamp exactly the input's.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.errors import InputError
+from magcal_ros.io import topics
+from magcal_ros.io.atomic import atomic_path
+from magcal_ros.io.bag_reader import (
+    NonFinite,
+    Progress,
+    SetReader,
+    open_bag,
+    resolve_sensor_topics,
+)
+from magcal_ros.io.bag_writer import (
+    SETS_PER_WRITE,
+    BagSink,
+    SetLayout,
+    Storage,
+    check_bag_output,
+    check_storage,
+    storage_of,
+)
+from magcal_ros.io.cdr import (
+    FLOAT64_MULTI_ARRAY,
+    MAGNETIC_FIELD,
+    gradient_template,
+    magnetic_field_template,
+)
+from magcal_ros.io.csv_recording import write_corrected_csv
+
+if TYPE_CHECKING:
+    from rosbags.interfaces import Connection
+
+DEFAULT_FRAME_ID = topics.DEFAULT_FRAME_ID
+
+
+@dataclass(frozen=True)
+class CorrectionOutput:
+    """Topics and templates of corrected output for ``names``."""
+
+    layout: SetLayout
+    sensor_template: Any
+    field_template: Any
+    gradient_template: Any
+    sensors: int
+
+    def encode(self, batch: SetBatch, calibration: ArrayCalibration, gradient_method: str) -> NDArray[np.uint8]:
+        """Filled blocks for ``batch``: corrected vectors, centre field and tensor per set."""
+        b, centre, g = calibration.field_and_gradient(batch.vectors, gradient_method)
+        blocks = self.layout.new(len(batch))
+        off = self.layout.offsets
+        for k in range(self.sensors):
+            self.sensor_template.fill(blocks, off[k], batch.stamps[:, k], b[:, k])
+        self.field_template.fill(blocks, off[self.sensors], batch.set_stamps, centre)
+        self.gradient_template.fill(blocks, off[self.sensors + 1], g)
+        return blocks
+
+
+def correction_output(sink: BagSink, names: Sequence[str], frame_id: str) -> CorrectionOutput:
+    """Register ``/<name>/corrected``, ``/field`` and ``/gradient`` on ``sink``."""
+    mf = magnetic_field_template(frame_id)
+    gt = gradient_template()
+    parts = [(sink.add_topic(topics.absolute(topics.corrected(n)), MAGNETIC_FIELD), mf.template) for n in names]
+    parts.append((sink.add_topic(topics.absolute(topics.FIELD), MAGNETIC_FIELD), mf.template))
+    parts.append((sink.add_topic(topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY), gt.template))
+    return CorrectionOutput(sink.layout(parts), mf, mf, gt, len(names))
+
+
+@dataclass(frozen=True)
+class CorrectionReport:
+    """What :func:`correct_bag` did."""
+
+    stats: SyncStats
+    input_messages: int
+    copied_messages: int
+    output: str
+    storage: str
+
+
+def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
+    if start_ns is None and end_ns is None:
+        return batch
+    t = batch.set_stamps
+    keep = np.ones(len(t), bool)
+    if start_ns is not None:
+        keep &= t >= start_ns
+    if end_ns is not None:
+        keep &= t <= end_ns
+    return batch.take(keep)
+
+
+def correct_bag(
+    in_path: str | os.PathLike[str],
+    calibration: ArrayCalibration,
+    out_path: str | os.PathLike[str],
+    storage: Storage | None = None,
+    copy_topics: Sequence[str] | Literal["all"] = (),
+    progress: Progress | None = None,
+    frame_id: str = DEFAULT_FRAME_ID,
+    gradient_method: str = "difference",
+    tolerance: float = DEFAULT_SYNC_TOLERANCE,
+    nonfinite: NonFinite = "drop",
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+) -> CorrectionReport:
+    """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
+
+    Writes ``/<name>/corrected`` (MagneticField, T, frame ``frame_id``, each sensor's own
+    header stamp), ``/field`` (centre field, stamped with the set's stamp) and ``/gradient``
+    (Float64MultiArray 3x3 row-major, T/m), all at bag time = the set's stamp; plus the
+    input topics in ``copy_topics`` (``"all"``: every topic) unchanged with their bag
+    times. ``storage`` defaults to the input's. ``start_ns``/``end_ns`` bound the set
+    stamps. Streaming and atomic: nothing is left at ``out_path`` on failure.
+    """
+    names = calibration.geometry.names
+    inp = Path(in_path)
+    out_storage = check_storage(storage) if storage else storage_of(inp)
+    check_bag_output(out_path, inp)
+    with open_bag(inp) as reader:
+        _, conns = resolve_sensor_topics(reader, inp, names)
+        outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT]}
+        if copy_topics == "all":
+            extra = list(reader.connections)
+        else:
+            have = {c.topic for c in reader.connections}
+            wanted = [t if t.startswith("/") else "/" + t for t in copy_topics]
+            missing = [t for t in wanted if t not in have]
+            if missing:
+                raise InputError(f"{inp}: no topic {', '.join(missing)} to copy (topics: {', '.join(sorted(have))})")
+            extra = [c for c in reader.connections if c.topic in wanted]
+        clash = sorted({c.topic for c in extra} & outputs)
+        if clash:
+            raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
+        with atomic_path(out_path) as tmp, BagSink.create(tmp, out_storage) as sink:
+            out = correction_output(sink, names, frame_id)
+            copy_map: dict[int, Connection] = {}
+            by_topic: dict[tuple[str, str], Connection] = {}
+            for c in extra:
+                key = (c.topic, c.msgtype)
+                if key not in by_topic:
+                    by_topic[key] = sink.add_copy_of(c)
+                copy_map[c.id] = by_topic[key]
+            copied = [0]
+
+            def on_extra(items: list[tuple[Connection, int, bytes]]) -> None:
+                sink.write_messages([(copy_map[c.id], t, d) for c, t, d in items if c.id in copy_map])
+                copied[0] += len(items)
+
+            sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress)
+            n_in = 0
+            for batch in sets:
+                batch = _window(batch, start_ns, end_ns)
+                for a in range(0, len(batch), SETS_PER_WRITE):
+                    part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
+                    sink.write_sets(out.layout, out.encode(part, calibration, gradient_method), part.set_stamps)
+                n_in += len(batch)
+            if sets.stats.sets == 0:
+                raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
+            if n_in == 0:
+                raise InputError(f"{inp}: no synchronized sets in the selected time window")
+    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage)
+
+
+def write_corrected_bag(
+    path: str | os.PathLike[str],
+    recording: Recording,
+    calibration: ArrayCalibration,
+    storage: Storage = "sqlite3",
+    frame_id: str = DEFAULT_FRAME_ID,
+    gradient_method: str = "difference",
+) -> None:
+    """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`."""
+    check_bag_output(path)
+    rec = recording.select(calibration.geometry.names)
+    stamps = rec.stamps
+    with atomic_path(path) as tmp, BagSink.create(tmp, check_storage(storage)) as sink:
+        out = correction_output(sink, rec.names, frame_id)
+        for a in range(0, len(rec), SETS_PER_WRITE):
+            ts = stamps[a : a + SETS_PER_WRITE]
+            part = SetBatch(np.repeat(ts[:, None], len(rec.names), axis=1), rec.vectors[a : a + SETS_PER_WRITE])
+            sink.write_sets(out.layout, out.encode(part, calibration, gradient_method), ts)
+
+
+def correct_recording_csv(
+    path: str | os.PathLike[str],
+    recording: Recording,
+    calibration: ArrayCalibration,
+    gradient_method: str = "difference",
+) -> int:
+    """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count."""
+    rec = recording.select(calibration.geometry.names)
+    b, centre, g = calibration.field_and_gradient(rec.vectors, gradient_method)
+    write_corrected_csv(path, rec.stamps, rec.names, b, centre, g)
+    return len(rec)

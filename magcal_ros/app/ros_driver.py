@@ -1,0 +1,581 @@
+"""Drive the magcal nodes from outside, over DDS: start them, feed them, listen to them.
+
+Used by the demo, the node tests and the benchmark. :class:`NodeProcess` runs an
+installed node executable as a separate process with ``--ros-args``; :class:`ArrayDriver`
+is an rclpy node (own context, spun in a background thread) that publishes raw sets or
+replays a rosbag2 message by message, collects the correction node's outputs by stamp
+and calls the Trigger and parameter services. :func:`ros_environment` isolates a run:
+its own ``ROS_DOMAIN_ID`` and localhost-only discovery.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from dataclasses import field as default
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.units import NS_PER_S
+
+# --------------------------------------------------------------------------- environment
+
+
+def pick_domain_id(seed: int | None = None) -> int:
+    """A ROS domain id in 1..100 derived from ``seed`` (default: this process id)."""
+    return 1 + (os.getpid() if seed is None else seed) % 100
+
+
+def ros_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Environment for a run isolated on ``domain_id`` with localhost-only discovery."""
+    env = dict(os.environ if base is None else base)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    env.pop("ROS_STATIC_PEERS", None)
+    env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    return env
+
+
+def isolate_this_process(domain_id: int) -> None:
+    """Apply :func:`ros_environment` to this process (before its first ``rclpy.init``)."""
+    os.environ.update(ros_environment(domain_id))
+
+
+def find_executable(name: str) -> str:
+    """Path of an installed node executable: PATH, this interpreter's bin, or lib/magcal_ros."""
+    candidates = [shutil.which(name), str(Path(sys.executable).parent / name)]
+    prefix = Path(sys.prefix)
+    candidates.append(str(prefix / "lib" / "magcal_ros" / name))
+    for c in candidates:
+        if c and os.path.isfile(c) and os.access(c, os.X_OK):
+            return c
+    raise FileNotFoundError(f"executable {name!r} not found; install the package (pip install . or colcon build)")
+
+
+def ros_args(
+    node_name: str | None = None,
+    params: Mapping[str, Any] | None = None,
+    params_files: Sequence[str | os.PathLike[str]] = (),
+    log_level: str | None = None,
+) -> list[str]:
+    """``--ros-args`` for a node: rename, ``-p name:=value`` (YAML values), params files."""
+    out = ["--ros-args"]
+    if node_name:
+        out += ["-r", f"__node:={node_name}"]
+    for f in params_files:
+        out += ["--params-file", str(f)]
+    for k, v in (params or {}).items():
+        out += ["-p", f"{k}:={_yaml_value(v)}"]
+    if log_level:
+        out += ["--log-level", log_level]
+    return out
+
+
+def _yaml_value(value: Any) -> str:
+    """A parameter value as ``-p`` YAML: floats always with a decimal point."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        text = repr(value)
+        if "." not in text and "e" in text:
+            mant, exp = text.split("e")
+            text = f"{mant}.0e{exp}"
+        return text
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
+
+
+class NodeProcess:
+    """One node executable running as a child process, its output captured to a log file."""
+
+    def __init__(
+        self,
+        executable: str,
+        args: Sequence[str],
+        env: Mapping[str, str],
+        log_path: str | os.PathLike[str],
+    ) -> None:
+        self.executable = find_executable(executable)
+        self.args = list(args)
+        self.log_path = Path(log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.log_path, "w", encoding="utf-8")
+        self.process = subprocess.Popen(
+            [self.executable, *self.args], env=dict(env), stdout=self._log, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, start_new_session=True,
+        )
+
+    @property
+    def pid(self) -> int:
+        """Process id."""
+        return self.process.pid
+
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.process.poll() is None
+
+    def log(self) -> str:
+        """Everything the node printed so far."""
+        self._log.flush()
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
+
+    def wait_for_log(self, text: str, timeout: float = 30.0) -> bool:
+        """Wait until ``text`` appears in the log (or the process ends)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.log():
+                return True
+            if not self.alive():
+                return text in self.log()
+            time.sleep(0.05)
+        return False
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """Ctrl-C the node, wait for a clean exit, kill it if it hangs; returns the exit code."""
+        if self.alive():
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5.0)
+        self._log.close()
+        return int(self.process.returncode)
+
+
+# --------------------------------------------------------------------------- raw messages
+
+
+@dataclass(frozen=True)
+class RawMessage:
+    """One raw reading to publish: sensor name, header stamp (ns), vector (T)."""
+
+    name: str
+    stamp_ns: int
+    vector: tuple[float, float, float]
+
+
+def recording_messages(
+    names: Sequence[str], stamps_ns: NDArray[np.int64], vectors: NDArray[np.float64]
+) -> list[RawMessage]:
+    """Messages of complete sets (stamps (N,) int ns, vectors (N, S, 3) T), sensor order per set."""
+    ns = np.asarray(stamps_ns, dtype=np.int64)
+    out = []
+    for t, sets in zip(ns.tolist(), np.asarray(vectors, dtype=float).tolist()):
+        for name, v in zip(names, sets):
+            out.append(RawMessage(name, t, (v[0], v[1], v[2])))
+    return out
+
+
+def bag_messages(path: str | os.PathLike[str], names: Sequence[str] | None = None) -> list[RawMessage]:
+    """Every ``/<name>/raw`` message of a rosbag2 directory, in bag order, as recorded."""
+    from magcal_ros.io.bag_reader import open_bag, resolve_sensor_topics
+    from magcal_ros.io.cdr import decode_magnetic_fields
+
+    with open_bag(path) as reader:
+        found, conns = resolve_sensor_topics(reader, path, names)
+        by_id = {c.id: n for n, cs in zip(found, conns) for c in cs}
+        out = []
+        for conn, _, data in reader.messages(connections=[c for cs in conns for c in cs]):
+            stamps, vectors = decode_magnetic_fields([bytes(data)], str(path))
+            v = vectors[0]
+            out.append(RawMessage(by_id[conn.id], int(stamps[0]), (float(v[0]), float(v[1]), float(v[2]))))
+    return out
+
+
+def write_messages_bag(path: str | os.PathLike[str], messages: Iterable[RawMessage], storage: str = "sqlite3") -> None:
+    """Write raw messages as they are (gaps, NaN and all) to a rosbag2 directory.
+
+    Bag time is the header stamp, but never earlier than the previous message's bag time
+    (+1 ns), so a reader returns the messages in the given order, late ones included.
+    """
+    from magcal_ros.io import topics
+    from magcal_ros.io.atomic import atomic_path
+    from magcal_ros.io.bag_writer import BagSink
+    from magcal_ros.io.cdr import MAGNETIC_FIELD, magnetic_field_message, typestore
+
+    store = typestore()
+    msgs = list(messages)
+    with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:  # type: ignore[arg-type]
+        conns: dict[str, Any] = {}
+        items = []
+        bag_time = -1
+        for m in msgs:
+            if m.name not in conns:
+                conns[m.name] = sink.add_topic(topics.absolute(topics.raw(m.name)), MAGNETIC_FIELD)
+            sec, nsec = divmod(m.stamp_ns, NS_PER_S)
+            data = store.serialize_cdr(magnetic_field_message(sec, nsec, m.name, m.vector), MAGNETIC_FIELD)
+            bag_time = max(m.stamp_ns, bag_time + 1)
+            items.append((conns[m.name], bag_time, bytes(data)))
+        sink.write_messages(items)
+
+
+# --------------------------------------------------------------------------- driver node
+
+
+@dataclass
+class Outputs:
+    """What the correction node published, by set stamp (ns)."""
+
+    gradient: dict[int, NDArray[np.float64]] = default(default_factory=dict)
+    """Gradient (3, 3) T/m by the field message's stamp (the gradient follows its field)."""
+    field: dict[int, NDArray[np.float64]] = default(default_factory=dict)
+    corrected: dict[str, dict[int, NDArray[np.float64]]] = default(default_factory=dict)
+    latency: list[float] = default(default_factory=list)
+    """Receipt wall time minus stamp (s) of each gradient, when stamps are wall times."""
+    gradient_layouts: list[tuple[tuple[str, int, int], ...]] = default(default_factory=list)
+
+
+class ArrayDriver:
+    """An rclpy node in its own context and thread that feeds and watches the magcal nodes."""
+
+    def __init__(
+        self,
+        names: Sequence[str],
+        domain_id: int,
+        node_name: str = "magcal_driver",
+        collect_corrected: bool = True,
+        publish_depth: int = 1000,
+    ) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import MagneticField
+        from std_msgs.msg import Float64MultiArray
+
+        self._rclpy = rclpy
+        isolate_this_process(domain_id)
+        self.names = tuple(names)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(node_name, context=self.context)
+        self._msg_type = MagneticField
+        reliable = QoSProfile(depth=publish_depth, reliability=ReliabilityPolicy.RELIABLE)
+        self.publishers = {n: self.node.create_publisher(MagneticField, f"/{n}/raw", reliable) for n in self.names}
+        self.outputs = Outputs()
+        self._lock = threading.Lock()
+        self._fields: deque[int] = deque()
+        self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
+        out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.subscriptions = [
+            self.node.create_subscription(MagneticField, "/field", self._on_field, out_qos),
+            self.node.create_subscription(Float64MultiArray, "/gradient", self._on_gradient, out_qos),
+        ]
+        if collect_corrected:
+            for n in self.names:
+                self.outputs.corrected[n] = {}
+                self.subscriptions.append(
+                    self.node.create_subscription(MagneticField, f"/{n}/corrected", self._corrected_cb(n), out_qos)
+                )
+        self.statuses: dict[str, Any] = {}
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="magcal-driver", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self._executor.spin()
+        except Exception:  # noqa: BLE001 - shutdown of the context ends the spin
+            pass
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        self._executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+        self._thread.join(5.0)
+
+    def __enter__(self) -> ArrayDriver:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- outputs ----------------------------------------------------------------------
+    def _on_field(self, msg: Any) -> None:
+        t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        f = msg.magnetic_field
+        with self._lock:
+            self.outputs.field[t] = np.array([f.x, f.y, f.z])
+            self._fields.append(t)
+            self._pair()
+
+    def _on_gradient(self, msg: Any) -> None:
+        now = time.time_ns()
+        with self._lock:
+            self._tensors.append((now, np.array(msg.data, dtype=float).reshape(3, 3)))
+            if not self.outputs.gradient_layouts:
+                self.outputs.gradient_layouts.append(
+                    tuple((d.label, int(d.size), int(d.stride)) for d in msg.layout.dim)
+                )
+            self._pair()
+
+    def _pair(self) -> None:
+        """Match gradients to fields in publication order (the node sends field, then gradient)."""
+        while self._fields and self._tensors:
+            t = self._fields.popleft()
+            received, g = self._tensors.popleft()
+            self.outputs.gradient[t] = g
+            self.outputs.latency.append((received - t) / NS_PER_S)
+
+    def _corrected_cb(self, name: str) -> Any:
+        def cb(msg: Any) -> None:
+            t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+            f = msg.magnetic_field
+            with self._lock:
+                self.outputs.corrected[name][t] = np.array([f.x, f.y, f.z])
+
+        return cb
+
+    def clear_outputs(self) -> None:
+        """Forget everything received so far."""
+        with self._lock:
+            self.outputs.gradient.clear()
+            self.outputs.field.clear()
+            for d in self.outputs.corrected.values():
+                d.clear()
+            self.outputs.latency.clear()
+            self._fields.clear()
+            self._tensors.clear()
+
+    def gradients(self, stamps: Iterable[int]) -> dict[int, NDArray[np.float64]]:
+        """Received gradients for the given set stamps (missing ones left out)."""
+        with self._lock:
+            return {t: self.outputs.gradient[t] for t in stamps if t in self.outputs.gradient}
+
+    def corrected(self, stamps: Iterable[int]) -> dict[int, NDArray[np.float64]]:
+        """Corrected vectors (S, 3) for the given set stamps where every sensor's arrived."""
+        out = {}
+        with self._lock:
+            for t in stamps:
+                rows = [self.outputs.corrected[n].get(t) for n in self.names]
+                if all(r is not None for r in rows):
+                    out[t] = np.stack(rows)  # type: ignore[arg-type]
+        return out
+
+    def wait_for_outputs(self, stamps: Sequence[int], timeout: float = 60.0, settle: float = 5.0) -> int:
+        """Wait until gradients for all ``stamps`` arrived, or none arrived for ``settle`` s.
+
+        Returns how many arrived. Never fails on time: the caller checks what it got.
+        """
+        wanted = set(stamps)
+        deadline = time.monotonic() + timeout
+        last_count, last_change = -1, time.monotonic()
+        while time.monotonic() < deadline:
+            with self._lock:
+                count = sum(1 for t in wanted if t in self.outputs.gradient)
+            if count == len(wanted):
+                return count
+            if count != last_count:
+                last_count, last_change = count, time.monotonic()
+            elif time.monotonic() - last_change > settle and count > 0:
+                return count
+            time.sleep(0.02)
+        return max(last_count, 0)
+
+    # -- discovery --------------------------------------------------------------------
+    def wait_for_subscribers(self, count: int = 1, timeout: float = 30.0) -> bool:
+        """Wait until every raw publisher is matched by at least ``count`` subscriptions."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all(p.get_subscription_count() >= count for p in self.publishers.values()):
+                return True
+            time.sleep(0.02)
+        return False
+
+    def wait_for_output_publishers(self, timeout: float = 30.0) -> bool:
+        """Wait until /field, /gradient (and /<name>/corrected) have a publisher matched."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all(s.get_publisher_count() >= 1 for s in self.subscriptions):
+                return True
+            time.sleep(0.02)
+        return False
+
+    def prime(self, timeout: float = 30.0) -> bool:
+        """Publish probe sets until both ``field`` and ``gradient`` come back, then forget them.
+
+        Discovery is not symmetric: this side may see the node's writers before they see
+        this side's readers, and early messages of one topic can be lost while the other's
+        arrive. Once both topics have delivered, delivery is reliable and gradients pair
+        with fields one to one. Returns False if nothing came back within ``timeout``.
+        """
+        deadline = time.monotonic() + timeout
+        probe = (2.0e-5, 1.0e-6, 4.5e-5)
+        ok = False
+        while time.monotonic() < deadline:
+            stamp = time.time_ns()
+            for n in self.names:
+                self.publish(RawMessage(n, stamp, probe))
+            time.sleep(0.2)
+            with self._lock:
+                ok = bool(self.outputs.field) and (bool(self.outputs.gradient) or bool(self._tensors))
+            if ok:
+                break
+        time.sleep(0.3)
+        self.clear_outputs()
+        return ok
+
+    # -- publishing -------------------------------------------------------------------
+    def publish(self, message: RawMessage) -> None:
+        """Publish one raw reading with its stamp."""
+        msg = self._msg_type()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(message.stamp_ns, NS_PER_S)
+        msg.header.frame_id = message.name
+        msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = message.vector
+        self.publishers[message.name].publish(msg)
+
+    def replay(
+        self,
+        messages: Sequence[RawMessage],
+        rate: float = 200.0,
+        restamp: bool = True,
+        progress: Any = None,
+    ) -> dict[int, int]:
+        """Publish ``messages`` in order, ``rate`` sets (distinct stamps) per second.
+
+        With ``restamp`` set ``k`` is stamped with the wall time at which it is due (start
+        + k / rate), like a live sensor sampling at ``rate``: stamps keep their spacing even
+        when publishing lags, and latency is measured from the sampling instant. Returns
+        ``{original stamp: published stamp}``.
+        """
+        mapping: dict[int, int] = {}
+        period = 1.0 / rate if rate > 0 else 0.0
+        spacing = int(period * NS_PER_S) if period else 10_000_000
+        start = time.monotonic()
+        start_ns = time.time_ns()
+        for m in messages:
+            stamp = mapping.get(m.stamp_ns)
+            if stamp is None:
+                k = len(mapping)
+                if period:
+                    delay = start + k * period - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                stamp = start_ns + k * spacing if restamp else m.stamp_ns
+                mapping[m.stamp_ns] = stamp
+                if progress is not None and (k + 1) % 500 == 0:
+                    progress(k + 1)
+            self.publish(RawMessage(m.name, stamp, m.vector))
+        return mapping
+
+    # -- services ---------------------------------------------------------------------
+    def _call(self, srv_type: Any, name: str, request: Any, timeout: float) -> Any:
+        client = self.node.create_client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f"service {name} not available after {timeout:g} s")
+            future = client.call_async(request)
+            done = threading.Event()
+            future.add_done_callback(lambda _: done.set())
+            if not done.wait(timeout) or future.result() is None:
+                raise TimeoutError(f"service {name} did not answer within {timeout:g} s")
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def trigger(self, name: str, timeout: float = 60.0) -> tuple[bool, str]:
+        """Call a std_srvs/Trigger service; returns (success, message)."""
+        from std_srvs.srv import Trigger
+
+        reply = self._call(Trigger, name, Trigger.Request(), timeout)
+        return bool(reply.success), str(reply.message)
+
+    def set_parameters(self, node: str, values: Mapping[str, Any], atomic: bool = True,
+                       timeout: float = 30.0) -> list[tuple[bool, str]]:
+        """Set parameters of ``node`` through its parameter service; (successful, reason) each."""
+        from rcl_interfaces.srv import SetParameters, SetParametersAtomically
+
+        from magcal_ros.nodes.common import parameter_message
+
+        msgs = [parameter_message(k, v) for k, v in values.items()]
+        if atomic:
+            reply = self._call(SetParametersAtomically, f"/{node.strip('/')}/set_parameters_atomically",
+                               SetParametersAtomically.Request(parameters=msgs), timeout)
+            return [(bool(reply.result.successful), str(reply.result.reason))]
+        reply = self._call(SetParameters, f"/{node.strip('/')}/set_parameters",
+                           SetParameters.Request(parameters=msgs), timeout)
+        return [(bool(r.successful), str(r.reason)) for r in reply.results]
+
+    def get_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+        """Values of parameters of ``node`` (None for unset ones)."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        request = GetParameters.Request(names=list(names))
+        reply = self._call(GetParameters, f"/{node.strip('/')}/get_parameters", request, timeout)
+        out = {}
+        for n, v in zip(names, reply.values):
+            value = parameter_value_to_python(v)
+            out[n] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+        return out
+
+    def wait_for_message(self, msg_type: Any, topic: str, predicate: Any = None, timeout: float = 30.0) -> Any:
+        """The first message on ``topic`` satisfying ``predicate`` (None on timeout)."""
+        got: list[Any] = []
+        done = threading.Event()
+
+        def cb(msg: Any) -> None:
+            if not done.is_set() and (predicate is None or predicate(msg)):
+                got.append(msg)
+                done.set()
+
+        sub = self.node.create_subscription(msg_type, topic, cb, 10)
+        try:
+            done.wait(timeout)
+        finally:
+            self.node.destroy_subscription(sub)
+        return got[0] if got else None
+
+
+def wait_for_samples(driver: ArrayDriver, node: str, count: int, timeout: float = 20.0) -> dict[str, str]:
+    """Wait until the calibration node's ``~/progress`` reports at least ``count`` samples.
+
+    Returns the last progress values seen (empty if none arrived).
+    """
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    seen: dict[str, str] = {}
+
+    def enough(msg: Any) -> bool:
+        seen.clear()
+        seen.update(status_values(msg))
+        return int(seen.get("samples", "0")) >= count
+
+    driver.wait_for_message(DiagnosticStatus, f"/{node.strip('/')}/progress", enough, timeout)
+    return seen
+
+
+def status_values(msg: Any) -> dict[str, str]:
+    """The key/value pairs of a diagnostic_msgs/DiagnosticStatus."""
+    return {kv.key: kv.value for kv in msg.values}
+
+
+def chunks(items: Sequence[Any], size: int) -> Iterator[Sequence[Any]]:
+    """Consecutive slices of ``items`` of length ``size``."""
+    for a in range(0, len(items), size):
+        yield items[a : a + size]
+
+
+def is_finite(vector: Sequence[float]) -> bool:
+    """True when every component is finite."""
+    return all(math.isfinite(v) for v in vector)

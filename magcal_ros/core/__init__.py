@@ -1,0 +1,39 @@
+"""The calibration math on numpy arrays: no file or message I/O, no ROS, no simulation.
+
+Units are SI everywhere (Tesla, metres, T/m), stamps integer nanoseconds. Frames: each
+sensor's raw axes, and the platform frame all corrected vectors and tensors are in.
+"""
+
+from __future__ import annotations
+
+from magcal_ros._lazy import lazy_exports
+
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "ArrayCalibration": "magcal_ros.core.calibration",
+        "ArrayGeometry": "magcal_ros.core.geometry",
+        "Dipole": "magcal_ros.core.field",
+        "Excitation": "magcal_ros.core.observability",
+        "NS_PER_S": "magcal_ros.core.units",
+        "NT": "magcal_ros.core.units",
+        "Recording": "magcal_ros.core.recording",
+        "ScalarFit": "magcal_ros.core.scalar_fit",
+        "SensorErrors": "magcal_ros.core.sensor_model",
+        "SetBatch": "magcal_ros.core.sync",
+        "SetSynchronizer": "magcal_ros.core.sync",
+        "SyncStats": "magcal_ros.core.sync",
+        "SyncedSet": "magcal_ros.core.sync",
+        "algebraic_fit": "magcal_ros.core.scalar_fit",
+        "centre_field": "magcal_ros.core.tensor",
+        "earth_field": "magcal_ros.core.field",
+        "excitation": "magcal_ros.core.observability",
+        "gradient": "magcal_ros.core.tensor",
+        "invariants": "magcal_ros.core.tensor",
+        "ml_fit": "magcal_ros.core.scalar_fit",
+        "procrustes": "magcal_ros.core.rotation",
+        "tensor_floor": "magcal_ros.core.metrics",
+        "tensor_rms": "magcal_ros.core.metrics",
+        "tmi_rms": "magcal_ros.core.metrics",
+    },
+)

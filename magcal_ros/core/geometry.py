@@ -1,0 +1,101 @@
+"""Array geometry: sensor names and positions in the platform frame (metres)."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.errors import InputError
+
+Array = NDArray[np.float64]
+
+DEFAULT_NAMES: tuple[str, ...] = ("mag1", "mag2", "mag3", "mag4")
+DEFAULT_BASELINE: float = 0.4
+
+
+@dataclass(frozen=True)
+class CrossLayout:
+    """Indices of a planar cross: sensors at +x, +y, -x, -y and the baseline ``d`` (m)."""
+
+    plus_x: int
+    plus_y: int
+    minus_x: int
+    minus_y: int
+    baseline: float
+
+
+@dataclass(frozen=True)
+class ArrayGeometry:
+    """Sensor names and positions (S, 3) in metres, platform frame."""
+
+    names: tuple[str, ...]
+    positions: Array
+
+    def __post_init__(self) -> None:
+        names = tuple(str(n) for n in self.names)
+        pos = np.asarray(self.positions, dtype=float)
+        if len(names) < 2:
+            raise InputError("an array needs at least two sensors")
+        if len(set(names)) != len(names) or not all(names):
+            raise InputError(f"sensor names must be unique and non-empty, got {list(names)}")
+        if pos.size != 3 * len(names):
+            raise InputError(
+                f"positions needs 3 numbers per sensor: {3 * len(names)} for {len(names)} sensors, "
+                f"got {pos.size}"
+            )
+        pos = pos.reshape(len(names), 3)
+        if not np.all(np.isfinite(pos)):
+            raise InputError("positions must be finite")
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "positions", pos)
+
+    @classmethod
+    def cross(cls, baseline: float = DEFAULT_BASELINE, names: tuple[str, ...] = DEFAULT_NAMES) -> "ArrayGeometry":
+        """The default planar cross: +x, +y, -x, -y at ``baseline / 2`` from the centre."""
+        h = baseline / 2.0
+        pos = np.array([[h, 0, 0], [0, h, 0], [-h, 0, 0], [0, -h, 0]], dtype=float)
+        return cls(tuple(names), pos)
+
+    @property
+    def size(self) -> int:
+        """Number of sensors."""
+        return len(self.names)
+
+    @property
+    def centre(self) -> Array:
+        """Mean sensor position (m): where the centre field and the tensor are given."""
+        return self.positions.mean(axis=0)
+
+    def cross_layout(self, tolerance: float = 1e-6) -> CrossLayout | None:
+        """The cross indices if the sensors form a planar cross about the centre, else None.
+
+        Computed once per geometry for the default tolerance (the correction hot path).
+        """
+        return self._default_cross if tolerance == 1e-6 else self._find_cross(tolerance)
+
+    @functools.cached_property
+    def _default_cross(self) -> CrossLayout | None:
+        return self._find_cross(1e-6)
+
+    def _find_cross(self, tolerance: float) -> CrossLayout | None:
+        if self.size != 4:
+            return None
+        rel = self.positions - self.centre
+        found: dict[tuple[int, float], int] = {}
+        for i, p in enumerate(rel):
+            axis = int(np.argmax(np.abs(p)))
+            if axis == 2 or np.linalg.norm(np.delete(p, axis)) > tolerance:
+                return None
+            found[(axis, float(np.sign(p[axis])))] = i
+        keys = [(0, 1.0), (1, 1.0), (0, -1.0), (1, -1.0)]
+        if sorted(found) != sorted(keys):
+            return None
+        px, py, mx, my = (found[k] for k in keys)
+        dx = rel[px, 0] - rel[mx, 0]
+        dy = rel[py, 1] - rel[my, 1]
+        if abs(dx - dy) > tolerance or dx <= 0:
+            return None
+        return CrossLayout(px, py, mx, my, float(dx))

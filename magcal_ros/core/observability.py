@@ -1,0 +1,132 @@
+"""Can the collected attitudes determine a calibration? (docs/methods.md, pitfall B)
+
+A full 9-parameter scalar calibration needs readings spread in three dimensions:
+rotations about one axis put every reading on one plane (an ellipse), and a quadric
+through a planar ellipse is not unique. These checks run before any solve and raise
+:class:`ObservabilityError` with what to do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magcal_ros.errors import InputError, ObservabilityError
+
+Array = NDArray[np.float64]
+
+MIN_SAMPLES: int = 12
+"""Fewest synchronized sets accepted (9 scalar + 3 alignment parameters per sensor)."""
+MIN_THICKNESS: float = 0.05
+"""Smallest accepted ratio of the thinnest to the widest spread of the readings."""
+MIN_SPREAD: float = 0.05
+"""Smallest accepted widest spread of the readings relative to the field intensity."""
+MIN_QUADRIC_RATIO: float = 1e-3
+"""Smallest accepted 9th-to-1st singular value ratio of the quadric design matrix."""
+
+_AXIS_NAMES = ("x", "y", "z")
+
+
+def _sphere_bins(count: int = 42) -> Array:
+    """Roughly uniform directions (Fibonacci sphere) for the coverage measure."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    phi = np.pi * (1.0 + 5**0.5) * k
+    rho = np.sqrt(1.0 - z * z)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+@dataclass(frozen=True)
+class Excitation:
+    """How well a set of raw readings (one sensor or the array centre) excites a calibration."""
+
+    samples: int
+    spread: Array
+    """Standard deviations along the principal axes, largest first, relative to the mean norm."""
+    normal: Array
+    """Unit direction of the thinnest spread: the rotation axis if there was only one."""
+    coverage: float
+    """Fraction of 42 sphere cells visited by the reading directions (0..1)."""
+    quadric_ratio: float
+    """9th/1st singular value of the normalised quadric design (0 when not unique)."""
+
+    @property
+    def thickness(self) -> float:
+        """Thinnest over widest spread: ~0 for a single-axis rotation."""
+        return float(self.spread[2] / self.spread[0]) if self.spread[0] > 0 else 0.0
+
+    @property
+    def axis_name(self) -> str:
+        """Platform axis closest to :attr:`normal`."""
+        return _AXIS_NAMES[int(np.argmax(np.abs(self.normal)))]
+
+    def problem(self) -> str | None:
+        """Why a calibration cannot be solved from these readings, or None if it can."""
+        others = " or ".join(a for a in _AXIS_NAMES if a != self.axis_name)
+        if self.samples < 3:
+            return f"only {self.samples} synchronized sets; turn the array about at least two axes while collecting"
+        if self.spread[0] < MIN_SPREAD:
+            return (
+                "the readings barely change (the array hardly rotated); turn it through large angles "
+                "about at least two axes"
+            )
+        if self.thickness < MIN_THICKNESS or (self.samples >= 10 and self.quadric_ratio < MIN_QUADRIC_RATIO):
+            return (
+                f"all readings lie in one plane: the array was rotated about one axis only "
+                f"(about {self.axis_name}, normal {np.round(self.normal, 2).tolist()}); "
+                f"a full calibration also needs a rotation about {others}"
+                + (": pitch or roll the vehicle, not only yaw" if self.axis_name == "z" else "")
+            )
+        if self.samples < MIN_SAMPLES:
+            return (
+                f"only {self.samples} synchronized sets; need at least {MIN_SAMPLES}, "
+                "collected while turning the array about at least two axes"
+            )
+        return None
+
+    def check(self) -> None:
+        """Raise :class:`ObservabilityError` if :meth:`problem` finds one."""
+        why = self.problem()
+        if why is not None:
+            raise ObservabilityError(why)
+
+
+def singular_values(design: Array) -> Array:
+    """Singular values of a tall matrix, via its R factor (fast and stable for N >> 10)."""
+    return np.linalg.svd(np.linalg.qr(design, mode="r"), compute_uv=False)
+
+
+def quadric_design(points: ArrayLike) -> Array:
+    """Design matrix (N, 10) of a general quadric in normalised coordinates."""
+    x = np.asarray(points, dtype=float)
+    x = (x - x.mean(axis=0)) / max(np.median(np.linalg.norm(x - x.mean(axis=0), axis=1)), 1e-300)
+    a, b, c = x.T
+    return np.column_stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c, 2 * a, 2 * b, 2 * c, np.ones(len(x))])
+
+
+def excitation(readings: ArrayLike) -> Excitation:
+    """Measure the excitation of raw readings (N, 3) in T."""
+    r = np.asarray(readings, dtype=float)
+    if r.ndim != 2 or r.shape[1] != 3:
+        raise InputError(f"readings must be (N, 3), got {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise InputError("readings contain NaN or infinite values")
+    n = len(r)
+    if n < 3:
+        return Excitation(n, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
+    scale = float(np.mean(np.linalg.norm(r, axis=1))) or 1.0
+    centred = r - r.mean(axis=0)
+    evals, evecs = np.linalg.eigh(centred.T @ centred / n)
+    spread = np.sqrt(np.clip(evals[::-1], 0.0, None)) / scale
+    normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
+    norms = np.linalg.norm(centred, axis=1)
+    dirs = centred[norms > 0] / norms[norms > 0, None]
+    bins = _sphere_bins()
+    visited = np.unique(np.argmax(dirs @ bins.T, axis=1)) if len(dirs) else np.array([])
+    ratio = 0.0
+    if n >= 10:
+        sv = singular_values(quadric_design(r))
+        ratio = float(sv[8] / sv[0]) if sv[0] > 0 else 0.0
+    return Excitation(n, spread, normal, len(visited) / len(bins), ratio)

@@ -1,0 +1,73 @@
+"""Rotations between sensor and platform frames.
+
+Convention of Li et al. (2018) (eq. 4-6): passive matrices ``Ta`` (heel, about x), ``Tb``
+(pitch, about y), ``Tg`` (azimuth, about z) and ``T = Ta(alpha) Tb(beta) Tg(gamma)``
+maps a vector from the sensor frame to the platform frame: ``B = T b``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magcal_ros.errors import InputError
+
+Array = NDArray[np.float64]
+
+
+def heel(alpha: float) -> Array:
+    """Passive rotation about x by ``alpha`` rad (Li et al. (2018) ``T_alpha``)."""
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+
+
+def pitch(beta: float) -> Array:
+    """Passive rotation about y by ``beta`` rad (Li et al. (2018) ``T_beta``)."""
+    c, s = np.cos(beta), np.sin(beta)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def azimuth(gamma: float) -> Array:
+    """Passive rotation about z by ``gamma`` rad (Li et al. (2018) ``T_gamma``)."""
+    c, s = np.cos(gamma), np.sin(gamma)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def euler_to_matrix(alpha: float, beta: float, gamma: float) -> Array:
+    """Sensor-to-platform matrix ``T = Ta(alpha) Tb(beta) Tg(gamma)`` (angles in rad)."""
+    return heel(alpha) @ pitch(beta) @ azimuth(gamma)
+
+
+def matrix_to_euler(t: ArrayLike) -> tuple[float, float, float]:
+    """Angles ``(alpha, beta, gamma)`` in rad of ``T`` (inverse of :func:`euler_to_matrix`).
+
+    Uses Li et al. (2018) eq. 10 in its numerically safe atan2 form.
+    """
+    m = np.asarray(t, dtype=float)
+    beta = float(-np.arcsin(np.clip(m[0, 2], -1.0, 1.0)))
+    gamma = float(np.arctan2(m[0, 1], m[0, 0]))
+    alpha = float(np.arctan2(m[1, 2], m[2, 2]))
+    return alpha, beta, gamma
+
+
+def procrustes(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> Array:
+    """Rotation ``R`` in SO(3) minimising ``sum w_k |target_k - R source_k|^2``.
+
+    ``source`` and ``target`` are (N, 3) arrays of the same vectors in two frames; the
+    result maps the source frame into the target frame (orthogonal Procrustes, SVD).
+    """
+    x = np.asarray(source, dtype=float)
+    y = np.asarray(target, dtype=float)
+    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
+        raise InputError(f"procrustes needs two (N, 3) arrays, got {x.shape} and {y.shape}")
+    w = np.ones(len(x)) if weights is None else np.asarray(weights, dtype=float)
+    h = (y * w[:, None]).T @ x
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rotation_angle(r: ArrayLike) -> float:
+    """Angle in rad of the rotation ``r`` (0 for the identity)."""
+    m = np.asarray(r, dtype=float)
+    return float(np.arccos(np.clip((np.trace(m) - 1.0) / 2.0, -1.0, 1.0)))

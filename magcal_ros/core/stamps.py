@@ -1,0 +1,71 @@
+"""Time stamps: integer nanoseconds from input to output, seconds only where a human reads them.
+
+A ROS header stamp is ``(sec, nanosec)``; as one int64 of nanoseconds it is exact for any
+date a vehicle will see. Float seconds at today's epoch resolve only ~0.24 us, so every
+conversion to and from text goes through decimal digits, never through a float.
+"""
+
+from __future__ import annotations
+
+from decimal import Decimal, InvalidOperation
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.units import NS_PER_S
+from magcal_ros.errors import InputError
+
+Stamps = NDArray[np.int64]
+
+
+def split_stamp(stamp_ns: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``(sec, nanosec)`` of integer nanosecond stamps (floor division, nanosec in [0, 1e9))."""
+    s = np.asarray(stamp_ns, dtype=np.int64)
+    return s // NS_PER_S, s % NS_PER_S
+
+
+def join_stamp(sec: Any, nanosec: Any) -> NDArray[np.int64]:
+    """Integer nanoseconds of ``(sec, nanosec)`` pairs."""
+    return np.asarray(sec, dtype=np.int64) * NS_PER_S + np.asarray(nanosec, dtype=np.int64)
+
+
+def seconds_to_ns(seconds: Any) -> NDArray[np.int64]:
+    """Float seconds (a rate, a duration, a simulated clock) to the nearest integer nanoseconds."""
+    t = np.asarray(seconds, dtype=float)
+    whole = np.floor(t)
+    return whole.astype(np.int64) * NS_PER_S + np.rint((t - whole) * NS_PER_S).astype(np.int64)
+
+
+def ns_to_seconds(stamp_ns: Any) -> NDArray[np.float64]:
+    """Integer nanoseconds to float seconds, for plots and printed summaries only."""
+    sec, nsec = split_stamp(stamp_ns)
+    return sec.astype(float) + nsec.astype(float) * 1e-9
+
+
+def parse_seconds(text: str) -> int:
+    """Decimal seconds as text (``1700000000.123456789``, ``0.02``, ``1.7e9``) to exact nanoseconds.
+
+    More than nine decimals are rounded to the nearest nanosecond. Raises :class:`InputError`
+    for text that is not a finite number.
+    """
+    try:
+        value = Decimal(text.strip())
+    except InvalidOperation:
+        raise InputError(f"not a time in seconds: {text!r}") from None
+    if not value.is_finite():
+        raise InputError(f"not a finite time in seconds: {text!r}")
+    return int((value * NS_PER_S).to_integral_value())
+
+
+def format_seconds(stamp_ns: int) -> str:
+    """Exact decimal seconds with nine decimals (``-0.5 s`` is ``-0.500000000``)."""
+    ns = int(stamp_ns)
+    sign = "-" if ns < 0 else ""
+    sec, nsec = divmod(abs(ns), NS_PER_S)
+    return f"{sign}{sec}.{nsec:09d}"
+
+
+def format_seconds_column(stamp_ns: Any) -> list[str]:
+    """:func:`format_seconds` of every stamp of an array."""
+    return [format_seconds(t) for t in np.asarray(stamp_ns, dtype=np.int64).tolist()]

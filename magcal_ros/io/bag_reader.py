@@ -1,0 +1,495 @@
+"""Streaming synchronized sets out of rosbag2 bags, with as little per-message Python as possible.
+
+- sqlite3 (uncompressed): the storage files are queried directly with the query rosbags
+  itself runs, so each message costs one row tuple and one list append;
+- mcap (indexed, uncompressed or with chunk compression rosbags supports): each chunk is
+  read once and every MagneticField message of a sensor is gathered with one numpy fancy
+  index through the chunk's message index, no per-message Python at all;
+- anything else: ``Reader.messages``.
+
+Messages are decoded in batches (:mod:`magcal_ros.io.cdr`) and synchronised in chunks
+(:mod:`magcal_ros.core.sync`); memory stays bounded by the chunk size.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.stamps import format_seconds
+from magcal_ros.core.sync import (
+    DEFAULT_SYNC_TOLERANCE,
+    SetBatch,
+    SetSynchronizer,
+    SyncStats,
+    tolerance_ns,
+)
+from magcal_ros.errors import InputError, MagcalError
+from magcal_ros.io import topics as topic_names
+from magcal_ros.io.cdr import (
+    MAGNETIC_FIELD,
+    decode_magnetic_field_rows,
+    decode_magnetic_fields,
+)
+
+if TYPE_CHECKING:
+    from rosbags.interfaces import Connection
+    from rosbags.rosbag2 import Reader
+
+NonFinite = Literal["drop", "error"]
+Progress = Callable[[int], None]
+"""Progress callback: called with the number of input messages just processed. If it also
+has a ``set_total(n)`` method, that is called first with the messages the run will read."""
+
+CHUNK_MESSAGES = 65536
+"""Input messages decoded and synchronised per chunk."""
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (or its type name)."""
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """True for the errors rosbags and its storage libraries raise on unreadable bags."""
+    import apsw
+    from rosbags.rosbag2 import ReaderError
+    from rosbags.serde import SerdeError
+
+    return isinstance(exc, (ReaderError, SerdeError, apsw.Error, EOFError)) or type(exc).__module__.startswith(
+        ("zstd", "backports.zstd", "compression", "lz4")
+    )
+
+
+def bag_error(path: str | os.PathLike[str], exc: BaseException) -> MagcalError:
+    """A one-line :class:`InputError` for a failure while reading the bag ``path``."""
+    if isinstance(exc, MagcalError):
+        return exc
+    if isinstance(exc, FileNotFoundError):
+        missing = Path(exc.filename).name if getattr(exc, "filename", None) else "metadata.yaml"
+        return InputError(f"{path}: not a rosbag2 directory or bag file (no {missing})")
+    if isinstance(exc, PermissionError):
+        return InputError(f"{path}: permission denied")
+    return InputError(f"{path}: corrupt or unreadable rosbag2 ({type(exc).__name__}: {first_line(exc)})")
+
+
+@contextlib.contextmanager
+def open_bag(path: str | os.PathLike[str]) -> Iterator["Reader"]:
+    """An open rosbags ``Reader``; any failure becomes one :class:`InputError` line."""
+    from rosbags.rosbag2 import Reader
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p} does not exist")
+    try:
+        reader = Reader(p)
+        reader.open()
+    except Exception as exc:  # rosbags, apsw, yaml, OS errors: all mean "unreadable bag"
+        raise bag_error(p, exc) from None
+    try:
+        yield reader
+    except MagcalError:
+        raise
+    except Exception as exc:
+        if not is_read_error(exc):
+            raise
+        raise bag_error(p, exc) from None
+    finally:
+        with contextlib.suppress(Exception):
+            reader.close()
+
+
+BAG_FILE_SUFFIXES: tuple[str, ...] = (".db3", ".mcap", ".yaml", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd")
+
+
+def _plain_sqlite_files(reader: "Reader") -> list[Path] | None:
+    """The storage files of an uncompressed sqlite3 bag directory, else None."""
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    storages = getattr(reader.storage, "storages", None)
+    if not storages or reader.compression_mode or not all(isinstance(s, Sqlite3Reader) for s in storages):
+        return None
+    paths = [getattr(s, "path", None) for s in storages]
+    return paths if all(isinstance(p, Path) for p in paths) else None  # type: ignore[return-value]
+
+
+def _sqlite_cursors(files: list[Path], by_key: dict[tuple[str, str], int]) -> Iterator[Iterable[tuple[int, int, bytes]]]:
+    """Per storage file, a cursor over (connection id, bag time, data) in bag time order."""
+    import apsw
+
+    for f in files:
+        db = apsw.Connection(f"file:{f}?immutable=1", flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
+        try:
+            idmap = {tid: by_key[(name, typ)] for tid, name, typ in db.execute("SELECT id, name, type FROM topics") if (name, typ) in by_key}
+            if not idmap:
+                continue
+            query = f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({','.join(map(str, idmap))}) ORDER BY timestamp"
+            cursor = db.execute(query)
+            if all(k == v for k, v in idmap.items()):
+                yield cursor
+            else:
+                yield ((idmap[t], ts, d) for t, ts, d in cursor)
+        finally:
+            db.close()
+
+
+def message_rows(reader: "Reader", connections: Sequence["Connection"]) -> Iterable[tuple[int, int, bytes]]:
+    """``(connection id, bag time ns, serialized bytes)`` of ``connections``, in bag time order.
+
+    For uncompressed sqlite3 bags the storage files are queried directly (the same query
+    rosbags runs, without its per-message Python layers); anything else goes through
+    ``Reader.messages``.
+    """
+    files = _plain_sqlite_files(reader)
+    if files is None:
+        return ((c.id, t, d) for c, t, d in reader.messages(connections=list(connections)))
+    by_key = {(c.topic, c.msgtype): c.id for c in connections}
+    return itertools.chain.from_iterable(_sqlite_cursors(files, by_key))
+
+
+def _indexed_mcaps(reader: "Reader", connections: Sequence["Connection"]) -> list[Any] | None:
+    """The mcap storages of a bag if every wanted message is reachable through chunk indexes."""
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    storages = getattr(reader.storage, "storages", None)
+    if not storages or reader.compression_mode or not all(isinstance(s, McapReader) for s in storages):
+        return None
+    keys = {(c.topic, c.msgtype) for c in connections}
+    indexed = listed = 0
+    for st in storages:
+        if not all(hasattr(st, a) for a in ("chunks", "bio", "connections")):
+            return None
+        ids = {c.id for c in st.connections if (c.topic, c.msgtype) in keys}
+        listed += sum(c.msgcount for c in st.connections if c.id in ids)
+        indexed += sum(n for ch in st.chunks for cid, n in ch.channel_count.items() if cid in ids)
+    return storages if indexed == listed else None
+
+
+@dataclass
+class _ChannelBatch:
+    """Messages of one channel in one chunk: bag times (n,) ns and payloads."""
+
+    times: NDArray[np.int64]
+    rows: list[NDArray[np.uint8]]
+    """Equal-length payload groups, each (n_i, L_i)."""
+    order: list[NDArray[np.int64]]
+    """Positions (into ``times``) of each group's rows."""
+
+
+def _u64(u: NDArray[np.uint8], at: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Little-endian uint64 at byte positions ``at`` of ``u``."""
+    return u[at[:, None] + np.arange(8)].copy().view("<u8")[:, 0].astype(np.int64)
+
+
+def _mcap_chunk(storage: Any, chunk: Any, ids: set[int], what: str) -> dict[int, _ChannelBatch]:
+    """Read and decompress one chunk; gather the payloads of channels ``ids`` via its message index."""
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    bio = storage.bio
+    bio.seek(chunk.chunk_start_offset + 9 + 24)
+    crc = int.from_bytes(bio.read(4), "little")
+    bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+    data = bio.read(chunk.compressed_size)
+    if len(data) != chunk.compressed_size:
+        raise InputError(f"{what}: truncated mcap chunk")
+    u = np.frombuffer(decompress(data, chunk.compression, chunk.uncompressed_size, crc), np.uint8)
+    out: dict[int, _ChannelBatch] = {}
+    for cid in sorted(ids & set(chunk.message_index_offsets)):
+        bio.seek(chunk.message_index_offsets[cid])
+        head = bio.read(15)
+        if len(head) != 15 or head[0] != 0x07 or int.from_bytes(head[9:11], "little") != cid:
+            raise InputError(f"{what}: malformed mcap message index")
+        size = int.from_bytes(head[11:15], "little")
+        pairs = np.frombuffer(bio.read(size), "<u8")
+        if len(pairs) * 8 != size or size % 16:
+            raise InputError(f"{what}: truncated mcap message index")
+        pairs = pairs.reshape(-1, 2).astype(np.int64)
+        order = np.argsort(pairs[:, 0], kind="stable")
+        times, offs = pairs[order, 0], pairs[order, 1]
+        if len(offs) and (offs.min() < 0 or offs.max() + 31 > len(u)):
+            raise InputError(f"{what}: mcap message index points outside its chunk")
+        lengths = _u64(u, offs + 1) - 22
+        ok = (u[offs] == 0x05) & (u[offs + 9] == (cid & 0xFF)) & (u[offs + 10] == (cid >> 8)) & (lengths >= 0)
+        if not np.all(ok) or np.any(offs + 31 + lengths > len(u)):
+            raise InputError(f"{what}: mcap message index does not match its chunk")
+        rows, where = [], []
+        for length in np.unique(lengths):
+            idx = np.flatnonzero(lengths == length)
+            rows.append(u[offs[idx, None] + 31 + np.arange(int(length))])
+            where.append(idx)
+        out[cid] = _ChannelBatch(times, rows, where)
+    return out
+
+
+@dataclass
+class _Pending:
+    """Raw messages of one chunk, per sensor."""
+
+    messages: list[list[bytes]]
+
+    @classmethod
+    def empty(cls, sensors: int) -> "_Pending":
+        return cls([[] for _ in range(sensors)])
+
+
+class SetReader:
+    """Stream synchronized raw sets out of an open bag, in chunks.
+
+    Iterating yields :class:`~magcal_ros.core.sync.SetBatch` in stamp order; ``stats`` counts
+    sets and dropped messages. Messages of ``extra`` connections are handed to
+    ``on_extra`` as ``(connection, bag time ns, bytes)`` in bag time order.
+    """
+
+    def __init__(
+        self,
+        reader: "Reader",
+        path: str | os.PathLike[str],
+        connections: list[list["Connection"]],
+        tolerance: float = DEFAULT_SYNC_TOLERANCE,
+        nonfinite: NonFinite = "drop",
+        extra: Sequence["Connection"] = (),
+        on_extra: Callable[[list[tuple["Connection", int, bytes]]], None] | None = None,
+        progress: Progress | None = None,
+        chunk: int = CHUNK_MESSAGES,
+    ) -> None:
+        self.reader = reader
+        self.path = str(path)
+        self.index: dict[int, int] = {}
+        for k, conns in enumerate(connections):
+            for c in conns:
+                self.index[c.id] = k
+        self.extra = list(extra)
+        for c in self.extra:
+            self.index.setdefault(c.id, -1)
+        self.names = [topic_names.sensor_of_raw(conns[0].topic) or conns[0].topic for conns in connections]
+        self.sync = SetSynchronizer(len(connections), tolerance_ns(tolerance), max_pending=4 * chunk)
+        self.nonfinite = nonfinite
+        self.on_extra = on_extra
+        self.progress = progress
+        self.chunk = chunk
+        self.connections = [c for conns in connections for c in conns]
+        self.wanted = {c.id: c for c in self.connections + self.extra}
+        self._extras: list[tuple[Connection, int, bytes]] = []
+
+    @property
+    def stats(self) -> SyncStats:
+        """Counters so far."""
+        return self.sync.stats
+
+    def __iter__(self) -> Iterator[SetBatch]:
+        listed = sum(c.msgcount for c in self.wanted.values())
+        set_total = getattr(self.progress, "set_total", None)
+        if callable(set_total):
+            set_total(listed)
+        mcaps = _indexed_mcaps(self.reader, list(self.wanted.values()))
+        feed = self._feed_mcap(mcaps) if mcaps is not None else self._feed_rows()
+        n = total = 0
+        while True:
+            try:
+                count = next(feed)
+            except StopIteration:
+                break
+            except MagcalError:
+                raise
+            except Exception as exc:  # anything the storage raises while reading: a damaged bag
+                raise bag_error(self.path, exc) from None
+            n += count
+            if n >= self.chunk:
+                total += n
+                yield from self._release(n, final=False)
+                n = 0
+        total += n
+        if total < listed:
+            raise InputError(
+                f"{self.path}: truncated bag: its metadata lists {listed} messages on the topics read, "
+                f"only {total} are in the storage"
+            )
+        yield from self._release(n, final=True)
+
+    def _feed_rows(self) -> Iterator[int]:
+        """Queue messages from :func:`message_rows`; yields how many were queued each time."""
+        wanted, index = self.wanted, self.index
+        copy_ids = {c.id for c in self.extra}
+        pending = _Pending.empty(self.sync.size)
+        extras = self._extras
+        n = 0
+        for cid, bagtime, data in message_rows(self.reader, list(wanted.values())):
+            k = index[cid]
+            if k >= 0:
+                pending.messages[k].append(data)
+            if copy_ids and cid in copy_ids:
+                extras.append((wanted[cid], bagtime, data))
+            n += 1
+            if n >= self.chunk:
+                self._decode(pending)
+                yield n
+                pending, n = _Pending.empty(self.sync.size), 0
+        self._decode(pending)
+        yield n
+
+    def _decode(self, pending: _Pending) -> None:
+        for k, msgs in enumerate(pending.messages):
+            self._queue(k, *decode_magnetic_fields(msgs, self.path))
+
+    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
+        """Hand one sensor's decoded messages (in its order) to the synchronizer."""
+        if self.nonfinite == "error":
+            bad = ~np.all(np.isfinite(vectors), axis=1)
+            if np.any(bad):
+                raise InputError(
+                    f"{self.path}: {int(bad.sum())} NaN or infinite readings on /{self.names[k]}/raw "
+                    f"(first stamped {format_seconds(int(stamps[np.argmax(bad)]))} s); "
+                    "pass --drop-nonfinite to skip them"
+                )
+        self.sync.add_batch(k, stamps, vectors)
+
+    def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:
+        """Queue messages chunk by chunk through the mcap message indexes."""
+        keys = {(c.topic, c.msgtype): c.id for c in self.wanted.values()}
+        copy_ids = {c.id for c in self.extra}
+        for st in storages:
+            local = {c.id: keys[(c.topic, c.msgtype)] for c in st.connections if (c.topic, c.msgtype) in keys}
+            ids = set(local)
+            chunks = sorted(
+                (ch for ch in st.chunks if any(ch.channel_count.get(cid, 0) for cid in ids)),
+                key=lambda ch: (ch.message_start_time, ch.chunk_start_offset),
+            )
+            for ch in chunks:
+                n = 0
+                for cid, batch in _mcap_chunk(st, ch, ids, self.path).items():
+                    gid = local[cid]
+                    n += len(batch.times)
+                    k = self.index[gid]
+                    if k >= 0:
+                        stamps = np.empty(len(batch.times), np.int64)
+                        vectors = np.empty((len(batch.times), 3))
+                        for rows, where in zip(batch.rows, batch.order):
+                            stamps[where], vectors[where] = decode_magnetic_field_rows(rows, self.path)
+                        self._queue(k, stamps, vectors)
+                    if gid in copy_ids:
+                        conn = self.wanted[gid]
+                        times = batch.times.tolist()
+                        for rows, where in zip(batch.rows, batch.order):
+                            self._extras.extend((conn, times[i], r.tobytes()) for i, r in zip(where.tolist(), rows))
+                yield n
+
+    def _release(self, n: int, final: bool) -> Iterator[SetBatch]:
+        """Hand over queued copies, release complete sets, report progress."""
+        if self._extras and self.on_extra is not None:
+            self._extras.sort(key=lambda item: item[1])
+            self.on_extra(self._extras)
+        self._extras = []
+        batch = self.sync.pop(final=final)
+        if self.progress is not None and n:
+            self.progress(n)
+        if len(batch):
+            yield batch
+
+
+# --------------------------------------------------------------------------- topics
+
+
+def field_topics(reader: "Reader") -> dict[str, list["Connection"]]:
+    """MagneticField topics of an open bag: ``{topic: connections}``."""
+    out: dict[str, list[Connection]] = {}
+    for conn in reader.connections:
+        if conn.msgtype == MAGNETIC_FIELD:
+            out.setdefault(conn.topic, []).append(conn)
+    return out
+
+
+def sensor_names_of(reader: "Reader") -> tuple[str, ...]:
+    """Sensor names of all ``/<name>/raw`` MagneticField topics, sorted."""
+    names = [topic_names.sensor_of_raw(t) for t in field_topics(reader)]
+    return tuple(sorted(n for n in names if n))
+
+
+def resolve_sensor_topics(
+    reader: "Reader",
+    path: str | os.PathLike[str],
+    names: Sequence[str] | None = None,
+    topics: Sequence[str] | None = None,
+) -> tuple[tuple[str, ...], list[list["Connection"]]]:
+    """Sensor names and their connections: ``topics`` if given, else ``/<name>/raw`` of ``names``.
+
+    ``names`` default to every ``*/raw`` MagneticField topic of the bag (sorted).
+    Raises :class:`InputError` naming a missing topic or a topic of the wrong type.
+    """
+    fields = field_topics(reader)
+    for given in (names, topics):
+        if given is not None and len(set(given)) != len(given):
+            raise InputError(f"sensors must be listed once each, got {', '.join(given)}")
+    if topics:
+        tlist = [t if t.startswith("/") else "/" + t for t in topics]
+        if names is None:
+            names = [t[1:-4] if t.endswith("/raw") else t.strip("/") for t in tlist]
+        if len(names) != len(tlist):
+            raise InputError(f"{len(names)} sensor names for {len(tlist)} topics")
+    else:
+        if names is None:
+            names = sensor_names_of(reader)
+            if not names:
+                listing = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+                raise InputError(f"{path}: no /<name>/raw sensor_msgs/msg/MagneticField topics (topics: {listing})")
+        tlist = [topic_names.absolute(topic_names.raw(n)) for n in names]
+    conns = []
+    for t in tlist:
+        if t not in fields:
+            other = [c.msgtype for c in reader.connections if c.topic == t]
+            if other:
+                raise InputError(f"{path}: topic {t} has type {other[0]}, expected {MAGNETIC_FIELD}")
+            have = ", ".join(sorted(fields)) or "none"
+            raise InputError(f"{path}: no topic {t} (MagneticField topics: {have})")
+        conns.append(fields[t])
+    return tuple(names), conns
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_bag_sets(
+    path: str | os.PathLike[str],
+    names: Sequence[str] | None = None,
+    topics: Sequence[str] | None = None,
+    tolerance: float = DEFAULT_SYNC_TOLERANCE,
+    nonfinite: NonFinite = "drop",
+    progress: Progress | None = None,
+) -> tuple[Recording, SyncStats]:
+    """Synchronized raw sets of a bag and the synchronisation counters.
+
+    ``names``: sensors (topics ``/<name>/raw``; default all ``*/raw`` MagneticField
+    topics, sorted); ``topics``: explicit topic per sensor instead. ``tolerance`` (s):
+    largest header stamp difference within a set. Stamps of the recording are the sets'
+    header stamps in integer nanoseconds; vectors are in Tesla, sensor axes.
+    """
+    with open_bag(path) as reader:
+        names_t, conns = resolve_sensor_topics(reader, path, names, topics)
+        sets = SetReader(reader, path, conns, tolerance, nonfinite, progress=progress)
+        stamps: list[NDArray[np.int64]] = []
+        vectors: list[NDArray[np.float64]] = []
+        for batch in sets:
+            stamps.append(batch.set_stamps)
+            vectors.append(batch.vectors)
+        stats = sets.stats
+    if not stamps:
+        raise InputError(f"{path}: no complete synchronized sets of {', '.join(topic_names.absolute(topic_names.raw(n)) for n in names_t)} ({stats.describe()})")
+    rec = Recording(names_t, np.concatenate(stamps), np.concatenate(vectors))
+    return rec, stats
+
+
+def read_bag_recording(path: str | os.PathLike[str], names: Sequence[str] | None = None, **options: Any) -> Recording:
+    """Synchronized raw sets of a rosbag2 directory (sqlite3 or mcap) as a :class:`Recording`.
+
+    Options as :func:`read_bag_sets` (which also returns how many messages were dropped).
+    """
+    return read_bag_sets(path, names, **options)[0]

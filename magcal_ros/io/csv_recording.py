@@ -1,0 +1,139 @@
+"""CSV recordings: raw sets in, corrected sets out.
+
+Raw layout: header ``stamp,mag1.x,mag1.y,mag1.z,mag2.x,...``; stamp in decimal seconds,
+fields in Tesla, one synchronized set per row. Stamps are parsed and written exactly as
+decimal digits (9 decimals on output), never through a float, so nanoseconds survive.
+
+Rows go through the same acceptance rule as bag messages
+(:mod:`magcal_ros.core.sync`): a row whose stamp is 0, repeats or goes back is dropped
+and counted, a row with a NaN or infinite value is refused or dropped like a bag's.
+
+Corrected layout (``magcal correct``): ``stamp``, ``<name>.x,<name>.y,<name>.z`` per
+sensor (T, platform frame), ``field.x,field.y,field.z`` (centre field, T) and
+``gradient.xx, gradient.xy, ..., gradient.zz`` (``gradient.ij = dB_j/dx_i``, T/m).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.stamps import format_seconds_column, parse_seconds
+from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.errors import InputError
+from magcal_ros.io.atomic import atomic_path
+
+AXIS_NAMES: tuple[str, ...] = ("x", "y", "z")
+TENSOR_COLUMNS: tuple[str, ...] = tuple(f"gradient.{i}{j}" for i in AXIS_NAMES for j in AXIS_NAMES)
+FIELD_COLUMNS: tuple[str, ...] = tuple(f"field.{a}" for a in AXIS_NAMES)
+NonFinite = Literal["drop", "error"]
+
+
+def csv_header(names: Sequence[str], suffixes: tuple[str, ...] = AXIS_NAMES) -> list[str]:
+    """Header row: ``stamp`` then ``<name>.<suffix>`` per sensor."""
+    return ["stamp"] + [f"{n}.{a}" for n in names for a in suffixes]
+
+
+def corrected_header(names: Sequence[str]) -> list[str]:
+    """``stamp, <name>.x.., field.x.., gradient.xx..gradient.zz``."""
+    return csv_header(list(names)) + list(FIELD_COLUMNS) + list(TENSOR_COLUMNS)
+
+
+def parse_header(header: list[str]) -> tuple[str, ...]:
+    """Sensor names of a CSV header; :class:`InputError` if it is not the contract's layout."""
+    if header:
+        header = [header[0].lstrip("\ufeff")] + header[1:]  # a byte order mark is not a column name
+    if not header or header[0].strip() != "stamp":
+        raise InputError("CSV header must start with 'stamp' (then mag1.x,mag1.y,mag1.z,...)")
+    cols = [c.strip() for c in header[1:]]
+    if len(cols) == 0 or len(cols) % 3:
+        raise InputError(f"CSV needs 3 columns per sensor after 'stamp', got {len(cols)}")
+    names = []
+    for k in range(0, len(cols), 3):
+        stem = cols[k].rsplit(".", 1)[0]
+        if cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
+            raise InputError(f"CSV columns {cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
+        names.append(stem)
+    return tuple(names)
+
+
+def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tuple[Recording, SyncStats]:
+    """Read a CSV recording and the counts of rows it dropped (per message, as for a bag).
+
+    Ragged rows, text values or an empty file are :class:`InputError`; NaN or infinite
+    values are refused (``nonfinite="error"``) or their rows dropped (``"drop"``).
+    """
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise InputError(f"cannot read {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path} is not a text CSV file") from None
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
+    names = parse_header(rows[0])
+    width = 1 + 3 * len(names)
+    if len(rows) == 1:
+        raise InputError(f"{path} has a header but no data rows")
+    stamps = np.empty(len(rows) - 1, np.int64)
+    data = np.empty((len(rows) - 1, width - 1))
+    for i, row in enumerate(rows[1:], start=2):
+        if len(row) != width:
+            raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
+        try:
+            stamps[i - 2] = parse_seconds(row[0])
+            data[i - 2] = [float(c) for c in row[1:]]
+        except (ValueError, InputError):
+            raise InputError(f"{path} line {i}: non-numeric value") from None
+        if nonfinite == "error" and not np.all(np.isfinite(data[i - 2])):
+            raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
+    vectors = data.reshape(len(data), len(names), 3)
+    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False)
+    for k in range(len(names)):
+        sync.add_batch(k, stamps, vectors[:, k])
+    sets = sync.pop(final=True)
+    if len(sets) == 0:
+        raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
+    return Recording(names, sets.set_stamps, sets.vectors), sync.stats
+
+
+def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:
+    """CSV body lines: exact stamps (9 decimals) and ``columns`` (N, K) in full double precision."""
+    buf = io.StringIO()
+    np.savetxt(buf, np.asarray(columns, dtype=float), delimiter=",", fmt="%.17g")
+    body = buf.getvalue().splitlines()
+    return "".join(f"{t},{line}\n" for t, line in zip(format_seconds_column(stamps), body))
+
+
+def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
+    """Write ``recording`` atomically as CSV."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(csv_header(recording.names)) + "\n")
+            fh.write(format_rows(recording.stamps, recording.vectors.reshape(len(recording), -1)))
+
+
+def write_corrected_csv(
+    path: str | os.PathLike[str],
+    stamps: NDArray[np.int64],
+    names: Sequence[str],
+    vectors: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    tensors: NDArray[np.float64],
+) -> None:
+    """Write corrected sets atomically: vectors (N, S, 3) T, centre (N, 3) T, tensors (N, 3, 3) T/m."""
+    n = len(stamps)
+    columns = np.concatenate([vectors.reshape(n, -1), centre.reshape(n, 3), tensors.reshape(n, 9)], axis=1)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(corrected_header(names)) + "\n")
+            fh.write(format_rows(stamps, columns))

@@ -1,0 +1,65 @@
+"""Open a recording from a path: a CSV file or a rosbag2 directory (sqlite3 or mcap)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
+from magcal_ros.errors import InputError
+from magcal_ros.io.csv_recording import read_csv
+
+
+def is_csv(path: str | os.PathLike[str]) -> bool:
+    """True when ``path`` names a CSV recording (by its ``.csv`` ending)."""
+    return str(path).lower().endswith(".csv")
+
+
+def read_recording(path: str | os.PathLike[str], **options: object) -> Recording:
+    """Synchronized raw sets from ``path`` (options as :func:`open_recording`)."""
+    return open_recording(path, **options)[0]  # type: ignore[arg-type]
+
+
+def open_recording(
+    path: str | os.PathLike[str],
+    names: tuple[str, ...] | None = None,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    tolerance: float | None = None,
+    nonfinite: Literal["drop", "error"] = "drop",
+    progress: Callable[[int], None] | None = None,
+) -> tuple[Recording, SyncStats]:
+    """Synchronized raw sets from ``path``, restricted to sensors ``names`` and a stamp window.
+
+    CSV rows are sets already; bag topics ``/<name>/raw`` are synchronised by header stamp
+    within ``tolerance`` seconds (default :data:`~magcal_ros.core.sync.DEFAULT_SYNC_TOLERANCE`).
+    Both go through the same acceptance rule: repeated, out-of-order and (bags) zero
+    stamps are dropped and counted; NaN readings are dropped (``nonfinite="drop"``) or
+    refused (``"error"``). Also returns those counts.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p} does not exist")
+    if is_csv(p):
+        if p.is_dir():
+            raise InputError(f"{p} is a directory, not a CSV file")
+        try:
+            rec, stats = read_csv(p, nonfinite)
+        except InputError as exc:
+            raise (exc if str(p) in str(exc) else InputError(f"{p}: {exc}")) from None
+        if names:
+            rec = rec.select(tuple(names))
+    else:
+        from magcal_ros.io.bag_reader import read_bag_sets
+
+        if p.is_file() and p.suffix not in (".db3", ".mcap"):
+            raise InputError(f"{p}: not a recording: give a rosbag2 directory or a .csv file")
+        tol = DEFAULT_SYNC_TOLERANCE if tolerance is None else tolerance
+        rec, stats = read_bag_sets(p, names, tolerance=tol, nonfinite=nonfinite, progress=progress)
+    rec = rec.window(start_ns, end_ns)
+    if len(rec) == 0:
+        raise InputError(f"{p}: no synchronized sets in the selected time window")
+    return rec, stats

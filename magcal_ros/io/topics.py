@@ -1,0 +1,43 @@
+"""Topic names, one place for bags and nodes.
+
+Nodes use relative names (``mag1/raw``), so that a namespace or a remap moves them all;
+bags store the absolute names a node in the root namespace publishes (``/mag1/raw``).
+"""
+
+from __future__ import annotations
+
+RAW_SUFFIX = "raw"
+CORRECTED_SUFFIX = "corrected"
+FIELD = "field"
+"""Corrected field at the array centre (sensor_msgs/MagneticField, T)."""
+GRADIENT = "gradient"
+"""Gradient tensor (std_msgs/Float64MultiArray, 3x3 row-major, T/m)."""
+DEFAULT_FRAME_ID = "magcal_array"
+"""Default platform frame of every corrected output."""
+
+
+def raw(name: str) -> str:
+    """Relative topic of a sensor's raw readings: ``<name>/raw``."""
+    return f"{name.strip('/')}/{RAW_SUFFIX}"
+
+
+def corrected(name: str) -> str:
+    """Relative topic of a sensor's corrected readings: ``<name>/corrected``."""
+    return f"{name.strip('/')}/{CORRECTED_SUFFIX}"
+
+
+def absolute(topic: str) -> str:
+    """The topic in the root namespace, as a bag records it: ``/`` + relative name."""
+    return "/" + topic.lstrip("/")
+
+
+def sensor_of_raw(topic: str) -> str | None:
+    """The sensor name of an absolute ``/<name>/raw`` topic, else None."""
+    suffix = "/" + RAW_SUFFIX
+    if topic.startswith("/") and topic.endswith(suffix) and len(topic) > len(suffix) + 1:
+        return topic[1 : -len(suffix)]
+    return None
+
+
+RAW_TOPIC_HELP = "/<name>/raw"
+"""How help texts name the raw topics."""

@@ -1,0 +1,17 @@
+"""Simulated arrays with known truth: sensors with errors on a turning platform in the Earth's
+field (plus dipoles), manoeuvre schedules, the papers' scenarios and ``magcal simulate``'s spec."""
+
+from __future__ import annotations
+
+from magcal_ros._lazy import lazy_exports
+
+__all__, __getattr__ = lazy_exports(
+    __name__,
+    {
+        "ArraySimulation": "magcal_ros.sim.simulator",
+        "SimulationSpec": "magcal_ros.sim.spec",
+        "Truth": "magcal_ros.sim.simulator",
+        "random_sensor_errors": "magcal_ros.sim.simulator",
+        "run": "magcal_ros.sim.spec",
+    },
+)

@@ -1,0 +1,87 @@
+"""Integer-nanosecond time end to end: ``magcal correct`` writes exactly the input stamps.
+
+At today's epoch a float second resolves only ~0.24 us, so a stamp that went through a
+float comes back off by up to ~120 ns; these stamps carry odd nanoseconds to catch that.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+from test_offline import magcal, ok
+
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.stamps import format_seconds, parse_seconds
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io import cdr
+from magcal_ros.io.bag_writer import write_recording_bag
+from magcal_ros.io.csv_recording import write_csv
+from magcal_ros.sim import scenarios
+from magcal_ros.sim.attitudes import uniform_random
+
+NS = 1_000_000_000
+
+
+def odd_recording(n: int = 200) -> Recording:
+    """Sets 10 ms apart plus odd nanoseconds, from a simulated array (any readings would do)."""
+    rng = np.random.default_rng(2)
+    sim = scenarios.paper004_simulation()
+    rec, _ = sim.run(uniform_random(n, rng), rng)
+    stamps = 1_763_900_000 * NS + np.arange(n, dtype=np.int64) * 10_000_000 + rng.integers(1, 999, n) * 1_000_003
+    return Recording(rec.names, np.sort(stamps) + 7, rec.vectors)
+
+
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("cal") / "identity.yaml"
+    from magcal_ros.core.calibration import ArrayCalibration
+
+    path.write_text(calfile.dumps(ArrayCalibration.identity(scenarios.paper004_simulation().geometry)))
+    return path
+
+
+def test_format_and_parse_are_exact_inverses() -> None:
+    for ns in (0, 1, 999_999_999, 1_763_900_000_123_456_789, -1, -1_500_000_000):
+        assert parse_seconds(format_seconds(ns)) == ns
+    assert format_seconds(1_763_900_000_000_000_007) == "1763900000.000000007"
+    assert parse_seconds("1763900000.1234567891") == 1_763_900_000_123_456_789
+    assert parse_seconds("1.7e9") == 1_700_000_000 * NS and parse_seconds(" 0.02 ") == 20_000_000
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_correct_keeps_bag_stamps_to_the_nanosecond(tmp_path: Path, calibration: Path, storage: str) -> None:
+    rec = odd_recording()
+    raw = tmp_path / "raw"
+    write_recording_bag(raw, rec, storage)  # type: ignore[arg-type]
+    out = tmp_path / "out"
+    ok(magcal("correct", raw, "-c", calibration, "-o", out))
+    ts = cdr.typestore()
+    with Reader(out) as reader:
+        msgs = [(c.topic, t, ts.deserialize_cdr(d, c.msgtype)) for c, t, d in reader.messages()]
+    fields = [(t, m.header.stamp.sec * NS + m.header.stamp.nanosec) for topic, t, m in msgs if topic == "/field"]
+    assert [f[0] for f in fields] == rec.stamps.tolist(), "bag times"
+    assert [f[1] for f in fields] == rec.stamps.tolist(), "header stamps"
+    gradient_times = [t for topic, t, _ in msgs if topic == "/gradient"]
+    assert gradient_times == rec.stamps.tolist()
+
+
+def test_correct_keeps_csv_stamps_to_the_nanosecond(tmp_path: Path, calibration: Path) -> None:
+    rec = odd_recording()
+    raw = tmp_path / "raw.csv"
+    write_csv(raw, rec)
+    with open(raw, newline="") as fh:
+        written = [row[0] for row in list(csv.reader(fh))[1:]]
+    assert written == [format_seconds(t) for t in rec.stamps] and all(len(s.split(".")[1]) == 9 for s in written)
+    out = tmp_path / "out.csv"
+    ok(magcal("correct", raw, "-c", calibration, "-o", out))
+    with open(out, newline="") as fh:
+        assert [row[0] for row in list(csv.reader(fh))[1:]] == written
+    # Bag in, CSV out, and CSV in, bag out: the same nanoseconds.
+    bag = tmp_path / "bag"
+    ok(magcal("correct", raw, "-c", calibration, "-o", bag))
+    with Reader(bag) as reader:
+        assert [t for c, t, _ in reader.messages() if c.topic == "/field"] == rec.stamps.tolist()

@@ -1,0 +1,225 @@
+"""The one set synchroniser: the rule, and the streaming (live) and batch (bag) paths agreeing on it.
+
+``rule_sets`` below is the rule written out plainly, independent of the implementation's
+queues, caps and batching: per-sensor acceptance, then "the earliest head is the anchor;
+all heads within the window form a set, else the anchor alone is dropped".
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer
+
+MS = 1_000_000
+NS = 1_000_000_000
+
+
+def accepted(stream: list[int]) -> list[int]:
+    """Per-sensor acceptance: drop stamp 0 and any stamp not newer than the previous one."""
+    out: list[int] = []
+    last = -(2**62)
+    for s in stream:
+        if s == 0 or s <= last:
+            continue
+        out.append(s)
+        last = s
+    return out
+
+
+def caps(stream: list[int]) -> list[int]:
+    """Half the median of the last 8 stamp intervals at each accepted message (no cap for the first)."""
+    out = [2**62]
+    for i in range(1, len(stream)):
+        iv = sorted(stream[j] - stream[j - 1] for j in range(max(1, i - PERIOD_WINDOW + 1), i + 1))
+        m = len(iv) // 2
+        out.append((iv[m] if len(iv) % 2 else (iv[m - 1] + iv[m]) // 2) // 2)
+    return out
+
+
+def rule_sets(streams: list[list[int]], tol: int) -> list[tuple[int, ...]]:
+    """The sets of the rule, from complete per-sensor streams (in each sensor's own order)."""
+    acc = [accepted(s) for s in streams]
+    cap = [caps(s) for s in acc]
+    head = [0] * len(acc)
+    sets = []
+    while all(h < len(s) for h, s in zip(head, acc)):
+        t = [s[h] for h, s in zip(head, acc)]
+        window = min([tol] + [c[h] for h, c in zip(head, cap)])
+        if max(t) - min(t) <= window:
+            sets.append(tuple(t))
+            head = [h + 1 for h in head]
+        else:
+            head[t.index(min(t))] += 1
+    return sets
+
+
+def feed_streaming(streams: list[list[int]], tol: int, rng: np.random.Generator) -> tuple[list, SetSynchronizer]:
+    """One message at a time, sensors interleaved at random (each sensor's own order kept)."""
+    sync = SetSynchronizer(len(streams), tol)
+    pos = [0] * len(streams)
+    got = []
+    while True:
+        live = [k for k in range(len(streams)) if pos[k] < len(streams[k])]
+        if not live:
+            return got, sync
+        k = live[int(rng.integers(len(live)))]
+        s = sync.add(k, streams[k][pos[k]], 1.0 * k, 0.0, 0.0)
+        pos[k] += 1
+        if s is not None:
+            assert s.values == tuple((1.0 * i, 0.0, 0.0) for i in range(len(streams)))
+            got.append(s.stamps)
+
+
+def feed_batches(streams: list[list[int]], tol: int, rng: np.random.Generator) -> tuple[list, SetSynchronizer]:
+    """Random-sized chunks per sensor, then pop; a final pop at the end (a bag read)."""
+    sync = SetSynchronizer(len(streams), tol)
+    pos = [0] * len(streams)
+    got: list[tuple[int, ...]] = []
+    while any(p < len(s) for p, s in zip(pos, streams)):
+        for k, s in enumerate(streams):
+            n = int(rng.integers(0, 40))
+            part = np.array(s[pos[k] : pos[k] + n], dtype=np.int64)
+            pos[k] += n
+            sync.add_batch(k, part, np.tile([1.0 * k, 0.0, 0.0], (len(part), 1)))
+        got += [tuple(int(x) for x in row) for row in sync.pop().stamps]
+    got += [tuple(int(x) for x in row) for row in sync.pop(final=True).stamps]
+    return got, sync
+
+
+def lossy_streams(rng: np.random.Generator, n: int = 1100, sensors: int = 4, period: int = 2_500_000,
+                  jitter: int = 450_000, loss: float = 0.02, repeat: float = 0.01, late: float = 0.01) -> list[list[int]]:
+    """400 Hz sensors with stamp jitter, lost messages, repeated messages and stale (late) stamps."""
+    base = 1_700_000_000 * NS + np.arange(n, dtype=np.int64) * period
+    streams = []
+    for _ in range(sensors):
+        s = (base + rng.integers(-jitter, jitter + 1, n))[rng.random(n) > loss].tolist()
+        out: list[int] = []
+        for i, t in enumerate(s):
+            out.append(int(t))
+            if rng.random() < repeat:
+                out.append(int(t))
+            if i > 3 and rng.random() < late:
+                out.append(int(s[i - 2]))
+        streams.append(out)
+    return streams
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_live_and_bag_paths_give_identical_sets(seed: int) -> None:
+    """The user's case: 4 x 400 Hz, 2 % loss, 0.45 ms jitter, 1 ms tolerance, plus repeats and stale stamps."""
+    rng = np.random.default_rng(seed)
+    streams = lossy_streams(rng)
+    expected = rule_sets(streams, MS)
+    live, live_sync = feed_streaming(streams, MS, rng)
+    batch, batch_sync = feed_batches(streams, MS, rng)
+    assert live == batch == expected
+    assert len(expected) > 0.85 * 1100
+    # One vocabulary: both paths count the same drops for the same reasons.
+    assert live_sync.stats.as_dict() == batch_sync.stats.as_dict() | {"unmatched": live_sync.stats.unmatched}
+    assert live_sync.stats.duplicate > 0 and live_sync.stats.out_of_order > 0
+    total = sum(len(s) for s in streams)
+    assert batch_sync.stats.dropped() + 4 * batch_sync.stats.sets == total
+    assert live_sync.stats.dropped() + 4 * live_sync.stats.sets + live_sync.pending == total
+
+
+@pytest.mark.parametrize("path", ["live", "bag"])
+def test_the_tolerance_boundary_is_inclusive(path: str) -> None:
+    """A spread equal to the tolerance makes a set; one nanosecond more does not."""
+    tol = MS
+    streams = [[10 * MS, 20 * MS, 30 * MS], [10 * MS + tol, 20 * MS + tol + 1, 30 * MS]]
+    feed = feed_streaming if path == "live" else feed_batches
+    got, sync = feed(streams, tol, np.random.default_rng(0))
+    assert got == [(10 * MS, 10 * MS + tol), (30 * MS, 30 * MS)]
+    assert sync.stats.unmatched == 2
+
+
+@pytest.mark.parametrize("path", ["live", "bag"])
+def test_a_tolerance_wider_than_half_the_period_never_mixes_instants(path: str) -> None:
+    """2 kHz with the default 1 ms tolerance: after a lost sample, no set takes the next instant."""
+    rng = np.random.default_rng(3)
+    n, period = 2000, 500_000
+    base = 1_700_000_000 * NS + np.arange(n, dtype=np.int64) * period
+    streams, instants = [], []
+    for k in range(4):
+        keep = rng.random(n) > 0.05
+        streams.append((base + rng.integers(-50_000, 50_001, n))[keep].tolist())
+        instants.append(np.flatnonzero(keep))
+    feed = feed_streaming if path == "live" else feed_batches
+    got, sync = feed(streams, MS, rng)
+    assert 0.4 * period < sync.effective_tolerance_ns <= period // 2 + 50_000
+    index = [dict(zip(s, i)) for s, i in zip(streams, instants)]
+    mixed = [s for s in got if len({index[k][t] for k, t in enumerate(s)}) > 1]
+    assert not mixed, f"{len(mixed)} of {len(got)} sets mix different sample instants"
+    assert len(got) > 0.75 * n
+
+
+def test_zero_stamps_are_dropped_and_counted() -> None:
+    sync = SetSynchronizer(2, MS)
+    assert sync.add(0, 0, 1.0, 0.0, 0.0) is None and sync.add(1, 0, 1.0, 0.0, 0.0) is None
+    assert sync.add(0, 5 * MS, 1.0, 0.0, 0.0) is None
+    assert sync.add(1, 5 * MS, 1.0, 0.0, 0.0).stamps == (5 * MS, 5 * MS)  # type: ignore[union-attr]
+    assert sync.stats.zero_stamp == 2 and sync.stats.sets == 1 and sync.pending == 0
+    batch = SetSynchronizer(2, MS)
+    for k in range(2):
+        batch.add_batch(k, np.array([0, 5 * MS, 0]), np.ones((3, 3)))
+    assert batch.pop(final=True).stamps.tolist() == [[5 * MS, 5 * MS]] and batch.stats.zero_stamp == 4
+
+
+def feed(sync: SetSynchronizer, items: list[tuple[int, int, float]]) -> list[tuple[int, ...]]:
+    out = []
+    for index, stamp, value in items:
+        s = sync.add(index, stamp, value, 0.0, 0.0)
+        if s is not None:
+            out.append(s.stamps)
+    return out
+
+
+def test_sets_form_from_any_arrival_order_and_jitter() -> None:
+    sync = SetSynchronizer(3, tolerance_ns=MS)
+    items = [(0, 10 * MS, 1.0), (2, 10 * MS + 300_000, 1.0), (1, 10 * MS - 400_000, 1.0),
+             (1, 20 * MS, 2.0), (0, 20 * MS, 2.0), (2, 20 * MS, 2.0)]
+    assert feed(sync, items) == [(10 * MS, 10 * MS - 400_000, 10 * MS + 300_000), (20 * MS,) * 3]
+    assert sync.stats.sets == 2 and sync.pending == 0
+
+
+def test_each_sensors_first_sample_pairs_when_tolerance_exceeds_the_period() -> None:
+    sync = SetSynchronizer(2, tolerance_ns=MS)
+    items = [(0, 0 + 1, 0.0), (0, MS + 1, 1.0), (1, 0 + 1, 0.0), (1, MS + 1, 1.0)]
+    assert feed(sync, items) == [(1, 1), (MS + 1, MS + 1)]
+
+
+def test_bad_values_missing_sensors_and_stale_stamps_are_dropped_and_counted() -> None:
+    sync = SetSynchronizer(2, tolerance_ns=MS)
+    nan = math.nan
+    items = [
+        (0, 10 * MS, 1.0), (1, 10 * MS, nan),       # NaN: set 10 incomplete
+        (0, 20 * MS, 1.0),                          # sensor 1 silent at 20
+        (0, 30 * MS, 1.0), (1, 30 * MS, 1.0),       # complete
+        (1, 30 * MS, 1.0),                          # repeat
+        (0, 25 * MS, 1.0),                          # older than sensor 0's last
+        (0, 40 * MS, 1.0), (1, 40 * MS, math.inf),
+        (0, 50 * MS, 1.0), (1, 50 * MS, 1.0),
+    ]
+    assert feed(sync, items) == [(30 * MS, 30 * MS), (50 * MS, 50 * MS)]
+    st = sync.stats
+    assert (st.nonfinite, st.duplicate, st.out_of_order) == (2, 1, 1)
+    assert st.unmatched == 3 and sync.pending == 0
+
+
+def test_a_silent_sensor_cannot_grow_the_pending_queue_without_bound() -> None:
+    sync = SetSynchronizer(2, tolerance_ns=MS, max_pending=10)
+    for k in range(1000):
+        assert sync.add(0, (k + 1) * 10 * MS, 1.0, 0.0, 0.0) is None
+    assert sync.pending <= 10 and sync.stats.unmatched >= 990
+
+
+def test_a_source_restart_resets_instead_of_dropping_everything() -> None:
+    sync = SetSynchronizer(2, tolerance_ns=MS)
+    base = 100 * NS
+    assert feed(sync, [(0, base, 1.0), (1, base, 1.0)]) == [(base, base)]
+    assert feed(sync, [(0, 5 * MS, 1.0), (1, 5 * MS, 1.0)]) == [(5 * MS, 5 * MS)]
+    assert sync.stats.restarts == 1
