@@ -6,6 +6,7 @@ node applies. Matrices map raw sensor axes (T) into the platform frame (T).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,6 +63,9 @@ class ArrayCalibration:
     """(S, 3): raw offsets in T."""
     metadata: dict[str, Any] = field(default_factory=dict)
     """Provenance: method, time, sample count, residuals (free-form, YAML-safe)."""
+    covariances: Array | None = None
+    """(S, 3, 3) covariance (T^2) of each corrected vector, platform frame: sensor noise plus
+    calibration uncertainty, typical over attitudes. None: unknown."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -72,6 +76,11 @@ class ArrayCalibration:
         checked = [check_sensor(n, mi, oi) for n, mi, oi in zip(self.geometry.names, m, o)]
         object.__setattr__(self, "matrices", np.stack([c[0] for c in checked]))
         object.__setattr__(self, "offsets", np.stack([c[1] for c in checked]))
+        if self.covariances is not None:
+            c = np.asarray(self.covariances, dtype=float)
+            if c.shape != (s, 3, 3) or not np.all(np.isfinite(c)) or np.any(np.linalg.eigvalsh(0.5 * (c + c.swapaxes(1, 2))) < 0):
+                raise InputError(f"covariances must be {s} finite positive semi-definite 3x3 matrices (T^2)")
+            object.__setattr__(self, "covariances", c)
 
     @classmethod
     def identity(cls, geometry: ArrayGeometry) -> "ArrayCalibration":
@@ -95,13 +104,23 @@ class ArrayCalibration:
             "sensor_names": list(self.geometry.names),
             "positions": [float(x) for x in self.geometry.positions.reshape(-1)],
         }
-        for name, m, o in zip(self.geometry.names, self.matrices, self.offsets):
+        for i, (name, m, o) in enumerate(zip(self.geometry.names, self.matrices, self.offsets)):
             params[name] = {"matrix": [float(x) for x in m.reshape(-1)], "offset": [float(x) for x in o]}
+            if self.covariances is not None:
+                params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
         return params
 
     @classmethod
-    def from_parameters(cls, params: dict[str, Any], metadata: dict[str, Any] | None = None) -> "ArrayCalibration":
-        """Inverse of :meth:`to_parameters`; missing sensor blocks mean identity/zero."""
+    def from_parameters(
+        cls, params: dict[str, Any], metadata: dict[str, Any] | None = None, uncorrected: Sequence[str] = ()
+    ) -> "ArrayCalibration":
+        """Inverse of :meth:`to_parameters`.
+
+        Every sensor needs its ``matrix`` and ``offset``: a missing block is an
+        :class:`InputError` naming the sensor, unless the sensor is listed in
+        ``uncorrected`` (then identity and zero, on purpose). ``covariance`` is optional
+        and must be given for all sensors or none.
+        """
         try:
             names = tuple(params["sensor_names"])
             geometry = ArrayGeometry(names, np.asarray(params["positions"], dtype=float))
@@ -109,15 +128,30 @@ class ArrayCalibration:
             raise InputError(f"calibration is missing {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
             raise InputError(f"calibration has malformed sensor_names/positions: {exc}") from None
-        mats, offs = [], []
+        mats, offs, covs = [], [], []
         for name in names:
-            block = params.get(name, {}) or {}
+            block = params.get(name)
+            if block is None or block == {}:
+                if name not in uncorrected:
+                    raise InputError(
+                        f"calibration has no matrix and offset for sensor {name!r}; calibrate it, or list it as "
+                        "uncorrected to use its raw readings on purpose"
+                    )
+                block = {}
             if not isinstance(block, dict):
                 raise InputError(f"calibration entry {name!r} must be a mapping with matrix and offset")
+            if name not in uncorrected and not {"matrix", "offset"} <= set(block):
+                missing = sorted({"matrix", "offset"} - set(block))
+                raise InputError(f"calibration entry {name!r} has no {' or '.join(missing)}")
             try:
                 mats.append(np.asarray(block.get("matrix", np.eye(3).reshape(-1)), dtype=float))
                 offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
+                if "covariance" in block:
+                    covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3))
             except (TypeError, ValueError):
-                raise InputError(f"calibration entry {name!r} has non-numeric matrix or offset") from None
+                raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset or covariance") from None
+        if covs and len(covs) != len(names):
+            raise InputError("calibration gives a covariance for some sensors but not all")
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
-        return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}))
+        return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
+                   np.stack(covs) if covs else None)
