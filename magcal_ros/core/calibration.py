@@ -1,7 +1,8 @@
-"""The array calibration: one ``matrix`` and ``offset`` per sensor, ``B = matrix (raw - offset)``.
+"""The array calibration: per sensor ``B = matrix (raw - offset) - interference @ u``.
 
 This is the object the solver returns, the calibration file stores and the correction
-node applies. Matrices map raw sensor axes (T) into the platform frame (T).
+node applies. Matrices map raw sensor axes (T) into the platform frame (T); ``u`` are the
+currents (A) of the interference channels, when the calibration has any.
 """
 
 from __future__ import annotations
@@ -66,6 +67,10 @@ class ArrayCalibration:
     covariances: Array | None = None
     """(S, 3, 3) covariance (T^2) of each corrected vector, platform frame: sensor noise plus
     calibration uncertainty, typical over attitudes. None: unknown."""
+    channels: tuple[str, ...] = ()
+    """Names of the current channels whose interference is subtracted (may be empty)."""
+    interference: Array | None = None
+    """(S, 3, m) interference gains (T/A, platform frame), one column per channel."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -76,6 +81,14 @@ class ArrayCalibration:
         checked = [check_sensor(n, mi, oi) for n, mi, oi in zip(self.geometry.names, m, o)]
         object.__setattr__(self, "matrices", np.stack([c[0] for c in checked]))
         object.__setattr__(self, "offsets", np.stack([c[1] for c in checked]))
+        channels = tuple(str(c) for c in self.channels)
+        if len(set(channels)) != len(channels) or not all(channels):
+            raise InputError(f"interference channel names must be unique and non-empty, got {list(channels)}")
+        d = np.zeros((s, 3, len(channels))) if self.interference is None else np.asarray(self.interference, dtype=float)
+        if d.shape != (s, 3, len(channels)) or not np.all(np.isfinite(d)):
+            raise InputError(f"interference must be {s} finite 3 x {len(channels)} matrices (T/A), got shape {d.shape}")
+        object.__setattr__(self, "channels", channels)
+        object.__setattr__(self, "interference", d)
         if self.covariances is not None:
             c = np.asarray(self.covariances, dtype=float)
             if c.shape != (s, 3, 3) or not np.all(np.isfinite(c)) or np.any(np.linalg.eigvalsh(0.5 * (c + c.swapaxes(1, 2))) < 0):
@@ -88,14 +101,29 @@ class ArrayCalibration:
         s = geometry.size
         return cls(geometry, np.tile(np.eye(3), (s, 1, 1)), np.zeros((s, 3)), {"method": "identity"})
 
-    def apply(self, raw: ArrayLike) -> Array:
-        """Corrected vectors (N, S, 3) in T, platform frame, from raw (N, S, 3) in T."""
-        r = np.asarray(raw, dtype=float)
-        return np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
+    def apply(self, raw: ArrayLike, currents: ArrayLike | None = None) -> Array:
+        """Corrected vectors (N, S, 3) in T, platform frame, from raw (N, S, 3) in T.
 
-    def field_and_gradient(self, raw: ArrayLike, method: str = "difference") -> tuple[Array, Array, Array]:
+        ``currents`` (N, m) in A, one column per :attr:`channels`: their interference is
+        subtracted. Required when the calibration has channels.
+        """
+        r = np.asarray(raw, dtype=float)
+        b = np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
+        if self.channels:
+            if currents is None:
+                raise InputError(f"this calibration subtracts current interference: give the currents of "
+                                 f"{', '.join(self.channels)}")
+            u = np.asarray(currents, dtype=float).reshape(len(r), -1)
+            if u.shape[1] != len(self.channels):
+                raise InputError(f"{u.shape[1]} current channels given, the calibration has {len(self.channels)}")
+            b = b - np.einsum("sac,nc->nsa", self.interference, u)
+        return b
+
+    def field_and_gradient(
+        self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None
+    ) -> tuple[Array, Array, Array]:
         """Corrected vectors (N, S, 3), centre field (N, 3) and tensor (N, 3, 3) from raw sets."""
-        b = self.apply(raw)
+        b = self.apply(raw, currents)
         return b, centre_field(b), gradient(b, self.geometry, method)
 
     def to_parameters(self) -> dict[str, Any]:
@@ -104,10 +132,14 @@ class ArrayCalibration:
             "sensor_names": list(self.geometry.names),
             "positions": [float(x) for x in self.geometry.positions.reshape(-1)],
         }
+        if self.channels:
+            params["interference_channels"] = list(self.channels)
         for i, (name, m, o) in enumerate(zip(self.geometry.names, self.matrices, self.offsets)):
             params[name] = {"matrix": [float(x) for x in m.reshape(-1)], "offset": [float(x) for x in o]}
             if self.covariances is not None:
                 params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
+            if self.channels:
+                params[name]["interference"] = [float(x) for x in self.interference[i].reshape(-1)]  # type: ignore[index]
         return params
 
     @classmethod
@@ -128,7 +160,10 @@ class ArrayCalibration:
             raise InputError(f"calibration is missing {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
             raise InputError(f"calibration has malformed sensor_names/positions: {exc}") from None
-        mats, offs, covs = [], [], []
+        channels = params.get("interference_channels") or []
+        if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
+            raise InputError("interference_channels must be a list of channel names")
+        mats, offs, covs, infs = [], [], [], []
         for name in names:
             block = params.get(name)
             if block is None or block == {}:
@@ -148,10 +183,17 @@ class ArrayCalibration:
                 offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
                 if "covariance" in block:
                     covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3))
+                if channels:
+                    gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
+                    if gains.size != 3 * len(channels):
+                        raise InputError(f"{name}.interference needs {3 * len(channels)} numbers (3 x "
+                                         f"{len(channels)} row-major, T/A), got {gains.size}")
+                    infs.append(gains.reshape(3, len(channels)))
             except (TypeError, ValueError):
-                raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset or covariance") from None
+                raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
+                                 "interference") from None
         if covs and len(covs) != len(names):
             raise InputError("calibration gives a covariance for some sensors but not all")
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
-                   np.stack(covs) if covs else None)
+                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None)

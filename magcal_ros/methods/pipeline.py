@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core import joint_fit as joint
+from magcal_ros.core.array_fit import fit_array, fix_rotation_gauge
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.metrics import tensor_rms, tmi_rms
@@ -152,8 +152,8 @@ def calibrate_array(
         offsets.append(fit.offset)
         stds.append(fit.std)
     if spec.joint and opts.joint and opts.loss == "linear":
-        refined, offs, _ = joint.refine(r, np.stack(matrices), np.stack(offsets), intensity)
-        matrices, offsets = list(refined), list(offs)
+        sol = fix_rotation_gauge(fit_array(r, np.stack(matrices), np.stack(offsets), intensity, robust=False))
+        matrices, offsets = list(sol.matrices), list(sol.offsets)
     std = np.stack(stds)
     rel_std = np.concatenate([std[:, :6], std[:, 6:] / intensity], axis=1)
     if np.any(rel_std > opts.max_relative_std):

@@ -1,0 +1,386 @@
+"""Joint maximum a posteriori fit of the whole array, robust to outliers (the final stage of ``ml``).
+
+Model, set ``k`` (uniform field of intensity ``F`` and unit direction ``d_k`` in the platform
+frame), sensor ``i`` with channel currents ``u_k`` (A)::
+
+    r_ik = K_i F d_k + E_i u_k + o_i + noise_i
+
+``K_i`` (3x3) is the forward matrix (``K_i = M_i^-1``), ``o_i`` the offset (T), ``E_i``
+(3 x m, T/A) the current interference seen in the sensor's raw axes; the correction is
+``B = M_i (r - o_i) - M_i E_i u`` (the interference in the platform frame is
+``D_i = M_i E_i``). Every set gives 3 equations per sensor, so the sensors' relative
+calibration (what the tensor needs) is set by the vector agreement between sensors, not
+only by each sensor's norm.
+
+The fit works in units of ``F``: per sensor the parameter matrix ``W_i = [K_i | o_i / F |
+E_i / F]`` (3 x (4 + m)) and the features ``phi_k = [d_k, 1, u_k]``, so that the
+prediction is ``W_i phi_k`` and the Jacobian of a reading is ``I_3 (x) phi_k``. The
+per-set directions are eliminated by a Schur complement (cost linear in the number of
+sets). A Gaussian prior on every ``W_i`` (the previous calibration and a drift model, or a
+weak one around the starting point) makes the problem well posed whatever the manoeuvre;
+the data information (without the prior) is returned for the identifiability analysis.
+
+Outliers: readings whose residual exceeds a chi-square bound of the sensor's robust noise
+scale get weight 0 and the fit is repeated until the set of excluded readings settles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.stats
+from numpy.typing import NDArray
+
+from magcal_ros.errors import CalibrationFailed, InputError
+
+Array = NDArray[np.float64]
+
+OUTLIER_PROBABILITY: float = 1e-5
+"""A clean reading is excluded with at most this probability (Gaussian noise)."""
+MAX_ROBUST_ROUNDS: int = 6
+"""Refits at most, each after re-deciding which readings are outliers."""
+
+
+@dataclass(frozen=True)
+class ParameterPrior:
+    """Gaussian prior on each sensor's ``W_i = [K_i | o_i / F | E_i / F]`` (units of F).
+
+    ``mean`` (S, 3, 4 + m); ``sigma`` (S, 3, 4 + m) the 1-sigma of each entry (inf: no prior).
+    """
+
+    mean: Array
+    sigma: Array
+
+    def precision(self) -> Array:
+        """Diagonal precision, flattened per sensor as (S, 3 (4 + m))."""
+        s = np.asarray(self.sigma, dtype=float)
+        with np.errstate(divide="ignore"):
+            prec = np.where(np.isfinite(s), 1.0 / np.maximum(s, 1e-300) ** 2, 0.0)
+        return prec.reshape(len(s), -1)
+
+
+@dataclass(frozen=True)
+class JointSolution:
+    """Result of :func:`fit_array`, in physical units where it says so."""
+
+    matrices: Array
+    """(S, 3, 3) corrections ``M_i = K_i^-1`` (raw axes to platform frame)."""
+    offsets: Array
+    """(S, 3) T."""
+    interference: Array
+    """(S, 3, m) ``D_i = M_i E_i`` in T/A, platform frame."""
+    directions: Array
+    """(N, 3) unit field direction of each set, platform frame."""
+    weights: Array
+    """(N, S) 1 for readings used, 0 for readings excluded as outliers."""
+    sigma: Array
+    """(S,) noise per axis of each sensor (T), robust estimate from the residuals."""
+    residuals: Array
+    """(N, S, 3) raw-space residuals (T)."""
+    information: Array
+    """(S P, S P) Fisher information of the data on the flattened ``W`` (units of F), directions
+    eliminated, noise-whitened; P = 3 (4 + m)."""
+    scores: Array
+    """(N, S P) per-set contributions to the reduced gradient at the solution (whitened)."""
+    gauge: Array
+    """(S P, 3) the three global rotations (the frame the data cannot fix), orthonormal."""
+    w: Array
+    """(S, 3, 4 + m) the fitted ``W_i`` (units of F)."""
+    intensity: float
+    """F (T)."""
+    iterations: int
+
+
+def tangent_bases(u: Array) -> Array:
+    """(N, 3, 2) orthonormal bases of the planes perpendicular to unit vectors ``u``."""
+    helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2], axis=2)
+
+
+def features(directions: Array, currents: Array) -> Array:
+    """(N, 4 + m) ``phi_k = [d_k, 1, u_k]``."""
+    return np.concatenate([directions, np.ones((len(directions), 1)), currents], axis=1)
+
+
+def rotation_gauge(w: Array) -> Array:
+    """(S P, 3) orthonormal basis of the global rotations ``K_i -> K_i (I + [omega]x)^T``."""
+    s, _, q = w.shape
+    basis = np.zeros((s, 3, q, 3))
+    for j in range(3):
+        omega = np.zeros(3)
+        omega[j] = 1.0
+        skew = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+        basis[:, :, :3, j] = -w[:, :, :3] @ skew  # dK = K [omega]x^T = -K [omega]x
+    g = basis.reshape(s * 3 * q, 3)
+    qmat, _ = np.linalg.qr(g)
+    return qmat
+
+
+class _Normal:
+    """Whitened normal equations of the model at one point (directions eliminated)."""
+
+    def __init__(self, w: Array, d: Array, x: Array, u: Array, weights: Array, sigma: Array) -> None:
+        s, _, q = w.shape
+        n = len(d)
+        self.phi = features(d, u)  # (N, q)
+        self.basis = tangent_bases(d)  # (N, 3, 2)
+        pred = np.einsum("saq,nq->nsa", w, self.phi)
+        self.e = pred - x  # (N, S, 3)
+        ws = weights / sigma[None, :] ** 2  # (N, S) whitening weights
+        self.ws = ws
+        k = w[:, :, :3]
+        self.m = np.einsum("sab,nbc->nsac", k, self.basis)  # (N, S, 3, 2) d pred / d delta
+        # Block diagonal A_i = I_3 (x) sum_k ws phi phi^T
+        phi_outer = np.einsum("nq,nr->nqr", self.phi, self.phi)
+        self.a_blocks = np.einsum("ns,nqr->sqr", ws, phi_outer)  # (S, q, q)
+        # Gradient wrt W_i: sum_k ws e phi^T
+        self.g_w = np.einsum("ns,nsa,nq->saq", ws, self.e, self.phi)  # (S, 3, q)
+        # Cross terms B_k[(s, a, q), c] = ws_ks phi_kq m_ksac
+        self.b = np.einsum("ns,nq,nsac->nsaqc", ws, self.phi, self.m).reshape(n, s * 3 * q, 2)
+        self.c = np.einsum("ns,nsai,nsaj->nij", ws, self.m, self.m)  # (N, 2, 2)
+        self.g_d = np.einsum("ns,nsai,nsa->ni", ws, self.m, self.e)  # (N, 2)
+        self.cost = float(np.sum(ws[:, :, None] * self.e**2))
+        self.shape = (s, q)
+
+    def a_matrix(self) -> Array:
+        s, q = self.shape
+        blocks = [np.kron(np.eye(3), self.a_blocks[i]) for i in range(s)]
+        return scipy.linalg.block_diag(*blocks)
+
+    def scores(self) -> Array:
+        """(N, S P) each set's contribution to the reduced gradient (directions eliminated, whitened).
+
+        For white noise ``sum_k s_k s_k^T`` estimates :meth:`information`; with time-correlated
+        noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
+        """
+        s, q = self.shape
+        g = np.einsum("ns,nsa,nq->nsaq", self.ws, self.e, self.phi).reshape(len(self.e), s * 3 * q)
+        corr = np.einsum("npi,nij,nj->np", self.b, _inv2(self.c), self.g_d)
+        return g - corr
+
+    def information(self) -> Array:
+        """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
+        c_inv = _inv2(self.c)
+        bc = np.einsum("npi,nij->npj", self.b, c_inv)
+        flat_b = self.b.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
+        flat_bc = bc.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
+        return self.a_matrix() - flat_bc @ flat_b.T
+
+
+def _inv2(c: Array) -> Array:
+    """Inverses of (N, 2, 2) matrices (with a tiny ridge for sets no sensor constrains)."""
+    det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    ridge = 1e-12 * (np.abs(c[:, 0, 0]) + np.abs(c[:, 1, 1]) + 1e-300)
+    det = np.where(np.abs(det) > ridge**2, det, det + ridge**2 + 1e-300)
+    inv = np.empty_like(c)
+    inv[:, 0, 0] = c[:, 1, 1] / det
+    inv[:, 1, 1] = c[:, 0, 0] / det
+    inv[:, 0, 1] = -c[:, 0, 1] / det
+    inv[:, 1, 0] = -c[:, 1, 0] / det
+    return inv
+
+
+def _directions(w: Array, x: Array, u: Array, weights: Array) -> Array:
+    """Field direction per set from the current corrections (weighted mean of the sensors)."""
+    k = w[:, :, :3]
+    rest = x - np.einsum("saq,nq->nsa", w[:, :, 3:], np.concatenate([np.ones((len(x), 1)), u], axis=1))
+    b = np.einsum("sab,nsb->nsa", np.linalg.inv(k), rest)
+    wsum = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+    mean = np.einsum("ns,nsa->na", weights, b) / wsum
+    norm = np.linalg.norm(mean, axis=1, keepdims=True)
+    return mean / np.where(norm > 0, norm, 1.0)
+
+
+def _solve_lm(
+    w: Array, x: Array, u: Array, weights: Array, sigma: Array, prior: ParameterPrior,
+    iterations: int, tolerance: float,
+) -> tuple[Array, Array, int]:
+    """Levenberg-Marquardt on the MAP cost with fixed weights and noise; returns (W, directions, steps)."""
+    s, _, q = w.shape
+    prec = prior.precision().reshape(-1)
+    mean = prior.mean.reshape(-1)
+    d = _directions(w, x, u, weights)
+    lam = 1e-4
+    steps = 0
+
+    def total(nrm: _Normal, wv: Array) -> float:
+        diff = wv.reshape(-1) - mean
+        return nrm.cost + float(np.sum(prec * diff * diff))
+
+    cur = _Normal(w, d, x, u, weights, sigma)
+    cost = total(cur, w)
+    done = False
+    for steps in range(1, iterations + 1):
+        a = cur.a_matrix() + np.diag(prec)
+        g = cur.g_w.reshape(-1) + prec * (w.reshape(-1) - mean)
+        improved = False
+        while lam < 1e10:
+            c_l = cur.c + lam * np.eye(2)[None] * (np.trace(cur.c, axis1=1, axis2=2)[:, None, None] / 2 + 1e-300)
+            c_inv = _inv2(c_l)
+            bc = np.einsum("npi,nij->npj", cur.b, c_inv)
+            flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
+            flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
+            schur = a + lam * np.diag(np.diag(a)) - flat_bc @ flat_b.T
+            rhs = g - np.einsum("npk,nk->p", bc, cur.g_d)
+            try:
+                step = -scipy.linalg.solve(schur, rhs, assume_a="sym")
+            except (np.linalg.LinAlgError, ValueError):
+                step = -np.linalg.lstsq(schur, rhs, rcond=None)[0]
+            dd = -np.einsum("nij,nj->ni", c_inv, cur.g_d + np.einsum("npk,p->nk", cur.b, step))
+            w_new = w + step.reshape(s, 3, q)
+            d_new = d + np.einsum("nij,nj->ni", cur.basis, dd)
+            d_new /= np.linalg.norm(d_new, axis=1, keepdims=True)
+            if not np.all(np.isfinite(w_new)) or np.any(np.abs(np.linalg.det(w_new[:, :, :3])) < 1e-12):
+                lam *= 10
+                continue
+            new = _Normal(w_new, d_new, x, u, weights, sigma)
+            new_cost = total(new, w_new)
+            if new_cost <= cost:
+                lam = max(lam / 10, 1e-12)
+                done = cost - new_cost <= tolerance * max(cost, 1e-300)
+                w, d, cur, cost = w_new, d_new, new, new_cost
+                improved = True
+                break
+            lam *= 10
+        if not improved or done:
+            break
+    return w, d, steps
+
+
+def _robust_sigma(e: Array, weights: Array, dof: float) -> Array:
+    """Per-sensor noise per axis from squared residual norms: median scaled for ``dof`` (robust)."""
+    sq = np.sum(e * e, axis=2)  # (N, S)
+    med = scipy.stats.chi2.median(dof)
+    out = np.empty(sq.shape[1])
+    for i in range(sq.shape[1]):
+        used = sq[weights[:, i] > 0, i]
+        out[i] = np.sqrt(np.median(used) / med) if len(used) else np.sqrt(np.median(sq[:, i]) / med)
+    return out
+
+
+def _efficient_sigma(e: Array, weights: Array, dof: float) -> Array:
+    """Per-sensor noise per axis from the weighted mean square residual (efficient for clean data)."""
+    sq = np.sum(e * e, axis=2)
+    used = np.maximum(weights.sum(axis=0), 1.0)
+    return np.sqrt(np.sum(weights * sq, axis=0) / (used * dof))
+
+
+def fit_array(
+    raw: Array,
+    matrices: Array,
+    offsets: Array,
+    intensity: float,
+    currents: Array | None = None,
+    interference: Array | None = None,
+    prior: ParameterPrior | None = None,
+    weights: Array | None = None,
+    robust: bool = True,
+    iterations: int = 50,
+    tolerance: float = 1e-12,
+) -> JointSolution:
+    """Joint MAP fit of every sensor from raw sets ``raw`` (N, S, 3) T, starting at
+    ``matrices`` (S, 3, 3) / ``offsets`` (S, 3) T / ``interference`` (S, 3, m) T/A.
+
+    ``currents`` (N, m) A; ``prior`` on ``W`` in units of F (default: a weak prior around
+    the start that only keeps undetermined directions finite); ``weights`` (N, S) 0/1 to
+    exclude readings from the start; ``robust`` re-decides outliers until they settle.
+    """
+    r = np.asarray(raw, dtype=float)
+    n, s, _ = r.shape
+    f = float(intensity)
+    u = np.zeros((n, 0)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+    m = u.shape[1]
+    q = 4 + m
+    if not (np.isfinite(f) and f > 0):
+        raise InputError(f"intensity must be a positive number of T, got {intensity}")
+    k0 = np.linalg.inv(np.asarray(matrices, dtype=float))
+    e_raw = np.zeros((s, 3, m)) if interference is None else np.einsum("sab,sbc->sac", k0, interference)
+    w = np.concatenate([k0, (np.asarray(offsets, dtype=float) / f)[:, :, None], e_raw / f], axis=2)
+    x = r / f
+    weights = np.ones((n, s)) if weights is None else np.asarray(weights, dtype=float).copy()
+    if prior is None:
+        sigma_start = np.full((s, 3, q), 1.0)  # weak: gains of order 1, offsets of order F
+        prior = ParameterPrior(w.copy(), sigma_start)
+    dof = 3.0 - 2.0 / s if s > 0 else 1.0
+    pred = np.einsum("saq,nq->nsa", w, features(_directions(w, x, u, weights), u))
+    sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
+    threshold = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, dof)
+    total_steps = 0
+    for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
+        w, d, steps = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
+        total_steps += steps
+        e = np.einsum("saq,nq->nsa", w, features(d, u)) - x
+        if not robust:
+            break
+        sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
+        new_weights = (np.sum(e * e, axis=2) <= threshold * sigma[None, :] ** 2).astype(float)
+        # A set must keep at least one reading (its direction needs one).
+        empty = new_weights.sum(axis=1) == 0
+        new_weights[empty] = weights[empty]
+        if np.array_equal(new_weights, weights):
+            break
+        weights = new_weights
+    if not np.all(np.isfinite(w)):
+        raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
+    e = np.einsum("saq,nq->nsa", w, features(d, u)) - x
+    sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
+    final = _Normal(w, d, x, u, weights, sigma)
+    info, scores = final.information(), final.scores()
+    k = w[:, :, :3]
+    mats = np.linalg.inv(k)
+    return JointSolution(
+        matrices=mats,
+        offsets=w[:, :, 3] * f,
+        interference=np.einsum("sab,sbc->sac", mats, w[:, :, 4:] * f),
+        directions=d,
+        weights=weights,
+        sigma=sigma * f,
+        residuals=e * f,
+        information=info,
+        scores=scores,
+        gauge=rotation_gauge(w),
+        w=w,
+        intensity=f,
+        iterations=total_steps,
+    )
+
+
+def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
+    """Rotate the platform frame so that the virtual centre sensor ``mean(K_i)`` is upper
+    triangular (Li et al.'s convention: the centre sensor's own axes made orthogonal)."""
+    k = solution.w[:, :, :3]
+    upper, qmat = scipy.linalg.rq(k.mean(axis=0))
+    qmat = np.sign(np.diag(upper))[:, None] * qmat
+    k_new = np.einsum("sij,kj->sik", k, qmat)  # K_i Q^T
+    tinv = np.linalg.inv(_rotation_map(qmat, solution.w.shape))
+    w = solution.w.copy()
+    w[:, :, :3] = k_new
+    mats = np.linalg.inv(k_new)
+    return JointSolution(
+        matrices=mats,
+        offsets=solution.offsets,
+        interference=np.einsum("sab,sbc->sac", mats, w[:, :, 4:] * solution.intensity),
+        directions=solution.directions @ qmat.T,
+        weights=solution.weights,
+        sigma=solution.sigma,
+        residuals=solution.residuals,
+        information=tinv.T @ solution.information @ tinv,
+        scores=solution.scores @ tinv,
+        gauge=rotation_gauge(w),
+        w=w,
+        intensity=solution.intensity,
+        iterations=solution.iterations,
+    )
+
+
+def _rotation_map(qmat: Array, shape: tuple[int, ...]) -> Array:
+    """The linear map of the flattened ``W`` under ``K_i -> K_i Q^T`` (new = T old)."""
+    s, _, q = shape
+    t = np.eye(s * 3 * q).reshape(s, 3, q, s * 3 * q)
+    t[:, :, :3, :] = np.einsum("saqp,kq->sakp", t[:, :, :3, :], qmat)
+    return t.reshape(s * 3 * q, s * 3 * q)

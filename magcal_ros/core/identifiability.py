@@ -1,0 +1,302 @@
+"""What a manoeuvre determines: physical quantities, their 1-sigma, what to fly next, and where
+the calibration is valid.
+
+The covariance of a joint fit (:mod:`magcal_ros.core.uncertainty`) is mapped, sensor by
+sensor, onto the quantities an engineer reasons in: offsets (nT), scale factors,
+non-orthogonality and misalignment angles (deg), current interference (nT/A). A quantity
+whose 1-sigma *effect* on the field (the offset itself, or the scale or angle times F, or
+the interference times the RMS current) exceeds :data:`UNDETERMINED_EFFECT` times the
+sensor noise is undetermined: the data cannot fix it. With a prior, a quantity whose
+uncertainty the data did not at least halve is *kept* at the prior, the others *updated*.
+
+The same covariance predicts the TMI error at any attitude; over pitch and roll (the
+array's z axis taken as the vehicle's vertical, full yaw) it gives the envelope inside which
+the predicted error stays within :data:`ENVELOPE_RATIO` times the noise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.sensor_model import SensorErrors
+from magcal_ros.core.units import NT
+
+Array = NDArray[np.float64]
+
+UNDETERMINED_EFFECT: float = 10.0
+"""A quantity is undetermined when its 1-sigma effect exceeds this many noise sd."""
+KEPT_FRACTION: float = 0.5
+"""With a prior, a quantity whose posterior 1-sigma is above this fraction of the prior's is kept."""
+ENVELOPE_RATIO: float = 1.5
+"""The envelope: predicted TMI error within this factor of the noise."""
+AXES = ("x", "y", "z")
+NONORTHOGONALITY = ("x-z", "x-y", "y-z")
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """One physical quantity of one sensor: value, 1-sigma, and what the data did to it."""
+
+    sensor: str
+    name: str
+    """e.g. ``offset z``, ``scale x``, ``non-orthogonality x-z``, ``misalignment about y``."""
+    unit: str
+    """``nT``, ``ppm``, ``deg`` or ``nT/A`` (value and sigma are in this unit)."""
+    value: float
+    sigma: float
+    effect: float
+    """1-sigma effect on the field (T)."""
+    status: str
+    """``determined``, ``undetermined``, ``updated`` or ``kept`` (the last two with a prior)."""
+    prior_sigma: float | None = None
+
+    def describe(self) -> str:
+        """``mag1 offset z 12.3 +- 0.4 nT``."""
+        return f"{self.sensor} {self.name} {self.value:.4g} +- {self.sigma:.2g} {self.unit}"
+
+
+def _phys(w_row: Array, f: float, m: int) -> Array:
+    """Physical vector of one sensor's ``W`` (3, 4 + m): offsets (T), scales, angles (rad),
+    misalignment (rad), interference D (T/A, platform frame, row-major)."""
+    k = w_row[:, :3]
+    e = SensorErrors.from_forward(k, w_row[:, 3] * f)
+    d = np.linalg.inv(k) @ (w_row[:, 4:] * f)
+    return np.concatenate([e.offset, e.scale, e.angles, e.misalignment, d.reshape(-1)])
+
+
+def physical_jacobian(w: Array, f: float) -> tuple[Array, Array]:
+    """Physical values (S, Q) and d phys / d W (S, Q, 3 (4 + m)) by central differences."""
+    s, _, q = w.shape
+    m = q - 4
+    values = np.stack([_phys(w[i], f, m) for i in range(s)])
+    jac = np.empty((s, values.shape[1], 3 * q))
+    for i in range(s):
+        for j in range(3 * q):
+            h = 1e-6 * max(1.0, abs(w[i].reshape(-1)[j]))
+            plus, minus = w[i].copy().reshape(-1), w[i].copy().reshape(-1)
+            plus[j] += h
+            minus[j] -= h
+            jac[i, :, j] = (_phys(plus.reshape(3, q), f, m) - _phys(minus.reshape(3, q), f, m)) / (2 * h)
+    return values, jac
+
+
+def quantity_names(channels: Sequence[str], with_mounting: bool) -> list[tuple[str, str]]:
+    """``(name, unit)`` of each physical quantity, in :func:`physical_jacobian` order."""
+    out = [(f"offset {a}", "nT") for a in AXES] + [(f"scale {a}", "ppm") for a in AXES]
+    out += [(f"non-orthogonality {p}", "deg") for p in NONORTHOGONALITY]
+    out += [(f"misalignment about {a}", "deg") for a in AXES] if with_mounting else [("", "")] * 3
+    out += [(f"interference {c} {a}", "nT/A") for a in AXES for c in channels]
+    return out
+
+
+def _to_unit(values: Array, unit: str) -> Array:
+    scale = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.pi, "nT/A": 1.0 / NT}[unit]
+    return values * scale
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """Per-sensor physical quantities with their uncertainty and status."""
+
+    quantities: list[Quantity]
+    noise: Array
+    """(S,) noise sd per axis (T) used for the thresholds."""
+    with_prior: bool
+    covariance: Array = field(repr=False)
+    """(S P, S P) parameter covariance (units of F) it was computed from."""
+
+    def undetermined(self) -> list[Quantity]:
+        """Quantities the data cannot fix (no prior)."""
+        return [q for q in self.quantities if q.status == "undetermined"]
+
+    def kept(self) -> list[Quantity]:
+        """Quantities left at the prior."""
+        return [q for q in self.quantities if q.status == "kept"]
+
+    def updated(self) -> list[Quantity]:
+        """Quantities the data updated (with a prior)."""
+        return [q for q in self.quantities if q.status == "updated"]
+
+    def by_name(self, sensor: str, name: str) -> Quantity:
+        """The quantity ``name`` of ``sensor``."""
+        return next(q for q in self.quantities if q.sensor == sensor and q.name == name)
+
+
+def analyse(
+    names: Sequence[str],
+    w: Array,
+    intensity: float,
+    cov: Array,
+    noise: Array,
+    prior_cov: Array | None = None,
+    channels: Sequence[str] = (),
+    current_rms: Array | None = None,
+) -> Identifiability:
+    """Physical quantities of every sensor from the fitted ``W`` (S, 3, 4 + m) and its covariance.
+
+    ``prior_cov`` (S P, S P) marks the quantities as updated/kept; without it they are
+    determined or undetermined by their effect against ``noise`` (S,) T.
+    """
+    s, _, q = w.shape
+    m = q - 4
+    values, jac = physical_jacobian(w, intensity)
+    with_mounting = s > 1 or prior_cov is not None
+    labels = quantity_names(channels, with_mounting)
+    rms = np.ones(m) if current_rms is None else np.asarray(current_rms, dtype=float)
+    p = 3 * q
+    out: list[Quantity] = []
+    for i, sensor in enumerate(names):
+        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
+        sig = np.sqrt(np.clip(np.einsum("qj,jk,qk->q", jac[i], block, jac[i]), 0, None))
+        psig = None
+        if prior_cov is not None:
+            pb = prior_cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
+            psig = np.sqrt(np.clip(np.einsum("qj,jk,qk->q", jac[i], pb, jac[i]), 0, None))
+        for j, (label, unit) in enumerate(labels):
+            if not label:
+                continue
+            if unit == "nT":
+                effect = sig[j]
+            elif unit == "nT/A":
+                effect = sig[j] * rms[(j - 12) % m] if m else sig[j]
+            else:
+                effect = sig[j] * intensity
+            if psig is None:
+                status = "undetermined" if effect > UNDETERMINED_EFFECT * noise[i] else "determined"
+                prior_j = None
+            else:
+                prior_j = float(_to_unit(np.array([psig[j]]), unit)[0])
+                status = "kept" if sig[j] > KEPT_FRACTION * psig[j] else "updated"
+            out.append(Quantity(
+                sensor, label, unit, float(_to_unit(np.array([values[i, j]]), unit)[0]),
+                float(_to_unit(np.array([sig[j]]), unit)[0]), float(effect), status, prior_j,
+            ))
+    return Identifiability(out, np.asarray(noise, dtype=float), prior_cov is not None, cov)
+
+
+# -- predicted TMI error ------------------------------------------------------------------
+def tmi_sensitivity(w: Array, directions: Array) -> Array:
+    """d(|b_i| / F) / dW_i at unit field directions (A, 3): (A, S, 3 (4 + m)).
+
+    From ``b = M (r - o - E u)`` with ``r = K F d + E u + o``: a parameter error gives
+    ``db = -M (dK F d + do + dE u)``, and the TMI error is ``d^T db`` (no current, u = 0).
+    """
+    s, _, q = w.shape
+    mats = np.linalg.inv(w[:, :, :3])
+    row = np.einsum("na,sab->nsb", directions, mats)  # d^T M_i, (A, S, 3)
+    phi = np.concatenate([directions, np.ones((len(directions), 1)), np.zeros((len(directions), q - 4))], axis=1)
+    return -np.einsum("nsa,nq->nsaq", row, phi).reshape(len(directions), s, 3 * q)
+
+
+def predicted_tmi_variance(w: Array, cov: Array, directions: Array) -> Array:
+    """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S)."""
+    s, _, q = w.shape
+    p = 3 * q
+    g = tmi_sensitivity(w, directions)
+    out = np.empty(g.shape[:2])
+    for i in range(s):
+        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
+        out[:, i] = np.einsum("ap,pk,ak->a", g[:, i], block, g[:, i])
+    return np.clip(out, 0, None)
+
+
+def attitude_directions(inclination: float, pitch_deg: Array, roll_deg: Array, yaw_steps: int = 24) -> Array:
+    """Unit field directions in the platform frame for every (yaw, pitch, roll) combination.
+
+    World NED field of ``inclination`` (rad); platform to world ``R = Rz(yaw) Ry(pitch)
+    Rx(roll)``; the platform-frame field is ``R^T B``. Returns (P, R, Y, 3).
+    """
+    b = np.array([np.cos(inclination), 0.0, np.sin(inclination)])
+    yaw = np.arange(yaw_steps) * 2 * np.pi / yaw_steps
+    p = np.radians(np.asarray(pitch_deg, dtype=float))
+    r = np.radians(np.asarray(roll_deg, dtype=float))
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    # world -> body: Rx(roll)^T Ry(pitch)^T Rz(yaw)^T b
+    v1 = np.stack([cy * b[0] + sy * b[1], -sy * b[0] + cy * b[1], np.full_like(yaw, b[2])], axis=-1)  # (Y, 3)
+    cp, sp = np.cos(p), np.sin(p)
+    v2 = np.stack([
+        cp[:, None] * v1[None, :, 0] - sp[:, None] * v1[None, :, 2],
+        np.broadcast_to(v1[None, :, 1], (len(p), len(yaw))),
+        sp[:, None] * v1[None, :, 0] + cp[:, None] * v1[None, :, 2],
+    ], axis=-1)  # (P, Y, 3)
+    cr, sr = np.cos(r), np.sin(r)
+    v3 = np.stack([
+        np.broadcast_to(v2[:, None, :, 0], (len(p), len(r), len(yaw))),
+        cr[None, :, None] * v2[:, None, :, 1] + sr[None, :, None] * v2[:, None, :, 2],
+        -sr[None, :, None] * v2[:, None, :, 1] + cr[None, :, None] * v2[:, None, :, 2],
+    ], axis=-1)  # (P, R, Y, 3)
+    return v3
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """Where the calibration is valid: |pitch| <= pitch_deg and |roll| <= roll_deg, any yaw."""
+
+    pitch_deg: float
+    roll_deg: float
+    inclination_deg: float
+    """Inclination (deg) assumed for the prediction."""
+    ratio_inside: float
+    """Worst predicted TMI error / noise inside the envelope."""
+    ratio_sphere: float
+    """RMS predicted TMI error / noise over all attitudes."""
+
+    @property
+    def whole_sphere(self) -> bool:
+        """True when every attitude is inside."""
+        return self.pitch_deg >= 90.0 and self.roll_deg >= 180.0
+
+    def describe(self) -> str:
+        """``valid within pitch +-P deg, roll +-R deg`` or ``valid over the whole sphere``."""
+        if self.whole_sphere:
+            return "valid over the whole sphere"
+        return f"valid within pitch +-{self.pitch_deg:.0f} deg, roll +-{self.roll_deg:.0f} deg"
+
+
+PITCH_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 91, 3.0)])
+ROLL_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 181, 3.0)])
+
+
+def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: float) -> Envelope:
+    """The largest |pitch| x |roll| box (any yaw) where the predicted TMI error / noise stays
+    within :data:`ENVELOPE_RATIO`; ``noise`` (S,) and ``intensity`` in T, ``inclination`` rad.
+
+    The ratio at an attitude is ``sqrt(1 + var_cal / sigma^2)`` (calibration error added to
+    the noise), RMS over the sensors; a box is valid when its worst attitude (any yaw, both
+    signs of pitch and roll) is. Among valid boxes the one with the largest solid angle wins.
+    """
+    f_noise = np.asarray(noise, dtype=float)
+    grid_p = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
+    grid_r = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
+    dirs = attitude_directions(inclination, grid_p, grid_r)
+    shape = dirs.shape[:3]
+    var = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3))  # (A, S) in units of F^2
+    sigma_f = f_noise / intensity  # noise in units of F, like the predicted variance
+    ratio = np.sqrt(np.mean(1.0 + var / sigma_f[None, :] ** 2, axis=1)).reshape(shape)
+    worst = ratio.max(axis=2)  # over yaw, (P, R)
+    # fold signs: a box |p| <= P, |r| <= R
+    npos, rpos = len(PITCH_GRID), len(ROLL_GRID)
+    folded = np.maximum.reduce([
+        worst[npos - 1 :, rpos - 1 :], worst[npos - 1 :, rpos - 1 :: -1][:, :rpos],
+        worst[npos - 1 :: -1, rpos - 1 :][:npos], worst[npos - 1 :: -1, rpos - 1 :: -1][:npos, :rpos],
+    ])
+    cum = np.maximum.accumulate(np.maximum.accumulate(folded, axis=0), axis=1)  # worst inside box
+    valid = cum <= ENVELOPE_RATIO
+    best, best_area = (0, 0), -1.0
+    for i, pdeg in enumerate(PITCH_GRID):
+        js = np.flatnonzero(valid[i])
+        if not len(js):
+            continue
+        j = int(js[-1])
+        area = (np.sin(np.radians(pdeg)) + 0.01) * (ROLL_GRID[j] + 1.0)
+        if area > best_area:
+            best, best_area = (i, j), area
+    i, j = best
+    inside = float(cum[i, j]) if valid[i, j] else float(folded[0, 0])
+    sphere = float(np.sqrt(np.mean(ratio**2)))
+    return Envelope(float(PITCH_GRID[i]) if valid[i, j] else 0.0, float(ROLL_GRID[j]) if valid[i, j] else 0.0,
+                    float(np.degrees(inclination)), inside, sphere)
