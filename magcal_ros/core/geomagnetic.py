@@ -16,7 +16,6 @@ the absolute scale of a calibration, not its precision.
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +25,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from pygeomag import GeoMag
+from pygeomag.wmm.wmm_2015v2 import WMM_2015v2
+from pygeomag.wmm.wmm_2020 import WMM_2020
+from pygeomag.wmm.wmm_2025 import WMM_2025
 
 from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError
@@ -38,12 +40,8 @@ LATITUDE_RANGE_DEG: tuple[float, float] = (-90.0, 90.0)
 LONGITUDE_RANGE_DEG: tuple[float, float] = (-180.0, 360.0)
 """Accepted longitudes (deg east); 180..360 is the same as -180..0."""
 
-# (epoch, name of the pygeomag module, attribute holding the coefficients), newest first.
-_MODELS: tuple[tuple[float, str, str], ...] = (
-    (2025.0, "pygeomag.wmm.wmm_2025", "WMM_2025"),
-    (2020.0, "pygeomag.wmm.wmm_2020", "WMM_2020"),
-    (2015.0, "pygeomag.wmm.wmm_2015v2", "WMM_2015v2"),
-)
+# (epoch, coefficients as pygeomag ships them in Python modules), newest first.
+_MODELS: tuple[tuple[float, tuple[Any, ...]], ...] = ((2025.0, WMM_2025), (2020.0, WMM_2020), (2015.0, WMM_2015v2))
 _LIFESPAN_YEARS = 5.0
 VALID_YEARS: tuple[float, float] = (_MODELS[-1][0], _MODELS[0][0] + _LIFESPAN_YEARS)
 """Decimal years covered by the shipped models: [2015.0, 2030.0)."""
@@ -155,8 +153,7 @@ def _model_for(year: float, when: datetime) -> tuple[float, tuple[Any, ...]]:
             f"({int(lo)}-01-01 .. {int(hi) - 1}-12-31, editions WMM-2015v2, WMM-2020, WMM-2025): "
             "give a date inside it or the intensity by hand"
         )
-    epoch, module, attribute = next(m for m in _MODELS if m[0] <= year)
-    return epoch, getattr(importlib.import_module(module), attribute)
+    return next(m for m in _MODELS if m[0] <= year)
 
 
 def site_field(latitude_deg: float, longitude_deg: float, altitude_m: float, when: date | datetime) -> SiteField:
@@ -178,6 +175,6 @@ def site_field(latitude_deg: float, longitude_deg: float, altitude_m: float, whe
     return SiteField(
         latitude_deg=lat, longitude_deg=lon, altitude_m=alt, when=t, decimal_year=year, model=model.model,
         epoch=epoch, vector=np.array([result.x, result.y, result.z]) * NT, intensity=float(result.f) * NT,
-        inclination_deg=float(result.i),
-        declination_deg=float(result.d), intensity_error=round(float(result.calculate_uncertainty().f) * NT, 15),
+        inclination_deg=float(result.i), declination_deg=float(result.d),
+        intensity_error=round(float(result.calculate_uncertainty().f) * NT, 15),
     )
