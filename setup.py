@@ -16,7 +16,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["numpy", "scipy", "PyYAML", "rosbags", "matplotlib"],
+    install_requires=["numpy", "scipy", "PyYAML", "rosbags", "matplotlib", "pygeomag==1.1.0"],
     package_data={PACKAGE: ["py.typed"]},
     zip_safe=True,
     maintainer="magcal_ros developers",

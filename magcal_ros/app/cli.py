@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,9 +28,14 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 
+if TYPE_CHECKING:
+    from magcal_ros.core.geomagnetic import SiteField
+
 EPILOG_CALIBRATE = """examples:
   magcal calibrate rotation.csv -o calibration.yaml --reference-field 5.15e-5
   magcal calibrate rotation_bag/ -o cal.yaml                 # relative (no reference)
+  magcal calibrate rotation.csv -o cal.yaml --site 43.2,5.4 --date 2026-11-23   # F from the WMM
+  magcal calibrate rotation.csv -o cal.yaml --site -33.87,151.21,-20   # 33.87 S, 20 m under water, today
   magcal calibrate rotation.csv -o cal.yaml --method linear --reference-field 6e-5
   magcal calibrate rotation_bag/ -o cal.yaml --sensors mag1,mag2,mag3,mag4 \\
       --start 1700000010 --end 1700000100 --plot calibration.png
@@ -155,8 +162,44 @@ def _report_sync(stats: SyncStats | None) -> None:
         print(f"  note: {stats.describe()}", file=sys.stderr)
 
 
+def _reference(args: argparse.Namespace) -> tuple[float | None, SiteField | None]:
+    """The reference intensity F (T): --reference-field, the WMM at --site/--date, or None (relative)."""
+    if args.site is None:
+        if args.date is not None:
+            raise InputError("--date needs --site (the date is when the magnetic model is evaluated)")
+        return args.reference_field, None
+    if args.reference_field is not None:
+        raise InputError("give either --reference-field or --site, not both")
+    from magcal_ros.core.geomagnetic import parse_date, parse_site, site_field
+
+    given = f"--site {args.site}" + (f" --date {args.date}" if args.date is not None else "")
+    try:
+        values = [float(v) for v in args.site.split(",")]
+    except ValueError:
+        raise InputError(f"{given}: the site must be LAT,LON[,ALT_M] in deg, deg, m (e.g. 43.2,5.4,0)") from None
+    try:
+        site = site_field(*parse_site(values), parse_date(args.date))
+    except InputError as exc:
+        raise InputError(f"{given}: {exc}") from None
+    return site.intensity, site
+
+
+def _report_site(site: SiteField) -> None:
+    """The model's field and what its own error means for the calibration."""
+    print(
+        f"  reference {site.describe()}: F {site.intensity / NT:.1f} nT, inclination "
+        f"{site.inclination_deg:.2f} deg, declination {site.declination_deg:.2f} deg"
+    )
+    print(
+        f"  the model's own error (~{site.intensity_error / NT:.0f} nT in F, 1-sigma; WMM/IGRF 100-200 nT) sets the "
+        f"absolute scale only: a common factor (~{site.intensity_error / site.intensity:.1%}) on every corrected "
+        "vector and the tensor, not the residuals"
+    )
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
+    reference_field, site = _reference(args)
     names = tuple(n.strip() for n in args.sensors.split(",") if n.strip()) if args.sensors else None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
@@ -166,13 +209,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     _report_sync(stats)
     geometry = _positions(args.positions, rec.names)
     opts = SolveOptions(loss=args.loss, gradient_method=args.gradient_method, seed=args.seed)
-    result = calibrate_array(rec.vectors, geometry, args.reference_field, args.method, opts)
+    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts)
+    if site is not None:
+        result.calibration.metadata.update(site.provenance())
     if args.plot:
         from magcal_ros.app.plots import plot_calibration
 
         plot_calibration(args.plot, rec, result)
     calfile.write(args.output, result.calibration)
     print(result.summary())
+    if site is not None:
+        _report_site(site)
     for name, before, after in zip(geometry.names, result.tmi_before, result.tmi_after):
         print(f"  {name}: TMI RMS {before / NT:10.2f} -> {after / NT:8.3f} nT")
     print(f"  solve time {result.seconds * 1e3:.1f} ms; written {args.output}")
@@ -284,7 +331,13 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     add_input_options(p)
     p.add_argument("-o", "--output", required=True, help="calibration file to write (YAML)")
     p.add_argument("--reference-field", type=float, default=None, metavar="TESLA",
-                   help="total field intensity F in T (e.g. 5.15e-5); omit for a relative calibration")
+                   help="total field intensity F in T (e.g. 5.15e-5); omit (and --site) for a relative calibration")
+    p.add_argument("--site", metavar="LAT,LON[,ALT_M]",
+                   help="take F from the World Magnetic Model (offline) at this site instead: latitude and "
+                   "longitude in deg (north, east positive), altitude in m above sea level (default 0, negative "
+                   "under water); e.g. 43.2,5.4 or -33.87,151.21,-20")
+    p.add_argument("--date", metavar="YYYY-MM-DD",
+                   help="date at which --site evaluates the model (default today, UTC; 2015-01-01 .. 2029-12-31)")
     p.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS), help=f"default {DEFAULT_METHOD}")
     p.add_argument("--loss", default="linear", choices=list(LOSSES), help="robust loss for method ml")
     p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"])
@@ -384,10 +437,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _attach_negative_site(argv: Sequence[str]) -> list[str]:
+    """``--site -33.9,151.2`` as ``--site=-33.9,151.2``: argparse takes a leading '-' for an option."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] == "--site" and re.match(r"-\.?\d", arg):
+            out[-1] = f"--site={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: one clear line on stderr and exit 2 for any bad input."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_negative_site(sys.argv[1:] if argv is None else argv))
     try:
         return int(args.func(args) or 0)
     except MagcalError as exc:
