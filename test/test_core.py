@@ -196,11 +196,16 @@ def test_too_few_sets_and_bad_values_are_refused():
         calibrate_array(rec.vectors, CROSS, 50000.0)  # nT by mistake
 
 
-def test_wrong_reference_field_fails_the_residual_check():
+def test_a_wrong_reference_field_or_a_non_uniform_field_is_refused():
     sim = simulation()
     rec, _ = sim.run(uniform_random(300, 1), 1)
-    result = calibrate_array(rec.vectors, CROSS, 1.5 * F)  # a consistent, scaled solution
-    assert np.max(result.tmi_after) < 2 * NT
+    # A reference 1.5x too large fits as well (every gain scales) but no sensor is 33 % off:
+    # refused, naming the intensity the data imply.
+    with pytest.raises(CalibrationFailed, match=r"disagrees with the data, which imply about \d+ nT"):
+        calibrate_array(rec.vectors, CROSS, 1.5 * F)
+    warned = calibrate_array(rec.vectors, CROSS, 1.06 * F)  # 6 %: accepted with a warning
+    assert any("gains" in w and "off" in w for w in warned.warnings)
+    assert not any("gains" in w for w in calibrate_array(rec.vectors, CROSS, F).warnings)
     dip = ArraySimulation(CROSS, sim.sensors, EARTH, dipoles=(Dipole(np.array([0.5, 0.0, 0.0]), np.array([0.0, 0.0, 2.0])),))
     rec, _ = dip.run(uniform_random(300, 1), 1)  # far from uniform: a strong source 0.3 m away
     with pytest.raises((CalibrationFailed, ObservabilityError)):

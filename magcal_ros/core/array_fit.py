@@ -20,8 +20,11 @@ sets). A Gaussian prior on every ``W_i`` (the previous calibration and a drift m
 weak one around the starting point) makes the problem well posed whatever the manoeuvre;
 the data information (without the prior) is returned for the identifiability analysis.
 
-Outliers: readings whose residual exceeds a chi-square bound of the sensor's robust noise
-scale get weight 0 and the fit is repeated until the set of excluded readings settles.
+Outliers: after each fit every reading is compared with what the *other* sensors say the
+field was (the mean of the set's other readings, so that a spike on one sensor cannot hide
+by dragging the set's direction), and with the intensity; readings beyond a
+chi-square bound of the sensor's robust scale get weight 0 and the fit is repeated until
+the excluded readings settle.
 """
 
 from __future__ import annotations
@@ -39,8 +42,11 @@ Array = NDArray[np.float64]
 
 OUTLIER_PROBABILITY: float = 1e-5
 """A clean reading is excluded with at most this probability (Gaussian noise)."""
-MAX_ROBUST_ROUNDS: int = 6
+MAX_ROBUST_ROUNDS: int = 12
 """Refits at most, each after re-deciding which readings are outliers."""
+SOFT_BOUND: float = 16.0
+"""Residuals beyond sqrt(SOFT_BOUND) = 4 noise sd (per reading, squared norm over its dof)
+are down-weighted in proportion while outliers are being decided."""
 
 
 @dataclass(frozen=True)
@@ -129,22 +135,22 @@ class _Normal:
         n = len(d)
         self.phi = features(d, u)  # (N, q)
         self.basis = tangent_bases(d)  # (N, 3, 2)
-        pred = np.einsum("saq,nq->nsa", w, self.phi)
-        self.e = pred - x  # (N, S, 3)
+        self.e = _predict(w, self.phi) - x  # (N, S, 3)
         ws = weights / sigma[None, :] ** 2  # (N, S) whitening weights
         self.ws = ws
         k = w[:, :, :3]
-        self.m = np.einsum("sab,nbc->nsac", k, self.basis)  # (N, S, 3, 2) d pred / d delta
-        # Block diagonal A_i = I_3 (x) sum_k ws phi phi^T
-        phi_outer = np.einsum("nq,nr->nqr", self.phi, self.phi)
-        self.a_blocks = np.einsum("ns,nqr->sqr", ws, phi_outer)  # (S, q, q)
-        # Gradient wrt W_i: sum_k ws e phi^T
-        self.g_w = np.einsum("ns,nsa,nq->saq", ws, self.e, self.phi)  # (S, 3, q)
+        self.m = np.matmul(k[None, :, :, :], self.basis[:, None, :, :])  # (N, S, 3, 2) d pred / d delta
+        # Block diagonal A_i = I_3 (x) sum_k ws phi phi^T, and the gradient sum_k ws e phi^T
+        self.a_blocks = np.stack([(self.phi * ws[:, i : i + 1]).T @ self.phi for i in range(s)])  # (S, q, q)
+        we = ws[:, :, None] * self.e  # (N, S, 3)
+        self.g_w = np.stack([we[:, i].T @ self.phi for i in range(s)])  # (S, 3, q)
         # Cross terms B_k[(s, a, q), c] = ws_ks phi_kq m_ksac
-        self.b = np.einsum("ns,nq,nsac->nsaqc", ws, self.phi, self.m).reshape(n, s * 3 * q, 2)
-        self.c = np.einsum("ns,nsai,nsaj->nij", ws, self.m, self.m)  # (N, 2, 2)
-        self.g_d = np.einsum("ns,nsai,nsa->ni", ws, self.m, self.e)  # (N, 2)
-        self.cost = float(np.sum(ws[:, :, None] * self.e**2))
+        wm = ws[:, :, None, None] * self.m  # (N, S, 3, 2)
+        self.b = (wm[:, :, :, None, :] * self.phi[:, None, None, :, None]).reshape(n, s * 3 * q, 2)
+        flat_m = self.m.reshape(n, s * 3, 2)
+        self.c = np.matmul(wm.reshape(n, s * 3, 2).transpose(0, 2, 1), flat_m)  # (N, 2, 2)
+        self.g_d = np.sum(wm * self.e[:, :, :, None], axis=(1, 2))  # (N, 2)
+        self.cost = float(np.sum(we * self.e))
         self.shape = (s, q)
 
     def a_matrix(self) -> Array:
@@ -159,17 +165,24 @@ class _Normal:
         noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
         """
         s, q = self.shape
-        g = np.einsum("ns,nsa,nq->nsaq", self.ws, self.e, self.phi).reshape(len(self.e), s * 3 * q)
-        corr = np.einsum("npi,nij,nj->np", self.b, _inv2(self.c), self.g_d)
+        we = self.ws[:, :, None] * self.e
+        g = (we[:, :, :, None] * self.phi[:, None, None, :]).reshape(len(self.e), s * 3 * q)
+        corr = np.matmul(self.b, np.matmul(_inv2(self.c), self.g_d[:, :, None]))[:, :, 0]
         return g - corr
 
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
         c_inv = _inv2(self.c)
-        bc = np.einsum("npi,nij->npj", self.b, c_inv)
+        bc = np.matmul(self.b, c_inv)
         flat_b = self.b.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         return self.a_matrix() - flat_bc @ flat_b.T
+
+
+def _predict(w: Array, phi: Array) -> Array:
+    """``W_i phi_k`` for every set and sensor: (N, S, 3)."""
+    s, _, q = w.shape
+    return (phi @ w.reshape(s * 3, q).T).reshape(len(phi), s, 3)
 
 
 def _inv2(c: Array) -> Array:
@@ -193,7 +206,12 @@ def _directions(w: Array, x: Array, u: Array, weights: Array) -> Array:
     wsum = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
     mean = np.einsum("ns,nsa->na", weights, b) / wsum
     norm = np.linalg.norm(mean, axis=1, keepdims=True)
-    return mean / np.where(norm > 0, norm, 1.0)
+    fallback = b.mean(axis=1)
+    mean = np.where(norm > 0, mean, fallback)
+    norm = np.linalg.norm(mean, axis=1, keepdims=True)
+    out = mean / np.where(norm > 0, norm, 1.0)
+    out[~np.isfinite(out).all(axis=1) | (norm[:, 0] == 0)] = np.array([0.0, 0.0, 1.0])
+    return out
 
 
 def _solve_lm(
@@ -222,18 +240,25 @@ def _solve_lm(
         while lam < 1e10:
             c_l = cur.c + lam * np.eye(2)[None] * (np.trace(cur.c, axis1=1, axis2=2)[:, None, None] / 2 + 1e-300)
             c_inv = _inv2(c_l)
-            bc = np.einsum("npi,nij->npj", cur.b, c_inv)
+            bc = np.matmul(cur.b, c_inv)
             flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
             flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
             schur = a + lam * np.diag(np.diag(a)) - flat_bc @ flat_b.T
-            rhs = g - np.einsum("npk,nk->p", bc, cur.g_d)
+            rhs = g - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2))
+            if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
+                lam *= 10
+                continue
             try:
                 step = -scipy.linalg.solve(schur, rhs, assume_a="sym")
             except (np.linalg.LinAlgError, ValueError):
-                step = -np.linalg.lstsq(schur, rhs, rcond=None)[0]
-            dd = -np.einsum("nij,nj->ni", c_inv, cur.g_d + np.einsum("npk,p->nk", cur.b, step))
+                try:
+                    step = -np.linalg.lstsq(schur, rhs, rcond=None)[0]
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+            dd = -np.matmul(c_inv, (cur.g_d + cur.b.transpose(0, 2, 1) @ step)[:, :, None])[:, :, 0]
             w_new = w + step.reshape(s, 3, q)
-            d_new = d + np.einsum("nij,nj->ni", cur.basis, dd)
+            d_new = d + np.matmul(cur.basis, dd[:, :, None])[:, :, 0]
             d_new /= np.linalg.norm(d_new, axis=1, keepdims=True)
             if not np.all(np.isfinite(w_new)) or np.any(np.abs(np.linalg.det(w_new[:, :, :3])) < 1e-12):
                 lam *= 10
@@ -250,6 +275,37 @@ def _solve_lm(
         if not improved or done:
             break
     return w, d, steps
+
+
+def _outliers(w: Array, x: Array, u: Array, weights: Array) -> Array:
+    """(N, S) True for readings that disagree with the other sensors of their set or with F.
+
+    Each reading's corrected vector is compared with the mean of the set's other used
+    readings (three or more sensors), and its norm with 1 (units of F); either test beyond
+    the chi-square bound of its sensor's robust scale flags it.
+    """
+    n, s, _ = x.shape
+    k = w[:, :, :3]
+    rest = x - np.einsum("saq,nq->nsa", w[:, :, 3:], np.concatenate([np.ones((n, 1)), u], axis=1))
+    b = np.einsum("sab,nsb->nsa", np.linalg.inv(k), rest)
+    flags = np.zeros((n, s), bool)
+    tests = [((np.linalg.norm(b, axis=2) - 1.0) ** 2, 1.0)]
+    if s >= 3:
+        # leave one out: the mean of the set's *other* used readings
+        wsum = weights.sum(axis=1, keepdims=True)
+        total = np.einsum("ns,nsa->na", weights, b)
+        others = np.maximum(wsum - weights, 0.0)
+        ref = (total[:, None, :] - weights[:, :, None] * b) / np.where(others > 0, others, 1.0)[:, :, None]
+        q = np.sum((b - ref) ** 2, axis=2)
+        q[others[:, :, 0] == 0 if others.ndim == 3 else others == 0] = 0.0  # no other reading: TMI test only
+        tests.append((q, 3.0))
+    for q, dof in tests:
+        bound = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, dof)
+        for i in range(s):
+            good = q[weights[:, i] > 0, i]
+            scale = np.median(good if len(good) else q[:, i]) / scipy.stats.chi2.median(dof)
+            flags[:, i] |= q[:, i] > bound * max(scale, 1e-30)
+    return flags
 
 
 def _robust_sigma(e: Array, weights: Array, dof: float) -> Array:
@@ -281,7 +337,7 @@ def fit_array(
     weights: Array | None = None,
     robust: bool = True,
     iterations: int = 50,
-    tolerance: float = 1e-12,
+    tolerance: float = 1e-10,
 ) -> JointSolution:
     """Joint MAP fit of every sensor from raw sets ``raw`` (N, S, 3) T, starting at
     ``matrices`` (S, 3, 3) / ``offsets`` (S, 3) T / ``interference`` (S, 3, m) T/A.
@@ -307,27 +363,30 @@ def fit_array(
         sigma_start = np.full((s, 3, q), 1.0)  # weak: gains of order 1, offsets of order F
         prior = ParameterPrior(w.copy(), sigma_start)
     dof = 3.0 - 2.0 / s if s > 0 else 1.0
-    pred = np.einsum("saq,nq->nsa", w, features(_directions(w, x, u, weights), u))
+    pred = _predict(w, features(_directions(w, x, u, weights), u))
     sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
-    threshold = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, dof)
     total_steps = 0
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
         w, d, steps = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
         total_steps += steps
-        e = np.einsum("saq,nq->nsa", w, features(d, u)) - x
+        e = _predict(w, features(d, u)) - x
+        sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
         if not robust:
             break
-        sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
-        new_weights = (np.sum(e * e, axis=2) <= threshold * sigma[None, :] ** 2).astype(float)
-        # A set must keep at least one reading (its direction needs one).
-        empty = new_weights.sum(axis=1) == 0
-        new_weights[empty] = weights[empty]
-        if np.array_equal(new_weights, weights):
+        # Hard exclusion of outliers, and a soft down-weighting of large residuals so that a
+        # spike not yet excluded cannot bend the fit (weights 1 for clean data).
+        q = np.sum(e * e, axis=2)
+        soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(q, 1e-300))
+        new_weights = soft * ~_outliers(w, x, u, weights > 0.5)
+        if np.max(np.abs(new_weights - weights)) < 1e-3:
             break
         weights = new_weights
+    else:
+        w, d, steps = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
+        total_steps += steps
     if not np.all(np.isfinite(w)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
-    e = np.einsum("saq,nq->nsa", w, features(d, u)) - x
+    e = _predict(w, features(d, u)) - x
     sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
     final = _Normal(w, d, x, u, weights, sigma)
     info, scores = final.information(), final.scores()

@@ -1,4 +1,6 @@
-"""Array geometry: sensor names and positions in the platform frame (metres)."""
+"""Array geometry: sensor names and positions in the platform frame (metres), and what gradient
+the positions determine: none (one sensor), the gradient along a line (two sensors, or any
+collinear array), or the full tensor (three or more sensors spread in a plane or in space)."""
 
 from __future__ import annotations
 
@@ -37,8 +39,8 @@ class ArrayGeometry:
     def __post_init__(self) -> None:
         names = tuple(str(n) for n in self.names)
         pos = np.asarray(self.positions, dtype=float)
-        if len(names) < 2:
-            raise InputError("an array needs at least two sensors")
+        if len(names) < 1:
+            raise InputError("an array needs at least one sensor")
         if len(set(names)) != len(names) or not all(names):
             raise InputError(f"sensor names must be unique and non-empty, got {list(names)}")
         if pos.size != 3 * len(names):
@@ -59,6 +61,11 @@ class ArrayGeometry:
         pos = np.array([[h, 0, 0], [0, h, 0], [-h, 0, 0], [0, -h, 0]], dtype=float)
         return cls(tuple(names), pos)
 
+    @classmethod
+    def single(cls, name: str = "mag1") -> "ArrayGeometry":
+        """One sensor at the origin (no gradient)."""
+        return cls((name,), np.zeros(3))
+
     @property
     def size(self) -> int:
         """Number of sensors."""
@@ -68,6 +75,29 @@ class ArrayGeometry:
     def centre(self) -> Array:
         """Mean sensor position (m): where the centre field and the tensor are given."""
         return self.positions.mean(axis=0)
+
+    @functools.cached_property
+    def spread_rank(self) -> int:
+        """Dimension spanned by the sensor positions: 0 (one point), 1 (a line), 2 (a plane), 3."""
+        rel = self.positions - self.centre
+        if self.size < 2:
+            return 0
+        sv = np.linalg.svd(rel, compute_uv=False)
+        return int(np.sum(sv > 1e-6 * max(sv[0], 1e-12)))
+
+    @property
+    def gradient_kind(self) -> str:
+        """``none`` (one position), ``baseline`` (positions on a line: dB/ds along it) or ``tensor``."""
+        return {0: "none", 1: "baseline"}.get(self.spread_rank, "tensor")
+
+    @property
+    def baseline(self) -> tuple[Array, float]:
+        """Unit direction of a collinear array (from its first to its last sensor) and its length (m)."""
+        rel = self.positions - self.centre
+        _, _, vt = np.linalg.svd(rel)
+        axis = vt[0] * np.sign(vt[0] @ (self.positions[-1] - self.positions[0]) or 1.0)
+        proj = rel @ axis
+        return axis, float(proj.max() - proj.min())
 
     def cross_layout(self, tolerance: float = 1e-6) -> CrossLayout | None:
         """The cross indices if the sensors form a planar cross about the centre, else None.

@@ -27,8 +27,10 @@ from magcal_ros.core.units import NT
 
 Array = NDArray[np.float64]
 
-UNDETERMINED_EFFECT: float = 10.0
-"""A quantity is undetermined when its 1-sigma effect exceeds this many noise sd."""
+UNDETERMINED_EFFECT: float = 30.0
+"""A quantity is undetermined when its 1-sigma effect exceeds this many noise sd (a yaw circle
+with a few degrees of pitch and roll leaves scale z and offset z at 100-150 sd, a manoeuvre
+through +-15 deg of pitch at about 10)."""
 KEPT_FRACTION: float = 0.5
 """With a prior, a quantity whose posterior 1-sigma is above this fraction of the prior's is kept."""
 ENVELOPE_RATIO: float = 1.5
@@ -62,7 +64,7 @@ class Quantity:
 def _phys(w_row: Array, f: float, m: int) -> Array:
     """Physical vector of one sensor's ``W`` (3, 4 + m): offsets (T), scales, angles (rad),
     misalignment (rad), interference D (T/A, platform frame, row-major)."""
-    k = w_row[:, :3]
+    k = w_row[:, :3] * np.sign(np.linalg.det(w_row[:, :3]) or 1.0)  # K and -K (with -d) predict the same
     e = SensorErrors.from_forward(k, w_row[:, 3] * f)
     d = np.linalg.inv(k) @ (w_row[:, 4:] * f)
     return np.concatenate([e.offset, e.scale, e.angles, e.misalignment, d.reshape(-1)])
@@ -179,32 +181,28 @@ def analyse(
 
 
 # -- predicted TMI error ------------------------------------------------------------------
-def tmi_sensitivity(w: Array, directions: Array) -> Array:
-    """d(|b_i| / F) / dW_i at unit field directions (A, 3): (A, S, 3 (4 + m)).
+def predicted_tmi_variance(w: Array, cov: Array, directions: Array) -> Array:
+    """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S).
 
     From ``b = M (r - o - E u)`` with ``r = K F d + E u + o``: a parameter error gives
-    ``db = -M (dK F d + do + dE u)``, and the TMI error is ``d^T db`` (no current, u = 0).
+    ``db = -M (dK F d + do + dE u)`` and the TMI error ``d^T db`` (no current, u = 0), which is
+    ``-(d^T M) (x) [d, 1]`` applied to the sensor's ``dW``: a quadratic form per direction.
     """
     s, _, q = w.shape
-    mats = np.linalg.inv(w[:, :, :3])
-    row = np.einsum("na,sab->nsb", directions, mats)  # d^T M_i, (A, S, 3)
-    phi = np.concatenate([directions, np.ones((len(directions), 1)), np.zeros((len(directions), q - 4))], axis=1)
-    return -np.einsum("nsa,nq->nsaq", row, phi).reshape(len(directions), s, 3 * q)
-
-
-def predicted_tmi_variance(w: Array, cov: Array, directions: Array) -> Array:
-    """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S)."""
-    s, _, q = w.shape
     p = 3 * q
-    g = tmi_sensitivity(w, directions)
-    out = np.empty(g.shape[:2])
+    mats = np.linalg.inv(w[:, :, :3])
+    phi = np.concatenate([directions, np.ones((len(directions), 1))], axis=1)  # (A, 4)
+    keep = (np.arange(3)[:, None] * q + np.arange(4)[None, :]).reshape(-1)  # K and o entries
+    out = np.empty((len(directions), s))
     for i in range(s):
-        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
-        out[:, i] = np.einsum("ap,pk,ak->a", g[:, i], block, g[:, i])
+        row = directions @ mats[i]  # d^T M_i, (A, 3)
+        x = (row[:, :, None] * phi[:, None, :]).reshape(len(directions), 12)
+        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)]
+        out[:, i] = np.sum((x @ block) * x, axis=1)
     return np.clip(out, 0, None)
 
 
-def attitude_directions(inclination: float, pitch_deg: Array, roll_deg: Array, yaw_steps: int = 24) -> Array:
+def attitude_directions(inclination: float, pitch_deg: Array, roll_deg: Array, yaw_steps: int = 12) -> Array:
     """Unit field directions in the platform frame for every (yaw, pitch, roll) combination.
 
     World NED field of ``inclination`` (rad); platform to world ``R = Rz(yaw) Ry(pitch)
@@ -243,7 +241,9 @@ class Envelope:
     ratio_inside: float
     """Worst predicted TMI error / noise inside the envelope."""
     ratio_sphere: float
-    """RMS predicted TMI error / noise over all attitudes."""
+    """RMS predicted TMI error / noise over all attitudes (uniform over rotations)."""
+    ratio_outside: float
+    """RMS predicted TMI error / noise over the attitudes outside the envelope (1 if none)."""
 
     @property
     def whole_sphere(self) -> bool:
@@ -257,8 +257,9 @@ class Envelope:
         return f"valid within pitch +-{self.pitch_deg:.0f} deg, roll +-{self.roll_deg:.0f} deg"
 
 
-PITCH_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 91, 3.0)])
-ROLL_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 181, 3.0)])
+PITCH_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 91, 5.0)])
+"""Pitch limits tried (deg): 1-deg steps where envelopes usually end, coarser beyond."""
+ROLL_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 181, 5.0)])
 
 
 def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: float) -> Envelope:
@@ -297,6 +298,16 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
             best, best_area = (i, j), area
     i, j = best
     inside = float(cum[i, j]) if valid[i, j] else float(folded[0, 0])
-    sphere = float(np.sqrt(np.mean(ratio**2)))
-    return Envelope(float(PITCH_GRID[i]) if valid[i, j] else 0.0, float(ROLL_GRID[j]) if valid[i, j] else 0.0,
-                    float(np.degrees(inclination)), inside, sphere)
+    pitch_lim = float(PITCH_GRID[i]) if valid[i, j] else 0.0
+    roll_lim = float(ROLL_GRID[j]) if valid[i, j] else 0.0
+    # Uniform over rotations: the yaw-pitch-roll measure is cos(pitch) d(yaw) d(pitch) d(roll),
+    # and the grids are not evenly spaced.
+    wp = np.cos(np.radians(grid_p)) * np.gradient(grid_p)
+    wr = np.gradient(grid_r)
+    weight = np.broadcast_to((wp[:, None] * wr[None, :])[:, :, None], ratio.shape)
+    sq = ratio**2
+    sphere = float(np.sqrt(np.sum(weight * sq) / np.sum(weight)))
+    out = (np.abs(grid_p)[:, None, None] > pitch_lim) | (np.abs(grid_r)[None, :, None] > roll_lim)
+    out = np.broadcast_to(out, ratio.shape)
+    outside = float(np.sqrt(np.sum(weight * sq * out) / np.sum(weight * out))) if out.any() else 1.0
+    return Envelope(pitch_lim, roll_lim, float(np.degrees(inclination)), inside, sphere, outside)

@@ -194,3 +194,33 @@ def ml_fit(
         std = np.full(9, np.inf)
     rms = float(np.sqrt(np.mean(res**2))) * f
     return ScalarFit(m, o, f, rms, std, "ml")
+
+
+TRIM_SIGMAS: float = 5.0
+"""Readings whose norm residual exceeds this many robust sd are outliers for a start fit."""
+
+
+def inliers(fit: ScalarFit, readings: ArrayLike, sigmas: float = TRIM_SIGMAS) -> NDArray[np.bool_]:
+    """Readings whose norm residual lies within ``sigmas`` robust sd (MAD) of the median."""
+    res = fit.tmi_residuals(readings)
+    centre = np.median(res)
+    scale = 1.4826 * np.median(np.abs(res - centre))
+    return np.abs(res - centre) <= sigmas * max(scale, 1e-12 * fit.intensity)
+
+
+def trimmed_algebraic_fit(readings: ArrayLike, intensity: float | None = None, rounds: int = 6) -> tuple[ScalarFit, NDArray[np.bool_]]:
+    """The closed-form fit, refitted on its inliers until they settle: a start that spikes cannot bend.
+
+    Returns the fit and the inlier mask (True: kept). Needs at least half the readings clean.
+    """
+    r = _readings(readings)
+    f = _target(r, intensity)
+    keep = np.ones(len(r), bool)
+    fit = algebraic_fit(r, f)
+    for _ in range(rounds):
+        new = inliers(fit, r)
+        if new.sum() < max(10, len(r) // 2) or np.array_equal(new, keep):
+            break
+        keep = new
+        fit = algebraic_fit(r[keep], f)
+    return fit, keep

@@ -34,6 +34,22 @@ def centre_field(vectors: ArrayLike) -> Array:
     return np.asarray(vectors, dtype=float).mean(axis=-2)
 
 
+def baseline_gradient(vectors: ArrayLike, geometry: ArrayGeometry) -> Array:
+    """Gradient along the line of a collinear array, ``dB_j/ds`` (N, 3) in T/m, platform frame.
+
+    ``s`` runs along :attr:`ArrayGeometry.baseline` (first sensor towards the last); with two
+    sensors this is ``(B_2 - B_1) / L``, with more a least-squares slope.
+    """
+    if geometry.gradient_kind != "baseline":
+        raise InputError(f"the baseline gradient needs sensors on one line; this array's gradient is "
+                         f"{geometry.gradient_kind}")
+    b = _sets(vectors, geometry)
+    axis, _ = geometry.baseline
+    s = (geometry.positions - geometry.centre) @ axis
+    w = (s - s.mean()) / np.sum((s - s.mean()) ** 2)
+    return np.einsum("s,nsa->na", w, b)
+
+
 def gradient_difference(vectors: ArrayLike, geometry: ArrayGeometry) -> Array:
     """Cross difference formula (Li et al. (2018) eq. 2), (N, 3, 3).
 
@@ -79,8 +95,19 @@ def least_squares_operator(geometry: ArrayGeometry) -> Array:
         rows.append(block)
     design = np.vstack(rows)
     if np.linalg.matrix_rank(design) < 8:
-        raise InputError("sensor positions do not determine a gradient tensor (need a 2-D spread)")
+        raise InputError(_undetermined(geometry))
     return np.linalg.pinv(design)
+
+
+def _undetermined(geometry: ArrayGeometry) -> str:
+    """Why the positions do not determine a tensor, in words."""
+    if geometry.gradient_kind == "none":
+        return "one sensor position determines no gradient (only the field)"
+    if geometry.gradient_kind == "baseline":
+        axis, length = geometry.baseline
+        return (f"the {geometry.size} sensors lie on one line (direction {np.round(axis, 3).tolist()}, "
+                f"{length:g} m): only the gradient along it (dB/ds) is determined, not the tensor")
+    return "sensor positions do not determine a gradient tensor (need a 2-D spread)"
 
 
 def gradient_least_squares(vectors: ArrayLike, geometry: ArrayGeometry) -> tuple[Array, Array]:
@@ -91,7 +118,13 @@ def gradient_least_squares(vectors: ArrayLike, geometry: ArrayGeometry) -> tuple
 
 
 def gradient(vectors: ArrayLike, geometry: ArrayGeometry, method: str = "difference") -> Array:
-    """Gradient tensor (N, 3, 3) by ``method``: ``difference`` or ``least_squares``."""
+    """Gradient tensor (N, 3, 3) by ``method``: ``difference`` (planar cross) or ``least_squares``.
+
+    :class:`InputError` when the positions determine no tensor (the message says what they
+    do determine) or when ``difference`` is asked of an array that is not a planar cross.
+    """
+    if geometry.gradient_kind != "tensor":
+        raise InputError(_undetermined(geometry))
     if method == "difference":
         return gradient_difference(vectors, geometry)
     if method == "least_squares":

@@ -36,16 +36,18 @@ def autocorrelation(series: Array, lags: int) -> Array:
 
 
 def bandwidth(series: Array) -> int:
-    """Newey-West bandwidth (sets): the lag at which the residual autocorrelation fades into noise.
+    """Newey-West bandwidth (sets): twice the lag at which the residual autocorrelation fades.
 
-    The first lag whose autocorrelation is below ``2 / sqrt(N)`` (indistinguishable from
-    white), capped at :data:`MAX_BANDWIDTH_FRACTION` of the sets.
+    The autocorrelation fades at the first lag below ``2 / sqrt(N)`` (indistinguishable from
+    white); the Bartlett taper needs about twice that to take the correlation in fully.
+    Capped at :data:`MAX_BANDWIDTH_FRACTION` of the sets.
     """
     n = len(series)
     cap = max(1, int(MAX_BANDWIDTH_FRACTION * n))
     rho = autocorrelation(series, cap)
     below = np.flatnonzero(np.abs(rho[1:]) < 2.0 / np.sqrt(max(n, 1)))
-    return int(below[0]) if len(below) else cap
+    fade = int(below[0]) if len(below) else cap
+    return min(cap, 2 * fade)  # Bartlett weights taper: reach twice as far as the correlation
 
 
 def meat(scores: Array, lags: int) -> Array:

@@ -1,34 +1,62 @@
 """The array calibration pipeline, the same for every method (:mod:`magcal_ros.methods.strategies`).
 
-1. check that the attitudes can determine a calibration (:mod:`magcal_ros.core.observability`);
-2. scalar-calibrate the method's reference (the virtual centre sensor or sensor 1); its
-   orthogonal output defines the platform frame;
-3. bring every other sensor into that frame with the method's aligner;
-4. optionally refine jointly over the array (:mod:`magcal_ros.core.joint_fit`);
-5. check the result and summarise it.
+1. check the input (shapes, finite values, Tesla, enough sets that vary);
+2. find spikes with a trimmed closed-form fit per sensor, and start the method on the sets
+   whose readings are all clean: the reference (virtual centre sensor or sensor 1) is
+   scalar-calibrated and defines the platform frame, every other sensor is brought into it
+   by the method's aligner; with a prior calibration, start from it instead;
+3. refine jointly over the array (method ``ml``, or any fit with a prior or currents): a
+   robust maximum a posteriori fit of every sensor, outliers re-decided until they settle;
+4. the covariance of the result (time-correlated noise included) and what it determines
+   (:mod:`magcal_ros.core.identifiability`): without a prior an undetermined quantity is a
+   refusal naming the rotation that would determine it; with a prior it is kept;
+5. noise-aware quality gates (:mod:`magcal_ros.core.quality`) and the validity envelope.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core.array_fit import fit_array, fix_rotation_gauge
+from magcal_ros.core import identifiability as ident
+from magcal_ros.core import quality
+from magcal_ros.core.array_fit import (
+    JointSolution,
+    ParameterPrior,
+    fit_array,
+    fix_rotation_gauge,
+)
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.metrics import tensor_rms, tmi_rms
-from magcal_ros.core.observability import Excitation, excitation
-from magcal_ros.core.tensor import gradient
+from magcal_ros.core.metrics import rms, tensor_rms, tmi_rms
+from magcal_ros.core.observability import (
+    MIN_SAMPLES,
+    MIN_SPREAD,
+    Excitation,
+    excitation,
+)
+from magcal_ros.core.prior import DriftModel
+from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
+from magcal_ros.core.tensor import baseline_gradient, gradient
+from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
 from magcal_ros.core.units import NT
-from magcal_ros.errors import CalibrationFailed, InputError, ObservabilityError
+from magcal_ros.errors import (
+    CalibrationFailed,
+    InputError,
+    MagcalError,
+    ObservabilityError,
+)
 from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS, SensorFit
 
 Array = NDArray[np.float64]
+
+TESLA_RANGE: tuple[float, float] = (1e-6, 1e-3)
+"""Median raw field norm accepted as Tesla (Earth's field is 22-67 uT; offsets add some)."""
 
 
 @dataclass(frozen=True)
@@ -36,17 +64,25 @@ class SolveOptions:
     """Knobs shared by the methods."""
 
     loss: str = "linear"
-    """Robust loss of the ML fit: linear, huber, soft_l1, cauchy."""
+    """Loss of the per-sensor ML start (the joint fit always excludes outliers itself)."""
     loss_scale: float | None = None
-    """Residual (T) beyond which the robust loss down-weights a set."""
+    """Residual (T) beyond which a robust start loss down-weights a reading."""
     gradient_method: str = "difference"
     pso_particles: int = 50
     pso_iterations: int = 400
     seed: int | None = 0
     joint: bool = True
-    """Refine method ml jointly over the array (skipped with a robust loss)."""
-    max_relative_std: float = 1e-2
-    """Reject a calibration whose parameters are this uncertain (fraction of F)."""
+    """Refine method ml jointly over the array."""
+    robust: bool = True
+    """Find and exclude outlying readings in every stage."""
+    max_residual: float | None = None
+    """Accept a fit whose residual (T, per axis) is below this, whatever the noise (None: noise rule)."""
+    drift: DriftModel = field(default_factory=DriftModel)
+    """How far a prior calibration may have drifted (partial recalibration)."""
+    inclination_deg: float | None = None
+    """Field inclination for the validity envelope (None: from the data, assuming level on average)."""
+    mounting: Array | None = None
+    """(3, 3) sensor-to-platform rotation of a single sensor (None: its own axes made orthogonal)."""
 
 
 @dataclass(frozen=True)
@@ -62,47 +98,232 @@ class CalibrationResult:
     tmi_before: Array
     """Per-sensor RMS of ``|raw| - F`` (T)."""
     tmi_after: Array
-    """Per-sensor RMS of ``|corrected| - F`` (T) on the fit data."""
+    """Per-sensor RMS of ``|corrected| - F`` (T) on the fit data (outliers excluded)."""
     tensor_before: float
-    """RMS (T/m) of the six measured tensor components from raw data (uniform field: 0)."""
+    """RMS (T/m) of the gradient the array measures (tensor rows x and y, or the baseline
+    gradient) in the uniform field of the manoeuvre; NaN for one sensor."""
     tensor_after: float
     excitation: Excitation
-    std: Array
-    """(S, 9) 1-sigma parameter uncertainty per sensor (6 matrix entries / F, 3 offsets T)."""
+    identifiability: ident.Identifiability
+    envelope: ident.Envelope
+    noise: Array
+    """(S,) noise per axis of each sensor (T), from the fit."""
+    outliers: Array
+    """(S,) readings excluded as outliers."""
+    warnings: list[str]
     seconds: float
+    prior: bool = False
+    inflation: float = 1.0
+    """Widening of the uncertainty by time-correlated noise."""
     extras: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def gradient_kind(self) -> str:
+        """``tensor``, ``baseline`` or ``none``."""
+        return self.calibration.geometry.gradient_kind
+
     def summary(self) -> str:
-        """One line: samples, TMI and tensor residuals before and after."""
+        """One line: sets, TMI and gradient residuals before and after, validity, what changed."""
         mode = "relative, F estimated" if self.relative else "F"
-        return (
-            f"calibrated {self.calibration.geometry.size} sensors from {self.samples} sets "
-            f"(method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
-            f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT, "
-            f"tensor RMS {self.tensor_before / NT:.1f} -> {self.tensor_after / NT:.3f} nT/m, "
-            f"coverage {self.excitation.coverage:.0%}"
-        )
+        size = self.calibration.geometry.size
+        what = f"{size} sensors" if size > 1 else "1 sensor"
+        parts = [
+            f"calibrated {what} from {self.samples} sets (method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
+            f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT"
+        ]
+        if self.gradient_kind != "none":
+            label = "tensor" if self.gradient_kind == "tensor" else "baseline gradient"
+            parts.append(f"{label} RMS {self.tensor_before / NT:.1f} -> {self.tensor_after / NT:.3f} nT/m")
+        else:
+            frame = "platform frame (mounting given)" if self.extras.get("mounting") else "sensor axes made orthogonal"
+            parts.append(f"frame: {frame}")
+        parts.append(self.envelope.describe())
+        if self.prior:
+            kept = sorted({q.name for q in self.identifiability.kept()})
+            updated = sorted({q.name for q in self.identifiability.updated()})
+            parts.append(f"updated: {', '.join(updated) or 'nothing'}; kept from the prior: {', '.join(kept) or 'nothing'}")
+        if int(self.outliers.sum()):
+            parts.append(f"{int(self.outliers.sum())} outlying readings excluded")
+        parts.append(f"coverage {self.excitation.coverage:.0%}")
+        return ", ".join(parts)
 
 
 def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
-    """Raw sets as (N, S, 3) finite floats, or :class:`InputError`."""
+    """Raw sets as (N, S, 3) finite floats in Tesla, or :class:`InputError`."""
     r = np.asarray(raw, dtype=float)
     if r.ndim != 3 or r.shape[1:] != (geometry.size, 3):
         raise InputError(f"raw sets must have shape (N, {geometry.size}, 3), got {r.shape}")
     bad = ~np.all(np.isfinite(r), axis=(1, 2))
     if np.any(bad):
         raise InputError(f"{int(bad.sum())} sets contain NaN or infinite values (first at index {int(np.argmax(bad))})")
+    if len(r):
+        check_tesla(r)
     return r
 
 
-def _tensor_residual(vectors: Array, geometry: ArrayGeometry, method: str) -> float:
-    """Tensor RMS (T/m) of a uniform-field recording; NaN for fewer than 4 sensors (no tensor).
+def check_tesla(vectors: Array) -> None:
+    """:class:`InputError` unless the median norm of ``vectors`` (..., 3) looks like Tesla."""
+    median = float(np.median(np.linalg.norm(vectors, axis=-1)))
+    low, high = TESLA_RANGE
+    if not (low <= median <= high):
+        raise InputError(f"the readings' median magnitude is {median:.4g}, not an Earth field in Tesla "
+                         f"({low:g} .. {high:g}): units must be Tesla")
 
-    A two-sensor gradiometer (the two-fluxgate gradiometer paper) is calibrated like any array but has no full tensor.
+
+def _gradient_residual(vectors: Array, geometry: ArrayGeometry, method: str) -> float:
+    """RMS (T/m) of what the array measures of the gradient in a uniform field (should be 0)."""
+    kind = geometry.gradient_kind
+    if kind == "tensor":
+        return tensor_rms(gradient(vectors, geometry, method))
+    if kind == "baseline":
+        return float(rms(baseline_gradient(vectors, geometry)))
+    return float("nan")
+
+
+def _order(stamps: ArrayLike | None, n: int) -> NDArray[np.int64]:
+    if stamps is None:
+        return np.arange(n)
+    s = np.asarray(stamps)
+    if s.shape != (n,):
+        raise InputError(f"stamps must have one entry per set ({n}), got {s.shape}")
+    return np.argsort(s, kind="stable")
+
+
+def _start(spec: Any, r: Array, clean: Array, f_ref: float | None, opts: SolveOptions) -> tuple[Array, Array, float]:
+    """The method's own solution on the clean sets: matrices (S, 3, 3), offsets (S, 3), F."""
+    rc = r[clean]
+    ref_raw, ref_index = spec.reference(rc)
+    ref_fit = spec.scalar(ref_raw, f_ref, opts)
+    intensity = ref_fit.intensity
+    ref_vec = ref_fit.apply(ref_raw)
+    fits = []
+    for i in range(r.shape[1]):
+        if i == ref_index:
+            fits.append(SensorFit(ref_fit.matrix, ref_fit.offset, np.full(9, np.nan)))
+        else:
+            fits.append(spec.aligner(rc[:, i], ref_vec, intensity, spec.scalar, opts))
+    return np.stack([f.matrix for f in fits]), np.stack([f.offset for f in fits]), intensity
+
+
+def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
+    """A start that always exists: unit gains, offsets at each sensor's centroid."""
+    offsets = r.mean(axis=0)
+    norms = np.linalg.norm(r - offsets, axis=2)
+    intensity = f if f else float(np.median(norms))
+    gains = intensity / np.maximum(np.median(norms, axis=0), 1e-300)
+    return gains[:, None, None] * np.eye(3)[None], offsets, intensity
+
+
+def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
+              opts: SolveOptions) -> ParameterPrior | None:
+    return None if prior is None else opts.drift.prior(prior, geometry, f, channels)
+
+
+JACKKNIFE_BLOCKS: int = 8
+"""Time blocks of the delete-one-block jackknife that checks the covariance of a recording."""
+JACKKNIFE_MIN_SETS: int = 400
+"""Recordings shorter than this are not jackknifed."""
+
+
+def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64], currents: Array,
+                         prior: ParameterPrior | None, cov: Array) -> float:
+    """How much wider a delete-one-block jackknife says the parameters scatter than ``cov`` (>= 1).
+
+    Real recordings change slowly (temperature, motion, coverage from one minute to the
+    next); the block-to-block scatter of the solution shows what the residuals' own
+    correlation cannot. Median of the per-parameter variance ratios, parameters the data
+    determine only.
     """
-    if geometry.size < 4:
-        return float("nan")
-    return tensor_rms(gradient(vectors, geometry, method))
+    n = len(order)
+    blocks = np.array_split(order, JACKKNIFE_BLOCKS)
+    est = []
+    for block in blocks:
+        keep = np.ones(n, bool)
+        keep[block] = False
+        part = fit_array(raw[keep], sol.matrices, sol.offsets, sol.intensity, currents[keep],
+                         sol.interference if currents.shape[1] else None, prior, sol.weights[keep],
+                         robust=False, iterations=15)
+        if prior is None:
+            part = fix_rotation_gauge(part)
+        est.append(part.w.reshape(-1))
+    est = np.array(est)
+    var_jack = (len(est) - 1) / len(est) * np.sum((est - est.mean(axis=0)) ** 2, axis=0)
+    var_model = np.diag(cov)
+    good = (var_model > 0) & (var_jack > 0)
+    if prior is not None:  # parameters the prior holds do not scatter; judge the data's ones
+        prec = prior.precision().reshape(-1)
+        good &= var_model < 0.25 / np.maximum(prec, 1e-300)
+    if good.sum() < 3:
+        return 1.0
+    return float(max(1.0, np.median(var_jack[good] / var_model[good])))
+
+
+def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDArray[np.int64],
+             prior: ParameterPrior | None, channels: tuple[str, ...],
+             currents: Array) -> tuple[ident.Identifiability, Any]:
+    """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution."""
+    series = sol.residuals[order].reshape(len(order), -1)
+    prec = None if prior is None else prior.precision().reshape(-1)
+    gauge = None if prior is not None else centre_gauge_constraints(sol.w)
+    cov = covariance(sol.information, sol.scores[order], series, prec, gauge)
+    if len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
+        factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix)
+        cov = replace(cov, matrix=cov.matrix * factor, inflation=cov.inflation * factor)
+    prior_cov = None if prior is None else np.diag(np.where(prec > 0, 1.0 / np.maximum(prec, 1e-300), 1e30))
+    rms_u = np.sqrt(np.mean(currents**2, axis=0)) if currents.size else None
+    ana = ident.analyse(geometry.names, sol.w, sol.intensity, cov.matrix, sol.sigma, prior_cov, channels, rms_u)
+    return ana, cov
+
+
+def _manoeuvre_axis(directions: Array) -> tuple[str, float]:
+    """The platform axis the field directions turned about, and how flat they were (0: one plane)."""
+    exc = excitation(directions)
+    return exc.axis_name, exc.thickness
+
+
+def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope) -> str:
+    """Why a manoeuvre is refused, in words: what it leaves undetermined and what to fly."""
+    missing = ana.undetermined()
+    names = sorted({q.name for q in missing}, key=lambda n: [q.name for q in ana.quantities].index(n))
+    sensors = sorted({q.sensor for q in missing})
+    who = "every sensor" if len(sensors) == len(set(q.sensor for q in ana.quantities)) else ", ".join(sensors)
+    axis, flat = _manoeuvre_axis(sol.directions)
+    others = " or ".join(a for a in ("x", "y", "z") if a != axis)
+    if flat < 0.05:
+        how = f"the array was rotated about one axis only (about {axis})"
+    else:
+        how = f"the array turned mostly about {axis} (the rotations about {others} were too small)"
+    advice = f"a full calibration also needs a rotation about {others}"
+    if axis == "z":
+        advice += ": pitch and roll the vehicle, not only yaw"
+    envelope = "" if env.pitch_deg <= 0 else f" (as flown it would be {env.describe()})"
+    return (f"the manoeuvre does not determine {', '.join(names[:6])}{' ...' if len(names) > 6 else ''} of {who}: "
+            f"{how}; {advice}{envelope}; or give the previous calibration as a prior to recalibrate only what "
+            "this manoeuvre determines")
+
+
+def _inclination(opts: SolveOptions, directions: Array) -> float:
+    """Field inclination (rad) for the envelope: given, or from the data assuming level on average."""
+    if opts.inclination_deg is not None:
+        return float(np.radians(opts.inclination_deg))
+    return float(np.median(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0))))
+
+
+def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
+    """(S, 3, 3) covariance of each corrected vector: noise plus calibration error over the manoeuvre."""
+    s, _, q = sol.w.shape
+    p = 3 * q
+    mats = np.linalg.inv(sol.w[:, :, :3])
+    d = sol.directions
+    phi = np.concatenate([d, np.ones((len(d), 1)), np.zeros((len(d), q - 4))], axis=1)
+    out = np.empty((s, 3, 3))
+    for i in range(s):
+        # db = -M dW phi F  ->  J (3, p) per direction
+        jac = -np.einsum("ab,nq->nabq", mats[i], phi).reshape(len(d), 3, p) * sol.intensity
+        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
+        cal = np.einsum("nap,pk,nbk->ab", jac, block, jac) / len(d)
+        out[i] = sol.sigma[i] ** 2 * np.eye(3) + 0.5 * (cal + cal.T)
+    return out
 
 
 def calibrate_array(
@@ -111,20 +332,38 @@ def calibrate_array(
     reference_field: float | None = None,
     method: str = DEFAULT_METHOD,
     options: SolveOptions | None = None,
+    prior: ArrayCalibration | None = None,
+    currents: ArrayLike | None = None,
+    channels: tuple[str, ...] = (),
+    stamps: ArrayLike | None = None,
 ) -> CalibrationResult:
-    """Solve the array calibration from raw sets (N, S, 3) in T of a uniform field.
+    """Solve the array calibration from raw sets (N, S, 3) in T of a uniform, constant field.
 
-    ``reference_field`` is the total intensity F in T (None or 0: relative calibration,
-    F estimated from the data). Raises :class:`ObservabilityError` when the attitudes
-    cannot determine it, :class:`InputError` for bad input and
-    :class:`CalibrationFailed` when the solution fails its checks.
+    ``reference_field``: total intensity F in T (None or 0: relative, or the prior's).
+    ``prior``: the previous calibration; undetermined quantities are kept at it (partial
+    recalibration, method ``ml``). ``currents`` (N, m) A of ``channels``: their interference
+    is estimated too. ``stamps`` (N,) int ns put the sets in time order (default: as given).
+    Raises :class:`ObservabilityError` when the manoeuvre cannot determine the calibration
+    (naming what is missing and what to fly), :class:`InputError` for bad input and
+    :class:`CalibrationFailed` when the result fails a quality gate (naming the cause).
     """
     t0 = time.perf_counter()
     opts = options or SolveOptions()
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     spec = METHODS[method]
+    r = check_raw(raw, geometry)
+    n, s, _ = r.shape
+    u = np.zeros((n, 0)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+    channels = tuple(channels)
+    if u.shape[1] != len(channels) or not np.all(np.isfinite(u)):
+        raise InputError(f"currents must be finite, one column per channel ({len(channels)}), got shape {u.shape}")
+    joint = (spec.joint and opts.joint) or prior is not None or bool(channels)
+    if (prior is not None or channels) and not spec.joint:
+        raise InputError(f"a prior calibration and current channels need method 'ml', not {method!r}")
     f_ref = float(reference_field) if reference_field else None
+    if f_ref is None and prior is not None and prior.metadata.get("intensity"):
+        f_ref = float(prior.metadata["intensity"])
     if spec.needs_reference_field and f_ref is None:
         raise InputError(
             f"method {method!r} ({spec.source}) needs a reference field intensity in T "
@@ -132,75 +371,170 @@ def calibrate_array(
         )
     if f_ref is not None and not (np.isfinite(f_ref) and 1e-7 <= f_ref <= 1e-3):
         raise InputError(f"reference field {f_ref} T is not an Earth-like intensity (1e-7 .. 1e-3 T): units are Tesla")
-    r = check_raw(raw, geometry)
-    centre_raw = r.mean(axis=1)
-    exc = excitation(centre_raw)
-    exc.check()
+    order = _order(stamps, n)
+    exc = excitation(r.mean(axis=1))
+    if n < MIN_SAMPLES:
+        axis, flat = _manoeuvre_axis(r.mean(axis=1))
+        one_axis = f"; and the array was rotated about one axis only (about {axis}): turn it about " + " or ".join(
+            a for a in "xyz" if a != axis) + " too" if flat < 0.05 else ""
+        raise ObservabilityError(f"only {n} synchronized sets; need at least {MIN_SAMPLES}, collected while turning "
+                                 f"the array about at least two axes{one_axis}")
+    if exc.spread[0] < MIN_SPREAD and prior is None:
+        raise ObservabilityError("the readings barely change (the array hardly rotated); turn it through large "
+                                 "angles about at least two axes")
 
-    ref_raw, ref_index = spec.reference(r)
-    ref_fit = spec.scalar(ref_raw, f_ref, opts)
-    intensity = ref_fit.intensity
-    ref_vec = ref_fit.apply(ref_raw)
-
-    matrices, offsets, stds = [], [], []
-    for i in range(geometry.size):
-        if i == ref_index:
-            fit = SensorFit(ref_fit.matrix, ref_fit.offset, ref_fit.std if ref_fit.std is not None else np.full(9, np.nan))
+    # 2. spikes and the start
+    clean_reading = np.ones((n, s), bool)
+    if opts.robust:
+        for i in range(s):
+            try:
+                clean_reading[:, i] = trimmed_algebraic_fit(r[:, i], f_ref)[1]
+            except (MagcalError, np.linalg.LinAlgError):
+                pass  # degenerate data: the identifiability analysis below names why
+    clean = clean_reading.all(axis=1)
+    if clean.sum() < MIN_SAMPLES:
+        clean[:] = True
+    start_failed: Exception | None = None
+    start_interference = None
+    if prior is not None:
+        idx = [prior.geometry.names.index(nm) for nm in geometry.names if nm in prior.geometry.names]
+        if len(idx) != s:
+            missing = [nm for nm in geometry.names if nm not in prior.geometry.names]
+            raise InputError(f"the prior calibration has no sensor {', '.join(missing)}")
+        matrices, offsets = prior.matrices[idx], prior.offsets[idx]
+        start_interference = np.zeros((s, 3, len(channels)))
+        for c, name in enumerate(channels):
+            if name in prior.channels:
+                start_interference[:, :, c] = prior.interference[idx][:, :, prior.channels.index(name)]  # type: ignore[index]
+        if f_ref:
+            intensity = f_ref
         else:
-            fit = spec.aligner(r[:, i], ref_vec, intensity, spec.scalar, opts)
-        matrices.append(fit.matrix)
-        offsets.append(fit.offset)
-        stds.append(fit.std)
-    if spec.joint and opts.joint and opts.loss == "linear":
-        sol = fix_rotation_gauge(fit_array(r, np.stack(matrices), np.stack(offsets), intensity, robust=False))
-        matrices, offsets = list(sol.matrices), list(sol.offsets)
-    std = np.stack(stds)
-    rel_std = np.concatenate([std[:, :6], std[:, 6:] / intensity], axis=1)
-    if np.any(rel_std > opts.max_relative_std):
-        raise ObservabilityError(
-            f"the calibration is poorly determined (parameter uncertainty up to {np.nanmax(rel_std):.1%} of F); "
-            "collect more sets over a wider range of attitudes about at least two axes"
-        )
-    created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            idle = np.zeros((n, len(prior.channels))) if prior.channels else None
+            intensity = float(np.median(np.linalg.norm(prior.apply(r, idle), axis=2)))
+    else:
+        try:
+            matrices, offsets, intensity = _start(spec, r, clean, f_ref, opts)
+        except (MagcalError, np.linalg.LinAlgError, ValueError) as exc_start:
+            start_failed = exc_start
+            matrices, offsets, intensity = _crude_start(r, f_ref)
+    weights = clean_reading.astype(float)
+    param_prior = _prior_of(prior, geometry, intensity, channels, opts)
+    if joint or start_failed is not None:
+        sol = fit_array(r, matrices, offsets, intensity, u, start_interference, param_prior, weights, robust=opts.robust)
+        if prior is None:
+            sol = fix_rotation_gauge(sol)
+    else:  # the method's own solution, evaluated (its frame is the method's)
+        sol = fit_array(r, matrices, offsets, intensity, u, None, None, weights, robust=False, iterations=0)
+    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u)
+    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
+    if prior is None and ana.undetermined():
+        raise ObservabilityError(_refusal(ana, sol, env))
+    if start_failed is not None:
+        raise CalibrationFailed(f"calibration not possible: {start_failed}")
+
+    # 5. gates
+    matrices_out = sol.matrices
+    mounting = opts.mounting
+    if mounting is not None:
+        if s != 1:
+            raise InputError("a mounting rotation applies to a single sensor; an array defines its own frame")
+        mounting = np.asarray(mounting, dtype=float)
+        if mounting.shape != (3, 3) or not np.allclose(mounting @ mounting.T, np.eye(3), atol=1e-6):
+            raise InputError("mounting must be a 3x3 rotation matrix (sensor to platform)")
+        matrices_out = mounting[None] @ matrices_out
+    vector_cov = _vector_covariances(sol, cov.matrix)
+    if mounting is not None:
+        vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
     try:
-        cal = ArrayCalibration(geometry, np.stack(matrices), np.stack(offsets), {})
-    except InputError as exc:
-        raise CalibrationFailed(f"solution rejected: {exc}") from None
-    corrected = cal.apply(r)
-    tmi_after = tmi_rms(corrected, intensity)
-    if np.max(tmi_after) > 0.01 * intensity:
-        raise CalibrationFailed(
-            f"TMI residual after calibration is {np.max(tmi_after) / NT:.0f} nT (> 1% of F): "
-            "the field was not uniform during the manoeuvre, the reference field is wrong, or a sensor is faulty"
+        cal = ArrayCalibration(
+            geometry, matrices_out, sol.offsets, {}, vector_cov,
+            channels, sol.interference if channels else None,
         )
-    tmi_before = tmi_rms(r, intensity)
+    except InputError as exc_cal:
+        raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
+    corrected = cal.apply(r, u if channels else None)
+    tmi_res = np.linalg.norm(corrected, axis=2) - sol.intensity
+    implied = None  # the mean sensor gain a given reference implies (None: relative or prior)
+    if f_ref is not None and prior is None:
+        implied = float(np.mean(np.abs(np.linalg.det(sol.matrices)) ** (-1.0 / 3.0)))
+    verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
+                            None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
+                            implied, sol.intensity, sol.directions[order])
+    if verdict.cause:
+        raise CalibrationFailed(verdict.cause)
+    warnings = list(verdict.warnings)
+    if prior is None and not env.whole_sphere:
+        weak = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
+        warnings.append(f"{env.describe()} (least determined: {', '.join(weak)}); outside it the predicted TMI "
+                        f"error exceeds {ident.ENVELOPE_RATIO:g}x the noise")
+    if prior is not None and not reference_field:
+        warnings.append(f"used the prior's intensity {sol.intensity / NT:.1f} nT: if the site changed, give the "
+                        "new reference field")
+    used = sol.weights > 0
+    tmi_after = np.array([rms(tmi_res[used[:, i], i]) for i in range(s)])
+    tmi_before = tmi_rms(r, sol.intensity)
+    clean_sets = used.all(axis=1)
     result = CalibrationResult(
         calibration=cal,
         method=method,
-        samples=len(r),
-        intensity=intensity,
+        samples=n,
+        intensity=sol.intensity,
         relative=f_ref is None,
         tmi_before=tmi_before,
         tmi_after=tmi_after,
-        tensor_before=_tensor_residual(r, geometry, opts.gradient_method),
-        tensor_after=_tensor_residual(corrected, geometry, opts.gradient_method),
+        tensor_before=_gradient_residual(r[clean_sets], geometry, opts.gradient_method),
+        tensor_after=_gradient_residual(corrected[clean_sets], geometry, opts.gradient_method),
         excitation=exc,
-        std=std,
+        identifiability=ana,
+        envelope=env,
+        noise=sol.sigma,
+        outliers=np.sum(~used, axis=0).astype(float),
+        warnings=warnings,
         seconds=time.perf_counter() - t0,
+        prior=prior is not None,
+        inflation=cov.inflation,
+        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth},
     )
-    meta = {
-        "method": method,
-        "source": spec.source,
-        "created": created,
-        "samples": len(r),
-        "reference_field": f_ref or 0.0,
-        "intensity": intensity,
-        "tmi_rms_before": [float(x) for x in tmi_before],
-        "tmi_rms_after": [float(x) for x in tmi_after],
+    object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
+    return replace(result, seconds=time.perf_counter() - t0)
+
+
+def _key(name: str) -> str:
+    """A quantity name as a ROS parameter key: ``offset z`` -> ``offset_z``."""
+    return name.replace("non-orthogonality", "nonorthogonality").replace("-", "").replace(" ", "_")
+
+
+def provenance(result: CalibrationResult, source: str, reference_field: float | None,
+               verdict: quality.Verdict) -> dict[str, Any]:
+    """The calibration file's provenance block (ROS parameter names and types only)."""
+    ana = result.identifiability
+    uncertainty: dict[str, dict[str, float]] = {}
+    for q in ana.quantities:
+        uncertainty.setdefault(q.sensor, {})[f"{_key(q.name)}_{q.unit.replace('/', '_per_')}"] = q.sigma
+    names = result.calibration.geometry.names
+    meta: dict[str, Any] = {
+        "method": result.method,
+        "source": source,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "samples": result.samples,
+        "reference_field": float(reference_field or 0.0),
+        "intensity": result.intensity,
+        "tmi_rms_before": [float(x) for x in result.tmi_before],
+        "tmi_rms_after": [float(x) for x in result.tmi_after],
         "tensor_rms_before": result.tensor_before,
         "tensor_rms_after": result.tensor_after,
-        "coverage": exc.coverage,
+        "coverage": result.excitation.coverage,
+        "valid_envelope": {"pitch_deg": result.envelope.pitch_deg, "roll_deg": result.envelope.roll_deg},
+        "noise": [float(x) for x in result.noise],
+        "outliers_excluded": {"total": int(result.outliers.sum()),
+                              **{nm: int(k) for nm, k in zip(names, result.outliers)}},
+        "uncertainty": uncertainty,
+        "uncertainty_inflation": result.inflation,
         "summary": result.summary(),
     }
-    object.__setattr__(cal, "metadata", meta)
-    return result
+    if result.prior:
+        meta["updated"] = [f"{q.sensor} {q.name}" for q in ana.updated()] or ["nothing"]
+        meta["kept"] = [f"{q.sensor} {q.name}" for q in ana.kept()] or ["nothing"]
+    if result.warnings:
+        meta["warnings"] = list(result.warnings)
+    return meta

@@ -65,11 +65,59 @@ def uniform_random(count: int, rng: np.random.Generator | int | None = None) -> 
     return Rotation.random(count, random_state=gen).as_matrix()
 
 
+def yaw_pitch_roll(yaw_deg: Array, pitch_deg: Array, roll_deg: Array) -> Array:
+    """Platform-to-world rotations ``Rz(yaw) Ry(pitch) Rx(roll)`` (NED, the vehicle convention), (N, 3, 3)."""
+    angles = np.column_stack([yaw_deg, pitch_deg, roll_deg])
+    return Rotation.from_euler("ZYX", angles, degrees=True).as_matrix()
+
+
+def sea_manoeuvre(
+    count: int,
+    pitch_deg: float = 5.0,
+    roll_deg: float = 2.0,
+    turns: float = 2.0,
+    wobble_deg: float = 0.0,
+    rng: np.random.Generator | int | None = None,
+) -> Array:
+    """What a vehicle at sea flies: ``turns`` full yaw circles while pitch and roll swing
+    slowly through +-``pitch_deg`` and +-``roll_deg`` (a glider's dives and climbs, a UUV's
+    trim), plus a smooth random ``wobble_deg`` (waves, a hand). Consecutive attitudes are
+    close, as in a real recording sampled in time."""
+    gen = np.random.default_rng(rng)
+    k = np.arange(count) / max(count - 1, 1)
+    phase = gen.uniform(0, 2 * np.pi, 2)
+    yaw = 360.0 * turns * k + gen.uniform(0, 360)
+    pitch = pitch_deg * np.sin(2 * np.pi * 3.0 * turns * k + phase[0])
+    roll = roll_deg * np.sin(2 * np.pi * 5.3 * turns * k + phase[1])
+    if wobble_deg > 0:
+        walk = np.cumsum(gen.normal(0.0, 1.0, (count, 2)), axis=0)
+        walk -= np.linspace(walk[0], walk[-1], count)  # no net drift
+        smooth = np.apply_along_axis(lambda c: np.convolve(c, np.ones(9) / 9, mode="same"), 0, walk)
+        smooth *= wobble_deg / max(np.abs(smooth).max(), 1e-12)
+        pitch, roll = pitch + smooth[:, 0], roll + smooth[:, 1]
+    return yaw_pitch_roll(yaw, pitch, roll)
+
+
+def tumble(count: int, step_deg: float = 3.0, rng: np.random.Generator | int | None = None) -> Array:
+    """A smooth random tumble through all attitudes (a hand turning a sensor): the attitude turns
+    about a slowly wandering axis by about ``step_deg`` per sample."""
+    gen = np.random.default_rng(rng)
+    axis = gen.normal(size=3)
+    out = [Rotation.random(random_state=gen)]
+    for _ in range(count - 1):
+        axis = 0.97 * axis + 0.25 * gen.normal(size=3)
+        step = Rotation.from_rotvec(np.radians(step_deg) * axis / np.linalg.norm(axis))
+        out.append(out[-1] * step)
+    return Rotation.concatenate(out).as_matrix()
+
+
 SCHEDULES = {
     "single-axis": lambda n, rng: single_axis("z", n),
     "paper000": lambda n, rng: paper000_grid(),
     "paper004": lambda n, rng: paper004_grid(),
     "three-axes": lambda n, rng: three_rotations(max(1, n // 3)),
     "random": lambda n, rng: uniform_random(n, rng),
+    "tumble": lambda n, rng: tumble(n, rng=rng),
+    "sea": lambda n, rng: sea_manoeuvre(n, rng=rng),
 }
 """Schedules by name: ``f(count, rng) -> (N, 3, 3)``; grids ignore ``count``."""

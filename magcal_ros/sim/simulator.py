@@ -57,6 +57,9 @@ class ArraySimulation:
     """Noise standard deviation per axis (T)."""
     noise_kind: NoiseKind = "gaussian"
     noise_domain: NoiseDomain = "raw"
+    noise_correlation: float = 0.0
+    """AR(1) coefficient of the noise from one set to the next (0: white; 0.9: slow, as on a
+    real vehicle); the noise keeps its standard deviation ``noise``."""
     """``raw``: added to the reading; ``sensor``: added to the sensor's ideal orthogonal
     output before scale and non-orthogonality (Li et al.'s (2018) simulation)."""
     dipoles: tuple[Dipole, ...] = ()
@@ -70,6 +73,8 @@ class ArraySimulation:
             raise InputError("noise must be a finite standard deviation >= 0")
         if self.noise_kind not in ("gaussian", "uniform") or self.noise_domain not in ("raw", "sensor"):
             raise InputError("noise_kind must be gaussian|uniform and noise_domain raw|sensor")
+        if not (0.0 <= self.noise_correlation < 1.0):
+            raise InputError("noise_correlation must be in [0, 1)")
 
     def true_calibration(self) -> ArrayCalibration:
         """Corrections that map raw readings exactly into the true platform frame."""
@@ -80,9 +85,16 @@ class ArraySimulation:
 
     def _noise(self, shape: tuple[int, ...], rng: np.random.Generator) -> Array:
         if self.noise_kind == "gaussian":
-            return rng.normal(0.0, self.noise, shape)
-        half = self.noise * np.sqrt(3.0)  # uniform with standard deviation `noise`
-        return rng.uniform(-half, half, shape)
+            n = rng.normal(0.0, self.noise, shape)
+        else:
+            half = self.noise * np.sqrt(3.0)  # uniform with standard deviation `noise`
+            n = rng.uniform(-half, half, shape)
+        rho = self.noise_correlation
+        if rho:
+            scale = np.sqrt(1.0 - rho * rho)
+            for k in range(1, shape[0]):  # AR(1) along the sets, same marginal sd
+                n[k] = rho * n[k - 1] + scale * n[k]
+        return n
 
     def platform_field(self, attitudes: ArrayLike) -> tuple[Array, Array, Array]:
         """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient."""

@@ -1,0 +1,278 @@
+"""Noise-aware quality gates: accept a calibration, or refuse it naming the cause that fits.
+
+Rules (documented in docs/quality.md), per sensor, on the fit's residuals in time order:
+
+1. **Noise from the data.** The white-noise level is estimated from second differences of
+   the residual in time (they cancel anything that varies slowly: attitude-dependent
+   errors, drift, a field step), robustly (median absolute deviation).
+2. **A step in the field.** When one split of the TMI residual in time explains a large
+   part of it (:data:`STEP_EXPLAINED`) and is highly significant (:data:`STEP_SIGMAS`), the
+   field changed during the manoeuvre (iron moved, a vehicle passed, an anomaly was
+   crossed): refused, naming size and time.
+3. **Residual against noise.** When the sets follow a motion in time (consecutive field
+   directions much closer than arbitrary pairs), second differences see the sensor's noise
+   and the fit's residual (RMS per axis of the readings used) may exceed it by
+   :data:`RESIDUAL_RATIO` at most. Sets in no particular order (synthetic, resampled) do not
+   show the noise; their residual may then be at most :data:`MAX_RESIDUAL_FRACTION` of F.
+   ``max_residual`` (T) replaces either rule with an absolute bound. Beyond it: a field that
+   is not uniform or not constant (iron nearby, a gradient, drift), or a faulty sensor.
+4. **Outliers.** At most :data:`MAX_OUTLIER_FRACTION` of a sensor's readings may be
+   excluded as outliers; when the excluded readings form long runs in time the field
+   changed, otherwise they are spikes.
+5. **Collapse.** A residual far below the sensor's quantisation (:func:`quantisation_step`)
+   means the fit has more freedom than the data determine: refused.
+6. **Reference intensity.** With a reference F the sensors' mean gain must be plausible:
+   beyond :data:`MAX_GAIN_ERROR` the reference (or the units) is wrong, and the intensity the
+   data imply is reported; beyond :data:`WARN_GAIN_ERROR` a warning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.stamps import ns_to_seconds
+from magcal_ros.core.uncertainty import autocorrelation, bandwidth
+from magcal_ros.core.units import NT
+
+Array = NDArray[np.float64]
+
+RESIDUAL_RATIO: float = 10.0
+"""Largest accepted fit residual over the white noise the data show. Generous: strongly
+time-correlated noise (AR(1) 0.98) already leaves 4x, and a field that is not uniform leaves
+tens to thousands."""
+WARN_RATIO: float = 2.0
+"""A residual beyond this many times the white noise is reported as a warning."""
+MAX_OUTLIER_FRACTION: float = 0.25
+"""Largest accepted fraction of a sensor's readings excluded as outliers."""
+MIN_RUN: int = 10
+"""Excluded readings in runs of at least this many consecutive sets count as a run."""
+MAX_GAIN_ERROR: float = 0.2
+"""Largest accepted mean sensor gain error implied by a reference intensity (20 %)."""
+WARN_GAIN_ERROR: float = 0.03
+"""A mean gain error beyond this (3 %) is reported as a warning."""
+ORDER_FRACTION: float = 0.3
+"""Sets are in time order when consecutive field directions differ by less than this fraction
+of the typical angle between any two; then second differences read the sensor noise."""
+MAX_RESIDUAL_FRACTION: float = 0.01
+"""Largest accepted residual, as a fraction of F, when the noise cannot be read from the data."""
+STEP_EXPLAINED: float = 0.25
+"""A single step explaining this much of the TMI residual's variance ..."""
+STEP_SIGMAS: float = 10.0
+"""... and this significant (its size over its standard error) is a change of the field."""
+COLLAPSE_RATIO: float = 0.25
+"""A residual below this fraction of the quantisation noise means a collapsed fit."""
+
+
+def white_noise(series: Array) -> Array:
+    """Per-column white-noise sd of a time-ordered (N, K) series from its second differences (robust)."""
+    x = np.asarray(series, dtype=float).reshape(len(series), -1)
+    if len(x) < 5:
+        return np.full(x.shape[1], np.nan)
+    d2 = np.diff(x, n=2, axis=0)
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(6.0)
+
+
+def quantisation_step(readings: Array) -> float:
+    """The smallest step between distinct values of a sensor's readings (T), 0 if none is evident.
+
+    A quantised sensor shows readings on a grid: the typical spacing of sorted distinct
+    values of each axis. Continuous readings (a fluxgate, a simulation) give 0.
+    """
+    r = np.asarray(readings, dtype=float).reshape(len(readings), -1)
+    steps = []
+    for col in r.T:
+        u = np.unique(col)
+        if len(u) < 3 or len(u) > 0.5 * len(col):
+            return 0.0
+        steps.append(float(np.median(np.diff(u))))
+    return float(min(steps)) if steps else 0.0
+
+
+@dataclass(frozen=True)
+class Step:
+    """The best single step of a series: where, how large, and how much of it it explains."""
+
+    index: int
+    size: float
+    explained: float
+    """Fraction of the series' variance the step explains (0..1)."""
+    t_statistic: float = 0.0
+    """Step size over its standard error (the scatter left around the two levels)."""
+
+
+def best_step(series: Array) -> Step:
+    """The split of a (N,) series into two constant parts that explains most of its variance."""
+    x = np.asarray(series, dtype=float)
+    n = len(x)
+    if n < 4:
+        return Step(0, 0.0, 0.0)
+    c = np.cumsum(x - x.mean())
+    k = np.arange(1, n)
+    gain = c[:-1] ** 2 * n / (k * (n - k))  # between-group sum of squares for a split after k
+    j = int(np.argmax(gain))
+    total = float(np.sum((x - x.mean()) ** 2))
+    split = j + 1
+    size = float(x[split:].mean() - x[:split].mean())
+    left = max(total - float(gain[j]), 1e-300)
+    # Standard error of the step, widened by the time correlation of what is left (Bartlett).
+    rest = np.concatenate([x[:split] - x[:split].mean(), x[split:] - x[split:].mean()])
+    lags = bandwidth(rest)
+    rho = autocorrelation(rest, lags)
+    tau = max(1.0, 1.0 + 2.0 * float(np.sum((1.0 - np.arange(1, lags + 1) / (lags + 1.0)) * rho[1:])))
+    se = np.sqrt(tau * left / max(n - 2, 1) * (1.0 / split + 1.0 / (n - split)))
+    return Step(split, size, float(gain[j] / total) if total > 0 else 0.0, abs(size) / se)
+
+
+def in_time_order(directions: Array) -> bool:
+    """True when consecutive field directions are much closer than arbitrary pairs: the sets
+    follow a continuous motion in time (a recording), not shuffled or independent attitudes."""
+    d = np.asarray(directions, dtype=float)
+    if len(d) < 10:
+        return False
+    step = np.median(np.arccos(np.clip(np.sum(d[1:] * d[:-1], axis=1), -1.0, 1.0)))
+    gen = np.random.default_rng(0)
+    a, b = gen.integers(0, len(d), (2, min(len(d), 2000)))
+    spread = np.median(np.arccos(np.clip(np.sum(d[a] * d[b], axis=1), -1.0, 1.0)))
+    return bool(step < ORDER_FRACTION * spread)
+
+
+def longest_runs(mask: Array) -> float:
+    """Fraction of the true entries of a boolean (N,) series that lie in runs of >= :data:`MIN_RUN`."""
+    m = np.asarray(mask, dtype=bool)
+    if not m.any():
+        return 0.0
+    edges = np.diff(np.concatenate([[0], m.astype(int), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    lengths = ends - starts
+    return float(lengths[lengths >= MIN_RUN].sum() / m.sum())
+
+
+@dataclass
+class Verdict:
+    """What the gates decided: a refusal (``cause``) or None, and warnings either way."""
+
+    cause: str | None = None
+    warnings: list[str] = field(default_factory=list)
+    noise: Array | None = None
+    """(S,) white-noise estimate per sensor (T)."""
+    residual: Array | None = None
+    """(S,) fit residual per axis per sensor (T)."""
+    excluded: Array | None = None
+    """(S,) readings excluded as outliers per sensor."""
+
+
+def judge(
+    names: tuple[str, ...],
+    residuals: Array,
+    weights: Array,
+    tmi_residuals: Array,
+    raw: Array,
+    stamps_ns: Array | None = None,
+    max_residual: float | None = None,
+    implied_gain: float | None = None,
+    intensity: float | None = None,
+    directions: Array | None = None,
+) -> Verdict:
+    """Apply the gates to a fit.
+
+    ``residuals`` (N, S, 3) T and ``weights`` (N, S) of the fit; ``tmi_residuals`` (N, S) T
+    (corrected norm minus F, all readings); ``raw`` (N, S, 3) T; all in time order.
+    ``implied_gain``: the sensors' mean gain when a reference intensity was given;
+    ``intensity`` F (T); ``directions`` (N, 3) unit field directions (smoothness).
+    """
+    s = len(names)
+    verdict = Verdict(excluded=np.sum(weights == 0, axis=0).astype(float))
+    noise = np.empty(s)
+    resid = np.empty(s)
+    for i in range(s):
+        used = weights[:, i] > 0
+        e = residuals[used, i]
+        noise[i] = float(np.nanmean(white_noise(e))) if used.sum() >= 5 else np.nan
+        resid[i] = float(np.sqrt(np.mean(e * e) / 3.0)) if used.any() else np.nan
+    verdict.noise, verdict.residual = noise, resid
+    t = ns_to_seconds(stamps_ns) if stamps_ns is not None else np.arange(len(raw), dtype=float)
+
+    def at(index: int) -> str:
+        return f"at t = {t[min(index, len(t) - 1)] - t[0]:.1f} s" if stamps_ns is not None else f"at set {index}"
+
+    for i, name in enumerate(names):
+        n = len(weights)
+        frac = verdict.excluded[i] / n
+        if frac > MAX_OUTLIER_FRACTION:
+            if longest_runs(weights[:, i] == 0) > 0.5:
+                step = best_step(tmi_residuals[:, i])
+                verdict.cause = (
+                    f"the field was not constant during the manoeuvre: {name}'s readings change by about "
+                    f"{abs(step.size) / NT:.0f} nT {at(step.index)} ({frac:.0%} of them no longer fit); "
+                    "repeat the manoeuvre away from moving iron, or calibrate each part separately"
+                )
+            else:
+                verdict.cause = (
+                    f"too many outliers: {frac:.0%} of {name}'s readings are spikes far from the rest "
+                    f"(more than {MAX_OUTLIER_FRACTION:.0%}); check the sensor, its cable and nearby switching loads"
+                )
+            return verdict
+    for i, name in enumerate(names):
+        used = weights[:, i] > 0
+        step = best_step(tmi_residuals[used, i])
+        if step.explained > STEP_EXPLAINED and step.t_statistic > STEP_SIGMAS:
+            index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
+            verdict.cause = (f"the field was not constant during the manoeuvre: {name}'s readings change by about "
+                             f"{step.size / NT:+.0f} nT {at(index)} (moving iron, a passing vehicle, an anomaly); "
+                             "repeat the manoeuvre, or calibrate each part separately")
+            return verdict
+    smooth = directions is not None and in_time_order(directions)
+    for i, name in enumerate(names):
+        if max_residual is not None:
+            limit, rule = max_residual, f"the limit --max-residual {max_residual / NT:.3g} nT"
+        elif smooth:
+            limit = RESIDUAL_RATIO * noise[i]
+            rule = f"{RESIDUAL_RATIO:g}x the sensor noise the data show ({noise[i] / NT:.3g} nT)"
+        elif intensity is not None:
+            limit = MAX_RESIDUAL_FRACTION * intensity
+            rule = (f"{MAX_RESIDUAL_FRACTION:.0%} of F (the sets are not in time order, so the sensor noise "
+                    "cannot be read from them)")
+        else:
+            continue
+        if not np.isfinite(resid[i]) or not np.isfinite(limit) or resid[i] <= limit:
+            if smooth and max_residual is None and resid[i] > WARN_RATIO * noise[i]:
+                verdict.warnings.append(
+                    f"{name}'s residual ({resid[i] / NT:.3g} nT) is {resid[i] / noise[i]:.1f}x the white noise the "
+                    "data show: time-correlated noise, or a field that is not quite uniform")
+            continue
+        verdict.cause = (f"{name}'s residual after calibration is {resid[i] / NT:.3g} nT, above {rule}: the field was "
+                         "not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving through a "
+                         "gradient, drift), or the sensor is faulty; to accept it anyway give a larger --max-residual")
+        return verdict
+    for i, name in enumerate(names):
+        q = quantisation_step(raw[:, i])
+        if q > 0 and resid[i] < COLLAPSE_RATIO * q / np.sqrt(12.0):
+            verdict.cause = (
+                f"{name}'s residual ({resid[i] / NT:.3g} nT) is far below its quantisation ({q / NT:.3g} nT steps): "
+                "the fit has collapsed because the manoeuvre does not determine the calibration; "
+                "turn the sensor about at least two axes"
+            )
+            return verdict
+    if implied_gain is not None and intensity is not None:
+        error = implied_gain - 1.0
+        implied = intensity / implied_gain
+        if abs(error) > MAX_GAIN_ERROR:
+            verdict.cause = (
+                f"the reference intensity {intensity / NT:.0f} nT disagrees with the data, which imply about "
+                f"{implied / NT:.0f} nT (sensor gains would be off by {error:+.0%}): check --reference-field/--site "
+                "and that the readings are in Tesla"
+            )
+            return verdict
+        if abs(error) > WARN_GAIN_ERROR:
+            verdict.warnings.append(
+                f"the reference intensity {intensity / NT:.0f} nT makes the sensor gains {error:+.1%} off "
+                f"(the data imply about {implied / NT:.0f} nT): check the reference"
+            )
+    for i, name in enumerate(names):
+        if verdict.excluded[i]:
+            verdict.warnings.append(f"{int(verdict.excluded[i])} outlying readings of {name} excluded")
+    return verdict
