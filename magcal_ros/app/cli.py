@@ -6,7 +6,7 @@ import argparse
 import re
 import sys
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,10 +39,23 @@ EPILOG_CALIBRATE = """examples:
   magcal calibrate rotation.csv -o cal.yaml --method linear --reference-field 6e-5
   magcal calibrate rotation_bag/ -o cal.yaml --sensors mag1,mag2,mag3,mag4 \\
       --start 1700000010 --end 1700000100 --plot calibration.png
+  magcal calibrate compass.csv -o compass.yaml --reference-field 5.15e-5      # one sensor
+  magcal calibrate gradiometer.csv -o g.yaml --positions 0,0,0,0.5,0,0        # two sensors
+  magcal calibrate yaw_circle_bag -o new.yaml --prior old.yaml                # at sea, after a hard-iron change
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
 topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
 stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+
+arrays: one sensor needs no positions (no gradient); four default to the 0.4 m cross; any
+other count needs --positions. Two sensors (or any collinear array) give the gradient along
+their line, three or more spread in a plane or in space the full tensor. Every method works
+for any count (one sensor: the method's scalar fit alone).
+
+what is refused: a manoeuvre that leaves a quantity undetermined (the answer names it and
+the rotation to fly, or use --prior), a residual beyond the noise the data show (a field
+that changed or is not uniform: named), too many outliers, a reference intensity the
+sensor gains cannot explain.
 
 methods:
 """ + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
@@ -78,7 +91,9 @@ EPILOG_CORRECT = """examples:
   magcal correct survey.csv -c cal.yaml -o corrected.csv
   magcal correct survey_bag -c cal.yaml -o corrected.csv     # bag in, CSV out
 
-bag output (same topics and types as the live correction node; bag time = set stamp):
+bag output (same topics and types as the live correction node; bag time = set stamp;
+/gradient for three or more sensors, /baseline_gradient for a line of sensors, neither
+for one sensor):
   /<name>/corrected  sensor_msgs/MagneticField  matrix (raw - offset), T, frame --frame-id,
                      header stamp of that sensor's raw message
   /field             sensor_msgs/MagneticField  centre field (mean of the sensors), T,
@@ -86,15 +101,23 @@ bag output (same topics and types as the live correction node; bag time = set st
   /gradient          std_msgs/Float64MultiArray  3x3 row-major G[i][j] = dB_j/dx_i, T/m,
                      layout dims row (size 3, stride 9), col (size 3, stride 3); written
                      right after /field of the same set
-CSV output header:
+  /baseline_gradient geometry_msgs/Vector3Stamped  dB/ds along the sensors' line, T/m,
+                     s from the first sensor towards the last, stamped like /field
+CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
 The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist."""
 
 
-def _positions(text: str | None, names: tuple[str, ...]) -> ArrayGeometry:
+def _positions(text: str | None, names: tuple[str, ...], prior: ArrayCalibration | None = None) -> ArrayGeometry:
+    """The array geometry: --positions, else the prior's, else one sensor or the default cross."""
     if text is None:
+        if prior is not None and set(names) <= set(prior.geometry.names):
+            idx = [prior.geometry.names.index(n) for n in names]
+            return ArrayGeometry(names, prior.geometry.positions[idx])
+        if len(names) == 1:
+            return ArrayGeometry.single(names[0])
         if len(names) != 4:
             raise InputError(f"{len(names)} sensors in the recording: give --positions (3 numbers per sensor, m)")
         return ArrayGeometry.cross(names=names)
@@ -197,6 +220,21 @@ def _report_site(site: SiteField) -> None:
     )
 
 
+def _report_quantities(result: Any) -> None:
+    """The least determined quantities (or, with a prior, what was kept), one line each."""
+    ana = result.identifiability
+    if result.prior:
+        kept = ana.kept()
+        if kept:
+            print("  kept from the prior (this manoeuvre does not determine them better): "
+                  + ", ".join(sorted({q.name for q in kept})))
+        return
+    worst = sorted(ana.quantities, key=lambda q: -q.effect / max(ana.noise[0], 1e-30))[:3]
+    print("  least determined: " + "; ".join(f"{q.describe()} ({q.effect / NT:.2g} nT effect)" for q in worst))
+    if result.inflation > 1.5:
+        print(f"  uncertainties widened {np.sqrt(result.inflation):.1f}x for time-correlated residuals")
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
     reference_field, site = _reference(args)
@@ -207,9 +245,21 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
-    geometry = _positions(args.positions, rec.names)
-    opts = SolveOptions(loss=args.loss, gradient_method=args.gradient_method, seed=args.seed)
-    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts)
+    prior = _read_calibration(args.prior) if args.prior else None
+    geometry = _positions(args.positions, rec.names, prior)
+    mounting = None
+    if args.mounting:
+        from magcal_ros.sim.attitudes import yaw_pitch_roll
+
+        roll, pitch, yaw = _numbers(args.mounting, 3, "--mounting")
+        mounting = yaw_pitch_roll(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
+    if args.max_residual is not None and not (np.isfinite(args.max_residual) and args.max_residual > 0):
+        raise InputError("--max-residual must be a positive number of Tesla")
+    opts = SolveOptions(
+        loss=args.loss, gradient_method=args.gradient_method, seed=args.seed, max_residual=args.max_residual,
+        mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
+    )
+    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:
@@ -220,8 +270,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(result.summary())
     if site is not None:
         _report_site(site)
-    for name, before, after in zip(geometry.names, result.tmi_before, result.tmi_after):
-        print(f"  {name}: TMI RMS {before / NT:10.2f} -> {after / NT:8.3f} nT")
+    for i, name in enumerate(geometry.names):
+        print(f"  {name}: TMI RMS {result.tmi_before[i] / NT:10.2f} -> {result.tmi_after[i] / NT:8.3f} nT, "
+              f"noise {result.noise[i] / NT:.3g} nT" + (f", {int(result.outliers[i])} outliers excluded"
+                                                       if result.outliers[i] else ""))
+    _report_quantities(result)
+    for warning in result.warnings:
+        print(f"  warning: {warning}")
     print(f"  solve time {result.seconds * 1e3:.1f} ms; written {args.output}")
     if args.plot:
         print(f"  plot {args.plot}")
@@ -339,7 +394,16 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--date", metavar="YYYY-MM-DD",
                    help="date at which --site evaluates the model (default today, UTC; 2015-01-01 .. 2029-12-31)")
     p.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS), help=f"default {DEFAULT_METHOD}")
-    p.add_argument("--loss", default="linear", choices=list(LOSSES), help="robust loss for method ml")
+    p.add_argument("--prior", metavar="CAL.yaml",
+                   help="the previous calibration: recalibrate what this manoeuvre determines (e.g. the offsets "
+                   "from a yaw circle after the hard iron moved) and keep the rest; method ml")
+    p.add_argument("--max-residual", type=float, metavar="TESLA",
+                   help="accept a residual (per axis) up to this, instead of the noise-aware rule (10x the "
+                   "noise the data show, or 1%% of F for sets in no time order)")
+    p.add_argument("--mounting", metavar="ROLL,PITCH,YAW",
+                   help="one sensor: its mounting in the platform frame (deg, sensor to platform); without it the "
+                   "calibrated vector is in the sensor's own axes made orthogonal")
+    p.add_argument("--loss", default="linear", choices=list(LOSSES), help="loss of the per-sensor start (method ml)")
     p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"])
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (pso)")
     p.add_argument("--plot", metavar="FILE.png",

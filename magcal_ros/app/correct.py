@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration import ArrayCalibration, CorrectedSets
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
 from magcal_ros.errors import InputError
@@ -42,8 +42,10 @@ from magcal_ros.io.bag_writer import (
 from magcal_ros.io.cdr import (
     FLOAT64_MULTI_ARRAY,
     MAGNETIC_FIELD,
+    VECTOR3_STAMPED,
     gradient_template,
     magnetic_field_template,
+    vector3_stamped_template,
 )
 from magcal_ros.io.csv_recording import write_corrected_csv
 
@@ -55,34 +57,42 @@ DEFAULT_FRAME_ID = topics.DEFAULT_FRAME_ID
 
 @dataclass(frozen=True)
 class CorrectionOutput:
-    """Topics and templates of corrected output for ``names``."""
+    """Topics and templates of corrected output for ``names`` and the array's gradient kind."""
 
     layout: SetLayout
     sensor_template: Any
-    field_template: Any
     gradient_template: Any
+    baseline_template: Any
     sensors: int
+    kind: str
+    """``tensor`` (writes /gradient), ``baseline`` (/baseline_gradient) or ``none``."""
 
-    def encode(self, batch: SetBatch, calibration: ArrayCalibration, gradient_method: str) -> NDArray[np.uint8]:
-        """Filled blocks for ``batch``: corrected vectors, centre field and tensor per set."""
-        b, centre, g = calibration.field_and_gradient(batch.vectors, gradient_method)
+    def encode(self, batch: SetBatch, sets: CorrectedSets) -> NDArray[np.uint8]:
+        """Filled blocks for ``batch``: corrected vectors, centre field and the gradient per set."""
         blocks = self.layout.new(len(batch))
         off = self.layout.offsets
         for k in range(self.sensors):
-            self.sensor_template.fill(blocks, off[k], batch.stamps[:, k], b[:, k])
-        self.field_template.fill(blocks, off[self.sensors], batch.set_stamps, centre)
-        self.gradient_template.fill(blocks, off[self.sensors + 1], g)
+            self.sensor_template.fill(blocks, off[k], batch.stamps[:, k], sets.vectors[:, k])
+        self.sensor_template.fill(blocks, off[self.sensors], batch.set_stamps, sets.centre)
+        if self.kind == "tensor":
+            self.gradient_template.fill(blocks, off[self.sensors + 1], sets.tensor)
+        elif self.kind == "baseline":
+            self.baseline_template.fill(blocks, off[self.sensors + 1], batch.set_stamps, sets.baseline)
         return blocks
 
 
-def correction_output(sink: BagSink, names: Sequence[str], frame_id: str) -> CorrectionOutput:
-    """Register ``/<name>/corrected``, ``/field`` and ``/gradient`` on ``sink``."""
+def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: str = "tensor") -> CorrectionOutput:
+    """Register ``/<name>/corrected``, ``/field`` and the gradient topic of ``kind`` on ``sink``."""
     mf = magnetic_field_template(frame_id)
     gt = gradient_template()
+    vt = vector3_stamped_template(frame_id)
     parts = [(sink.add_topic(topics.absolute(topics.corrected(n)), MAGNETIC_FIELD), mf.template) for n in names]
     parts.append((sink.add_topic(topics.absolute(topics.FIELD), MAGNETIC_FIELD), mf.template))
-    parts.append((sink.add_topic(topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY), gt.template))
-    return CorrectionOutput(sink.layout(parts), mf, mf, gt, len(names))
+    if kind == "tensor":
+        parts.append((sink.add_topic(topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY), gt.template))
+    elif kind == "baseline":
+        parts.append((sink.add_topic(topics.absolute(topics.BASELINE_GRADIENT), VECTOR3_STAMPED), vt.template))
+    return CorrectionOutput(sink.layout(parts), mf, gt, vt, len(names), kind)
 
 
 @dataclass(frozen=True)
@@ -125,8 +135,10 @@ def correct_bag(
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
     Writes ``/<name>/corrected`` (MagneticField, T, frame ``frame_id``, each sensor's own
-    header stamp), ``/field`` (centre field, stamped with the set's stamp) and ``/gradient``
-    (Float64MultiArray 3x3 row-major, T/m), all at bag time = the set's stamp; plus the
+    header stamp), ``/field`` (centre field, stamped with the set's stamp) and what the
+    positions determine: ``/gradient`` (Float64MultiArray 3x3 row-major, T/m) for three or
+    more sensors, ``/baseline_gradient`` (Vector3Stamped, dB/ds, T/m) for a collinear array,
+    nothing for one sensor; all at bag time = the set's stamp; plus the
     input topics in ``copy_topics`` (``"all"``: every topic) unchanged with their bag
     times. ``storage`` defaults to the input's. ``start_ns``/``end_ns`` bound the set
     stamps. Streaming and atomic: nothing is left at ``out_path`` on failure.
@@ -137,7 +149,8 @@ def correct_bag(
     check_bag_output(out_path, inp)
     with open_bag(inp) as reader:
         _, conns = resolve_sensor_topics(reader, inp, names)
-        outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT]}
+        outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
+                                                topics.BASELINE_GRADIENT]}
         if copy_topics == "all":
             extra = list(reader.connections)
         else:
@@ -151,7 +164,7 @@ def correct_bag(
         if clash:
             raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
         with atomic_path(out_path) as tmp, BagSink.create(tmp, out_storage) as sink:
-            out = correction_output(sink, names, frame_id)
+            out = correction_output(sink, names, frame_id, calibration.geometry.gradient_kind)
             copy_map: dict[int, Connection] = {}
             by_topic: dict[tuple[str, str], Connection] = {}
             for c in extra:
@@ -171,7 +184,8 @@ def correct_bag(
                 batch = _window(batch, start_ns, end_ns)
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
-                    sink.write_sets(out.layout, out.encode(part, calibration, gradient_method), part.set_stamps)
+                    sets_out = calibration.outputs(part.vectors, gradient_method)
+                    sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
             if sets.stats.sets == 0:
                 raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
@@ -193,11 +207,11 @@ def write_corrected_bag(
     rec = recording.select(calibration.geometry.names)
     stamps = rec.stamps
     with atomic_path(path) as tmp, BagSink.create(tmp, check_storage(storage)) as sink:
-        out = correction_output(sink, rec.names, frame_id)
+        out = correction_output(sink, rec.names, frame_id, calibration.geometry.gradient_kind)
         for a in range(0, len(rec), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
             part = SetBatch(np.repeat(ts[:, None], len(rec.names), axis=1), rec.vectors[a : a + SETS_PER_WRITE])
-            sink.write_sets(out.layout, out.encode(part, calibration, gradient_method), ts)
+            sink.write_sets(out.layout, out.encode(part, calibration.outputs(part.vectors, gradient_method)), ts)
 
 
 def correct_recording_csv(
@@ -208,6 +222,5 @@ def correct_recording_csv(
 ) -> int:
     """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count."""
     rec = recording.select(calibration.geometry.names)
-    b, centre, g = calibration.field_and_gradient(rec.vectors, gradient_method)
-    write_corrected_csv(path, rec.stamps, rec.names, b, centre, g)
+    write_corrected_csv(path, rec.stamps, rec.names, calibration.outputs(rec.vectors, gradient_method))
     return len(rec)

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.tensor import centre_field, gradient
+from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
@@ -51,6 +51,20 @@ def check_sensor(name: str, matrix: ArrayLike, offset: ArrayLike) -> tuple[Array
     if np.linalg.norm(o) > MAX_OFFSET:
         raise InputError(f"{name}.offset {o} T exceeds {MAX_OFFSET} T: units must be Tesla")
     return m, o
+
+
+@dataclass(frozen=True)
+class CorrectedSets:
+    """What a calibration makes of raw sets, platform frame: the outputs the array supports."""
+
+    vectors: Array
+    """(N, S, 3) corrected vectors (T)."""
+    centre: Array
+    """(N, 3) field at the array centre (T): the mean of the sensors."""
+    tensor: Array | None
+    """(N, 3, 3) gradient tensor ``G[i, j] = dB_j/dx_i`` (T/m), when the positions determine it."""
+    baseline: Array | None
+    """(N, 3) ``dB_j/ds`` along the line of a collinear array (T/m), e.g. two sensors."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +132,16 @@ class ArrayCalibration:
                 raise InputError(f"{u.shape[1]} current channels given, the calibration has {len(self.channels)}")
             b = b - np.einsum("sac,nc->nsa", self.interference, u)
         return b
+
+    def outputs(self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None) -> CorrectedSets:
+        """Corrected vectors, centre field and the gradient the geometry determines (see :class:`CorrectedSets`)."""
+        b = self.apply(raw, currents)
+        kind = self.geometry.gradient_kind
+        return CorrectedSets(
+            b, centre_field(b),
+            gradient(b, self.geometry, method) if kind == "tensor" else None,
+            baseline_gradient(b, self.geometry) if kind == "baseline" else None,
+        )
 
     def field_and_gradient(
         self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None

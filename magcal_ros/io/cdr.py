@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore
 
 MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
+VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
 
@@ -56,6 +57,15 @@ def magnetic_field_message(sec: int, nanosec: int, frame_id: str, vector: Any, c
     )
 
 
+def vector3_stamped_message(sec: int, nanosec: int, frame_id: str, vector: Any) -> Any:
+    """A rosbags ``Vector3Stamped`` object (for templates and tests)."""
+    t = typestore().types
+    return t[VECTOR3_STAMPED](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id),
+        vector=t["geometry_msgs/msg/Vector3"](x=float(vector[0]), y=float(vector[1]), z=float(vector[2])),
+    )
+
+
 def gradient_message(values: Any) -> Any:
     """A rosbags ``Float64MultiArray`` with the 3x3 row-major tensor layout (T/m)."""
     t = typestore().types
@@ -79,7 +89,8 @@ def _get(buf: NDArray[np.uint8], offset: int, count: int, dtype: np.dtype) -> ND
 
 @dataclass(frozen=True)
 class MagneticFieldTemplate:
-    """Byte template of a MagneticField with a fixed ``frame_id``: stamp at 4, vector at ``vector_at``."""
+    """Byte template of a stamped vector message (MagneticField, Vector3Stamped) with a fixed
+    ``frame_id``: stamp at 4, the 3 doubles at ``vector_at``."""
 
     frame_id: str
     template: NDArray[np.uint8]
@@ -115,6 +126,21 @@ def magnetic_field_template(frame_id: str) -> MagneticFieldTemplate:
     expected = bytes(ts.serialize_cdr(magnetic_field_message(7, 5, frame_id, (1.5, -2.5, 3.25)), MAGNETIC_FIELD, little_endian=True))
     if probe != expected:  # pragma: no cover - guards a change of the CDR layout
         raise RuntimeError("MagneticField byte template does not match rosbags' serializer")
+    return t
+
+
+@lru_cache(maxsize=64)
+def vector3_stamped_template(frame_id: str) -> MagneticFieldTemplate:
+    """Template of a ``Vector3Stamped`` (stamp at 4, vector last), self-checked like the others."""
+    ts = typestore()
+    raw = np.frombuffer(bytes(ts.serialize_cdr(vector3_stamped_message(0, 0, frame_id, (0, 0, 0)), VECTOR3_STAMPED,
+                                               little_endian=True)), U8).copy()
+    t = MagneticFieldTemplate(frame_id, raw, len(raw) - 24)
+    probe = bytes(t.encode(np.array([7 * NS_PER_S + 5]), np.array([[1.5, -2.5, 3.25]]))[0])
+    expected = bytes(ts.serialize_cdr(vector3_stamped_message(7, 5, frame_id, (1.5, -2.5, 3.25)), VECTOR3_STAMPED,
+                                      little_endian=True))
+    if probe != expected:  # pragma: no cover - guards a change of the CDR layout
+        raise RuntimeError("Vector3Stamped byte template does not match rosbags' serializer")
     return t
 
 

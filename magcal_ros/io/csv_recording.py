@@ -9,8 +9,10 @@ Rows go through the same acceptance rule as bag messages
 and counted, a row with a NaN or infinite value is refused or dropped like a bag's.
 
 Corrected layout (``magcal correct``): ``stamp``, ``<name>.x,<name>.y,<name>.z`` per
-sensor (T, platform frame), ``field.x,field.y,field.z`` (centre field, T) and
-``gradient.xx, gradient.xy, ..., gradient.zz`` (``gradient.ij = dB_j/dx_i``, T/m).
+sensor (T, platform frame), ``field.x,field.y,field.z`` (centre field, T), then what the
+array's positions determine: ``gradient.xx, gradient.xy, ..., gradient.zz``
+(``gradient.ij = dB_j/dx_i``, T/m; three or more sensors), ``baseline_gradient.x,y,z``
+(``dB_j/ds`` along the line, T/m; two or more collinear sensors), or nothing (one sensor).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.calibration import CorrectedSets
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
@@ -33,6 +36,7 @@ from magcal_ros.io.atomic import atomic_path
 AXIS_NAMES: tuple[str, ...] = ("x", "y", "z")
 TENSOR_COLUMNS: tuple[str, ...] = tuple(f"gradient.{i}{j}" for i in AXIS_NAMES for j in AXIS_NAMES)
 FIELD_COLUMNS: tuple[str, ...] = tuple(f"field.{a}" for a in AXIS_NAMES)
+BASELINE_COLUMNS: tuple[str, ...] = tuple(f"baseline_gradient.{a}" for a in AXIS_NAMES)
 NonFinite = Literal["drop", "error"]
 
 
@@ -41,9 +45,11 @@ def csv_header(names: Sequence[str], suffixes: tuple[str, ...] = AXIS_NAMES) -> 
     return ["stamp"] + [f"{n}.{a}" for n in names for a in suffixes]
 
 
-def corrected_header(names: Sequence[str]) -> list[str]:
-    """``stamp, <name>.x.., field.x.., gradient.xx..gradient.zz``."""
-    return csv_header(list(names)) + list(FIELD_COLUMNS) + list(TENSOR_COLUMNS)
+def corrected_header(names: Sequence[str], gradient: str = "tensor") -> list[str]:
+    """``stamp, <name>.x.., field.x..`` then ``gradient.xx..gradient.zz`` (``tensor``),
+    ``baseline_gradient.x..z`` (``baseline``) or nothing (``none``: one sensor)."""
+    extra = {"tensor": TENSOR_COLUMNS, "baseline": BASELINE_COLUMNS, "none": ()}[gradient]
+    return csv_header(list(names)) + list(FIELD_COLUMNS) + list(extra)
 
 
 def parse_header(header: list[str]) -> tuple[str, ...]:
@@ -123,17 +129,19 @@ def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
 
 
 def write_corrected_csv(
-    path: str | os.PathLike[str],
-    stamps: NDArray[np.int64],
-    names: Sequence[str],
-    vectors: NDArray[np.float64],
-    centre: NDArray[np.float64],
-    tensors: NDArray[np.float64],
+    path: str | os.PathLike[str], stamps: NDArray[np.int64], names: Sequence[str], sets: CorrectedSets
 ) -> None:
-    """Write corrected sets atomically: vectors (N, S, 3) T, centre (N, 3) T, tensors (N, 3, 3) T/m."""
+    """Write corrected sets atomically (columns as :func:`corrected_header` for the array's gradient)."""
     n = len(stamps)
-    columns = np.concatenate([vectors.reshape(n, -1), centre.reshape(n, 3), tensors.reshape(n, 9)], axis=1)
+    parts = [sets.vectors.reshape(n, -1), sets.centre.reshape(n, 3)]
+    kind = "none"
+    if sets.tensor is not None:
+        parts.append(sets.tensor.reshape(n, 9))
+        kind = "tensor"
+    elif sets.baseline is not None:
+        parts.append(sets.baseline.reshape(n, 3))
+        kind = "baseline"
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(corrected_header(names)) + "\n")
-            fh.write(format_rows(stamps, columns))
+            fh.write(",".join(corrected_header(names, kind)) + "\n")
+            fh.write(format_rows(stamps, np.concatenate(parts, axis=1)))

@@ -11,7 +11,10 @@ CORRECTED_SUFFIX = "corrected"
 FIELD = "field"
 """Corrected field at the array centre (sensor_msgs/MagneticField, T)."""
 GRADIENT = "gradient"
-"""Gradient tensor (std_msgs/Float64MultiArray, 3x3 row-major, T/m)."""
+"""Gradient tensor (std_msgs/Float64MultiArray, 3x3 row-major, T/m): three or more sensors."""
+BASELINE_GRADIENT = "baseline_gradient"
+"""Gradient along the line of a collinear array, e.g. two sensors (geometry_msgs/Vector3Stamped,
+``dB_j/ds`` in T/m, platform frame; ``s`` runs from the first sensor towards the last)."""
 DEFAULT_FRAME_ID = "magcal_array"
 """Default platform frame of every corrected output."""
 
