@@ -15,7 +15,15 @@ The most used names are importable from here, loaded on first use.
 
 from __future__ import annotations
 
-from magcal_ros._lazy import lazy_exports
+import os
+
+# The solvers work on small matrices (tens of parameters): one BLAS thread is fastest, and a
+# node on a busy vehicle computer must not fight other processes for cores. Set before numpy
+# loads; a user's own setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from magcal_ros._lazy import lazy_exports  # noqa: E402
 
 __version__ = "0.1.0"
 

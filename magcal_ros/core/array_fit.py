@@ -214,11 +214,21 @@ def _directions(w: Array, x: Array, u: Array, weights: Array) -> Array:
     return out
 
 
+def _cost(w: Array, d: Array, x: Array, u: Array, weights: Array, sigma: Array) -> float:
+    """The whitened data cost of ``W`` with directions ``d`` (no prior)."""
+    e = _predict(w, features(d, u)) - x
+    return float(np.sum((weights / sigma[None, :] ** 2)[:, :, None] * e * e))
+
+
 def _solve_lm(
     w: Array, x: Array, u: Array, weights: Array, sigma: Array, prior: ParameterPrior,
     iterations: int, tolerance: float,
 ) -> tuple[Array, Array, int]:
-    """Levenberg-Marquardt on the MAP cost with fixed weights and noise; returns (W, directions, steps)."""
+    """Levenberg-Marquardt on the MAP cost with fixed weights and noise; returns (W, directions, steps).
+
+    The directions are eliminated exactly (Schur complement, computed once per iteration) and
+    the damping acts on the reduced system, so a rejected step costs one small solve.
+    """
     s, _, q = w.shape
     prec = prior.precision().reshape(-1)
     mean = prior.mean.reshape(-1)
@@ -226,36 +236,30 @@ def _solve_lm(
     lam = 1e-4
     steps = 0
 
-    def total(nrm: _Normal, wv: Array) -> float:
+    def prior_cost(wv: Array) -> float:
         diff = wv.reshape(-1) - mean
-        return nrm.cost + float(np.sum(prec * diff * diff))
+        return float(np.sum(prec * diff * diff))
 
     cur = _Normal(w, d, x, u, weights, sigma)
-    cost = total(cur, w)
+    cost = cur.cost + prior_cost(w)
     done = False
     for steps in range(1, iterations + 1):
-        a = cur.a_matrix() + np.diag(prec)
-        g = cur.g_w.reshape(-1) + prec * (w.reshape(-1) - mean)
+        c_inv = _inv2(cur.c)
+        bc = np.matmul(cur.b, c_inv)
+        flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
+        flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
+        schur = cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T
+        rhs = cur.g_w.reshape(-1) + prec * (w.reshape(-1) - mean) - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2))
+        if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
+            break
+        diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
         improved = False
         while lam < 1e10:
-            c_l = cur.c + lam * np.eye(2)[None] * (np.trace(cur.c, axis1=1, axis2=2)[:, None, None] / 2 + 1e-300)
-            c_inv = _inv2(c_l)
-            bc = np.matmul(cur.b, c_inv)
-            flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
-            flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
-            schur = a + lam * np.diag(np.diag(a)) - flat_bc @ flat_b.T
-            rhs = g - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2))
-            if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
+            try:
+                step = -scipy.linalg.solve(schur + lam * diag, rhs, assume_a="sym")
+            except (np.linalg.LinAlgError, ValueError):
                 lam *= 10
                 continue
-            try:
-                step = -scipy.linalg.solve(schur, rhs, assume_a="sym")
-            except (np.linalg.LinAlgError, ValueError):
-                try:
-                    step = -np.linalg.lstsq(schur, rhs, rcond=None)[0]
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
             dd = -np.matmul(c_inv, (cur.g_d + cur.b.transpose(0, 2, 1) @ step)[:, :, None])[:, :, 0]
             w_new = w + step.reshape(s, 3, q)
             d_new = d + np.matmul(cur.basis, dd[:, :, None])[:, :, 0]
@@ -263,12 +267,12 @@ def _solve_lm(
             if not np.all(np.isfinite(w_new)) or np.any(np.abs(np.linalg.det(w_new[:, :, :3])) < 1e-12):
                 lam *= 10
                 continue
-            new = _Normal(w_new, d_new, x, u, weights, sigma)
-            new_cost = total(new, w_new)
+            new_cost = _cost(w_new, d_new, x, u, weights, sigma) + prior_cost(w_new)
             if new_cost <= cost:
                 lam = max(lam / 10, 1e-12)
                 done = cost - new_cost <= tolerance * max(cost, 1e-300)
-                w, d, cur, cost = w_new, d_new, new, new_cost
+                w, d, cost = w_new, d_new, new_cost
+                cur = _Normal(w, d, x, u, weights, sigma)
                 improved = True
                 break
             lam *= 10

@@ -4,8 +4,8 @@ At sea the hull's hard iron moves most (a new payload, a magnetised hull: hundre
 scale factors, non-orthogonality and the mounting drift little (tens of ppm, arc seconds);
 current interference changes with wiring. The drift model states that as 1-sigma changes
 of the quantities the joint fit estimates (:mod:`magcal_ros.core.array_fit`): each sensor's
-offset (T), each entry of its forward matrix ``K = M^-1`` (dimensionless: ``1e-4`` moves
-the field by about 5 nT at 50 uT), and each interference gain (T/A). A yaw circle with this
+offset (T), each entry of its forward matrix ``K = M^-1`` (dimensionless: ``2e-5`` moves
+the field by about 1 nT at 50 uT), and each interference gain (T/A). A yaw circle with this
 prior determines all three offsets (x and y from the circle, z from the known intensity)
 and leaves the matrix where it was.
 """
@@ -34,8 +34,9 @@ class DriftModel:
 
     offset: float = 2000 * NT
     """Per offset axis (T): hard iron moves by hundreds of nT."""
-    gain: float = 1e-4
-    """Per entry of the forward matrix (scale, non-orthogonality, mounting, soft iron): ~5 nT at 50 uT."""
+    gain: float = 2e-5
+    """Per entry of the forward matrix (scale, non-orthogonality, mounting, soft iron): ~1 nT at 50 uT
+    (fluxgate scale drifts by tens of ppm; the mounting does not move unless struck)."""
     interference: float = 20 * NT
     """Per interference gain (T/A), when the previous calibration has one for the channel."""
 

@@ -60,8 +60,10 @@ MAX_RESIDUAL_FRACTION: float = 0.01
 """Largest accepted residual, as a fraction of F, when the noise cannot be read from the data."""
 STEP_EXPLAINED: float = 0.25
 """A single step explaining this much of the TMI residual's variance ..."""
-STEP_SIGMAS: float = 10.0
-"""... and this significant (its size over its standard error) is a change of the field."""
+STEP_SIGMAS: float = 5.0
+"""... and this significant (its size over its standard error, widened for time correlation) ..."""
+STEP_NOISE: float = 20.0
+"""... and, for sets in time order, this many white-noise sd in size is a change of the field."""
 COLLAPSE_RATIO: float = 0.25
 """A residual below this fraction of the quantisation noise means a collapsed fit."""
 
@@ -216,16 +218,19 @@ def judge(
                     f"(more than {MAX_OUTLIER_FRACTION:.0%}); check the sensor, its cable and nearby switching loads"
                 )
             return verdict
+    smooth = directions is not None and in_time_order(directions)
     for i, name in enumerate(names):
         used = weights[:, i] > 0
         step = best_step(tmi_residuals[used, i])
-        if step.explained > STEP_EXPLAINED and step.t_statistic > STEP_SIGMAS:
+        # In time order the white noise is known and a change of the field must dwarf it (slow,
+        # correlated noise also splits well); sets in no order leave only the step's significance.
+        big = abs(step.size) > STEP_NOISE * noise[i] if smooth else step.t_statistic > 2 * STEP_SIGMAS
+        if step.explained > STEP_EXPLAINED and step.t_statistic > STEP_SIGMAS and big:
             index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
             verdict.cause = (f"the field was not constant during the manoeuvre: {name}'s readings change by about "
                              f"{step.size / NT:+.0f} nT {at(index)} (moving iron, a passing vehicle, an anomaly); "
                              "repeat the manoeuvre, or calibrate each part separately")
             return verdict
-    smooth = directions is not None and in_time_order(directions)
     for i, name in enumerate(names):
         if max_residual is not None:
             limit, rule = max_residual, f"the limit --max-residual {max_residual / NT:.3g} nT"
@@ -244,9 +249,17 @@ def judge(
                     f"{name}'s residual ({resid[i] / NT:.3g} nT) is {resid[i] / noise[i]:.1f}x the white noise the "
                     "data show: time-correlated noise, or a field that is not quite uniform")
             continue
-        verdict.cause = (f"{name}'s residual after calibration is {resid[i] / NT:.3g} nT, above {rule}: the field was "
-                         "not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving through a "
-                         "gradient, drift), or the sensor is faulty; to accept it anyway give a larger --max-residual")
+        used = weights[:, i] > 0
+        step = best_step(tmi_residuals[used, i])
+        if step.explained > STEP_EXPLAINED:
+            index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
+            why = (f"the field was not constant during the manoeuvre: it changed by about {step.size / NT:+.0f} nT "
+                   f"{at(index)} (moving iron, a passing vehicle, an anomaly)")
+        else:
+            why = ("the field was not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving "
+                   "through a gradient, drift), or the sensor is faulty")
+        verdict.cause = (f"{name}'s residual after calibration is {resid[i] / NT:.3g} nT, above {rule}: {why}; "
+                         "to accept it anyway give a larger --max-residual")
         return verdict
     for i, name in enumerate(names):
         q = quantisation_step(raw[:, i])

@@ -259,14 +259,17 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
 
 
 def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDArray[np.int64],
-             prior: ParameterPrior | None, channels: tuple[str, ...],
-             currents: Array) -> tuple[ident.Identifiability, Any]:
-    """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution."""
+             prior: ParameterPrior | None, channels: tuple[str, ...], currents: Array,
+             jackknife: bool = True) -> tuple[ident.Identifiability, Any]:
+    """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution.
+
+    ``jackknife``: for a recording in time order, widen the covariance by the block jackknife.
+    """
     series = sol.residuals[order].reshape(len(order), -1)
     prec = None if prior is None else prior.precision().reshape(-1)
     gauge = None if prior is not None else centre_gauge_constraints(sol.w)
     cov = covariance(sol.information, sol.scores[order], series, prec, gauge)
-    if len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
+    if jackknife and len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
         factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix)
         cov = replace(cov, matrix=cov.matrix * factor, inflation=cov.inflation * factor)
     prior_cov = None if prior is None else np.diag(np.where(prec > 0, 1.0 / np.maximum(prec, 1e-300), 1e30))
@@ -425,6 +428,11 @@ def calibrate_array(
             sol = fix_rotation_gauge(sol)
     else:  # the method's own solution, evaluated (its frame is the method's)
         sol = fit_array(r, matrices, offsets, intensity, u, None, None, weights, robust=False, iterations=0)
+    # Undetermined already without the jackknife (which only widens): refuse before paying for it.
+    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False)
+    if prior is None and ana.undetermined():
+        env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
+        raise ObservabilityError(_refusal(ana, sol, env))
     ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u)
     env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
     if prior is None and ana.undetermined():
