@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Sequence
+from types import FrameType
 
 import numpy as np
 
@@ -14,11 +17,12 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
-from magcal_ros.core.units import NT
+from magcal_ros.core.units import NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
-from magcal_ros.io.recordings import is_csv, open_recording
+from magcal_ros.io.atomic import STOP_SIGNALS, recover
+from magcal_ros.io.recordings import is_csv, open_recording, recording_sensors
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -83,7 +87,19 @@ CSV output header:
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
-The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist."""
+The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
+must exist, and each needs its block in the calibration file unless listed in --uncorrected.
+Readings must be in Tesla (a median |B| outside 1e-6 .. 1e-3 T is refused)."""
+
+
+def _name_list(text: str | None) -> tuple[str, ...]:
+    """Comma-separated names (an option's value) as a tuple, blanks dropped."""
+    return tuple(n.strip() for n in (text or "").split(",") if n.strip())
+
+
+def _note(text: str) -> None:
+    """One note line on stderr (what was dropped, left out or cleaned up)."""
+    print(f"  note: {text}", file=sys.stderr)
 
 
 def _positions(text: str | None, names: tuple[str, ...]) -> ArrayGeometry:
@@ -152,18 +168,19 @@ def add_sync_options(p: argparse.ArgumentParser) -> None:
 def _report_sync(stats: SyncStats | None) -> None:
     """One note on stderr when synchronisation dropped anything."""
     if stats is not None and stats.dropped():
-        print(f"  note: {stats.describe()}", file=sys.stderr)
+        _note(stats.describe())
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
-    names = tuple(n.strip() for n in args.sensors.split(",") if n.strip()) if args.sensors else None
+    names = _name_list(args.sensors) or None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, names, args.start, args.end, args.sync_tolerance,
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    check_tesla(rec.vectors, rec.names, args.input)
     geometry = _positions(args.positions, rec.names)
     opts = SolveOptions(loss=args.loss, gradient_method=args.gradient_method, seed=args.seed)
     result = calibrate_array(rec.vectors, geometry, args.reference_field, args.method, opts)
@@ -211,19 +228,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_calibration(path: str) -> ArrayCalibration:
-    """The calibration file, every error naming the file."""
+def _read_calibration(path: str, uncorrected: tuple[str, ...] = ()) -> ArrayCalibration:
+    """The calibration file, every error naming the file; ``uncorrected`` sensors may lack a block."""
     try:
-        return calfile.read(path)
+        cal = calfile.read(path, uncorrected=uncorrected)
     except InputError as exc:
         raise (exc if path in str(exc) else InputError(f"{path}: {exc}")) from None
+    unknown = [n for n in uncorrected if n not in cal.geometry.names]
+    if unknown:
+        raise InputError(f"--uncorrected {','.join(unknown)}: not a sensor of {path} (it has {', '.join(cal.geometry.names)})")
+    for name in uncorrected:
+        k = cal.geometry.names.index(name)
+        if np.array_equal(cal.matrices[k], np.eye(3)) and not np.any(cal.offsets[k]):
+            _note(f"{name} is not corrected (--uncorrected): its raw readings are used as they are")
+    return cal
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
     """Apply a calibration to a recording: corrected vectors, centre field and tensor."""
-    cal = _read_calibration(args.calibration)
+    from magcal_ros.app.correct import check_sensors
+
+    cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
+    for note in check_sensors(cal, recording_sensors(args.input), args.input, args.calibration, args.gradient_method):
+        _note(note)
     out_csv = is_csv(args.output)
-    copy = "all" if args.copy_all else tuple(t.strip() for t in (args.copy_topics or "").split(",") if t.strip())
+    copy = "all" if args.copy_all else _name_list(args.copy_topics)
     if is_csv(args.input) or out_csv:
         if copy:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
@@ -252,6 +281,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    check_tesla(rec.vectors, rec.names, args.input)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
@@ -349,6 +379,9 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     )
     p.add_argument("input", help="recording: rosbag2 directory (sqlite3 or mcap) or .csv file")
     p.add_argument("-c", "--calibration", required=True, metavar="CALIBRATION.yaml", help="calibration file")
+    p.add_argument("--uncorrected", metavar="NAME[,NAME]",
+                   help="sensors the calibration file may lack a block for: their raw readings are used as they are "
+                   "(otherwise a missing block is refused)")
     p.add_argument("-o", "--output", required=True, help="rosbag2 directory to write, or a .csv file")
     copy = p.add_mutually_exclusive_group()
     copy.add_argument("--copy-topics", metavar="T1,T2", help="also copy these input topics unchanged (bag to bag)")
@@ -384,11 +417,48 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGINT, SIGTERM or SIGHUP arrived: unwind (partial output is removed on the way) and exit."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    """Signal handler: ignore further stop signals while cleaning up, then unwind."""
+    for s in STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    raise Stopped(signum)
+
+
+def _outputs(args: argparse.Namespace) -> list[str]:
+    """Every path the command will write."""
+    outs = [args.output]
+    if args.command == "simulate":
+        from magcal_ros.io.truth_file import truth_paths
+
+        outs += [str(p) for p in truth_paths(args.output)]
+    if getattr(args, "plot", None):
+        outs.append(args.plot)
+    return outs
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: one clear line on stderr and exit 2 for any bad input."""
+    """Entry point: one clear line on stderr and exit 2 for any bad input.
+
+    SIGINT, SIGTERM and SIGHUP stop a run like Ctrl-C: the partial output is removed, one
+    line says so, and the exit code is 128 + the signal number (130, 143, 129).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
     try:
+        for out in _outputs(args):
+            for note in recover(out):
+                _note(note)
         return int(args.func(args) or 0)
     except MagcalError as exc:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
@@ -397,9 +467,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"magcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"magcal {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+        print(f"magcal {args.command}: stopped by {signal.Signals(signum).name}; unfinished output removed", file=sys.stderr)
+        return 128 + int(signum)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import atomic_path
@@ -83,6 +84,41 @@ def correction_output(sink: BagSink, names: Sequence[str], frame_id: str) -> Cor
     parts.append((sink.add_topic(topics.absolute(topics.FIELD), MAGNETIC_FIELD), mf.template))
     parts.append((sink.add_topic(topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY), gt.template))
     return CorrectionOutput(sink.layout(parts), mf, mf, gt, len(names))
+
+
+def check_sensors(
+    calibration: ArrayCalibration,
+    available: Sequence[str],
+    recording: str | os.PathLike[str],
+    calibration_file: str | os.PathLike[str],
+    gradient_method: str = "difference",
+) -> list[str]:
+    """Match the calibration's sensors with the ``available`` sensors of a recording.
+
+    A calibrated sensor the recording lacks is an :class:`InputError` naming it. Sensors
+    of the recording the calibration lacks are an :class:`InputError` naming them when the
+    calibrated sensors alone cannot give the tensor by ``gradient_method``; otherwise they
+    are left out and reported in the returned notes.
+    """
+    names = calibration.geometry.names
+    missing = [n for n in names if n not in available]
+    extra = [n for n in available if n not in names]
+    have = ", ".join(available) or "none"
+    if missing:
+        raise InputError(
+            f"{calibration_file} calibrates {', '.join(names)} but {recording} has no {', '.join(missing)} "
+            f"(its sensors: {have})"
+        )
+    if not extra:
+        return []
+    try:
+        calibration.field_and_gradient(np.zeros((1, len(names), 3)), gradient_method)
+    except InputError:
+        raise InputError(
+            f"{recording} has sensors {have} but {calibration_file} calibrates only {', '.join(names)}: "
+            f"no calibration for {', '.join(extra)} (calibrate all {len(available)} sensors together)"
+        ) from None
+    return [f"{recording} also has {', '.join(extra)}, which {calibration_file} does not calibrate: left out"]
 
 
 @dataclass(frozen=True)
@@ -167,7 +203,11 @@ def correct_bag(
 
             sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress)
             n_in = 0
+            checked = False
             for batch in sets:
+                if not checked and len(batch):
+                    check_tesla(batch.vectors, names, str(inp))  # before anything is written
+                    checked = True
                 batch = _window(batch, start_ns, end_ns)
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
