@@ -458,3 +458,33 @@ def test_a_calibration_and_a_recording_with_different_sensors_name_them(
     assert f"note: {base[source]} also has mag4, which {three_cal} does not calibrate: left out" in proc.stderr
     assert (d / "out.csv").read_text().splitlines()[0].startswith("stamp,mag1.x,mag1.y,mag1.z,mag2.x")
     assert "mag4" not in (d / "out.csv").read_text().splitlines()[0]
+
+
+# --------------------------------------------------------------------------- more of the same spirit
+
+
+def test_an_output_never_overwrites_an_input_or_another_output(tmp_path: Path, base: dict[str, Any]) -> None:
+    rec_csv = tmp_path / "rec.csv"
+    write_csv(rec_csv, base["rec"])
+    cal = tmp_path / "cal.yaml"
+    cal.write_bytes(base["cal"].read_bytes())
+    before = {p: p.read_bytes() for p in (rec_csv, cal)}
+    cases = [
+        ("correct", rec_csv, "-c", cal, "-o", rec_csv, "would overwrite the input"),
+        ("correct", rec_csv, "-c", cal, "-o", tmp_path / "." / "rec.csv", "would overwrite the input"),
+        ("calibrate", rec_csv, "-o", rec_csv, "would overwrite the input"),
+        ("calibrate", rec_csv, "-o", tmp_path / "c.yaml", "--plot", tmp_path / "c.yaml", "are the same file"),
+    ]
+    for *args, expected in cases:
+        line = error_line(magcal(*args), str(args[0]))
+        assert expected in line, line
+    assert {p: p.read_bytes() for p in (rec_csv, cal)} == before
+    assert listing(tmp_path) == ["cal.yaml", "rec.csv"]
+
+
+@pytest.mark.parametrize("value", ["5", "-0.001", "nan", "x"])
+def test_a_bad_sync_tolerance_is_a_usage_error_not_a_traceback(tmp_path: Path, base: dict[str, Any], value: str) -> None:
+    proc = magcal("correct", base["bag"], "-c", base["cal"], "-o", tmp_path / "out", "--sync-tolerance", value)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("magcal correct: error: argument --sync-tolerance: ")
+    assert listing(tmp_path) == []

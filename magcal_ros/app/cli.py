@@ -7,6 +7,7 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from types import FrameType
 
 import numpy as np
@@ -16,8 +17,8 @@ from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
-from magcal_ros.core.units import NT, check_tesla
+from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
@@ -30,6 +31,14 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 
+UNITS_NOTE = (
+    f"Readings must be in Tesla: a sensor whose median |B| is outside {EARTH_FIELD_RANGE[0]:g} .. "
+    f"{EARTH_FIELD_RANGE[1]:g} T is refused."
+)
+EXIT_CODES = """exit codes: 0 done; 2 refused (one line on stderr, nothing written); 130, 143, 129 stopped
+by SIGINT, SIGTERM, SIGHUP (the unfinished output is removed). An output is replaced only when
+the new one is complete; what a killed run leaves beside it is cleaned up by the next run."""
+
 EPILOG_CALIBRATE = """examples:
   magcal calibrate rotation.csv -o calibration.yaml --reference-field 5.15e-5
   magcal calibrate rotation_bag/ -o cal.yaml                 # relative (no reference)
@@ -40,6 +49,7 @@ EPILOG_CALIBRATE = """examples:
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
 topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
 stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+""" + UNITS_NOTE + """
 
 methods:
 """ + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
@@ -89,7 +99,7 @@ CSV output header:
   gradient.zx,gradient.zy,gradient.zz
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
 must exist, and each needs its block in the calibration file unless listed in --uncorrected.
-Readings must be in Tesla (a median |B| outside 1e-6 .. 1e-3 T is refused)."""
+""" + UNITS_NOTE
 
 
 def _name_list(text: str | None) -> tuple[str, ...]:
@@ -151,6 +161,15 @@ def _stamp(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _tolerance(text: str) -> float:
+    """An argparse type: a synchronisation tolerance in seconds, 0 <= t < 1."""
+    try:
+        tolerance_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc) if "tolerance" in str(exc) else f"not a number: {text!r}") from None
+    return float(text)
+
+
 def add_window_options(p: argparse.ArgumentParser) -> None:
     """--start/--end: a window of header stamps (decimal seconds, exact to the nanosecond)."""
     p.add_argument("--start", type=_stamp, metavar="SECONDS", help="ignore sets stamped before this time (s, header stamp)")
@@ -159,7 +178,7 @@ def add_window_options(p: argparse.ArgumentParser) -> None:
 
 def add_sync_options(p: argparse.ArgumentParser) -> None:
     """Bag synchronisation options."""
-    p.add_argument("--sync-tolerance", type=float, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
+    p.add_argument("--sync-tolerance", type=_tolerance, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
                    help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
@@ -406,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n"
         "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
         "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
-        "  magcal COMMAND --help      # options and examples of a command",
+        "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -444,6 +463,19 @@ def _outputs(args: argparse.Namespace) -> list[str]:
     return outs
 
 
+def _check_paths(args: argparse.Namespace) -> None:
+    """Refuse an output that is one of the command's inputs, or two outputs at one path."""
+    inputs = [p for p in (getattr(args, "input", None), getattr(args, "calibration", None)) if p]
+    seen: dict[Path, str] = {Path(p).resolve(): p for p in inputs}
+    for out in _outputs(args):
+        where = Path(out).resolve()
+        if where in seen and seen[where] in inputs:
+            raise InputError(f"output {out} would overwrite the input {seen[where]}: write to another path")
+        if where in seen:
+            raise InputError(f"outputs {seen[where]} and {out} are the same file: give different paths")
+        seen[where] = out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: one clear line on stderr and exit 2 for any bad input.
 
@@ -456,6 +488,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
     try:
+        _check_paths(args)
         for out in _outputs(args):
             for note in recover(out):
                 _note(note)

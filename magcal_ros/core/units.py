@@ -21,9 +21,10 @@ MU0_OVER_4PI: float = 1e-7
 NS_PER_S: int = 1_000_000_000
 """Nanoseconds per second: stamps are integer nanoseconds (ROS ``sec`` and ``nanosec``)."""
 
-EARTH_FIELD_RANGE: tuple[float, float] = (1e-6, 1e-3)
-"""Accepted median magnitude (T) of raw readings: the Earth's field is 20-70 uT; the margins
-cover sensor errors and hull iron. nT, uT, mT or Gauss readings all fall outside."""
+EARTH_FIELD_RANGE: tuple[float, float] = (1e-7, 1e-3)
+"""Accepted magnitude (T) of an Earth field (a reference intensity, the median raw reading):
+the Earth's is 20-70 uT; the margins cover sensor errors and hull iron. Readings in nT, uT,
+mT or Gauss all fall outside."""
 
 
 def check_tesla(vectors: ArrayLike, names: Sequence[str], where: str) -> None:
