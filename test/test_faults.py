@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from test_offline import F, NAMES, NOISE, ROOT, SEED, SETS, magcal, ok, read_corrected
 
 from magcal_ros.core.recording import Recording
@@ -412,8 +412,6 @@ def test_a_bug_in_our_code_is_not_reported_as_a_corrupt_bag(base: dict[str, Any]
     with pytest.raises(AttributeError, match="no attribute 'shape'"):
         bag_reader.read_bag_sets(base["bag"])
     # What the storage library raises about the bag is still the bag's; what ours raises is a bug.
-    from rosbags.rosbag2 import Reader
-
     with pytest.raises(AttributeError) as inside_rosbags:
         Reader(None)  # type: ignore[arg-type]
     assert bag_reader.is_read_error(inside_rosbags.value)
@@ -458,6 +456,12 @@ def test_a_calibration_and_a_recording_with_different_sensors_name_them(
     assert f"note: {base[source]} also has mag4, which {three_cal} does not calibrate: left out" in proc.stderr
     assert (d / "out.csv").read_text().splitlines()[0].startswith("stamp,mag1.x,mag1.y,mag1.z,mag2.x")
     assert "mag4" not in (d / "out.csv").read_text().splitlines()[0]
+    if source == "bag":  # the streaming bag-to-bag path says the same
+        proc = ok(magcal("correct", base[source], "-c", three_cal, "-o", d / "out_bag", "--gradient-method", "least_squares"))
+        assert f"note: {base[source]} also has mag4, which {three_cal} does not calibrate: left out" in proc.stderr
+        with Reader(d / "out_bag") as reader:
+            assert sorted(c.topic for c in reader.connections) == ["/field", "/gradient", "/mag1/corrected",
+                                                                   "/mag2/corrected", "/mag3/corrected"]
 
 
 # --------------------------------------------------------------------------- more of the same spirit

@@ -9,6 +9,7 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import numpy as np
 
@@ -268,13 +269,13 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from magcal_ros.app.correct import check_sensors
 
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
-    for note in check_sensors(cal, recording_sensors(args.input), args.input, args.calibration, args.gradient_method):
-        _note(note)
     out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else _name_list(args.copy_topics)
     if is_csv(args.input) or out_csv:
         if copy:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
+        for note in check_sensors(cal, recording_sensors(args.input), args.input, args.calibration, args.gradient_method):
+            _note(note)
         return _correct_via_recording(args, cal, out_csv)
     from magcal_ros.app.correct import correct_bag
 
@@ -283,7 +284,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
             args.input, cal, args.output, storage=args.storage, copy_topics=copy, progress=bar,
             frame_id=args.frame_id, gradient_method=args.gradient_method, tolerance=args.sync_tolerance,
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
+            calibration_name=args.calibration,
         )
+    for note in report.notes:
+        _note(note)
     _report_sync(report.stats)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
@@ -484,10 +488,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
+    previous: dict[signal.Signals, Any] = {}
     try:
+        if threading.current_thread() is threading.main_thread():
+            previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
         _check_paths(args)
         for out in _outputs(args):
             for note in recover(out):

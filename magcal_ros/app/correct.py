@@ -30,6 +30,7 @@ from magcal_ros.io.bag_reader import (
     SetReader,
     open_bag,
     resolve_sensor_topics,
+    sensor_names_of,
 )
 from magcal_ros.io.bag_writer import (
     SETS_PER_WRITE,
@@ -130,6 +131,8 @@ class CorrectionReport:
     copied_messages: int
     output: str
     storage: str
+    notes: tuple[str, ...] = ()
+    """Sensors of the input left out (see :func:`check_sensors`)."""
 
 
 def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
@@ -157,6 +160,7 @@ def correct_bag(
     nonfinite: NonFinite = "drop",
     start_ns: int | None = None,
     end_ns: int | None = None,
+    calibration_name: str = "the calibration",
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -165,13 +169,16 @@ def correct_bag(
     (Float64MultiArray 3x3 row-major, T/m), all at bag time = the set's stamp; plus the
     input topics in ``copy_topics`` (``"all"``: every topic) unchanged with their bag
     times. ``storage`` defaults to the input's. ``start_ns``/``end_ns`` bound the set
-    stamps. Streaming and atomic: nothing is left at ``out_path`` on failure.
+    stamps. The bag's sensors are matched with the calibration's first (:func:`check_sensors`,
+    ``calibration_name`` names the calibration in messages) and the readings must be in
+    Tesla. Streaming and atomic: nothing is left at ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
     out_storage = check_storage(storage) if storage else storage_of(inp)
     check_bag_output(out_path, inp)
     with open_bag(inp) as reader:
+        notes = check_sensors(calibration, sensor_names_of(reader), inp, calibration_name, gradient_method)
         _, conns = resolve_sensor_topics(reader, inp, names)
         outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT]}
         if copy_topics == "all":
@@ -217,7 +224,7 @@ def correct_bag(
                 raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
             if n_in == 0:
                 raise InputError(f"{inp}: no synchronized sets in the selected time window")
-    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage)
+    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes))
 
 
 def write_corrected_bag(
