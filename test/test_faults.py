@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import resource
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -29,6 +30,7 @@ from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.units import EARTH_FIELD_RANGE, check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import bag_reader, cdr
+from magcal_ros.io.atomic import public_path, recover
 from magcal_ros.io.bag_writer import write_recording_bag
 from magcal_ros.io.csv_recording import write_csv
 from magcal_ros.io.recordings import read_recording
@@ -237,6 +239,41 @@ def test_partials_of_killed_runs_are_removed_but_never_a_running_one(tmp_path: P
     assert f"note: removed {stale}, left by an interrupted run" in err
     assert listing(d) == ["out"]
     assert len(read_corrected(out)["gradient"]) == SETS
+
+
+def test_recover_touches_only_abandoned_partials_of_its_own_target(tmp_path: Path) -> None:
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a pid that no longer runs (reaped)
+    host = socket.gethostname()
+
+    def partial(name: str, owner: str | None, aside: bool = False) -> Path:
+        p = tmp_path / name
+        p.mkdir()
+        (p / "out").mkdir()
+        if owner is not None:
+            (p / "out.owner").write_text(owner)
+        if aside:
+            (p / "out.replaced").mkdir()
+            (p / "out.replaced" / "metadata.yaml").write_text("old")
+        return p
+
+    dead = partial(f".out.magcal{gone.pid}.abcd1234.partial", f"{host} {gone.pid}\n", aside=True)
+    no_owner = partial(f".out.magcal{gone.pid}.efgh5678.partial", None)
+    alive = partial(f".out.magcal{os.getpid()}.ijkl9012.partial", f"{host} {os.getpid()}\n")
+    elsewhere = partial(f".out.magcal{gone.pid}.mnop3456.partial", f"another-host {gone.pid}\n")
+    other_target = partial(f".out2.magcal{gone.pid}.qrst7890.partial", f"{host} {gone.pid}\n")
+    not_ours = partial(".out.partial", None)
+    (tmp_path / f".out.magcal{gone.pid}.uvwx1234.partial").write_text("a file, not our directory")
+
+    notes = recover(tmp_path / "out")
+    assert (tmp_path / "out" / "metadata.yaml").read_text() == "old", "the set-aside output is restored"
+    assert not dead.exists() and not no_owner.exists()
+    assert alive.exists() and elsewhere.exists() and other_target.exists() and not_ours.exists()
+    assert (tmp_path / f".out.magcal{gone.pid}.uvwx1234.partial").is_file()
+    assert notes == [f"restored {tmp_path / 'out'}, set aside by an interrupted run", f"removed {dead.name}, left by an "
+                     "interrupted run", f"removed {no_owner.name}, left by an interrupted run"]
+    assert public_path(alive / "out") == tmp_path / "out"
+    assert public_path(alive / "out" / "x.db3") == alive / "out" / "x.db3"
 
 
 # --------------------------------------------------------------------------- 6: atomic replacement
