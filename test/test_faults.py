@@ -482,20 +482,20 @@ def test_a_calibration_and_a_recording_with_different_sensors_name_them(
     d.mkdir()
 
     line = error_line(magcal("correct", base[source], "-c", three_cal, "-o", d / "out"))
-    assert line.endswith(f"{base[source]} has sensors mag1, mag2, mag3, mag4 but {three_cal} calibrates only "
+    assert line.endswith(f"{base[source]} has sensors mag1, mag2, mag3, mag4 but {three_cal} covers only "
                          "mag1, mag2, mag3: no calibration for mag4 (calibrate all 4 sensors together)"), line
     line = error_line(magcal("correct", three_rec, "-c", base["cal"], "-o", d / "out"))
-    assert line.endswith(f"{base['cal']} calibrates mag1, mag2, mag3, mag4 but {three_rec} has no mag4 "
-                         "(its sensors: mag1, mag2, mag3)"), line
+    assert line.endswith(f"{three_rec} has no mag4 (its sensors: mag1, mag2, mag3); {base['cal']} covers "
+                         "mag1, mag2, mag3, mag4"), line
     assert listing(d) == []
     # A tensor the calibrated sensors can give on their own: computed, the extra sensor reported.
     proc = ok(magcal("correct", base[source], "-c", three_cal, "-o", d / "out.csv", "--gradient-method", "least_squares"))
-    assert f"note: {base[source]} also has mag4, which {three_cal} does not calibrate: left out" in proc.stderr
+    assert f"note: {base[source]} also has mag4, which {three_cal} does not cover: left out" in proc.stderr
     assert (d / "out.csv").read_text().splitlines()[0].startswith("stamp,mag1.x,mag1.y,mag1.z,mag2.x")
     assert "mag4" not in (d / "out.csv").read_text().splitlines()[0]
     if source == "bag":  # the streaming bag-to-bag path says the same
         proc = ok(magcal("correct", base[source], "-c", three_cal, "-o", d / "out_bag", "--gradient-method", "least_squares"))
-        assert f"note: {base[source]} also has mag4, which {three_cal} does not calibrate: left out" in proc.stderr
+        assert f"note: {base[source]} also has mag4, which {three_cal} does not cover: left out" in proc.stderr
         with Reader(d / "out_bag") as reader:
             assert sorted(c.topic for c in reader.connections) == ["/field", "/gradient", "/mag1/corrected",
                                                                    "/mag2/corrected", "/mag3/corrected"]

@@ -106,20 +106,17 @@ def check_sensors(
     extra = [n for n in available if n not in names]
     have = ", ".join(available) or "none"
     if missing:
-        raise InputError(
-            f"{calibration_file} calibrates {', '.join(names)} but {recording} has no {', '.join(missing)} "
-            f"(its sensors: {have})"
-        )
+        raise InputError(f"{recording} has no {', '.join(missing)} (its sensors: {have}); {calibration_file} covers {', '.join(names)}")
     if not extra:
         return []
     try:
         calibration.field_and_gradient(np.zeros((1, len(names), 3)), gradient_method)
     except InputError:
         raise InputError(
-            f"{recording} has sensors {have} but {calibration_file} calibrates only {', '.join(names)}: "
+            f"{recording} has sensors {have} but {calibration_file} covers only {', '.join(names)}: "
             f"no calibration for {', '.join(extra)} (calibrate all {len(available)} sensors together)"
         ) from None
-    return [f"{recording} also has {', '.join(extra)}, which {calibration_file} does not calibrate: left out"]
+    return [f"{recording} also has {', '.join(extra)}, which {calibration_file} does not cover: left out"]
 
 
 @dataclass(frozen=True)
