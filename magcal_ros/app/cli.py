@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
+import threading
 from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -15,12 +19,13 @@ from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
-from magcal_ros.core.units import NT
+from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
-from magcal_ros.io.recordings import is_csv, open_recording
+from magcal_ros.io.atomic import STOP_SIGNALS, recover
+from magcal_ros.io.recordings import is_csv, open_recording, recording_sensors
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -30,6 +35,14 @@ from magcal_ros.methods.pipeline import (
 
 if TYPE_CHECKING:
     from magcal_ros.core.geomagnetic import SiteField
+
+UNITS_NOTE = (
+    f"Readings must be in Tesla: a sensor whose median |B| is outside {EARTH_FIELD_RANGE[0]:g} .. "
+    f"{EARTH_FIELD_RANGE[1]:g} T is refused."
+)
+EXIT_CODES = """exit codes: 0 done; 2 refused (one line on stderr, nothing written); 130, 143, 129 stopped
+by SIGINT, SIGTERM, SIGHUP (the unfinished output is removed). An output is replaced only when
+the new one is complete; what a killed run leaves beside it is cleaned up by the next run."""
 
 EPILOG_CALIBRATE = """examples:
   magcal calibrate rotation.csv -o calibration.yaml --reference-field 5.15e-5
@@ -46,6 +59,7 @@ EPILOG_CALIBRATE = """examples:
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
 topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
 stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+""" + UNITS_NOTE + """
 
 arrays: one sensor needs no positions (no gradient); four default to the 0.4 m cross; any
 other count needs --positions. Two sensors (or any collinear array) give the gradient along
@@ -107,7 +121,19 @@ CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
-The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist."""
+The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
+must exist, and each needs its block in the calibration file unless listed in --uncorrected.
+""" + UNITS_NOTE
+
+
+def _name_list(text: str | None) -> tuple[str, ...]:
+    """Comma-separated names (an option's value) as a tuple, blanks dropped."""
+    return tuple(n.strip() for n in (text or "").split(",") if n.strip())
+
+
+def _note(text: str) -> None:
+    """One note line on stderr (what was dropped, left out or cleaned up)."""
+    print(f"  note: {text}", file=sys.stderr)
 
 
 def _positions(text: str | None, names: tuple[str, ...], prior: ArrayCalibration | None = None) -> ArrayGeometry:
@@ -165,6 +191,15 @@ def _stamp(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _tolerance(text: str) -> float:
+    """An argparse type: a synchronisation tolerance in seconds, 0 <= t < 1."""
+    try:
+        tolerance_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc) if "tolerance" in str(exc) else f"not a number: {text!r}") from None
+    return float(text)
+
+
 def add_window_options(p: argparse.ArgumentParser) -> None:
     """--start/--end: a window of header stamps (decimal seconds, exact to the nanosecond)."""
     p.add_argument("--start", type=_stamp, metavar="SECONDS", help="ignore sets stamped before this time (s, header stamp)")
@@ -173,7 +208,7 @@ def add_window_options(p: argparse.ArgumentParser) -> None:
 
 def add_sync_options(p: argparse.ArgumentParser) -> None:
     """Bag synchronisation options."""
-    p.add_argument("--sync-tolerance", type=float, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
+    p.add_argument("--sync-tolerance", type=_tolerance, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
                    help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
@@ -182,7 +217,7 @@ def add_sync_options(p: argparse.ArgumentParser) -> None:
 def _report_sync(stats: SyncStats | None) -> None:
     """One note on stderr when synchronisation dropped anything."""
     if stats is not None and stats.dropped():
-        print(f"  note: {stats.describe()}", file=sys.stderr)
+        _note(stats.describe())
 
 
 def _reference(args: argparse.Namespace) -> tuple[float | None, SiteField | None]:
@@ -238,13 +273,14 @@ def _report_quantities(result: Any) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
     reference_field, site = _reference(args)
-    names = tuple(n.strip() for n in args.sensors.split(",") if n.strip()) if args.sensors else None
+    names = _name_list(args.sensors) or None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, names, args.start, args.end, args.sync_tolerance,
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    check_tesla(rec.vectors, rec.names, args.input)
     prior = _read_calibration(args.prior) if args.prior else None
     geometry = _positions(args.positions, rec.names, prior)
     mounting = None
@@ -313,22 +349,34 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_calibration(path: str) -> ArrayCalibration:
-    """The calibration file, every error naming the file."""
+def _read_calibration(path: str, uncorrected: tuple[str, ...] = ()) -> ArrayCalibration:
+    """The calibration file, every error naming the file; ``uncorrected`` sensors may lack a block."""
     try:
-        return calfile.read(path)
+        cal = calfile.read(path, uncorrected=uncorrected)
     except InputError as exc:
         raise (exc if path in str(exc) else InputError(f"{path}: {exc}")) from None
+    unknown = [n for n in uncorrected if n not in cal.geometry.names]
+    if unknown:
+        raise InputError(f"--uncorrected {','.join(unknown)}: not a sensor of {path} (it has {', '.join(cal.geometry.names)})")
+    for name in uncorrected:
+        k = cal.geometry.names.index(name)
+        if np.array_equal(cal.matrices[k], np.eye(3)) and not np.any(cal.offsets[k]):
+            _note(f"{name} is not corrected (--uncorrected): its raw readings are used as they are")
+    return cal
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
     """Apply a calibration to a recording: corrected vectors, centre field and tensor."""
-    cal = _read_calibration(args.calibration)
+    from magcal_ros.app.correct import check_sensors
+
+    cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
     out_csv = is_csv(args.output)
-    copy = "all" if args.copy_all else tuple(t.strip() for t in (args.copy_topics or "").split(",") if t.strip())
+    copy = "all" if args.copy_all else _name_list(args.copy_topics)
     if is_csv(args.input) or out_csv:
         if copy:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
+        for note in check_sensors(cal, recording_sensors(args.input), args.input, args.calibration, args.gradient_method):
+            _note(note)
         return _correct_via_recording(args, cal, out_csv)
     from magcal_ros.app.correct import correct_bag
 
@@ -337,7 +385,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
             args.input, cal, args.output, storage=args.storage, copy_topics=copy, progress=bar,
             frame_id=args.frame_id, gradient_method=args.gradient_method, tolerance=args.sync_tolerance,
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
+            calibration_name=args.calibration,
         )
+    for note in report.notes:
+        _note(note)
     _report_sync(report.stats)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
@@ -354,6 +405,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    check_tesla(rec.vectors, rec.names, args.input)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
@@ -466,6 +518,9 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     )
     p.add_argument("input", help="recording: rosbag2 directory (sqlite3 or mcap) or .csv file")
     p.add_argument("-c", "--calibration", required=True, metavar="CALIBRATION.yaml", help="calibration file")
+    p.add_argument("--uncorrected", metavar="NAME[,NAME]",
+                   help="sensors the calibration file may lack a block for: their raw readings are used as they are "
+                   "(otherwise a missing block is refused)")
     p.add_argument("-o", "--output", required=True, help="rosbag2 directory to write, or a .csv file")
     copy = p.add_mutually_exclusive_group()
     copy.add_argument("--copy-topics", metavar="T1,T2", help="also copy these input topics unchanged (bag to bag)")
@@ -490,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n"
         "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
         "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
-        "  magcal COMMAND --help      # options and examples of a command",
+        "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -512,11 +567,62 @@ def _attach_negative_site(argv: Sequence[str]) -> list[str]:
     return out
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGINT, SIGTERM or SIGHUP arrived: unwind (partial output is removed on the way) and exit."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    """Signal handler: ignore further stop signals while cleaning up, then unwind."""
+    for s in STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    raise Stopped(signum)
+
+
+def _outputs(args: argparse.Namespace) -> list[str]:
+    """Every path the command will write."""
+    outs = [args.output]
+    if args.command == "simulate":
+        from magcal_ros.io.truth_file import truth_paths
+
+        outs += [str(p) for p in truth_paths(args.output)]
+    if getattr(args, "plot", None):
+        outs.append(args.plot)
+    return outs
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    """Refuse an output that is one of the command's inputs, or two outputs at one path."""
+    inputs = [p for p in (getattr(args, "input", None), getattr(args, "calibration", None)) if p]
+    seen: dict[Path, str] = {Path(p).resolve(): p for p in inputs}
+    for out in _outputs(args):
+        where = Path(out).resolve()
+        if where in seen and seen[where] in inputs:
+            raise InputError(f"output {out} would overwrite the input {seen[where]}: write to another path")
+        if where in seen:
+            raise InputError(f"outputs {seen[where]} and {out} are the same file: give different paths")
+        seen[where] = out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: one clear line on stderr and exit 2 for any bad input."""
+    """Entry point: one clear line on stderr and exit 2 for any bad input.
+
+    SIGINT, SIGTERM and SIGHUP stop a run like Ctrl-C: the partial output is removed, one
+    line says so, and the exit code is 128 + the signal number (130, 143, 129).
+    """
     parser = build_parser()
     args = parser.parse_args(_attach_negative_site(sys.argv[1:] if argv is None else argv))
+    previous: dict[signal.Signals, Any] = {}
     try:
+        if threading.current_thread() is threading.main_thread():
+            previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS}
+        _check_paths(args)
+        for out in _outputs(args):
+            for note in recover(out):
+                _note(note)
         return int(args.func(args) or 0)
     except MagcalError as exc:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
@@ -525,9 +631,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"magcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"magcal {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+        print(f"magcal {args.command}: stopped by {signal.Signals(signum).name}; unfinished output removed", file=sys.stderr)
+        return 128 + int(signum)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 if __name__ == "__main__":

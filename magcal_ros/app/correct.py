@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.calibration import ArrayCalibration, CorrectedSets
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import atomic_path
@@ -29,6 +30,7 @@ from magcal_ros.io.bag_reader import (
     SetReader,
     open_bag,
     resolve_sensor_topics,
+    sensor_names_of,
 )
 from magcal_ros.io.bag_writer import (
     SETS_PER_WRITE,
@@ -95,6 +97,38 @@ def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: 
     return CorrectionOutput(sink.layout(parts), mf, gt, vt, len(names), kind)
 
 
+def check_sensors(
+    calibration: ArrayCalibration,
+    available: Sequence[str],
+    recording: str | os.PathLike[str],
+    calibration_file: str | os.PathLike[str],
+    gradient_method: str = "difference",
+) -> list[str]:
+    """Match the calibration's sensors with the ``available`` sensors of a recording.
+
+    A calibrated sensor the recording lacks is an :class:`InputError` naming it. Sensors
+    of the recording the calibration lacks are an :class:`InputError` naming them when the
+    calibrated sensors alone cannot give the tensor by ``gradient_method``; otherwise they
+    are left out and reported in the returned notes.
+    """
+    names = calibration.geometry.names
+    missing = [n for n in names if n not in available]
+    extra = [n for n in available if n not in names]
+    have = ", ".join(available) or "none"
+    if missing:
+        raise InputError(f"{recording} has no {', '.join(missing)} (its sensors: {have}); {calibration_file} covers {', '.join(names)}")
+    if not extra:
+        return []
+    try:
+        calibration.field_and_gradient(np.zeros((1, len(names), 3)), gradient_method)
+    except InputError:
+        raise InputError(
+            f"{recording} has sensors {have} but {calibration_file} covers only {', '.join(names)}: "
+            f"no calibration for {', '.join(extra)} (calibrate all {len(available)} sensors together)"
+        ) from None
+    return [f"{recording} also has {', '.join(extra)}, which {calibration_file} does not cover: left out"]
+
+
 @dataclass(frozen=True)
 class CorrectionReport:
     """What :func:`correct_bag` did."""
@@ -104,6 +138,8 @@ class CorrectionReport:
     copied_messages: int
     output: str
     storage: str
+    notes: tuple[str, ...] = ()
+    """Sensors of the input left out (see :func:`check_sensors`)."""
 
 
 def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
@@ -131,6 +167,7 @@ def correct_bag(
     nonfinite: NonFinite = "drop",
     start_ns: int | None = None,
     end_ns: int | None = None,
+    calibration_name: str = "the calibration",
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -141,13 +178,16 @@ def correct_bag(
     nothing for one sensor; all at bag time = the set's stamp; plus the
     input topics in ``copy_topics`` (``"all"``: every topic) unchanged with their bag
     times. ``storage`` defaults to the input's. ``start_ns``/``end_ns`` bound the set
-    stamps. Streaming and atomic: nothing is left at ``out_path`` on failure.
+    stamps. The bag's sensors are matched with the calibration's first (:func:`check_sensors`,
+    ``calibration_name`` names the calibration in messages) and the readings must be in
+    Tesla. Streaming and atomic: nothing is left at ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
     out_storage = check_storage(storage) if storage else storage_of(inp)
     check_bag_output(out_path, inp)
     with open_bag(inp) as reader:
+        notes = check_sensors(calibration, sensor_names_of(reader), inp, calibration_name, gradient_method)
         _, conns = resolve_sensor_topics(reader, inp, names)
         outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
                                                 topics.BASELINE_GRADIENT]}
@@ -180,7 +220,11 @@ def correct_bag(
 
             sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress)
             n_in = 0
+            checked = False
             for batch in sets:
+                if not checked and len(batch):
+                    check_tesla(batch.vectors, names, str(inp))  # before anything is written
+                    checked = True
                 batch = _window(batch, start_ns, end_ns)
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
@@ -191,7 +235,7 @@ def correct_bag(
                 raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
             if n_in == 0:
                 raise InputError(f"{inp}: no synchronized sets in the selected time window")
-    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage)
+    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes))
 
 
 def write_corrected_bag(

@@ -1,4 +1,16 @@
-"""Unit constants, one per fact. Code and files are SI (Tesla, metres, seconds); papers quote nT."""
+"""Unit constants, one per fact, and the check that readings are in Tesla.
+
+Code and files are SI (Tesla, metres, seconds); papers quote nT.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from magcal_ros.errors import InputError
 
 NT: float = 1e-9
 """One nanotesla in Tesla."""
@@ -8,3 +20,31 @@ MU0_OVER_4PI: float = 1e-7
 
 NS_PER_S: int = 1_000_000_000
 """Nanoseconds per second: stamps are integer nanoseconds (ROS ``sec`` and ``nanosec``)."""
+
+EARTH_FIELD_RANGE: tuple[float, float] = (1e-7, 1e-3)
+"""Accepted magnitude (T) of an Earth field (a reference intensity, the median raw reading):
+the Earth's is 20-70 uT; the margins cover sensor errors and hull iron. Readings in nT, uT,
+mT or Gauss all fall outside."""
+
+
+def check_tesla(vectors: ArrayLike, names: Sequence[str], where: str) -> None:
+    """Refuse readings (N, S, 3) whose median magnitude per sensor is not an Earth field in T.
+
+    Raises :class:`InputError` with one line naming ``where``, the sensor, its median
+    ``|B|`` and "units must be Tesla". Non-finite rows are ignored.
+    """
+    v = np.asarray(vectors, dtype=float)
+    if v.size == 0:
+        return
+    norms = np.linalg.norm(v.reshape(len(v), -1, 3), axis=-1)
+    lo, hi = EARTH_FIELD_RANGE
+    for name, column in zip(names, norms.T):
+        finite = column[np.isfinite(column)]
+        if len(finite) == 0:
+            continue
+        median = float(np.median(finite))
+        if not lo <= median <= hi:
+            raise InputError(
+                f"{where}: median |B| of {name} is {median:.4g}, not an Earth field ({lo:g} .. {hi:g} T): "
+                "units must be Tesla"
+            )

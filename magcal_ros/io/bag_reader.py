@@ -35,6 +35,7 @@ from magcal_ros.core.sync import (
 )
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
+from magcal_ros.io.atomic import write_failure
 from magcal_ros.io.cdr import (
     MAGNETIC_FIELD,
     decode_magnetic_field_rows,
@@ -60,19 +61,52 @@ def first_line(exc: BaseException) -> str:
     return text[0] if text else type(exc).__name__
 
 
-def is_read_error(exc: BaseException) -> bool:
-    """True for the errors rosbags and its storage libraries raise on unreadable bags."""
+COMPRESSION_MODULES: tuple[str, ...] = ("zstd", "backports.zstd", "compression", "lz4")
+STORAGE_MODULES: tuple[str, ...] = ("rosbags", "apsw", "sqlite3", "yaml", "ruamel", "mcap", *COMPRESSION_MODULES)
+"""Packages that read bag storage: an exception raised inside them is about the bag."""
+
+
+def _in_packages(module: str, packages: tuple[str, ...]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def _raised_in_storage(exc: BaseException) -> bool:
+    """True when the innermost Python frame of ``exc``'s traceback belongs to a storage package."""
+    tb = exc.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return _in_packages(str(tb.tb_frame.f_globals.get("__name__", "")), STORAGE_MODULES)
+
+
+def _storage_exception(exc: BaseException) -> bool:
+    """True for the exception types rosbags and its storage libraries raise on unreadable bags."""
     import apsw
     from rosbags.rosbag2 import ReaderError
     from rosbags.serde import SerdeError
 
-    return isinstance(exc, (ReaderError, SerdeError, apsw.Error, EOFError)) or type(exc).__module__.startswith(
-        ("zstd", "backports.zstd", "compression", "lz4")
-    )
+    return isinstance(exc, (ReaderError, SerdeError, apsw.Error, EOFError)) or _in_packages(type(exc).__module__, COMPRESSION_MODULES)
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """True for failures of the input itself while only reading, False for bugs in magcal_ros.
+
+    Storage, decompression, deserialisation and I/O errors (rosbags, apsw, compression
+    libraries, ``OSError``, ``EOFError``) are the bag's; so is anything raised inside a
+    storage package's own code (rosbags choking on malformed data). An ``AttributeError``
+    or ``TypeError`` raised in magcal_ros is a bug and must surface as one.
+    """
+    return _storage_exception(exc) or isinstance(exc, OSError) or _raised_in_storage(exc)
 
 
 def bag_error(path: str | os.PathLike[str], exc: BaseException) -> MagcalError:
-    """A one-line :class:`InputError` for a failure while reading the bag ``path``."""
+    """A one-line :class:`MagcalError` for a failure while reading the bag ``path``.
+
+    The real cause first: a missing file, no permission, SQLite failing to write its
+    temporary files (a file size limit or a full disk, not the bag's fault), an I/O error;
+    only what remains is a corrupt or unreadable bag.
+    """
     if isinstance(exc, MagcalError):
         return exc
     if isinstance(exc, FileNotFoundError):
@@ -80,6 +114,11 @@ def bag_error(path: str | os.PathLike[str], exc: BaseException) -> MagcalError:
         return InputError(f"{path}: not a rosbag2 directory or bag file (no {missing})")
     if isinstance(exc, PermissionError):
         return InputError(f"{path}: permission denied")
+    cause = write_failure(exc)
+    if cause is not None:
+        return MagcalError(f"cannot read {path}: SQLite could not write its temporary files: {cause}")
+    if isinstance(exc, OSError):
+        return InputError(f"cannot read {path}: {exc.strerror or first_line(exc)}")
     return InputError(f"{path}: corrupt or unreadable rosbag2 ({type(exc).__name__}: {first_line(exc)})")
 
 
@@ -94,22 +133,23 @@ def open_bag(path: str | os.PathLike[str]) -> Iterator["Reader"]:
     try:
         reader = Reader(p)
         reader.open()
-    except Exception as exc:  # rosbags, apsw, yaml, OS errors: all mean "unreadable bag"
+    except Exception as exc:
+        if not is_read_error(exc):
+            raise
         raise bag_error(p, exc) from None
     try:
         yield reader
     except MagcalError:
         raise
     except Exception as exc:
-        if not is_read_error(exc):
+        # The caller may also be writing (an output bag): only the storage libraries' own
+        # exception types are about this bag here; SetReader maps errors while reading.
+        if not _storage_exception(exc):
             raise
         raise bag_error(p, exc) from None
     finally:
         with contextlib.suppress(Exception):
             reader.close()
-
-
-BAG_FILE_SUFFIXES: tuple[str, ...] = (".db3", ".mcap", ".yaml", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd")
 
 
 def _plain_sqlite_files(reader: "Reader") -> list[Path] | None:
@@ -301,7 +341,9 @@ class SetReader:
                 break
             except MagcalError:
                 raise
-            except Exception as exc:  # anything the storage raises while reading: a damaged bag
+            except Exception as exc:
+                if not is_read_error(exc):
+                    raise
                 raise bag_error(self.path, exc) from None
             n += count
             if n >= self.chunk:

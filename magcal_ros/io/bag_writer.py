@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.recording import Recording
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics
-from magcal_ros.io.atomic import atomic_path
+from magcal_ros.io.atomic import atomic_path, public_path, write_failure
 from magcal_ros.io.bag_reader import first_line
 from magcal_ros.io.cdr import MAGNETIC_FIELD, magnetic_field_template, typestore
 
@@ -87,6 +87,11 @@ class SetLayout:
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+def output_error(path: str | os.PathLike[str], exc: BaseException) -> MagcalError:
+    """One line for a failed bag write (create, write or close): the final output's name and the real cause."""
+    return MagcalError(f"cannot write bag {public_path(path)}: {write_failure(exc) or first_line(exc)}")
+
+
 def _output_errors(method: F) -> F:
     """Report any storage failure while writing as one :class:`MagcalError` line."""
 
@@ -97,7 +102,7 @@ def _output_errors(method: F) -> F:
         except MagcalError:
             raise
         except Exception as exc:
-            raise MagcalError(f"cannot write bag {self.writer.path}: {first_line(exc)}") from None
+            raise output_error(self.writer.path, exc) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -132,7 +137,7 @@ class BagSink:
             writer = Writer(Path(path), version=9, storage_plugin=plugin)
             writer.open()
         except Exception as exc:
-            raise MagcalError(f"cannot create bag {path}: {first_line(exc)}") from None
+            raise output_error(path, exc) from None
         sink = cls(writer, storage)
         try:
             yield sink
@@ -144,7 +149,7 @@ class BagSink:
             writer.close()
             _fsync_tree(Path(path))
         except Exception as exc:
-            raise MagcalError(f"cannot finish bag {path}: {first_line(exc)}") from None
+            raise output_error(path, exc) from None
 
     def _detect_fast(self) -> str | None:
         st = self.writer.storage

@@ -18,6 +18,7 @@ kept as ``<file>.bak``.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -77,8 +78,13 @@ def _node_blocks(doc: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
-def loads(text: str, node_name: str = CORRECTION_NODE) -> ArrayCalibration:
-    """Parse calibration YAML text (see :func:`dumps`)."""
+def loads(text: str, node_name: str = CORRECTION_NODE, uncorrected: Sequence[str] = ()) -> ArrayCalibration:
+    """Parse calibration YAML text (see :func:`dumps`).
+
+    Every sensor in ``sensor_names`` needs its block; a missing one is an
+    :class:`InputError` naming the sensor, unless it is listed in ``uncorrected`` (its raw
+    readings are then used as they are, on purpose).
+    """
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -90,11 +96,11 @@ def loads(text: str, node_name: str = CORRECTION_NODE) -> ArrayCalibration:
         if len(candidates) != 1:
             raise InputError(f"calibration file has no '{node_name}: ros__parameters:' block with sensor_names")
         params = candidates[0]
-    return ArrayCalibration.from_parameters(params, blocks.get(PROVENANCE_NODE, {}))
+    return ArrayCalibration.from_parameters(params, blocks.get(PROVENANCE_NODE, {}), uncorrected)
 
 
-def read(path: str | os.PathLike[str], node_name: str = CORRECTION_NODE) -> ArrayCalibration:
-    """Read a calibration file; :class:`InputError` with one clear line if unusable."""
+def read(path: str | os.PathLike[str], node_name: str = CORRECTION_NODE, uncorrected: Sequence[str] = ()) -> ArrayCalibration:
+    """Read a calibration file; :class:`InputError` with one clear line if unusable (see :func:`loads`)."""
     try:
         with open(path, encoding="utf-8") as fh:
             text = fh.read()
@@ -102,4 +108,4 @@ def read(path: str | os.PathLike[str], node_name: str = CORRECTION_NODE) -> Arra
         raise InputError(f"cannot read calibration file {path}: {exc.strerror}") from None
     except UnicodeDecodeError:
         raise InputError(f"calibration file {path} is not text") from None
-    return loads(text, node_name)
+    return loads(text, node_name, uncorrected)

@@ -70,20 +70,44 @@ def parse_header(header: list[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
+def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
+    """The text of a CSV file (a UTF-8 byte order mark dropped), or up to its first non-blank line."""
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            if not header_only:
+                return fh.read()
+            line = fh.readline()
+            while line and not line.strip(" \t\r\n,"):
+                line = fh.readline()
+            return line
+    except OSError as exc:
+        raise InputError(f"cannot read {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path} is not a text CSV file") from None
+
+
+def _rows(text: str) -> list[list[str]]:
+    return [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+
+
+def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
+    """Sensor names of a CSV recording, from its header alone."""
+    rows = _rows(_read_text(path, header_only=True))
+    if not rows:
+        raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
+    try:
+        return parse_header(rows[0])
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
+
 def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tuple[Recording, SyncStats]:
     """Read a CSV recording and the counts of rows it dropped (per message, as for a bag).
 
     Ragged rows, text values or an empty file are :class:`InputError`; NaN or infinite
     values are refused (``nonfinite="error"``) or their rows dropped (``"drop"``).
     """
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise InputError(f"cannot read {path}: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise InputError(f"{path} is not a text CSV file") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    rows = _rows(_read_text(path))
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     names = parse_header(rows[0])

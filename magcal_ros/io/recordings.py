@@ -10,12 +10,30 @@ from typing import Literal
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
 from magcal_ros.errors import InputError
-from magcal_ros.io.csv_recording import read_csv
+from magcal_ros.io.csv_recording import read_csv, read_csv_names
 
 
 def is_csv(path: str | os.PathLike[str]) -> bool:
     """True when ``path`` names a CSV recording (by its ``.csv`` ending)."""
     return str(path).lower().endswith(".csv")
+
+
+def recording_sensors(path: str | os.PathLike[str]) -> tuple[str, ...]:
+    """Sensor names a recording holds, without reading its data.
+
+    A CSV's column stems (header order); a bag's ``/<name>/raw`` MagneticField topics (sorted).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p} does not exist")
+    if is_csv(p):
+        return read_csv_names(p)
+    from magcal_ros.io.bag_reader import open_bag, sensor_names_of
+
+    if p.is_file() and p.suffix not in (".db3", ".mcap"):
+        raise InputError(f"{p}: not a recording: give a rosbag2 directory or a .csv file")
+    with open_bag(p) as reader:
+        return sensor_names_of(reader)
 
 
 def read_recording(path: str | os.PathLike[str], **options: object) -> Recording:

@@ -44,7 +44,7 @@ from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
-from magcal_ros.core.units import NT
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import (
     CalibrationFailed,
     InputError,
@@ -54,10 +54,6 @@ from magcal_ros.errors import (
 from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS, SensorFit
 
 Array = NDArray[np.float64]
-
-TESLA_RANGE: tuple[float, float] = (1e-6, 1e-3)
-"""Median raw field norm accepted as Tesla (Earth's field is 22-67 uT; offsets add some)."""
-
 
 @dataclass(frozen=True)
 class SolveOptions:
@@ -156,18 +152,8 @@ def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
     bad = ~np.all(np.isfinite(r), axis=(1, 2))
     if np.any(bad):
         raise InputError(f"{int(bad.sum())} sets contain NaN or infinite values (first at index {int(np.argmax(bad))})")
-    if len(r):
-        check_tesla(r)
+    check_tesla(r, geometry.names, "raw sets")
     return r
-
-
-def check_tesla(vectors: Array) -> None:
-    """:class:`InputError` unless the median norm of ``vectors`` (..., 3) looks like Tesla."""
-    median = float(np.median(np.linalg.norm(vectors, axis=-1)))
-    low, high = TESLA_RANGE
-    if not (low <= median <= high):
-        raise InputError(f"the readings' median magnitude is {median:.4g}, not an Earth field in Tesla "
-                         f"({low:g} .. {high:g}): units must be Tesla")
 
 
 def _gradient_residual(vectors: Array, geometry: ArrayGeometry, method: str) -> float:
@@ -372,8 +358,10 @@ def calibrate_array(
             f"method {method!r} ({spec.source}) needs a reference field intensity in T "
             "(--reference-field / reference_field); method 'ml' or 'paired' works without one"
         )
-    if f_ref is not None and not (np.isfinite(f_ref) and 1e-7 <= f_ref <= 1e-3):
-        raise InputError(f"reference field {f_ref} T is not an Earth-like intensity (1e-7 .. 1e-3 T): units are Tesla")
+    low, high = EARTH_FIELD_RANGE
+    if f_ref is not None and not (np.isfinite(f_ref) and low <= f_ref <= high):
+        raise InputError(f"reference field {f_ref} T is not an Earth-like intensity ({low:g} .. {high:g} T): "
+                         "units are Tesla")
     order = _order(stamps, n)
     exc = excitation(r.mean(axis=1))
     if n < MIN_SAMPLES:
