@@ -80,7 +80,7 @@ class ArrayCalibration:
     """Provenance: method, time, sample count, residuals (free-form, YAML-safe)."""
     covariances: Array | None = None
     """(S, 3, 3) covariance (T^2) of each corrected vector, platform frame: sensor noise plus
-    calibration uncertainty, typical over attitudes. None: unknown."""
+    calibration uncertainty, typical over attitudes. None, or all-NaN for a sensor: unknown."""
     channels: tuple[str, ...] = ()
     """Names of the current channels whose interference is subtracted (may be empty)."""
     interference: Array | None = None
@@ -105,8 +105,12 @@ class ArrayCalibration:
         object.__setattr__(self, "interference", d)
         if self.covariances is not None:
             c = np.asarray(self.covariances, dtype=float)
-            if c.shape != (s, 3, 3) or not np.all(np.isfinite(c)) or np.any(np.linalg.eigvalsh(0.5 * (c + c.swapaxes(1, 2))) < 0):
-                raise InputError(f"covariances must be {s} finite positive semi-definite 3x3 matrices (T^2)")
+            known = np.all(np.isfinite(c.reshape(len(c), -1)), axis=1) if c.ndim == 3 else np.zeros(0, bool)
+            unknown = np.all(np.isnan(c.reshape(len(c), -1)), axis=1) if c.ndim == 3 else np.zeros(0, bool)
+            if (c.shape != (s, 3, 3) or not np.all(known | unknown)
+                    or np.any(np.linalg.eigvalsh(0.5 * (c[known] + c[known].swapaxes(1, 2))) < -1e-30)):
+                raise InputError(f"covariances must be {s} positive semi-definite 3x3 matrices (T^2), "
+                                 "or all NaN for a sensor whose covariance is unknown")
             object.__setattr__(self, "covariances", c)
 
     @classmethod
@@ -160,7 +164,7 @@ class ArrayCalibration:
             params["interference_channels"] = list(self.channels)
         for i, (name, m, o) in enumerate(zip(self.geometry.names, self.matrices, self.offsets)):
             params[name] = {"matrix": [float(x) for x in m.reshape(-1)], "offset": [float(x) for x in o]}
-            if self.covariances is not None:
+            if self.covariances is not None and np.all(np.isfinite(self.covariances[i])):
                 params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
             if self.channels:
                 params[name]["interference"] = [float(x) for x in self.interference[i].reshape(-1)]  # type: ignore[index]
@@ -205,8 +209,8 @@ class ArrayCalibration:
             try:
                 mats.append(np.asarray(block.get("matrix", np.eye(3).reshape(-1)), dtype=float))
                 offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
-                if "covariance" in block:
-                    covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3))
+                covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3) if "covariance" in block
+                            else np.full((3, 3), np.nan))
                 if channels:
                     gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
                     if gains.size != 3 * len(channels):
@@ -216,8 +220,11 @@ class ArrayCalibration:
             except (TypeError, ValueError):
                 raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
                                  "interference") from None
-        if covs and len(covs) != len(names):
+        given = [not np.isnan(c).all() for c in covs]
+        if any(given) and not all(g or n in uncorrected for g, n in zip(given, names)):
             raise InputError("calibration gives a covariance for some sensors but not all")
+        if not any(given):
+            covs = []
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
                    np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None)
