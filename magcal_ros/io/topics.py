@@ -12,6 +12,9 @@ FIELD = "field"
 """Corrected field at the array centre (sensor_msgs/MagneticField, T)."""
 GRADIENT = "gradient"
 """Gradient tensor (std_msgs/Float64MultiArray, 3x3 row-major, T/m)."""
+GRADIENT_STAMPED = "gradient_stamped"
+"""The same tensor with the set's stamp and frame (sensor_msgs/JointState: names gradient.xx .. gradient.zz,
+position = the 9 components in T/m, row-major)."""
 DEFAULT_FRAME_ID = "magcal_array"
 """Default platform frame of every corrected output."""
 
