@@ -121,7 +121,8 @@ class NodeProcess:
         process_group: int | None = None,
     ) -> None:
         """``executable``: a name (found by :func:`find_executable`) or a path. The process leads a
-        new process group, or joins ``process_group`` (a Ctrl-C in a terminal reaches the whole group)."""
+        new session, or with ``process_group`` joins that process group of this session (0: a new
+        group led by the process), as the processes of one terminal command do."""
         self.executable = find_executable(executable)
         self.args = list(args)
         self.log_path = Path(log_path)
@@ -144,7 +145,8 @@ class NodeProcess:
 
     def log(self) -> str:
         """Everything the node printed so far."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(encoding="utf-8", errors="replace")
 
     def wait_for_log(self, text: str, timeout: float = 30.0) -> bool:
@@ -601,6 +603,14 @@ class ArrayDriver:
             value = parameter_value_to_python(v)
             out[n] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
         return out
+
+    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+        """rcl_interfaces/ParameterDescriptor of parameters of ``node``, by name."""
+        from rcl_interfaces.srv import DescribeParameters
+
+        reply = self._call(DescribeParameters, f"/{node.strip('/')}/describe_parameters",
+                           DescribeParameters.Request(names=list(names)), timeout)
+        return {d.name: d for d in reply.descriptors}
 
     def publish_clock(self, stamp_ns: int) -> None:
         """Publish ``stamp_ns`` on /clock (rosgraph_msgs/Clock), as a bag player with --clock does."""

@@ -24,6 +24,7 @@ in the last place away (``5.000000000000001e-08``), a change far below any measu
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import re
@@ -127,6 +128,11 @@ def replace(
     """
     target = Path(path)
     text = dumps(calibration, node_name)
+    for folder in (target.parent, *target.parent.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+            break
     previous = target.read_bytes() if target.is_file() else None
     backup = _backup_path(target) if previous is not None and keep > 0 else None
     if backup is not None:

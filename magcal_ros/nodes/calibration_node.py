@@ -377,6 +377,7 @@ class CalibrationNode(Node):
         self._stopping.set()
         worker = self._worker
         if worker is not None and worker.is_alive():
+            self.get_logger().info("shutting down during a calibration: it is abandoned, nothing is changed")
             worker.join(2.0)
 
     def _check_stop(self) -> None:
@@ -428,8 +429,8 @@ class CalibrationNode(Node):
                 self._check_stop()
                 self._push(params)
         except OSError as exc:
-            return self._fail(f"solved but cannot write {path}: {exc.strerror or exc}; set calibration_file; "
-                              "nothing was changed")
+            why = f"{exc.strerror} ({exc.filename})" if exc.strerror and exc.filename else str(exc)
+            return self._fail(f"solved but cannot write {path}: {why}; set calibration_file; nothing was changed")
         except CallFailed as exc:
             if isinstance(exc, Stopping):
                 raise

@@ -356,3 +356,7 @@ def run_node(
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
+        # From here on a signal would hit the interpreter's teardown (which resets Python
+        # handlers to the default: killed by SIGINT, exit -2); ignored signals stay ignored.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)

@@ -3,7 +3,8 @@
 Per sensor: messages received, the last stamp and losses before the node: a stamp
 interval longer than 1.5 sample periods (the synchroniser's per-sensor estimate) means
 ``round(interval / period) - 1`` messages never arrived (DDS queue overflow, a lossy
-link). Every ``assess`` (the status period) turns the counters into a level and a message:
+link). A jump longer than ``silent_after_ns`` is a pause of the sensor (reported as
+silent while it lasts), not a loss. Every ``assess`` (the status period) turns the counters into a level and a message:
 
 - ERROR: no output (set published or collected) for ``stale_after_ns``;
 - WARN: a sensor silent (no message for ``silent_after_ns``) or late (its newest stamp
@@ -18,8 +19,6 @@ Times are node-clock nanoseconds (simulated time with ``use_sim_time``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
-
 from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.core.units import NS_PER_S
 
@@ -81,7 +80,7 @@ class ArrayHealth:
             if last:
                 period = self.sync.period_ns(index)
                 interval = stamp_ns - last
-                if period and 2 * interval > GAP_FACTOR_2 * period:
+                if period and 2 * interval > GAP_FACTOR_2 * period and interval <= self.limits.silent_after_ns:
                     missing = (interval + period // 2) // period - 1
                     if missing > 0:
                         self.gaps[index] += 1
@@ -161,8 +160,3 @@ class ArrayHealth:
         level = max((lv for lv, _ in problems), default=OK)
         message = "; ".join(text for _, text in problems) if problems else "ok"
         return Assessment(level, message, values, [line] if line else [])
-
-
-def describe_values(values: dict[str, Any]) -> list[tuple[str, str]]:
-    """Key/value pairs as strings, in insertion order."""
-    return [(str(k), str(v)) for k, v in values.items()]
