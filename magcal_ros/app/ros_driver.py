@@ -290,8 +290,10 @@ class ArrayDriver:
         collect_corrected: bool = True,
         publish_depth: int = 1000,
         namespace: str = "",
+        listen: bool = True,
     ) -> None:
-        """``namespace``: the nodes' namespace; raw topics are published and outputs read in it."""
+        """``namespace``: the nodes' namespace; raw topics are published and outputs read in it.
+        ``listen=False``: publish only (no subscriptions to the outputs)."""
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -320,8 +322,8 @@ class ArrayDriver:
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
             self.node.create_subscription(Float64MultiArray, self.topic("gradient"), self._on_gradient, out_qos),
             self.node.create_subscription(JointState, self.topic("gradient_stamped"), self._on_stamped, out_qos),
-        ]
-        if collect_corrected:
+        ] if listen else []
+        if collect_corrected and listen:
             for n in self.names:
                 self.outputs.corrected[n] = {}
                 self.subscriptions.append(self.node.create_subscription(
