@@ -128,8 +128,9 @@ _clock = {"next": 0}
 
 
 def _start() -> int:
-    """Stamp of a new hand-made sequence: now, but after every stamp used so far (no source restart)."""
-    return max(time.time_ns(), _clock["next"])
+    """Stamp of a new hand-made sequence: now, but after every stamp used so far (no source restart)
+    and a second after the last one: the sensors paused, so they may come back at another rate."""
+    return max(time.time_ns(), _clock["next"] + 1_000_000_000)
 
 
 def _publish(driver: ArrayDriver, messages: list[RawMessage], rate: float = 400.0) -> None:
@@ -149,7 +150,7 @@ def _counts(status: DiagnosticStatus) -> dict[str, int]:
 
 
 def _settled(status: DiagnosticStatus) -> bool:
-    """Every sensor's period estimate is the hand-made sets' 20 ms."""
+    """Every sensor's period is the hand-made sets' 20 ms (learnt after the pause before them)."""
     return all(v == "20" for k, v in status_values(status).items() if k.endswith(".period_ms"))
 
 

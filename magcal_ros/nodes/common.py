@@ -116,6 +116,14 @@ def now_ns(node: Any) -> int:
     return int(node.get_clock().now().nanoseconds)
 
 
+def clock_reader(node: Any) -> Callable[[], int]:
+    """A fast reader of the node clock (ns) for the hot path: without use_sim_time the ROS clock is
+    the system clock, read directly; with it, the node clock. Call again when use_sim_time changes."""
+    if node.get_parameter("use_sim_time").value:
+        return lambda: now_ns(node)
+    return time.time_ns
+
+
 NUMBER_ARRAYS = (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY)
 
 

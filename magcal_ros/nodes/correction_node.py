@@ -191,6 +191,7 @@ class CorrectionNode(Node):
         self._field_msg = MagneticField()
         self._gradient_msg = _gradient_message()
         self._stamped_msg = JointState(name=list(TENSOR_COLUMNS))
+        self._now = common.clock_reader(self)
         self._published = 0
         self._withheld = 0
         self._ages: list[int] = []
@@ -299,6 +300,8 @@ class CorrectionNode(Node):
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         """Swap in the validated state (runs between two sets: single-threaded executor)."""
+        if any(p.name == "use_sim_time" for p in params):
+            self._now = common.clock_reader(self)
         new, self._pending = self._pending, None
         if new is None:
             return
@@ -430,7 +433,7 @@ class CorrectionNode(Node):
         stamped.position = components
         self._stamped_pub.publish(stamped)
         self._published += 1
-        self._ages.append(common.now_ns(self) - synced.stamp)
+        self._ages.append(self._now() - synced.stamp)
 
     # -- reporting ------------------------------------------------------------------
     def _counters(self) -> dict[str, int]:

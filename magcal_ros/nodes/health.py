@@ -1,10 +1,14 @@
 """Health of a live sensor array, as the nodes report it on ``/diagnostics`` (no ROS import).
 
 Per sensor: messages received, the last stamp and losses before the node: a stamp
-interval longer than 1.5 sample periods (the synchroniser's per-sensor estimate) means
-``round(interval / period) - 1`` messages never arrived (DDS queue overflow, a lossy
-link). A jump longer than ``silent_after_ns`` is a pause of the sensor (reported as
-silent while it lasts), not a loss. Every ``assess`` (the status period) turns the counters into a level and a message:
+interval longer than 1.5 sample periods means ``round(interval / period) - 1`` messages
+never arrived (DDS queue overflow, a lossy link). The period is the smallest of the
+synchroniser's per-sensor estimates (median of the last intervals) since the sensor
+started: losses only lengthen intervals, so a stretch where every other message is lost
+cannot pass for a slower sensor. A jump longer than ``silent_after_ns`` is a pause of the
+sensor (reported as silent while it lasts), not a loss; after it (and at the start) the
+period is learnt afresh from the next :data:`~magcal_ros.core.sync.PERIOD_WINDOW`
+intervals, so a sensor that comes back at another rate is not miscounted. Every ``assess`` (the status period) turns the counters into a level and a message:
 
 - ERROR: no output (set published or collected) for ``stale_after_ns``;
 - WARN: a sensor silent (no message for ``silent_after_ns``) or late (its newest stamp
@@ -19,7 +23,7 @@ Times are node-clock nanoseconds (simulated time with ``use_sim_time``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from magcal_ros.core.sync import SetSynchronizer
+from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer
 from magcal_ros.core.units import NS_PER_S
 
 OK, WARN, ERROR = 0, 1, 2
@@ -65,6 +69,10 @@ class ArrayHealth:
         """Messages estimated lost before reaching the node (stamp gaps)."""
         self.gaps = [0] * n
         self._last = [0] * n
+        self._period = [0] * n
+        """Nominal sample period (ns) used for gaps; 0 while learning."""
+        self._learning = [PERIOD_WINDOW] * n
+        """Intervals still to see before the period estimate reflects only the current run."""
         self._counted = [0] * n
         self._heard = [now_ns] * n
         self._last_output = now_ns
@@ -78,16 +86,25 @@ class ArrayHealth:
         last = self._last[index]
         if stamp_ns > last:
             if last:
-                period = self.sync.period_ns(index)
                 interval = stamp_ns - last
-                if period and 2 * interval > GAP_FACTOR_2 * period and interval <= self.limits.silent_after_ns:
-                    missing = (interval + period // 2) // period - 1
-                    if missing > 0:
-                        self.gaps[index] += 1
-                        self.lost[index] += missing
+                if interval > self.limits.silent_after_ns:  # a pause: learn the period again
+                    self._learning[index], self._period[index] = PERIOD_WINDOW, 0
+                elif self._learning[index]:
+                    self._learning[index] -= 1
+                else:
+                    estimate = self.sync.period_ns(index)
+                    period = self._period[index]
+                    if estimate and (not period or estimate < period):
+                        period = self._period[index] = estimate
+                    if period and 2 * interval > GAP_FACTOR_2 * period:
+                        missing = (interval + period // 2) // period - 1
+                        if missing > 0:
+                            self.gaps[index] += 1
+                            self.lost[index] += missing
             self._last[index] = stamp_ns
-        elif stamp_ns and last - stamp_ns > self.sync.restart_ns:
-            self._last[index] = stamp_ns  # the source restarted: a new sequence
+        elif stamp_ns and last - stamp_ns > self.sync.restart_ns:  # the source restarted: a new sequence
+            self._last[index] = stamp_ns
+            self._learning[index], self._period[index] = PERIOD_WINDOW, 0
 
     def output(self, count: int, now_ns: int) -> None:
         """Outputs so far (sets published or collected), at node time ``now_ns``."""
@@ -125,7 +142,7 @@ class ArrayHealth:
                 silent.append(f"{name} ({quiet / NS_PER_S:.1f} s)")
             elif self._last[k] and newest - self._last[k] > lim.silent_after_ns:
                 late.append(f"{name} ({(newest - self._last[k]) / NS_PER_S:.1f} s behind)")
-            period = self.sync.period_ns(k)
+            period = self._period[k] or self.sync.period_ns(k)
             values[f"{name}.received"] = str(self.received[k])
             values[f"{name}.lost"] = str(self.lost[k])
             values[f"{name}.gaps"] = str(self.gaps[k])
