@@ -14,8 +14,8 @@ except ImportError:  # setuptools < 80: distutils' command (setuptools' own copy
 PACKAGE = "magcal_ros"
 CONSOLE_SCRIPTS = {
     "magcal": "magcal_ros.app.cli:main",
-    "correction_node": "magcal_ros.nodes.correction_node:main",
-    "calibration_node": "magcal_ros.nodes.calibration_node:main",
+    "correction_node": "magcal_ros.nodes.entry:correction_node",
+    "calibration_node": "magcal_ros.nodes.entry:calibration_node",
 }
 LAUNCHER = """#!/bin/sh
 # `ros2 run {package} {name}` looks for <prefix>/lib/{package}/{name}, <prefix> found through the

@@ -110,8 +110,8 @@ def _nodes(module: types.ModuleType, **overrides: str) -> tuple[list[Any], dict[
 
 
 def _executables() -> set[str]:
-    """Console scripts named in setup.py (``"name": "module:main"``)."""
-    return set(re.findall(r'"(\w+)": "[\w.]+:main"', (ROOT / "setup.py").read_text()))
+    """Console scripts named in setup.py (``"name": "module:function"``)."""
+    return set(re.findall(r'"(\w+)": "magcal_ros[\w.]*:\w+"', (ROOT / "setup.py").read_text()))
 
 
 def test_launch_starts_both_installed_executables_with_config(launch_module: types.ModuleType, tmp_path: Path) -> None:

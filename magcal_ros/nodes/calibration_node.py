@@ -430,6 +430,9 @@ class CalibrationNode(Node):
                 self._push(params)
         except OSError as exc:
             why = f"{exc.strerror} ({exc.filename})" if exc.strerror and exc.filename else str(exc)
+            if isinstance(exc.__context__, CallFailed):  # the push failed, then putting the old file back did
+                return self._fail(f"solved but not applied: {exc.__context__}; and the previous {path} could NOT be "
+                                  f"put back ({why}): the file holds a calibration the correction node does not run")
             return self._fail(f"solved but cannot write {path}: {why}; set calibration_file; nothing was changed")
         except CallFailed as exc:
             if isinstance(exc, Stopping):
@@ -524,9 +527,9 @@ class CalibrationNode(Node):
             raise CallFailed(f"{self._target_name()} rejected the calibration: {reply.result.reason}")
 
 
-def main(args: Sequence[str] | None = None) -> int:
-    """Entry point of ``ros2 run magcal_ros calibration_node``."""
-    return common.run_node(lambda argv: CalibrationNode(), SingleThreadedExecutor, args)
+def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+    """Run the node (``ros2 run magcal_ros calibration_node`` goes through :mod:`magcal_ros.nodes.entry`)."""
+    return common.run_node(lambda argv: CalibrationNode(), SingleThreadedExecutor, args, stop)
 
 
 if __name__ == "__main__":

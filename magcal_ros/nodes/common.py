@@ -20,6 +20,7 @@ from magcal_ros.core import sync
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
+from magcal_ros.nodes.entry import quiet_signals
 from magcal_ros.nodes.health import Assessment, HealthLimits
 
 DEFAULT_SENSOR_NAMES: list[str] = list(DEFAULT_NAMES)
@@ -296,33 +297,21 @@ def unmatched_calibrations(files: Sequence[str], fully_qualified_name: str) -> l
     return out
 
 
-def _quiet_signals() -> threading.Event:
-    """SIGINT and SIGTERM set an event instead of raising KeyboardInterrupt or killing the process.
-
-    Installed before ``rclpy.init``: rclpy's own handler (installed by init) shuts the
-    context down, which ends the spin, and then calls this one, so a Ctrl-C anywhere,
-    also a second one during clean-up, never raises a traceback.
-    """
-    stop = threading.Event()
-
-    def handler(signum: int, frame: Any) -> None:
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
-    return stop
-
-
 def run_node(
-    make_node: Callable[[list[str]], Any], make_executor: Callable[[], Any], args: Sequence[str] | None = None
+    make_node: Callable[[list[str]], Any],
+    make_executor: Callable[[], Any],
+    args: Sequence[str] | None = None,
+    stop: threading.Event | None = None,
 ) -> int:
     """Initialise rclpy, spin the node until shutdown (Ctrl-C, SIGTERM) and clean up; exit code.
 
     ``make_node(argv)`` builds the node. A node that cannot start (invalid parameters) logs
     one clear line and gives exit code 1; a signal at any moment gives a quiet exit 0.
+    ``stop``: the event of :func:`~magcal_ros.nodes.entry.quiet_signals` if already installed.
     The node's ``close()`` (if any) runs before ``destroy_node``.
     """
-    stop = _quiet_signals()
+    if stop is None:
+        stop = quiet_signals()
     import rclpy
     from rclpy.exceptions import (
         InvalidParameterTypeException,
@@ -350,12 +339,16 @@ def run_node(
             if stop.is_set() or not rclpy.ok():
                 return 0  # interrupted while starting
             raise
-        executor = make_executor()
-        executor.add_node(node)
         try:
+            executor = make_executor()
+            executor.add_node(node)
             executor.spin()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:
+            if stop.is_set() or not rclpy.ok():
+                return 0  # interrupted before spinning: the context is already shut down
+            raise
         return 0
     finally:
         if node is not None:

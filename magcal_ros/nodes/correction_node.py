@@ -36,6 +36,7 @@ Usage::
 from __future__ import annotations
 
 import struct
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -463,9 +464,9 @@ class CorrectionNode(Node):
         self._diagnostics_pub.publish(common.diagnostic_array(self, [status]))
 
 
-def main(args: Sequence[str] | None = None) -> int:
-    """Entry point of ``ros2 run magcal_ros correction_node``."""
-    return common.run_node(lambda argv: CorrectionNode(argv=argv), SingleThreadedExecutor, args)
+def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+    """Run the node (``ros2 run magcal_ros correction_node`` goes through :mod:`magcal_ros.nodes.entry`)."""
+    return common.run_node(lambda argv: CorrectionNode(argv=argv), SingleThreadedExecutor, args, stop)
 
 
 if __name__ == "__main__":
