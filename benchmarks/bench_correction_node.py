@@ -133,7 +133,8 @@ def throughput(rates: list[float], seconds: float, workdir: Path, domain: int) -
     )
 
     env = ros_environment(domain)
-    node = NodeProcess("correction_node", ros_args(), env, workdir / "correction_node.log")
+    node = NodeProcess("correction_node", ros_args(params={"uncorrected_sensors": list(NAMES)}), env,
+                       workdir / "correction_node.log")
     proc = psutil.Process(node.pid)
     driver = ArrayDriver(NAMES, domain, node_name="magcal_bench_receiver", collect_corrected=False)
     try:
@@ -199,7 +200,8 @@ def memory(minutes: float, rate: float, max_samples: int, workdir: Path, domain:
 
     env = ros_environment(domain)
     nodes = {
-        "correction_node": NodeProcess("correction_node", ros_args(), env, workdir / "mem_correction.log"),
+        "correction_node": NodeProcess("correction_node", ros_args(params={"uncorrected_sensors": list(NAMES)}), env,
+                                       workdir / "mem_correction.log"),
         "calibration_node": NodeProcess(
             "calibration_node", ros_args(params={"max_samples": max_samples, "calibration_file": ""}), env,
             workdir / "mem_calibration.log"),

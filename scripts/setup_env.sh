@@ -20,6 +20,18 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$root/requirements-test.txt"
   echo "$want" > "$stamp"
 fi
+# `ros2 run` and `ros2 launch` find packages through AMENT_PREFIX_PATH; the ROS wheels and this
+# package install their ament index into the venv, so activating the venv puts it there.
+marker="# magcal_ros: ament prefix"
+if ! grep -q "$marker" "$venv/bin/activate"; then
+  cat >> "$venv/bin/activate" <<'ACTIVATE'
+# magcal_ros: ament prefix (ros2 run / ros2 launch find packages installed in this venv)
+case ":${AMENT_PREFIX_PATH:-}:" in
+  *":$VIRTUAL_ENV:"*) ;;
+  *) export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}" ;;
+esac
+ACTIVATE
+fi
 echo "[setup] installing magcal_ros into $venv" >&2
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation --force-reinstall "$root" 2>&1 \
   | grep -v -E "^WARNING: Location .* is ignored" >&2 || true

@@ -40,6 +40,9 @@ DISCOVERY_TIMEOUT = 60.0
 REPLAY_RATE = 400.0
 CORRECTION = "magcal_correction"
 CALIBRATION = "magcal_calibration"
+NAMES = ("mag1", "mag2", "mag3", "mag4")
+UNCORRECTED = {"uncorrected_sensors": list(NAMES)}
+"""Correction node parameters to run without a calibration (raw readings on purpose)."""
 
 
 @dataclass
@@ -130,19 +133,23 @@ class RosRun:
         params_files: Sequence[str | os.PathLike[str]] = (),
         log_name: str | None = None,
         ready_text: str | None = None,
+        namespace: str | None = None,
+        process_group: int | None = None,
     ) -> NodeProcess:
-        """Start an installed node executable and wait for its start-up log line."""
+        """Start an installed node executable (name or path) and wait for its start-up log line."""
         log = self.workdir / f"{log_name or executable}.log"
-        proc = NodeProcess(executable, ros_args(params=params, params_files=params_files), self.env, log)
+        args = ros_args(params=params, params_files=params_files, namespace=namespace)
+        proc = NodeProcess(executable, args, self.env, log, process_group=process_group)
         self.processes.append(proc)
-        text = ready_text or ("correcting" if executable == "correction_node" else "listening to")
+        text = ready_text or ("correcting" if executable.endswith("correction_node") else "listening to")
         if not proc.wait_for_log(text, STARTUP_TIMEOUT):
             raise AssertionError(f"{executable} did not start:\n{proc.log()}")
         return proc
 
-    def driver(self, names: Sequence[str]) -> ArrayDriver:
-        """A driver node on this domain, waited on until it sees the nodes' topics."""
-        d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}")
+    def driver(self, names: Sequence[str], namespace: str = "") -> ArrayDriver:
+        """A driver node on this domain (publishing and listening in ``namespace``)."""
+        d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}",
+                        namespace=namespace)
         self.drivers.append(d)
         return d
 

@@ -65,7 +65,7 @@ def test_recalibration_keeps_the_previous_file_as_backup(tmp_path, rotation_csv)
     assert run_magcal("calibrate", str(rotation_csv), "-o", str(out)).returncode == 0
     first = out.read_text()
     assert run_magcal("calibrate", str(rotation_csv), "-o", str(out), "--reference-field", str(F)).returncode == 0
-    assert (tmp_path / "cal.yaml.bak").read_text() == first
+    assert [b.read_text() for b in calfile.backups(out)] == [first]
 
 
 def _bad_csvs(tmp_path: Path, good: Path) -> dict[str, Path]:

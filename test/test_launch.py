@@ -2,12 +2,15 @@
 
 The stand-ins accept exactly the launch / launch_ros calls a real ROS 2 Jazzy install
 provides (LaunchDescription, DeclareLaunchArgument, OpaqueFunction, LaunchConfiguration,
-launch_ros.actions.Node with package/executable/name/namespace/parameters/output/emulate_tty).
+launch_ros.actions.Node with package/executable/name/namespace/parameters/output/emulate_tty)
+and a LaunchContext with ``argv`` (the ``name:=value`` arguments of the command line, as
+``ros2 launch`` passes them) and ``launch_configurations``.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 import types
 from pathlib import Path
@@ -37,12 +40,20 @@ class _OpaqueFunction(_Recorded):
         self.function = function
 
 
+class _LaunchContext:
+    """launch.LaunchContext's two members the launch file uses."""
+
+    def __init__(self, argv: list[str], configurations: dict[str, str]) -> None:
+        self.argv = argv
+        self.launch_configurations = configurations
+
+
 class _LaunchConfiguration:
     def __init__(self, name: str) -> None:
         self.name = name
 
-    def perform(self, context: dict[str, str]) -> str:
-        return context[self.name]
+    def perform(self, context: _LaunchContext) -> str:
+        return context.launch_configurations[self.name]
 
 
 class _Node(_Recorded):
@@ -88,31 +99,37 @@ def launch_module(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> types.Modu
 
 
 def _nodes(module: types.ModuleType, **overrides: str) -> tuple[list[Any], dict[str, _Node]]:
+    """Run the launch description as ``ros2 launch ... name:=value`` (overrides) would."""
     actions = module.generate_launch_description()
     args = {a.name: a.default_value for a in actions if isinstance(a, _DeclareLaunchArgument)}
     args.update(overrides)
     opaque = [a for a in actions if isinstance(a, _OpaqueFunction)]
     assert len(opaque) == 1
-    nodes = opaque[0].function(args)
+    nodes = opaque[0].function(_LaunchContext([f"{k}:={v}" for k, v in overrides.items()], args))
     return actions, {n.kwargs["executable"]: n for n in nodes}
 
 
 def _executables() -> set[str]:
-    text = (ROOT / "setup.py").read_text()
-    return {line.split("=")[0].strip().strip('"') for line in text.splitlines() if ":main" in line}
+    """Console scripts named in setup.py (``"name": "module:function"``)."""
+    return set(re.findall(r'"(\w+)": "magcal_ros[\w.]*:\w+"', (ROOT / "setup.py").read_text()))
 
 
 def test_launch_starts_both_installed_executables_with_config(launch_module: types.ModuleType, tmp_path: Path) -> None:
     actions, nodes = _nodes(launch_module, calibration=str(tmp_path / "none.yaml"))
-    assert {a.name for a in actions if isinstance(a, _DeclareLaunchArgument)} == {"config", "calibration", "namespace"}
+    declared = {a.name for a in actions if isinstance(a, _DeclareLaunchArgument)}
+    assert declared == {"config", "calibration", "namespace", "use_sim_time"}
     assert set(nodes) == {"correction_node", "calibration_node"} <= _executables()
     correction, calibration = nodes["correction_node"].kwargs, nodes["calibration_node"].kwargs
     assert correction["package"] == calibration["package"] == "magcal_ros"
     assert correction["name"] == "magcal_correction" and calibration["name"] == "magcal_calibration"
     config = yaml.safe_load((ROOT / "config" / "magcal.yaml").read_text())
-    assert correction["parameters"] == [config["magcal_correction"]["ros__parameters"]]
+    assert correction["parameters"] == [config["magcal_correction"]["ros__parameters"], {"use_sim_time": False}]
     assert calibration["parameters"][0] == config["magcal_calibration"]["ros__parameters"]
     assert calibration["parameters"][1]["correction_node"] == "magcal_correction"
+    assert calibration["parameters"][1]["use_sim_time"] is False
+    # The configuration gives no per-sensor calibration: only a calibration file does.
+    assert not any(k.endswith(("matrix", "offset")) or isinstance(v, dict)
+                   for k, v in config["magcal_correction"]["ros__parameters"].items())
 
 
 def test_launch_loads_an_existing_calibration_file(launch_module: types.ModuleType) -> None:
@@ -121,5 +138,23 @@ def test_launch_loads_an_existing_calibration_file(launch_module: types.ModuleTy
     correction = nodes["correction_node"].kwargs
     assert correction["namespace"] == "array1"
     block = yaml.safe_load(example.read_text())["magcal_correction"]["ros__parameters"]
-    assert correction["parameters"][-1] == block
+    assert correction["parameters"][-2] == block
     assert nodes["calibration_node"].kwargs["parameters"][1]["calibration_file"] == str(example)
+
+
+def test_launch_passes_use_sim_time_to_both_nodes(launch_module: types.ModuleType, tmp_path: Path) -> None:
+    _, nodes = _nodes(launch_module, calibration=str(tmp_path / "none.yaml"), use_sim_time="true")
+    for node in nodes.values():
+        assert node.kwargs["parameters"][-1]["use_sim_time"] is True
+    with pytest.raises(RuntimeError, match="use_sim_time must be true or false"):
+        _nodes(launch_module, use_sim_time="yes please")
+
+
+def test_unknown_launch_arguments_stop_the_launch(launch_module: types.ModuleType) -> None:
+    """The old README spelling calibration_file:= used to start an uncalibrated node silently."""
+    with pytest.raises(RuntimeError, match=r"unknown launch argument\(s\) calibration_file \(did you mean calibration\?\)"):
+        _nodes(launch_module, calibration_file="/tmp/cal.yaml")
+    with pytest.raises(RuntimeError, match="namespce.*takes config, calibration, namespace, use_sim_time"):
+        _nodes(launch_module, namespce="array1")
+    readme = (ROOT / "README.md").read_text()
+    assert "calibration_file:=" not in readme and "calibration:=" in readme

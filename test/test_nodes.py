@@ -58,7 +58,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Any:
     r = h.RosRun(workdir)
     calibration_file = workdir / "calibration.yaml"
     try:
-        r.start("correction_node", log_name="correction")
+        r.start("correction_node", params=h.UNCORRECTED, log_name="correction")
         r.start(
             "calibration_node",
             params={"reference_field": h.INTENSITY, "calibration_file": str(calibration_file), "service_timeout": 10.0},
@@ -293,9 +293,10 @@ def test_calibrate_without_samples_explains_what_to_do(calibrated: dict[str, Any
 def test_calibration_node_rejects_invalid_parameters(driver: Any) -> None:
     for update, why in [
         ({"method": "bogus"}, "unknown method"),
-        ({"reference_field": 1.0}, "Earth-like"),
+        ({"reference_field": 1.0}, "out of range"),
+        ({"reference_field": 1e-9}, "Earth-like"),
         ({"reference_field": "a lot"}, "must be a number"),
-        ({"max_samples": 3}, "at least 20"),
+        ({"max_samples": 3}, "out of range"),
         ({"positions": [0.2, 0.0, 0.0]}, "positions"),
     ]:
         (ok, reason), = driver.set_parameters(h.CALIBRATION, update)

@@ -104,7 +104,9 @@ def run(args: argparse.Namespace) -> int:
     nodes: list[NodeProcess] = []
     driver = None
     try:
-        nodes.append(NodeProcess("correction_node", ros_args(), env, work / "correction_node.log"))
+        # Uncalibrated at first, on purpose (the "before" figures): raw readings for every sensor.
+        raw = {"uncorrected_sensors": list(sim.geometry.names)}
+        nodes.append(NodeProcess("correction_node", ros_args(params=raw), env, work / "correction_node.log"))
         cal_params = {"calibration_file": str(calibration_file),
                       "reference_field": 0.0 if args.relative else INTENSITY}
         nodes.append(NodeProcess("calibration_node", ros_args(params=cal_params), env, work / "calibration_node.log"))

@@ -56,7 +56,11 @@ def isolate_this_process(domain_id: int) -> None:
 
 
 def find_executable(name: str) -> str:
-    """Path of an installed node executable: PATH, this interpreter's bin, or lib/magcal_ros."""
+    """Path of an installed node executable: a path as given, PATH, this interpreter's bin, or lib/magcal_ros."""
+    if os.sep in name:
+        if os.path.isfile(name) and os.access(name, os.X_OK):
+            return name
+        raise FileNotFoundError(f"{name} is not an executable file")
     candidates = [shutil.which(name), str(Path(sys.executable).parent / name)]
     prefix = Path(sys.prefix)
     candidates.append(str(prefix / "lib" / "magcal_ros" / name))
@@ -71,11 +75,14 @@ def ros_args(
     params: Mapping[str, Any] | None = None,
     params_files: Sequence[str | os.PathLike[str]] = (),
     log_level: str | None = None,
+    namespace: str | None = None,
 ) -> list[str]:
-    """``--ros-args`` for a node: rename, ``-p name:=value`` (YAML values), params files."""
+    """``--ros-args`` for a node: rename, namespace, ``-p name:=value`` (YAML values), params files."""
     out = ["--ros-args"]
     if node_name:
         out += ["-r", f"__node:={node_name}"]
+    if namespace:
+        out += ["-r", f"__ns:=/{namespace.strip('/')}"]
     for f in params_files:
         out += ["--params-file", str(f)]
     for k, v in (params or {}).items():
@@ -111,15 +118,20 @@ class NodeProcess:
         args: Sequence[str],
         env: Mapping[str, str],
         log_path: str | os.PathLike[str],
+        process_group: int | None = None,
     ) -> None:
+        """``executable``: a name (found by :func:`find_executable`) or a path. The process leads a
+        new session, or with ``process_group`` joins that process group of this session (0: a new
+        group led by the process), as the processes of one terminal command do."""
         self.executable = find_executable(executable)
         self.args = list(args)
         self.log_path = Path(log_path)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self._log = open(self.log_path, "w", encoding="utf-8")
+        group: dict[str, Any] = {"start_new_session": True} if process_group is None else {"process_group": process_group}
         self.process = subprocess.Popen(
             [self.executable, *self.args], env=dict(env), stdout=self._log, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, start_new_session=True,
+            stdin=subprocess.DEVNULL, **group,
         )
 
     @property
@@ -133,7 +145,8 @@ class NodeProcess:
 
     def log(self) -> str:
         """Everything the node printed so far."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(encoding="utf-8", errors="replace")
 
     def wait_for_log(self, text: str, timeout: float = 30.0) -> bool:
@@ -151,11 +164,15 @@ class NodeProcess:
         """Ctrl-C the node, wait for a clean exit, kill it if it hangs; returns the exit code."""
         if self.alive():
             self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(5.0)
+        return self.wait(timeout)
+
+    def wait(self, timeout: float = 10.0) -> int:
+        """Wait for the process to end (killed if it is still there after ``timeout``); the exit code."""
+        try:
+            self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait(5.0)
         self._log.close()
         return int(self.process.returncode)
 
@@ -182,6 +199,19 @@ def recording_messages(
         for name, v in zip(names, sets):
             out.append(RawMessage(name, t, (v[0], v[1], v[2])))
     return out
+
+
+def serialized_sets(
+    names: Sequence[str], stamps_ns: NDArray[np.int64], vectors: NDArray[np.float64]
+) -> list[list[bytes]]:
+    """CDR bytes of complete sets (stamps (N,) ns, vectors (N, S, 3) T): per set, one message per sensor."""
+    from magcal_ros.io.cdr import magnetic_field_template
+
+    columns = [
+        magnetic_field_template(n).encode(np.asarray(stamps_ns, dtype=np.int64), np.asarray(vectors)[:, k])
+        for k, n in enumerate(names)
+    ]
+    return [[bytes(col[i]) for col in columns] for i in range(len(stamps_ns))]
 
 
 def bag_messages(path: str | os.PathLike[str], names: Sequence[str] | None = None) -> list[RawMessage]:
@@ -241,6 +271,12 @@ class Outputs:
     latency: list[float] = default(default_factory=list)
     """Receipt wall time minus stamp (s) of each gradient, when stamps are wall times."""
     gradient_layouts: list[tuple[tuple[str, int, int], ...]] = default(default_factory=list)
+    stamped: dict[int, NDArray[np.float64]] = default(default_factory=dict)
+    """Gradient (3, 3) T/m from gradient_stamped, by its header stamp."""
+    stamped_frames: set[str] = default(default_factory=set)
+    stamped_names: list[tuple[str, ...]] = default(default_factory=list)
+    covariances: dict[str, NDArray[np.float64]] = default(default_factory=dict)
+    """Last magnetic_field_covariance (9,) received on field and each <name>/corrected, by topic name."""
 
 
 class ArrayDriver:
@@ -253,43 +289,55 @@ class ArrayDriver:
         node_name: str = "magcal_driver",
         collect_corrected: bool = True,
         publish_depth: int = 1000,
+        namespace: str = "",
+        listen: bool = True,
     ) -> None:
+        """``namespace``: the nodes' namespace; raw topics are published and outputs read in it.
+        ``listen=False``: publish only (no subscriptions to the outputs)."""
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import MagneticField
+        from sensor_msgs.msg import JointState, MagneticField
         from std_msgs.msg import Float64MultiArray
 
         self._rclpy = rclpy
         isolate_this_process(domain_id)
         self.names = tuple(names)
+        self.prefix = f"/{namespace.strip('/')}" if namespace.strip("/") else ""
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(node_name, context=self.context)
         self._msg_type = MagneticField
         reliable = QoSProfile(depth=publish_depth, reliability=ReliabilityPolicy.RELIABLE)
-        self.publishers = {n: self.node.create_publisher(MagneticField, f"/{n}/raw", reliable) for n in self.names}
+        self.publishers = {
+            n: self.node.create_publisher(MagneticField, self.topic(f"{n}/raw"), reliable) for n in self.names
+        }
         self.outputs = Outputs()
         self._lock = threading.Lock()
         self._fields: deque[int] = deque()
         self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
         out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.subscriptions = [
-            self.node.create_subscription(MagneticField, "/field", self._on_field, out_qos),
-            self.node.create_subscription(Float64MultiArray, "/gradient", self._on_gradient, out_qos),
-        ]
-        if collect_corrected:
+            self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
+            self.node.create_subscription(Float64MultiArray, self.topic("gradient"), self._on_gradient, out_qos),
+            self.node.create_subscription(JointState, self.topic("gradient_stamped"), self._on_stamped, out_qos),
+        ] if listen else []
+        if collect_corrected and listen:
             for n in self.names:
                 self.outputs.corrected[n] = {}
-                self.subscriptions.append(
-                    self.node.create_subscription(MagneticField, f"/{n}/corrected", self._corrected_cb(n), out_qos)
-                )
+                self.subscriptions.append(self.node.create_subscription(
+                    MagneticField, self.topic(f"{n}/corrected"), self._corrected_cb(n), out_qos))
+        self._clock_pub: Any = None
         self.statuses: dict[str, Any] = {}
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name="magcal-driver", daemon=True)
         self._thread.start()
+
+    def topic(self, relative: str) -> str:
+        """The absolute name of a node topic in the driver's namespace."""
+        return f"{self.prefix}/{relative.lstrip('/')}"
 
     def _spin(self) -> None:
         try:
@@ -316,6 +364,7 @@ class ArrayDriver:
         f = msg.magnetic_field
         with self._lock:
             self.outputs.field[t] = np.array([f.x, f.y, f.z])
+            self.outputs.covariances["field"] = np.array(msg.magnetic_field_covariance, dtype=float)
             self._fields.append(t)
             self._pair()
 
@@ -328,6 +377,14 @@ class ArrayDriver:
                     tuple((d.label, int(d.size), int(d.stride)) for d in msg.layout.dim)
                 )
             self._pair()
+
+    def _on_stamped(self, msg: Any) -> None:
+        t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        with self._lock:
+            self.outputs.stamped[t] = np.array(msg.position, dtype=float).reshape(3, 3)
+            self.outputs.stamped_frames.add(msg.header.frame_id)
+            if not self.outputs.stamped_names:
+                self.outputs.stamped_names.append(tuple(msg.name))
 
     def _pair(self) -> None:
         """Match gradients to fields in publication order (the node sends field, then gradient)."""
@@ -343,6 +400,7 @@ class ArrayDriver:
             f = msg.magnetic_field
             with self._lock:
                 self.outputs.corrected[name][t] = np.array([f.x, f.y, f.z])
+                self.outputs.covariances[name] = np.array(msg.magnetic_field_covariance, dtype=float)
 
         return cb
 
@@ -354,6 +412,8 @@ class ArrayDriver:
             for d in self.outputs.corrected.values():
                 d.clear()
             self.outputs.latency.clear()
+            self.outputs.stamped.clear()
+            self.outputs.covariances.clear()
             self._fields.clear()
             self._tensors.clear()
 
@@ -478,6 +538,23 @@ class ArrayDriver:
             self.publish(RawMessage(m.name, stamp, m.vector))
         return mapping
 
+    def replay_serialized(self, frames: Sequence[Sequence[bytes]], rate: float) -> tuple[int, float]:
+        """Publish pre-serialized sets (per set, one CDR message per sensor in ``names`` order) at ``rate``.
+
+        The fast path for high rates: no message objects, no serialization while publishing.
+        Returns (sets published, seconds taken).
+        """
+        pubs = [self.publishers[n] for n in self.names]
+        period = 1.0 / rate
+        start = time.monotonic()
+        for k, frame in enumerate(frames):
+            delay = start + k * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            for pub, data in zip(pubs, frame):
+                pub.publish(data)
+        return len(frames), time.monotonic() - start
+
     # -- services ---------------------------------------------------------------------
     def _call(self, srv_type: Any, name: str, request: Any, timeout: float) -> Any:
         client = self.node.create_client(srv_type, name)
@@ -528,6 +605,40 @@ class ArrayDriver:
             value = parameter_value_to_python(v)
             out[n] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
         return out
+
+    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+        """rcl_interfaces/ParameterDescriptor of parameters of ``node``, by name."""
+        from rcl_interfaces.srv import DescribeParameters
+
+        reply = self._call(DescribeParameters, f"/{node.strip('/')}/describe_parameters",
+                           DescribeParameters.Request(names=list(names)), timeout)
+        return {d.name: d for d in reply.descriptors}
+
+    def publish_clock(self, stamp_ns: int) -> None:
+        """Publish ``stamp_ns`` on /clock (rosgraph_msgs/Clock), as a bag player with --clock does."""
+        from rosgraph_msgs.msg import Clock
+
+        if self._clock_pub is None:
+            self._clock_pub = self.node.create_publisher(Clock, "/clock", 10)
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), NS_PER_S)
+        self._clock_pub.publish(msg)
+
+    def diagnostics(self, node: str, predicate: Any = None, timeout: float = 30.0) -> Any:
+        """The first status of ``node`` (fully qualified name) on /diagnostics satisfying ``predicate``."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        found: list[Any] = []
+
+        def match(msg: Any) -> bool:
+            for status in msg.status:
+                if status.name == node and (predicate is None or predicate(status)):
+                    found.append(status)
+                    return True
+            return False
+
+        self.wait_for_message(DiagnosticArray, "/diagnostics", match, timeout)
+        return found[0] if found else None
 
     def wait_for_message(self, msg_type: Any, topic: str, predicate: Any = None, timeout: float = 30.0) -> Any:
         """The first message on ``topic`` satisfying ``predicate`` (None on timeout)."""

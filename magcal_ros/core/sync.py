@@ -184,6 +184,7 @@ class SetSynchronizer:
         self._head = [0] * sensors
         self._last = [_NEVER] * sensors
         self._intervals: list[list[int]] = [[] for _ in range(sensors)]
+        self._periods: list[int | None] = [None] * sensors
         self._newest = _NEVER
 
     # -- state ------------------------------------------------------------------------
@@ -199,6 +200,10 @@ class SetSynchronizer:
             return self.tolerance_ns
         return min(self.tolerance_ns, self.min_period_ns // 2)
 
+    def period_ns(self, index: int) -> int | None:
+        """Sample period estimate (ns) of sensor ``index``: median of its last stamp intervals; None before two."""
+        return self._periods[index]
+
     def reset(self) -> None:
         """Drop every queued message (counted as unmatched) and forget each sensor's history."""
         self.stats.unmatched += self.pending
@@ -208,6 +213,7 @@ class SetSynchronizer:
             self._head[k] = 0
             self._last[k] = _NEVER
             self._intervals[k] = []
+            self._periods[k] = None
         self._newest = _NEVER
 
     def _period(self, index: int, interval: int) -> int:
@@ -217,6 +223,7 @@ class SetSynchronizer:
         if len(iv) > PERIOD_WINDOW:
             del iv[0]
         period = _median_int(iv)
+        self._periods[index] = period
         if self.min_period_ns is None or period < self.min_period_ns:
             self.min_period_ns = period
         return period // 2
@@ -322,6 +329,7 @@ class SetSynchronizer:
             period = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2
             caps[first + head :] = period // 2
             self._intervals[index] = iv[-PERIOD_WINDOW:].tolist()
+            self._periods[index] = int(period[-1])
             low = int(period.min())
             if self.min_period_ns is None or low < self.min_period_ns:
                 self.min_period_ns = low

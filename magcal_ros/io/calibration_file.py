@@ -11,14 +11,26 @@ Layout (docs/interfaces.md)::
       ros__parameters: {method: ..., created: ..., samples: ..., ...}
 
 The provenance block is a parameter block of a node that does not exist, so
-``--params-file`` loads the file unchanged. Written atomically; the previous file is
-kept as ``<file>.bak``.
+``--params-file`` loads the file unchanged. Written atomically; the previous file is kept
+as a timestamped backup ``<file>.<UTC time>.bak`` (the last :data:`DEFAULT_BACKUPS`).
+
+Every float is written so that every ROS reader reads a float: rcl's parser
+(``--params-file``), PyYAML and rclpy's ``parameter_dict_from_yaml_file`` (``ros2 param
+load``), which re-parses ``str(value)`` and so reads a float whose ``repr`` has no
+decimal point (``5e-08``) as a string. Such a value is written as its neighbour one unit
+in the last place away (``5.000000000000001e-08``), a change far below any measurement.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import math
 import os
-from collections.abc import Sequence
+import re
+from collections.abc import Iterator, Sequence
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,29 +42,47 @@ from magcal_ros.io.atomic import atomic_path
 
 CORRECTION_NODE: str = "magcal_correction"
 PROVENANCE_NODE: str = "magcal_provenance"
+DEFAULT_BACKUPS: int = 5
+"""Backups (previous files) kept beside a calibration file."""
+_BACKUP_TIME = "%Y%m%dT%H%M%S.%fZ"
+
+
+def ros_float(value: float) -> float:
+    """``value``, or its neighbour 1 ulp away if ``repr`` has no decimal point (see the module docstring)."""
+    x = float(value)
+    while math.isfinite(x) and "." not in repr(x):
+        x = math.nextafter(x, math.inf)
+    return x
 
 
 def _ros_value(value: Any) -> Any:
-    """A YAML value ROS parameters accept: scalars, strings, homogeneous lists."""
+    """A YAML value ROS parameters accept: scalars, strings, homogeneous lists, floats ROS-safe."""
     if isinstance(value, (bool, int, str)):
         return value
     if isinstance(value, (float, np.floating)):
-        return float(value)
+        return ros_float(value) if math.isfinite(value) else str(float(value))
     if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, dict):
+        return {str(k): _ros_value(v) for k, v in value.items()}
     if isinstance(value, (list, tuple, np.ndarray)):
         items = [_ros_value(v) for v in np.asarray(value).reshape(-1).tolist()]
         if items and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
-            return [float(v) for v in items]
+            return [ros_float(v) for v in items]
         return [str(v) for v in items]
     if value is None:
         return ""
     return str(value)
 
 
+def parameters(calibration: ArrayCalibration) -> dict[str, Any]:
+    """The correction node's parameters for ``calibration`` (nested), exactly as the file holds them."""
+    return _ros_value(calibration.to_parameters())
+
+
 def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> str:
     """YAML text of ``calibration`` for ``node_name``, with a provenance block."""
-    doc: dict[str, Any] = {node_name: {"ros__parameters": calibration.to_parameters()}}
+    doc: dict[str, Any] = {node_name: {"ros__parameters": parameters(calibration)}}
     meta = {k: _ros_value(v) for k, v in calibration.metadata.items() if isinstance(k, str)}
     if meta:
         doc[PROVENANCE_NODE] = {"ros__parameters": meta}
@@ -61,11 +91,85 @@ def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> st
     return header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=1000)
 
 
-def write(path: str | os.PathLike[str], calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> None:
-    """Write ``calibration`` atomically to ``path``, keeping the previous file as ``.bak``."""
+def backups(path: str | os.PathLike[str]) -> list[Path]:
+    """The timestamped backups ``<file>.<UTC time>.bak`` of ``path``, oldest first."""
+    target = Path(path)
+    pattern = re.compile(re.escape(target.name) + r"\.\d{8}T\d{6}\.\d{6}Z\.bak")
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if pattern.fullmatch(p.name))
+
+
+def _backup_path(target: Path) -> Path:
+    """A new backup name for ``target``: the current UTC time, and later than every existing backup."""
+    existing = backups(target)
+    when = datetime.now(timezone.utc).replace(tzinfo=None)
+    if existing:
+        last = datetime.strptime(existing[-1].name[len(target.name) + 1 : -len(".bak")], _BACKUP_TIME)
+        when = max(when, last + timedelta(microseconds=1))
+    return target.with_name(f"{target.name}.{when.strftime(_BACKUP_TIME)}.bak")
+
+
+@contextlib.contextmanager
+def replace(
+    path: str | os.PathLike[str],
+    calibration: ArrayCalibration,
+    node_name: str = CORRECTION_NODE,
+    keep: int = DEFAULT_BACKUPS,
+) -> Iterator[Path]:
+    """Write ``calibration`` to ``path``; undo it if the ``with`` block raises.
+
+    The previous file (if any) is first copied to a new timestamped backup; the new file
+    is written atomically. If the block raises, the previous file is put back atomically
+    (or the new one removed when there was none) and the new backup dropped, so the
+    file is as before. On success only the ``keep`` newest backups are kept. OSError if
+    the file cannot be written (then nothing changed).
+    """
+    target = Path(path)
     text = dumps(calibration, node_name)
-    with atomic_path(path, backup=True) as tmp:
-        tmp.write_text(text)
+    for folder in (target.parent, *target.parent.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+            break
+    previous = target.read_bytes() if target.is_file() else None
+    backup = _backup_path(target) if previous is not None and keep > 0 else None
+    if backup is not None:
+        with atomic_path(backup) as tmp:
+            tmp.write_bytes(previous)  # type: ignore[arg-type]
+    try:
+        with atomic_path(target) as tmp:
+            tmp.write_text(text)
+    except BaseException:
+        if backup is not None:
+            backup.unlink(missing_ok=True)
+        raise
+    try:
+        yield target
+    except BaseException:
+        if previous is None:
+            target.unlink(missing_ok=True)
+        else:
+            with atomic_path(target) as tmp:
+                tmp.write_bytes(previous)
+        if backup is not None:
+            backup.unlink(missing_ok=True)
+        raise
+    old = backups(target)
+    for stale in old[: max(len(old) - keep, 0)]:
+        stale.unlink(missing_ok=True)
+
+
+def write(
+    path: str | os.PathLike[str],
+    calibration: ArrayCalibration,
+    node_name: str = CORRECTION_NODE,
+    keep: int = DEFAULT_BACKUPS,
+) -> None:
+    """Write ``calibration`` atomically to ``path``, keeping the previous files as timestamped backups."""
+    with replace(path, calibration, node_name, keep):
+        pass
 
 
 def _node_blocks(doc: Any) -> dict[str, dict[str, Any]]:

@@ -15,6 +15,9 @@ GRADIENT = "gradient"
 BASELINE_GRADIENT = "baseline_gradient"
 """Gradient along the line of a collinear array, e.g. two sensors (geometry_msgs/Vector3Stamped,
 ``dB_j/ds`` in T/m, platform frame; ``s`` runs from the first sensor towards the last)."""
+GRADIENT_STAMPED = "gradient_stamped"
+"""The same tensor with the set's stamp and frame (sensor_msgs/JointState: names gradient.xx .. gradient.zz,
+position = the 9 components in T/m, row-major)."""
 DEFAULT_FRAME_ID = "magcal_array"
 """Default platform frame of every corrected output."""
 

@@ -6,17 +6,26 @@ attitudes. Services (std_srvs/srv/Trigger):
 
 - ``~/start``: forget collected sets and start collecting;
 - ``~/calibrate``: solve with the core (:func:`magcal_ros.methods.pipeline.calibrate_array`),
-  set the result on the running correction node through its
-  ``set_parameters_atomically`` service (all or nothing), then write the calibration
-  file (atomic, previous file kept as ``.bak``); answers the one-line summary, or
-  ``success: false`` with the reason and what to do, having changed nothing;
+  write the calibration file (atomic; the previous file kept as a timestamped backup,
+  the last ``backups``), then set the result on the running correction node through its
+  ``set_parameters_atomically`` service (all or nothing); if that fails the previous
+  file is put back, so the file and the running node never disagree and no set is ever
+  corrected with a calibration that is then withdrawn. Answers the one-line summary, or
+  ``success: false`` with the reason and what to do, having changed nothing. Called again
+  on the same collected sets and settings it does not solve again and changes nothing
+  (the answer says so);
 - ``~/reset``: drop collected sets (and stop collecting).
+
+``correction_node`` is a node name resolved like a topic: relative names live in this
+node's namespace. The file's node key is the correction node's fully qualified name.
 
 ``~/progress`` (diagnostic_msgs/DiagnosticStatus, every ``progress_period`` s): level OK
 when a solve would pass the observability checks, WARN when not yet (message says why),
 values ``collecting``, ``samples``, ``max_samples``, ``offered``, ``coverage`` (fraction
 of 42 sphere cells), ``thickness`` (thinnest/widest spread, ~0 for one rotation axis),
-``ready`` and ``problem``.
+``ready`` and ``problem``. ``/diagnostics`` (DiagnosticArray, same period): the health of
+the raw streams (silent or late sensors, drops, sets lost before the node, no complete
+set for ``output_timeout``), as the correction node reports it.
 
 Usage::
 
@@ -28,13 +37,16 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import os
 import threading
+import time
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rcl_interfaces.srv import GetParameters, SetParametersAtomically
@@ -62,6 +74,7 @@ from magcal_ros.methods.pipeline import (
 )
 from magcal_ros.nodes import common
 from magcal_ros.nodes.buffer import SetBuffer
+from magcal_ros.nodes.health import ArrayHealth
 
 NODE_NAME = "magcal_calibration"
 DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
@@ -71,6 +84,18 @@ WHAT_TO_DO = "call ~/start, turn the array through large angles about at least t
 class CallFailed(Exception):
     """A service call to the correction node did not complete."""
 
+    def __init__(self, message: str, unknown_outcome: bool = False) -> None:
+        super().__init__(message)
+        self.unknown_outcome = unknown_outcome
+        """The request went out but no answer came: the correction node may have applied it."""
+
+
+class Stopping(CallFailed):
+    """The node is shutting down: the calibration is abandoned."""
+
+    def __init__(self) -> None:
+        super().__init__("the calibration node is shutting down")
+
 
 class CalibrationNode(Node):
     """Collects synchronized raw sets and solves the array calibration on request."""
@@ -79,7 +104,12 @@ class CalibrationNode(Node):
         super().__init__(node_name, **kwargs)
         self._lock = threading.Lock()
         self._solve_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._last_solved: tuple[str, str] | None = None
+        """(fingerprint of the sets and settings, answer) of the last successful calibration."""
         self._declare_parameters()
+        self._limits = common.declare_health(self)
         try:
             self._geometry = self._read_geometry({})
         except (TypeError, ValueError) as exc:
@@ -92,6 +122,7 @@ class CalibrationNode(Node):
         self._subs: list[Any] = []
         self._connect(self._geometry)
         self._progress_pub = self.create_publisher(DiagnosticStatus, "~/progress", 10)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=self._calibrate_group)
         self.create_service(Trigger, "~/reset", self._on_reset)
@@ -105,7 +136,7 @@ class CalibrationNode(Node):
             f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}; "
             f"{'collecting' if self._collecting else 'idle: call ~/start to collect'}; "
             f"method {self.get_parameter('method').value}, results go to "
-            f"/{self._target().lstrip('/')} and {self._calibration_path() or '(no file)'}"
+            f"{self._target_name()} and {self._calibration_path() or '(no file)'}"
         )
 
     # -- parameters -----------------------------------------------------------------
@@ -116,7 +147,8 @@ class CalibrationNode(Node):
         self.declare_parameter(
             "reference_field", 0.0,
             d("total field intensity during the manoeuvre (T); 0 = unknown: relative calibration "
-              "(methods ml and paired only)", numbers=True),
+              "(methods ml and paired only)", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
+              floats=(0.0, 1e-3)),
         )
         self.declare_parameter(
             "method", DEFAULT_METHOD,
@@ -125,28 +157,38 @@ class CalibrationNode(Node):
         )
         self.declare_parameter(
             "calibration_file", DEFAULT_CALIBRATION_FILE,
-            d("calibration file written on success (ROS 2 params file for the correction node; "
-              "previous one kept as .bak); empty = do not write"),
+            d("calibration file written on success (ROS 2 params file for the correction node; previous "
+              "files kept as <file>.<UTC time>.bak); empty = do not write"),
+        )
+        self.declare_parameter(
+            "backups", calfile.DEFAULT_BACKUPS,
+            d("previous calibration files kept beside calibration_file (newest first)", ints=(0, 100)),
         )
         self.declare_parameter(
             "correction_node", "magcal_correction",
-            d("name of the running correction node that receives the calibration"),
+            d("the running correction node that receives the calibration; a relative name is resolved in "
+              "this node's namespace"),
         )
         self.declare_parameter(
             "max_samples", 2000,
-            d("most synchronized sets kept; when full, sets of the most visited attitudes are replaced"),
+            d("most synchronized sets kept; when full, sets of the most visited attitudes are replaced",
+              ints=(20, 1_000_000)),
         )
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
-            d("largest spread (s) of header stamps within one set", numbers=True),
+            d("largest spread (s) of header stamps within one set; capped at half the sample period",
+              constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
         self.declare_parameter(
-            "service_timeout", 5.0, d("how long (s) to wait for the correction node's services", numbers=True)
+            "service_timeout", 5.0, d("how long (s) to wait for the correction node's services", numbers=True,
+                                      floats=(0.01, 3600.0))
         )
-        self.declare_parameter("progress_period", 1.0, d("period (s) of ~/progress", read_only=True))
+        self.declare_parameter("progress_period", 1.0, d("period (s) of ~/progress and /diagnostics",
+                                                         read_only=True, numbers=True, floats=common.PERIOD_RANGE))
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
-        self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True))
+        self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
+                                                   ints=common.QOS_DEPTH_RANGE))
 
     def _value(self, name: str, updates: dict[str, Any]) -> Any:
         return updates[name] if name in updates else self.get_parameter(name).value
@@ -195,12 +237,14 @@ class CalibrationNode(Node):
                 self._disconnect()
                 self._geometry = self._read_geometry({})
                 self._connect(self._geometry)
+                self._last_solved = None
             self._drops.reset()
             self.get_logger().info(f"reconfigured ({', '.join(sorted(names))}): collected sets dropped")
 
     # -- collecting -----------------------------------------------------------------
     def _connect(self, geo: ArrayGeometry) -> None:
         self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value))
+        self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size)
         self._subs = [
             self.create_subscription(
@@ -218,8 +262,10 @@ class CalibrationNode(Node):
         def callback(msg: MagneticField) -> None:
             st = msg.header.stamp
             f = msg.magnetic_field
+            stamp = common.stamp_ns(st)
             with self._lock:
-                synced = self._sync.add(index, common.stamp_ns(st), f.x, f.y, f.z)
+                self._health.seen(index, stamp)
+                synced = self._sync.add(index, stamp, f.x, f.y, f.z)
                 if synced is not None and self._collecting:
                     self._buffer.add(synced.stamp, synced.values)
 
@@ -248,11 +294,17 @@ class CalibrationNode(Node):
         return response
 
     def _publish_progress(self) -> None:
+        now = common.now_ns(self)
         with self._lock:
             _, raw = self._buffer.snapshot()
             collecting, offered, capacity = self._collecting, self._buffer.offered, self._buffer.capacity
             stats = self._sync.stats.as_dict()
+            stats["pending"] = self._sync.pending
+            self._health.output(stats["sets"], now)
+            health = self._health.assess(now, stats, "complete sets")
         self._drops.update(stats, f"{stats['sets']} complete sets")
+        for line in health.notices:
+            self.get_logger().warn(line)
         exc = excitation(raw.mean(axis=1)) if len(raw) else excitation(np.zeros((0, 3)))
         problem = exc.problem()
         values = {
@@ -281,6 +333,10 @@ class CalibrationNode(Node):
             values=[KeyValue(key=k, value=v) for k, v in values.items()],
         )
         self._progress_pub.publish(status)
+        health.values.update(collecting=values["collecting"], samples=values["samples"])
+        sensors = ",".join(self._geometry.names)
+        self._diagnostics_pub.publish(common.diagnostic_array(
+            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health)]))
 
     # -- calibrating ----------------------------------------------------------------
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -294,19 +350,46 @@ class CalibrationNode(Node):
         def work() -> None:
             try:
                 outcome = self._calibrate()
+            except Stopping:
+                return  # shutting down: nothing changed, nobody to answer
             except Exception as exc:  # noqa: BLE001 - the service must answer, whatever happened
+                if self._stopping.is_set():
+                    return
                 outcome = (False, f"calibration failed unexpectedly ({type(exc).__name__}: {exc}); "
                                   "nothing was changed")
                 self.get_logger().error(outcome[1])
+            if self._stopping.is_set():
+                return
             done.set_result(outcome)
-            self._wake.trigger()
+            with contextlib.suppress(Exception):  # the node may be going down
+                self._wake.trigger()
 
-        threading.Thread(target=work, name="magcal-calibrate", daemon=True).start()
+        self._worker = threading.Thread(target=work, name="magcal-calibrate", daemon=True)
+        self._worker.start()
         try:
             response.success, response.message = await done
         finally:
             self._solve_lock.release()
         return response
+
+    def close(self) -> None:
+        """Before destruction: abandon a running calibration (it changes nothing), wait for it briefly."""
+        self._stopping.set()
+        worker = self._worker
+        if worker is not None and worker.is_alive():
+            self.get_logger().info("shutting down during a calibration: it is abandoned, nothing is changed")
+            worker.join(2.0)
+
+    def _check_stop(self) -> None:
+        if self._stopping.is_set():
+            raise Stopping()
+
+    def _fingerprint(self, raw: np.ndarray, geo: ArrayGeometry, method: str, reference: float | None) -> str:
+        """Identifies a calibration: the collected sets, geometry, method settings and where it goes."""
+        h = hashlib.sha256(np.ascontiguousarray(raw).tobytes())
+        where = (self._target_name(), self._calibration_path())
+        h.update(repr((geo.names, geo.positions.tolist(), method, reference, where)).encode())
+        return h.hexdigest()
 
     def _calibrate(self) -> tuple[bool, str]:
         with self._lock:
@@ -317,40 +400,60 @@ class CalibrationNode(Node):
                               + f"; {WHAT_TO_DO}")
         method = str(self.get_parameter("method").value)
         reference = float(self.get_parameter("reference_field").value) or None
+        fingerprint = self._fingerprint(raw, geo, method, reference)
+        if self._last_solved is not None and self._last_solved[0] == fingerprint:
+            message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
+                       f"so nothing was solved, applied or written again; call ~/start to collect new sets "
+                       f"(last result: {self._last_solved[1]})")
+            self.get_logger().info(message)
+            return True, message
         self.get_logger().info(f"solving from {len(raw)} sets (method {method})")
         try:
             result = calibrate_array(raw, geo, reference, method, SolveOptions())
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed")
-        path = self._calibration_path()
-        if path:
-            try:
-                _check_writable(path)
-            except OSError as exc:
-                return self._fail(f"solved but cannot write {path}: {exc}; set calibration_file; nothing was changed")
+        self._check_stop()
+        cal = result.calibration
         try:
-            previous = self._get_target_parameters(result.calibration.geometry.names)
-            self._push(result.calibration.to_parameters())
+            previous = self._get_target_parameters(cal.geometry.names)
         except CallFailed as exc:
             return self._fail(f"solved but not applied: {exc}; nothing was changed")
-        if path:
-            try:
-                calfile.write(path, result.calibration, node_name=self._file_key())
-            except (OSError, MagcalError) as exc:
-                rollback = "restored the previous calibration there"
+        path = self._calibration_path()
+        params = calfile.parameters(cal)
+        for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
+            params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
+        keep = int(self.get_parameter("backups").value)
+        staged = calfile.replace(path, cal, self._target_name(), keep) if path else contextlib.nullcontext()
+        try:
+            with staged:
+                self._check_stop()
+                self._push(params)
+        except OSError as exc:
+            why = f"{exc.strerror} ({exc.filename})" if exc.strerror and exc.filename else str(exc)
+            if isinstance(exc.__context__, CallFailed):  # the push failed, then putting the old file back did
+                return self._fail(f"solved but not applied: {exc.__context__}; and the previous {path} could NOT be "
+                                  f"put back ({why}): the file holds a calibration the correction node does not run")
+            return self._fail(f"solved but cannot write {path}: {why}; set calibration_file; nothing was changed")
+        except CallFailed as exc:
+            if isinstance(exc, Stopping):
+                raise
+            undo = "the file was left as it was" if path else "no file was written"
+            if exc.unknown_outcome:
                 try:
                     self._push(previous, raw_messages=True)
+                    undo += "; the previous calibration was set again on the correction node"
                 except CallFailed as again:
-                    rollback = f"could NOT restore the previous calibration there ({again})"
-                return self._fail(f"applied to {self._target()} but writing {path} failed ({exc}); {rollback}")
+                    undo += f"; could NOT set the previous calibration again on the correction node ({again})"
+            return self._fail(f"solved but not applied: {exc}; {undo}")
         with self._lock:
             self._collecting = False
         message = self._success_message(result, path)
+        self._last_solved = (fingerprint, message)
         self.get_logger().info(message)
         return True, message
 
     def _success_message(self, result: CalibrationResult, path: str) -> str:
-        where = f"applied to /{self._target().lstrip('/')}" + (f", written {path}" if path else ", no file written")
+        where = f"applied to {self._target_name()}" + (f", written {path}" if path else ", no file written")
         return f"{result.summary()}; {where}"
 
     def _fail(self, message: str) -> tuple[bool, str]:
@@ -364,12 +467,9 @@ class CalibrationNode(Node):
     def _target(self) -> str:
         return str(self.get_parameter("correction_node").value).strip()
 
-    def _file_key(self) -> str:
-        """Node key of the calibration file: the correction node's name, with its namespace if any."""
-        target = self._target()
-        if target.startswith("/") or self.get_namespace() == "/":
-            return target
-        return f"{self.get_namespace()}/{target}"
+    def _target_name(self) -> str:
+        """The correction node's fully qualified name (relative names in this node's namespace)."""
+        return self.resolve_service_name(self._target())
 
     def _service_clients(self) -> tuple[Any, Any]:
         target = self._target()
@@ -380,10 +480,21 @@ class CalibrationNode(Node):
             )
         return self._target_clients[target]
 
+    def _wait(self, ready: Any, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for ``ready(slice)``; :class:`Stopping` if the node shuts down."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self._check_stop()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            if ready(min(left, 0.1)):
+                return True
+
     def _call(self, client: Any, request: Any) -> Any:
         """Call a service from the worker thread; the executor thread delivers the answer."""
         timeout = float(self.get_parameter("service_timeout").value)
-        if not client.wait_for_service(timeout_sec=timeout):
+        if not self._wait(lambda t: client.wait_for_service(timeout_sec=t), timeout):
             raise CallFailed(
                 f"the correction node is not reachable ({client.srv_name} not available after {timeout:g} s); "
                 f"start it (ros2 run magcal_ros correction_node) or set correction_node"
@@ -391,15 +502,15 @@ class CalibrationNode(Node):
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout) or future.result() is None:
+        if not self._wait(done.wait, timeout) or future.result() is None:
             future.cancel()
-            raise CallFailed(f"{client.srv_name} did not answer within {timeout:g} s")
+            raise CallFailed(f"{client.srv_name} did not answer within {timeout:g} s", unknown_outcome=True)
         return future.result()
 
     def _get_target_parameters(self, names: Sequence[str]) -> list[ParameterMsg]:
         """The correction node's current calibration parameters, to restore if needed."""
         _, getter = self._service_clients()
-        wanted = ["sensor_names", "positions"] + [f"{n}.{s}" for n in names for s in ("matrix", "offset")]
+        wanted = ["sensor_names", "positions"] + [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance")]
         reply = self._call(getter, GetParameters.Request(names=wanted))
         return [ParameterMsg(name=n, value=v) for n, v in zip(wanted, reply.values)
                 if v.type != ParameterType.PARAMETER_NOT_SET]
@@ -413,22 +524,12 @@ class CalibrationNode(Node):
             msgs = [common.parameter_message(k, v) for k, v in common.flatten_parameters(params).items()]
         reply = self._call(setter, SetParametersAtomically.Request(parameters=msgs))
         if not reply.result.successful:
-            raise CallFailed(f"{self._target()} rejected the calibration: {reply.result.reason}")
+            raise CallFailed(f"{self._target_name()} rejected the calibration: {reply.result.reason}")
 
 
-def _check_writable(path: str) -> None:
-    """Raise OSError unless ``path``'s directory exists (or can be made) and is writable."""
-    parent = os.path.dirname(os.path.abspath(path))
-    os.makedirs(parent, exist_ok=True)
-    if not os.access(parent, os.W_OK):
-        raise PermissionError(f"directory {parent} is not writable")
-    if os.path.isdir(path):
-        raise IsADirectoryError(f"{path} is a directory")
-
-
-def main(args: Sequence[str] | None = None) -> int:
-    """Entry point of ``ros2 run magcal_ros calibration_node``."""
-    return common.run_node(CalibrationNode, SingleThreadedExecutor, args)
+def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+    """Run the node (``ros2 run magcal_ros calibration_node`` goes through :mod:`magcal_ros.nodes.entry`)."""
+    return common.run_node(lambda argv: CalibrationNode(), SingleThreadedExecutor, args, stop)
 
 
 if __name__ == "__main__":

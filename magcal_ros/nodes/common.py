@@ -1,13 +1,18 @@
-"""Helpers shared by the magcal ROS 2 nodes: parameters, QoS, stamps, the main loop."""
+"""Helpers shared by the magcal ROS 2 nodes: parameters, QoS, stamps, diagnostics, the main loop."""
 
 from __future__ import annotations
 
+import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -15,12 +20,16 @@ from magcal_ros.core import sync
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
+from magcal_ros.nodes.entry import quiet_signals
+from magcal_ros.nodes.health import Assessment, HealthLimits
 
 DEFAULT_SENSOR_NAMES: list[str] = list(DEFAULT_NAMES)
 DEFAULT_POSITIONS: list[float] = [float(x) for x in ArrayGeometry.cross().positions.reshape(-1)]
 IDENTITY: list[float] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 ZEROS: list[float] = [0.0, 0.0, 0.0]
 RELIABILITIES: tuple[str, ...] = ("best_effort", "reliable")
+UNKNOWN_COVARIANCE: list[float] = [-1.0] + [0.0] * 8
+"""ROS convention for an unknown covariance: -1 in element 0, zeros elsewhere."""
 
 SENSOR_NAMES_DOC = "sensor names; each subscribes <name>/raw (sensor_msgs/MagneticField, T)"
 POSITIONS_DOC = "sensor positions, 3 per sensor in sensor_names order (m, platform frame)"
@@ -30,15 +39,90 @@ RELIABILITY_DOC = (
 )
 
 
-def describe(text: str, read_only: bool = False, constraints: str = "", numbers: bool = False) -> ParameterDescriptor:
-    """A parameter descriptor with a description (and optional constraints text).
+def describe(
+    text: str,
+    read_only: bool = False,
+    constraints: str = "",
+    numbers: bool = False,
+    floats: tuple[float, float] | None = None,
+    ints: tuple[int, int] | None = None,
+) -> ParameterDescriptor:
+    """A parameter descriptor with a description (and optional constraints text and range).
 
     ``numbers``: a number or list of numbers that may come as integers from a hand-written
     YAML file (``0``, ``[0, 0, 0]``): dynamically typed, the node checks the value itself.
+    ``floats`` / ``ints``: the inclusive range rclpy enforces and ``ros2 param describe``
+    shows (the node may check stricter bounds itself, said in ``constraints``).
     """
-    return ParameterDescriptor(
+    d = ParameterDescriptor(
         description=text, read_only=read_only, additional_constraints=constraints, dynamic_typing=numbers
     )
+    if floats is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(floats[0]), to_value=float(floats[1]), step=0.0)]
+    if ints is not None:
+        d.integer_range = [IntegerRange(from_value=int(ints[0]), to_value=int(ints[1]), step=1)]
+    return d
+
+
+TOLERANCE_RANGE: tuple[float, float] = (0.0, 1.0)
+"""sync_tolerance (s): rclpy's inclusive range; the node requires 0 < t < 1."""
+QOS_DEPTH_RANGE: tuple[int, int] = (1, 10_000)
+PERIOD_RANGE: tuple[float, float] = (0.05, 3600.0)
+"""Reporting periods and timeouts (s)."""
+
+
+def declare_health(node: Any) -> HealthLimits:
+    """Declare the diagnostics parameters shared by both nodes; the limits they give."""
+    d = describe
+    silent = node.declare_parameter(
+        "sensor_timeout", 1.0,
+        d("a sensor with no message for this long (s), or whose stamps lag the array's newest by this "
+          "much, is reported silent or late on /diagnostics (WARN)", read_only=True, numbers=True,
+          floats=PERIOD_RANGE)).value
+    stale = node.declare_parameter(
+        "output_timeout", 3.0,
+        d("no output for this long (s) is an ERROR on /diagnostics", read_only=True, numbers=True,
+          floats=PERIOD_RANGE)).value
+    fraction = node.declare_parameter(
+        "max_drop_fraction", 0.01,
+        d("more than this fraction of the raw messages of one status period dropped or lost is a WARN "
+          "on /diagnostics", read_only=True, numbers=True, floats=(0.0, 1.0))).value
+    return HealthLimits(int(float(silent) * NS_PER_S), int(float(stale) * NS_PER_S), float(fraction))
+
+
+DIAGNOSTICS_TOPIC = "/diagnostics"
+"""Where diagnostic aggregators and rqt_robot_monitor listen (absolute, by convention)."""
+
+
+def diagnostic_status(name: str, hardware_id: str, assessment: Assessment) -> DiagnosticStatus:
+    """A diagnostic_msgs/DiagnosticStatus from a health assessment."""
+    return DiagnosticStatus(
+        level=bytes([assessment.level]),
+        name=name,
+        message=assessment.message,
+        hardware_id=hardware_id,
+        values=[KeyValue(key=k, value=v) for k, v in assessment.values.items()],
+    )
+
+
+def diagnostic_array(node: Any, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
+    """The statuses as one DiagnosticArray stamped with the node clock."""
+    msg = DiagnosticArray(status=list(statuses))
+    msg.header.stamp = node.get_clock().now().to_msg()
+    return msg
+
+
+def now_ns(node: Any) -> int:
+    """The node clock (simulated time with use_sim_time) in integer nanoseconds."""
+    return int(node.get_clock().now().nanoseconds)
+
+
+def clock_reader(node: Any) -> Callable[[], int]:
+    """A fast reader of the node clock (ns) for the hot path: without use_sim_time the ROS clock is
+    the system clock, read directly; with it, the node clock. Call again when use_sim_time changes."""
+    if node.get_parameter("use_sim_time").value:
+        return lambda: now_ns(node)
+    return time.time_ns
 
 
 NUMBER_ARRAYS = (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY)
@@ -154,11 +238,80 @@ def drops_since(counters: dict[str, int], before: dict[str, int]) -> dict[str, i
     return {k: v for k, v in out.items() if v > 0}
 
 
-def run_node(make_node: Callable[[], Any], make_executor: Callable[[], Any], args: Sequence[str] | None = None) -> int:
-    """Initialise rclpy, spin the node until shutdown (Ctrl-C, SIGTERM) and clean up.
+def params_files(argv: Sequence[str]) -> list[str]:
+    """The ``--params-file`` paths among the ROS arguments of a command line."""
+    files: list[str] = []
+    ros = False
+    it = iter(argv)
+    for arg in it:
+        if arg == "--ros-args":
+            ros = True
+        elif arg == "--":
+            ros = False
+        elif ros and arg == "--params-file":
+            files.append(next(it, ""))
+    return [f for f in files if f]
 
-    A node that cannot start (invalid parameters) logs one clear line and gives exit code 1.
+
+def _node_blocks(doc: Any, prefix: str = "") -> list[tuple[str, dict[str, Any]]]:
+    """(node key, ros__parameters) of a params file, nested namespace blocks joined with '/'."""
+    out: list[tuple[str, dict[str, Any]]] = []
+    if not isinstance(doc, dict):
+        return out
+    for key, value in doc.items():
+        if not isinstance(value, dict):
+            continue
+        name = f"{prefix}/{str(key).strip('/')}" if prefix else str(key)
+        if isinstance(value.get("ros__parameters"), dict):
+            out.append((name, value["ros__parameters"]))
+        else:
+            out.extend(_node_blocks(value, name))
+    return out
+
+
+def key_matches(key: str, fully_qualified_name: str) -> bool:
+    """Whether a params-file node key applies to the node, as rcl decides (``/**``, ``*``, namespaces)."""
+    rx = ""
+    for part in key.strip("/").split("/"):
+        rx += r"(?:/[^/]+)*" if part == "**" else "/" + re.escape(part).replace(r"\*", "[^/]*")
+    return re.fullmatch(rx, fully_qualified_name) is not None
+
+
+def _has_sensor_calibration(params: dict[str, Any]) -> bool:
+    flat = flatten_parameters(params)
+    return any(k.endswith((".matrix", ".offset")) for k in flat)
+
+
+def unmatched_calibrations(files: Sequence[str], fully_qualified_name: str) -> list[tuple[str, str]]:
+    """(file, key) of each params-file block with per-sensor calibration that does not apply to the node."""
+    out = []
+    for path in files:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = yaml.safe_load(fh)
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue  # rcl already refused or read it; nothing to compare
+        for key, params in _node_blocks(doc):
+            if _has_sensor_calibration(params) and not key_matches(key, fully_qualified_name):
+                out.append((path, key))
+    return out
+
+
+def run_node(
+    make_node: Callable[[list[str]], Any],
+    make_executor: Callable[[], Any],
+    args: Sequence[str] | None = None,
+    stop: threading.Event | None = None,
+) -> int:
+    """Initialise rclpy, spin the node until shutdown (Ctrl-C, SIGTERM) and clean up; exit code.
+
+    ``make_node(argv)`` builds the node. A node that cannot start (invalid parameters) logs
+    one clear line and gives exit code 1; a signal at any moment gives a quiet exit 0.
+    ``stop``: the event of :func:`~magcal_ros.nodes.entry.quiet_signals` if already installed.
+    The node's ``close()`` (if any) runs before ``destroy_node``.
     """
+    if stop is None:
+        stop = quiet_signals()
     import rclpy
     from rclpy.exceptions import (
         InvalidParameterTypeException,
@@ -167,26 +320,44 @@ def run_node(make_node: Callable[[], Any], make_executor: Callable[[], Any], arg
     from rclpy.executors import ExternalShutdownException
 
     logger = rclpy.logging.get_logger("magcal")
+    argv = list(args) if args is not None else list(sys.argv)
     try:
-        rclpy.init(args=list(args) if args is not None else sys.argv)
+        rclpy.init(args=argv)
     except Exception as exc:  # rcl refuses bad --ros-args or an unparsable params file
         logger.fatal(f"cannot start: {str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r}")
         return 1
     node = None
     try:
+        if stop.is_set():
+            return 0
         try:
-            node = make_node()
+            node = make_node(argv)
         except (InputError, InvalidParameterTypeException, InvalidParameterValueException) as exc:
             logger.fatal(f"cannot start: {exc}")
             return 1
-        executor = make_executor()
-        executor.add_node(node)
+        except Exception:
+            if stop.is_set() or not rclpy.ok():
+                return 0  # interrupted while starting
+            raise
         try:
+            executor = make_executor()
+            executor.add_node(node)
             executor.spin()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:
+            if stop.is_set() or not rclpy.ok():
+                return 0  # interrupted before spinning: the context is already shut down
+            raise
         return 0
     finally:
         if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
             node.destroy_node()
         rclpy.try_shutdown()
+        # From here on a signal would hit the interpreter's teardown (which resets Python
+        # handlers to the default: killed by SIGINT, exit -2); ignored signals stay ignored.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)

@@ -1,0 +1,122 @@
+"""The calibration file: every ROS reader gets floats, backups are kept in generations, a failed hand-over is undone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rcl_interfaces.msg import ParameterType
+
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.io import calibration_file as calfile
+
+# Values whose repr has no decimal point (5e-08): YAML 1.1 reads "5e-08" as a string.
+AWKWARD = [5e-08, -1e-07, 2e-05, 1e-18, 3e-09]
+
+
+def _calibration(scale: float = 1.0) -> ArrayCalibration:
+    geo = ArrayGeometry.cross()
+    matrices = np.tile(np.eye(3), (4, 1, 1)) * scale
+    offsets = np.array([[5e-08, -1e-07, 2e-05], [0.0, 1e-06, -3e-07], [4e-08, 0.0, 0.0], [1e-05, 2e-05, 3e-05]])
+    covariances = np.stack([np.eye(3) * 1e-18 * (k + 1) for k in range(4)])
+    covariances[0, 0, 1] = covariances[0, 1, 0] = 3e-19
+    meta = {"method": "ml", "samples": 1000, "reference_field": 5e-05, "tmi_rms_after": [1e-09, 2e-09]}
+    return ArrayCalibration(geo, matrices, offsets, meta, covariances)
+
+
+def _write(tmp_path: Path, cal: ArrayCalibration) -> Path:
+    path = tmp_path / "calibration.yaml"
+    calfile.write(path, cal, node_name="/magcal_correction")
+    return path
+
+
+def test_rclpy_parameter_file_parser_reads_every_float_as_a_float(tmp_path: Path) -> None:
+    """What ``ros2 param load`` does: rclpy.parameter.parameter_dict_from_yaml_file."""
+    from rclpy.parameter import parameter_dict_from_yaml_file
+
+    cal = _calibration()
+    path = _write(tmp_path, cal)
+    params = parameter_dict_from_yaml_file(str(path), target_nodes=["/magcal_correction"])
+    assert set(params) == {"sensor_names", "positions"} | {f"mag{i}.{s}" for i in range(1, 5)
+                                                            for s in ("matrix", "offset", "covariance")}
+    for name, msg in params.items():
+        if name != "sensor_names":
+            assert msg.value.type == ParameterType.PARAMETER_DOUBLE_ARRAY, (name, msg.value)
+    offset = np.array(params["mag1.offset"].value.double_array_value)
+    assert np.allclose(offset, cal.offsets[0], rtol=1e-15, atol=0)  # at most one unit in the last place off
+    cov = np.array(params["mag1.covariance"].value.double_array_value).reshape(3, 3)
+    assert np.allclose(cov, cal.covariances[0], rtol=1e-15, atol=0)
+    meta = parameter_dict_from_yaml_file(str(path), target_nodes=["magcal_provenance"])
+    assert meta["reference_field"].value.type == ParameterType.PARAMETER_DOUBLE
+    assert meta["tmi_rms_after"].value.type == ParameterType.PARAMETER_DOUBLE_ARRAY
+    assert meta["samples"].value.type == ParameterType.PARAMETER_INTEGER
+
+
+def test_rcl_params_file_parser_reads_every_float_as_a_float(tmp_path: Path) -> None:
+    """What ``--params-file`` does: rcl's YAML parser, into a node's parameter overrides."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    path = _write(tmp_path, _calibration())
+    context = Context()
+    rclpy.init(args=["node", "--ros-args", "--params-file", str(path)], context=context, domain_id=99)
+    try:
+        node = rclpy.create_node("magcal_correction", context=context, start_parameter_services=False,
+                                 automatically_declare_parameters_from_overrides=True)
+        values = {p.name: p for p in node.get_parameters(node.list_parameters([], 0).names)}
+        assert values["mag1.offset"].type_ == Parameter.Type.DOUBLE_ARRAY
+        assert values["mag4.covariance"].type_ == Parameter.Type.DOUBLE_ARRAY
+        assert values["positions"].type_ == Parameter.Type.DOUBLE_ARRAY
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_ros_float_changes_a_value_by_at_most_one_unit_in_the_last_place() -> None:
+    for v in AWKWARD + [1e16, -3e+20, 0.0, 1.5, 123.0]:
+        w = calfile.ros_float(v)
+        assert "." in repr(w) and abs(w - v) <= np.spacing(abs(v)) and yaml.safe_load(str(w)) == w
+    assert calfile.parameters(_calibration())["mag1"]["offset"][0] == calfile.ros_float(5e-08) != 5e-08
+
+
+def test_backups_keep_the_last_generations_oldest_first(tmp_path: Path) -> None:
+    path = tmp_path / "calibration.yaml"
+    texts = []
+    for k in range(6):
+        calfile.write(path, _calibration(1.0 + 0.01 * k), keep=3)
+        texts.append(path.read_text())
+    backups = calfile.backups(path)
+    assert [b.read_text() for b in backups] == texts[2:5]
+    assert all(b.name.startswith("calibration.yaml.") and b.name.endswith("Z.bak") for b in backups)
+    assert sorted(backups) == backups
+
+
+def test_replace_undoes_itself_when_the_hand_over_fails(tmp_path: Path) -> None:
+    path = tmp_path / "calibration.yaml"
+    calfile.write(path, _calibration(), keep=3)
+    calfile.write(path, _calibration(1.01), keep=3)
+    before, backups = path.read_text(), [b.read_text() for b in calfile.backups(path)]
+    with pytest.raises(RuntimeError, match="push failed"):
+        with calfile.replace(path, _calibration(1.02), keep=3):
+            assert calfile.loads(path.read_text()).matrices[0, 0, 0] == pytest.approx(1.02)  # written first
+            raise RuntimeError("push failed")
+    assert path.read_text() == before
+    assert [b.read_text() for b in calfile.backups(path)] == backups
+    fresh = tmp_path / "fresh.yaml"
+    with pytest.raises(RuntimeError):
+        with calfile.replace(fresh, _calibration()):
+            raise RuntimeError("push failed")
+    assert not fresh.exists() and sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [path.name] + [b.name for b in calfile.backups(path)])
+
+
+def test_an_unwritable_destination_changes_nothing(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(NotADirectoryError):
+        calfile.write(blocker / "calibration.yaml", _calibration())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
