@@ -13,6 +13,8 @@ import numpy as np
 from magcal_ros.app.progress import ProgressBar
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE
+from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
@@ -20,7 +22,7 @@ from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
-from magcal_ros.io.recordings import is_csv, open_recording
+from magcal_ros.io.recordings import is_csv, open_recording, with_bag_currents
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -156,6 +158,37 @@ def add_sync_options(p: argparse.ArgumentParser) -> None:
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
 
 
+def add_current_options(p: argparse.ArgumentParser) -> None:
+    """Current interference channels of a bag (CSV recordings carry current.<channel> columns)."""
+    p.add_argument("--currents", metavar="TOPIC[,TOPIC...]",
+                   help="bag topics of the current interference channels, sensor_msgs/msg/BatteryState "
+                   "(current, A) or std_msgs/msg/Float64 (A); channel name = topic without its leading '/' "
+                   "(/thruster1/battery -> thruster1/battery). CSV: current.<channel> columns instead")
+    p.add_argument("--current-tolerance", type=float, default=DEFAULT_CURRENT_TOLERANCE, metavar="SECONDS",
+                   help="a set takes each channel's latest value stamped at most this long before it "
+                   f"(BatteryState: header stamp, Float64: bag time); sets without one are dropped "
+                   f"(default {DEFAULT_CURRENT_TOLERANCE} s)")
+
+
+def _current_topics(args: argparse.Namespace) -> list[str]:
+    """The --currents topics (absolute), or []; :class:`InputError` for a CSV input."""
+    found = [topics.absolute(t.strip()) for t in (args.currents or "").split(",") if t.strip()]
+    if found and is_csv(args.input):
+        raise InputError("--currents names bag topics; a CSV recording gives its currents as current.<channel> columns")
+    return found
+
+
+def _with_currents(args: argparse.Namespace, rec: Recording) -> Recording:
+    """``rec`` with the --currents of its bag matched to its sets (a note when sets were dropped)."""
+    wanted = _current_topics(args)
+    if not wanted:
+        return rec
+    rec, stats = with_bag_currents(args.input, rec, wanted, args.current_tolerance)
+    if stats.dropped:
+        print(f"  note: {stats.describe()}", file=sys.stderr)
+    return rec
+
+
 def _report_sync(stats: SyncStats | None) -> None:
     """One note on stderr when synchronisation dropped anything."""
     if stats is not None and stats.dropped():
@@ -207,9 +240,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    rec = _with_currents(args, rec)
+    if args.interference_only:
+        return _calibrate_interference(args, rec)
     geometry = _positions(args.positions, rec.names)
     opts = SolveOptions(loss=args.loss, gradient_method=args.gradient_method, seed=args.seed)
-    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts)
+    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts,
+                             currents=rec.currents if rec.channels else None, channels=rec.channels)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:
@@ -222,9 +259,41 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         _report_site(site)
     for name, before, after in zip(geometry.names, result.tmi_before, result.tmi_after):
         print(f"  {name}: TMI RMS {before / NT:10.2f} -> {after / NT:8.3f} nT")
+    if result.calibration.channels:
+        print(f"  interference of {', '.join(result.calibration.channels)} estimated (subtracted by 'magcal correct' "
+              "given their currents)")
+    for warning in result.warnings:
+        if warning.startswith("interference"):
+            print(f"  warning: {warning}")
     print(f"  solve time {result.seconds * 1e3:.1f} ms; written {args.output}")
     if args.plot:
         print(f"  plot {args.plot}")
+    return 0
+
+
+def _calibrate_interference(args: argparse.Namespace, rec: Recording) -> int:
+    """--interference-only: hold a calibration, add the interference a still run shows."""
+    from magcal_ros.methods.interference import calibrate_interference
+
+    given = [o for o, v in (("--reference-field", args.reference_field), ("--site", args.site), ("--plot", args.plot),
+                            ("--positions", args.positions)) if v is not None]
+    if given:
+        raise InputError(f"--interference-only holds {args.interference_only}: {', '.join(given)} does not apply")
+    if not rec.channels:
+        raise InputError("--interference-only needs the currents: --currents TOPIC,... (bag) or current.<channel> "
+                         "columns (CSV)")
+    held = _read_calibration(args.interference_only)
+    rec = rec.select(held.geometry.names)
+    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held)
+    calfile.write(args.output, result.calibration)
+    print(result.summary())
+    for c in result.solved:
+        j = result.channels.index(c)
+        gains = ", ".join(f"{n} {np.linalg.norm(g) / NT:.3g}" for n, g in zip(held.geometry.names, result.estimate.gains[:, :, j]))
+        print(f"  {c}: |gain| nT/A {gains}")
+    for warning in result.warnings:
+        print(f"  warning: {warning}")
+    print(f"  written {args.output} ({args.interference_only} with the interference of {', '.join(result.solved)})")
     return 0
 
 
@@ -234,6 +303,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from magcal_ros.sim import spec as synthetic
 
     dipoles = tuple(_numbers(d, 6, "--dipole") for d in (args.dipole or []))
+    thrusters = tuple(_numbers(d, 6, "--thruster") for d in (args.thruster or []))
     spec = synthetic.SimulationSpec(
         schedule=args.schedule, count=args.count, axis=args.axis, intensity=args.intensity,
         inclination=args.inclination, declination=args.declination, scale_sd=args.scale_sd,
@@ -242,6 +312,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         noise_kind=args.noise_kind, noise_domain=args.noise_domain, dipoles=dipoles,
         position=_numbers(args.position, 3, "--position"),  # type: ignore[arg-type]
         rate=args.rate, start_time=args.start_time, seed=args.seed, baseline=args.baseline,
+        thrusters=thrusters, thruster_current=args.thruster_current, step_sets=args.step_sets, still=args.still,
     )
     if not is_csv(args.output):
         from magcal_ros.io.bag_writer import check_bag_output
@@ -252,8 +323,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.output}: {kind}, {len(truth.centre)} sets x {len(spec.names)} sensors at {spec.rate:g} Hz "
         f"(schedule {spec.schedule}, F {spec.intensity / NT:.1f} nT, noise {spec.noise / NT:g} nT, "
-        f"{len(spec.dipoles)} dipoles)"
+        f"{len(spec.dipoles)} dipoles{', still' if spec.still else ''})"
     )
+    if spec.thrusters:
+        print(f"  {len(spec.thrusters)} thrusters ({spec.thruster_current} A): currents on "
+              + (", ".join(topics.current_topic(c) for c in spec.channels) + " (BatteryState)" if not is_csv(args.output)
+                 else ", ".join(f"current.{c}" for c in spec.channels)))
     print(f"  truth {ypath} and {npath}")
     return 0
 
@@ -271,6 +346,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
     cal = _read_calibration(args.calibration)
     out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else tuple(t.strip() for t in (args.copy_topics or "").split(",") if t.strip())
+    if not is_csv(args.input):
+        from magcal_ros.app.correct import check_channels
+
+        check_channels(cal, [topics.current_channel(t) for t in _current_topics(args)], "topics")
     if is_csv(args.input) or out_csv:
         if copy:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
@@ -282,8 +361,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
             args.input, cal, args.output, storage=args.storage, copy_topics=copy, progress=bar,
             frame_id=args.frame_id, gradient_method=args.gradient_method, tolerance=args.sync_tolerance,
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
+            currents=_current_topics(args), current_tolerance=args.current_tolerance,
         )
     _report_sync(report.stats)
+    if report.currents is not None and report.currents.dropped:
+        print(f"  note: {report.currents.describe()}", file=sys.stderr)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {len(cal.geometry.names)} sensors -> {args.output} "
@@ -299,6 +381,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
             "drop" if args.drop_nonfinite else "error", bar,
         )
     _report_sync(stats)
+    rec = _with_currents(args, rec)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
@@ -344,6 +427,11 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (pso)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="draw TMI per sensor, tensor components and corrected vectors before/after (PNG)")
+    add_current_options(p)
+    p.add_argument("--interference-only", metavar="CAL.yaml",
+                   help="hold CAL.yaml's calibration and estimate only the current interference, from a run with "
+                   "the vehicle still and the currents stepped (each on its own); writes CAL.yaml plus the "
+                   "interference to --output")
     add_common_options(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -373,6 +461,19 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--dipole", action="append", metavar="X,Y,Z,MX,MY,MZ",
                    help="a point dipole: world position (m) and moment (A m^2); repeat for more")
     g.add_argument("--position", default="0,0,0", metavar="X,Y,Z", help="array centre in the world frame (m, default 0,0,0)")
+    g = p.add_argument_group("thrusters (current interference, platform frame)")
+    g.add_argument("--thruster", action="append", metavar="X,Y,Z,MX,MY,MZ",
+                   help="a thruster: platform position (m) and dipole moment per ampere (A m^2 / A); repeat for more. "
+                   "Thruster j's current is channel thrusterj/battery (bag topic /thrusterj/battery, BatteryState; "
+                   "CSV column current.thrusterj/battery)")
+    g.add_argument("--thruster-current", default=d.thruster_current, metavar="random:IMAX|steps:L1,L2,...",
+                   help="current schedule (A): random:20 draws 0..20 A per thruster and set; steps:0,5,10,20 holds "
+                   "each level --step-sets sets, thrusters stepping one after the other (odometer order) "
+                   f"(default {d.thruster_current})")
+    g.add_argument("--step-sets", type=int, default=d.step_sets, metavar="K",
+                   help=f"sets each level of steps: is held (default {d.step_sets})")
+    g.add_argument("--still", action="store_true",
+                   help="the vehicle does not move: every set takes the schedule's first attitude (a stepped-thruster run)")
     g = p.add_argument_group("sensor errors (1-sigma spreads, drawn per sensor from --seed)")
     g.add_argument("--scale-sd", type=float, default=d.scale_sd, help=f"scale factor spread (default {d.scale_sd:g})")
     g.add_argument("--angle-sd", type=float, default=d.angle_sd, metavar="DEG", help=f"non-orthogonality (default {d.angle_sd:g} deg)")
@@ -413,6 +514,7 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
                    help="cross difference formula or constrained least squares (any geometry)")
     add_window_options(p)
     add_sync_options(p)
+    add_current_options(p)
     add_common_options(p)
     p.set_defaults(func=cmd_correct)
 
