@@ -42,7 +42,7 @@ NOISE = 1e-9
 BASELINE = 0.4
 FLOOR = np.sqrt(2.0) * NOISE / BASELINE  # tensor noise floor (T/m) of the cross difference formula
 THRUSTERS = ((-0.7, 0.25, 0.1, 0.06, 0.0, 0.04), (-0.7, -0.25, 0.1, 0.0, -0.06, 0.04))
-THRUSTER_ARGS = [f"--thruster={','.join(map(str, t))}" for t in THRUSTERS]
+THRUSTER_ARGS = [a for t in THRUSTERS for a in ("--thruster", ",".join(map(str, t)))]  # values start with '-' 
 CHANNELS = ("thruster1/battery", "thruster2/battery")
 SEED = 5
 SETS = 1500
@@ -273,8 +273,10 @@ def test_bags_with_battery_state_and_float64_channels_via_the_cli(tmp_path: Path
     with_float64_channel(sim_bag, bag, storage, lead_ns=30_000_000)
     currents = "/thruster1/battery,/thruster2/current"
     cal_path = tmp_path / "cal.yaml"
-    proc = ok(magcal("calibrate", bag, "-o", cal_path, "--reference-field", F, "--currents", currents))
+    proc = ok(magcal("calibrate", bag, "-o", cal_path, "--reference-field", F, "--currents", currents,
+                     "--plot", tmp_path / "cal.png"))
     assert "interference of thruster1/battery, thruster2/current estimated" in proc.stdout
+    assert (tmp_path / "cal.png").read_bytes()[:4] == b"\x89PNG"
     cal = calfile.read(cal_path)
     assert cal.channels == ("thruster1/battery", "thruster2/current")
     truth = ArrayCalibration(true_cal.geometry, true_cal.matrices, true_cal.offsets, {}, None, cal.channels,

@@ -13,7 +13,7 @@ import numpy as np
 from magcal_ros.app.progress import ProgressBar
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE
+from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
@@ -41,10 +41,24 @@ EPILOG_CALIBRATE = """examples:
   magcal calibrate rotation.csv -o cal.yaml --method linear --reference-field 6e-5
   magcal calibrate rotation_bag/ -o cal.yaml --sensors mag1,mag2,mag3,mag4 \\
       --start 1700000010 --end 1700000100 --plot calibration.png
+  magcal calibrate rotation_bag/ -o cal.yaml --reference-field 5.15e-5 \\
+      --currents /thruster1/battery,/thruster2/battery     # interference estimated jointly
+  magcal calibrate steps_bag/ -o cal_thrusters.yaml --interference-only cal.yaml \\
+      --currents /thruster1/battery,/thruster2/battery     # still vehicle, thrusters stepped
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
 topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
 stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+
+current interference (thrusters, pumps, payload): corrected = matrix (raw - offset)
+- interference @ u, u the channels' currents (A), interference 3 x m per sensor (T/A).
+Currents come from --currents bag topics (sensor_msgs/msg/BatteryState 'current' at its
+header stamp, or std_msgs/msg/Float64 'data' at its bag time; each set takes each
+channel's latest value at most --current-tolerance before it, other sets are dropped;
+channel = topic without its leading '/'), or from CSV columns current.<channel> after the
+sensor columns. They must vary during the manoeuvre, each on its own: a channel whose
+current never varies or varies in lockstep with another is not solved (a warning says
+so). The file gains interference_channels: [...] and <name>.interference (3 x m, T/A).
 
 methods:
 """ + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
@@ -69,6 +83,16 @@ output files (OUT without a trailing slash):
 
 Sensor errors are drawn from --seed and the spreads only: two recordings with the same
 --seed share the same sensors (calibrate one, correct the other). World frame NED.
+thrusters: --thruster X,Y,Z,MX,MY,MZ (platform frame: position m, dipole moment per ampere
+A m^2/A; repeatable) adds a platform-fixed field proportional to its current; thruster j is
+channel thrusterj/battery: a sensor_msgs/msg/BatteryState topic /thrusterj/battery in a bag
+(current in A, header stamp = the set's), a column current.thrusterj/battery in CSV. The
+truth files add the true interference (interference_channels, <name>.interference, T/A)
+and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
+  magcal simulate rotation_bag --count 1500 --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
+      --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
+  magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
+      --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
 schedules: single-axis (one turn about --axis, --count steps), paper000 (12^3 grid of 30
 deg steps, 1728 sets), paper004 (144-attitude grid), three-axes (a turn about each axis,
 --count in total), random (--count uniform attitudes)."""
@@ -92,7 +116,12 @@ CSV output header:
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
-The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist."""
+The sensors are the calibration file's sensor_names; their /<name>/raw topics must exist.
+A calibration with interference_channels subtracts their interference: give the currents
+(--currents TOPIC,... for a bag, the topics named as the channels with a leading '/'; a
+CSV's current.<channel> columns); sets without a current of every channel within
+--current-tolerance before them are dropped and counted. E.g.
+  magcal correct survey_bag -c cal.yaml -o corrected_bag --currents /thruster1/battery,/thruster2/battery"""
 
 
 def _positions(text: str | None, names: tuple[str, ...]) -> ArrayGeometry:
@@ -171,7 +200,8 @@ def add_current_options(p: argparse.ArgumentParser) -> None:
 
 
 def _current_topics(args: argparse.Namespace) -> list[str]:
-    """The --currents topics (absolute), or []; :class:`InputError` for a CSV input."""
+    """The --currents topics (absolute), or []; :class:`InputError` for a CSV input or a bad tolerance."""
+    tolerance_of(args.current_tolerance)
     found = [topics.absolute(t.strip()) for t in (args.currents or "").split(",") if t.strip()]
     if found and is_csv(args.input):
         raise InputError("--currents names bag topics; a CSV recording gives its currents as current.<channel> columns")
@@ -233,6 +263,7 @@ def _report_site(site: SiteField) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
     reference_field, site = _reference(args)
+    _current_topics(args)  # refuse bad current options before reading
     names = tuple(n.strip() for n in args.sensors.split(",") if n.strip()) if args.sensors else None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
@@ -539,12 +570,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position")
+"""Options whose comma-separated numbers may start with a minus sign."""
+
+
 def _attach_negative_site(argv: Sequence[str]) -> list[str]:
-    """``--site -33.9,151.2`` as ``--site=-33.9,151.2``: argparse takes a leading '-' for an option."""
+    """``--site -33.9,151.2`` as ``--site=-33.9,151.2`` (and the other :data:`NEGATIVE_VALUE_OPTIONS`):
+    argparse takes a leading '-' for an option."""
     out: list[str] = []
     for arg in argv:
-        if out and out[-1] == "--site" and re.match(r"-\.?\d", arg):
-            out[-1] = f"--site={arg}"
+        if out and out[-1] in NEGATIVE_VALUE_OPTIONS and re.match(r"-\.?\d", arg):
+            out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)
     return out
