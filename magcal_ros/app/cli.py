@@ -17,6 +17,8 @@ import numpy as np
 from magcal_ros.app.progress import ProgressBar
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
+from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
@@ -25,7 +27,12 @@ from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import STOP_SIGNALS, recover
-from magcal_ros.io.recordings import is_csv, open_recording, recording_sensors
+from magcal_ros.io.recordings import (
+    is_csv,
+    open_recording,
+    recording_sensors,
+    with_bag_currents,
+)
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -55,6 +62,10 @@ EPILOG_CALIBRATE = """examples:
   magcal calibrate compass.csv -o compass.yaml --reference-field 5.15e-5      # one sensor
   magcal calibrate gradiometer.csv -o g.yaml --positions 0,0,0,0.5,0,0        # two sensors
   magcal calibrate yaw_circle_bag -o new.yaml --prior old.yaml                # at sea, after a hard-iron change
+  magcal calibrate rotation_bag/ -o cal.yaml --reference-field 5.15e-5 \\
+      --currents /thruster1/battery,/thruster2/battery     # interference estimated jointly
+  magcal calibrate steps_bag/ -o cal_thrusters.yaml --interference-only cal.yaml \\
+      --currents /thruster1/battery,/thruster2/battery     # still vehicle, thrusters stepped
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
 topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
@@ -70,6 +81,16 @@ what is refused: a manoeuvre that leaves a quantity undetermined (the answer nam
 the rotation to fly, or use --prior), a residual beyond the noise the data show (a field
 that changed or is not uniform: named), too many outliers, a reference intensity the
 sensor gains cannot explain.
+
+current interference (thrusters, pumps, payload): corrected = matrix (raw - offset)
+- interference @ u, u the channels' currents (A), interference 3 x m per sensor (T/A).
+Currents come from --currents bag topics (sensor_msgs/msg/BatteryState 'current' at its
+header stamp, or std_msgs/msg/Float64 'data' at its bag time; each set takes each
+channel's latest value at most --current-tolerance before it, other sets are dropped;
+channel = topic without its leading '/'), or from CSV columns current.<channel> after the
+sensor columns. They must vary during the manoeuvre, each on its own: a channel whose
+current never varies or varies in lockstep with another is not solved (a warning says
+so). The file gains interference_channels: [...] and <name>.interference (3 x m, T/A).
 
 methods:
 """ + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
@@ -94,6 +115,16 @@ output files (OUT without a trailing slash):
 
 Sensor errors are drawn from --seed and the spreads only: two recordings with the same
 --seed share the same sensors (calibrate one, correct the other). World frame NED.
+thrusters: --thruster X,Y,Z,MX,MY,MZ (platform frame: position m, dipole moment per ampere
+A m^2/A; repeatable) adds a platform-fixed field proportional to its current; thruster j is
+channel thrusterj/battery: a sensor_msgs/msg/BatteryState topic /thrusterj/battery in a bag
+(current in A, header stamp = the set's), a column current.thrusterj/battery in CSV. The
+truth files add the true interference (interference_channels, <name>.interference, T/A)
+and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
+  magcal simulate rotation_bag --count 1500 --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
+      --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
+  magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
+      --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
 schedules: single-axis (one turn about --axis, --count steps), paper000 (12^3 grid of 30
 deg steps, 1728 sets), paper004 (144-attitude grid), three-axes (a turn about each axis,
 --count in total), random (--count uniform attitudes)."""
@@ -123,6 +154,11 @@ CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   gradient.zx,gradient.zy,gradient.zz
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
 must exist, and each needs its block in the calibration file unless listed in --uncorrected.
+A calibration with interference_channels subtracts their interference: give the currents
+(--currents TOPIC,... for a bag, the topics named as the channels with a leading '/'; a
+CSV's current.<channel> columns); sets without a current of every channel within
+--current-tolerance before them are dropped and counted. E.g.
+  magcal correct survey_bag -c cal.yaml -o corrected_bag --currents /thruster1/battery,/thruster2/battery
 """ + UNITS_NOTE
 
 
@@ -214,6 +250,38 @@ def add_sync_options(p: argparse.ArgumentParser) -> None:
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
 
 
+def add_current_options(p: argparse.ArgumentParser) -> None:
+    """Current interference channels of a bag (CSV recordings carry current.<channel> columns)."""
+    p.add_argument("--currents", metavar="TOPIC[,TOPIC...]",
+                   help="bag topics of the current interference channels, sensor_msgs/msg/BatteryState "
+                   "(current, A) or std_msgs/msg/Float64 (A); channel name = topic without its leading '/' "
+                   "(/thruster1/battery -> thruster1/battery). CSV: current.<channel> columns instead")
+    p.add_argument("--current-tolerance", type=float, default=DEFAULT_CURRENT_TOLERANCE, metavar="SECONDS",
+                   help="a set takes each channel's latest value stamped at most this long before it "
+                   f"(BatteryState: header stamp, Float64: bag time); sets without one are dropped "
+                   f"(default {DEFAULT_CURRENT_TOLERANCE} s)")
+
+
+def _current_topics(args: argparse.Namespace) -> list[str]:
+    """The --currents topics (absolute), or []; :class:`InputError` for a CSV input or a bad tolerance."""
+    tolerance_of(args.current_tolerance)
+    found = [topics.absolute(t.strip()) for t in (args.currents or "").split(",") if t.strip()]
+    if found and is_csv(args.input):
+        raise InputError("--currents names bag topics; a CSV recording gives its currents as current.<channel> columns")
+    return found
+
+
+def _with_currents(args: argparse.Namespace, rec: Recording) -> Recording:
+    """``rec`` with the --currents of its bag matched to its sets (a note when sets were dropped)."""
+    wanted = _current_topics(args)
+    if not wanted:
+        return rec
+    rec, stats = with_bag_currents(args.input, rec, wanted, args.current_tolerance)
+    if stats.dropped:
+        print(f"  note: {stats.describe()}", file=sys.stderr)
+    return rec
+
+
 def _report_sync(stats: SyncStats | None) -> None:
     """One note on stderr when synchronisation dropped anything."""
     if stats is not None and stats.dropped():
@@ -273,6 +341,7 @@ def _report_quantities(result: Any) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
     reference_field, site = _reference(args)
+    _current_topics(args)  # refuse bad current options before reading
     names = _name_list(args.sensors) or None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
@@ -281,6 +350,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
+    rec = _with_currents(args, rec)
+    if args.interference_only:
+        return _calibrate_interference(args, rec)
     prior = _read_calibration(args.prior) if args.prior else None
     geometry = _positions(args.positions, rec.names, prior)
     mounting = None
@@ -295,7 +367,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         loss=args.loss, gradient_method=args.gradient_method, seed=args.seed, max_residual=args.max_residual,
         mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
     )
-    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps)
+    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps,
+                             currents=rec.currents if rec.channels else None, channels=rec.channels)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:
@@ -311,11 +384,40 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
               f"noise {result.noise[i] / NT:.3g} nT" + (f", {int(result.outliers[i])} outliers excluded"
                                                        if result.outliers[i] else ""))
     _report_quantities(result)
+    if result.calibration.channels:
+        print(f"  interference of {', '.join(result.calibration.channels)} estimated (subtracted by 'magcal correct' "
+              "given their currents)")
     for warning in result.warnings:
         print(f"  warning: {warning}")
     print(f"  solve time {result.seconds * 1e3:.1f} ms; written {args.output}")
     if args.plot:
         print(f"  plot {args.plot}")
+    return 0
+
+
+def _calibrate_interference(args: argparse.Namespace, rec: Recording) -> int:
+    """--interference-only: hold a calibration, add the interference a still run shows."""
+    from magcal_ros.methods.interference import calibrate_interference
+
+    given = [o for o, v in (("--reference-field", args.reference_field), ("--site", args.site), ("--plot", args.plot),
+                            ("--positions", args.positions)) if v is not None]
+    if given:
+        raise InputError(f"--interference-only holds {args.interference_only}: {', '.join(given)} does not apply")
+    if not rec.channels:
+        raise InputError("--interference-only needs the currents: --currents TOPIC,... (bag) or current.<channel> "
+                         "columns (CSV)")
+    held = _read_calibration(args.interference_only)
+    rec = rec.select(held.geometry.names)
+    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held)
+    calfile.write(args.output, result.calibration)
+    print(result.summary())
+    for c in result.solved:
+        j = result.channels.index(c)
+        gains = ", ".join(f"{n} {np.linalg.norm(g) / NT:.3g}" for n, g in zip(held.geometry.names, result.estimate.gains[:, :, j]))
+        print(f"  {c}: |gain| nT/A {gains}")
+    for warning in result.warnings:
+        print(f"  warning: {warning}")
+    print(f"  written {args.output} ({args.interference_only} with the interference of {', '.join(result.solved)})")
     return 0
 
 
@@ -325,6 +427,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from magcal_ros.sim import spec as synthetic
 
     dipoles = tuple(_numbers(d, 6, "--dipole") for d in (args.dipole or []))
+    thrusters = tuple(_numbers(d, 6, "--thruster") for d in (args.thruster or []))
     spec = synthetic.SimulationSpec(
         schedule=args.schedule, count=args.count, axis=args.axis, intensity=args.intensity,
         inclination=args.inclination, declination=args.declination, scale_sd=args.scale_sd,
@@ -333,6 +436,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         noise_kind=args.noise_kind, noise_domain=args.noise_domain, dipoles=dipoles,
         position=_numbers(args.position, 3, "--position"),  # type: ignore[arg-type]
         rate=args.rate, start_time=args.start_time, seed=args.seed, baseline=args.baseline,
+        thrusters=thrusters, thruster_current=args.thruster_current, step_sets=args.step_sets, still=args.still,
     )
     if not is_csv(args.output):
         from magcal_ros.io.bag_writer import check_bag_output
@@ -343,8 +447,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.output}: {kind}, {len(truth.centre)} sets x {len(spec.names)} sensors at {spec.rate:g} Hz "
         f"(schedule {spec.schedule}, F {spec.intensity / NT:.1f} nT, noise {spec.noise / NT:g} nT, "
-        f"{len(spec.dipoles)} dipoles)"
+        f"{len(spec.dipoles)} dipoles{', still' if spec.still else ''})"
     )
+    if spec.thrusters:
+        print(f"  {len(spec.thrusters)} thrusters ({spec.thruster_current} A): currents on "
+              + (", ".join(topics.current_topic(c) for c in spec.channels) + " (BatteryState)" if not is_csv(args.output)
+                 else ", ".join(f"current.{c}" for c in spec.channels)))
     print(f"  truth {ypath} and {npath}")
     return 0
 
@@ -372,6 +480,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
     out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else _name_list(args.copy_topics)
+    if not is_csv(args.input):
+        from magcal_ros.app.correct import check_channels
+
+        check_channels(cal, [topics.current_channel(t) for t in _current_topics(args)], "topics")
     if is_csv(args.input) or out_csv:
         if copy:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
@@ -386,14 +498,19 @@ def cmd_correct(args: argparse.Namespace) -> int:
             frame_id=args.frame_id, gradient_method=args.gradient_method, tolerance=args.sync_tolerance,
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
             calibration_name=args.calibration,
+            currents=_current_topics(args), current_tolerance=args.current_tolerance,
         )
     for note in report.notes:
         _note(note)
     _report_sync(report.stats)
+    if report.currents is not None and report.currents.dropped:
+        print(f"  note: {report.currents.describe()}", file=sys.stderr)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {len(cal.geometry.names)} sensors -> {args.output} "
-        f"({report.storage}: /<name>/corrected, /field, /gradient{extra})"
+        f"({report.storage}: /<name>/corrected, /field"
+        + {"tensor": ", /gradient", "baseline": ", /baseline_gradient"}.get(cal.geometry.gradient_kind, "")
+        + f"{extra})"
     )
     return 0
 
@@ -406,6 +523,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
+    rec = _with_currents(args, rec)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
@@ -460,6 +578,11 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (pso)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="draw TMI per sensor, tensor components and corrected vectors before/after (PNG)")
+    add_current_options(p)
+    p.add_argument("--interference-only", metavar="CAL.yaml",
+                   help="hold CAL.yaml's calibration and estimate only the current interference, from a run with "
+                   "the vehicle still and the currents stepped (each on its own); writes CAL.yaml plus the "
+                   "interference to --output")
     add_common_options(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -489,6 +612,19 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--dipole", action="append", metavar="X,Y,Z,MX,MY,MZ",
                    help="a point dipole: world position (m) and moment (A m^2); repeat for more")
     g.add_argument("--position", default="0,0,0", metavar="X,Y,Z", help="array centre in the world frame (m, default 0,0,0)")
+    g = p.add_argument_group("thrusters (current interference, platform frame)")
+    g.add_argument("--thruster", action="append", metavar="X,Y,Z,MX,MY,MZ",
+                   help="a thruster: platform position (m) and dipole moment per ampere (A m^2 / A); repeat for more. "
+                   "Thruster j's current is channel thrusterj/battery (bag topic /thrusterj/battery, BatteryState; "
+                   "CSV column current.thrusterj/battery)")
+    g.add_argument("--thruster-current", default=d.thruster_current, metavar="random:IMAX|steps:L1,L2,...",
+                   help="current schedule (A): random:20 draws 0..20 A per thruster and set; steps:0,5,10,20 holds "
+                   "each level --step-sets sets, thrusters stepping one after the other (odometer order) "
+                   f"(default {d.thruster_current})")
+    g.add_argument("--step-sets", type=int, default=d.step_sets, metavar="K",
+                   help=f"sets each level of steps: is held (default {d.step_sets})")
+    g.add_argument("--still", action="store_true",
+                   help="the vehicle does not move: every set takes the schedule's first attitude (a stepped-thruster run)")
     g = p.add_argument_group("sensor errors (1-sigma spreads, drawn per sensor from --seed)")
     g.add_argument("--scale-sd", type=float, default=d.scale_sd, help=f"scale factor spread (default {d.scale_sd:g})")
     g.add_argument("--angle-sd", type=float, default=d.angle_sd, metavar="DEG", help=f"non-orthogonality (default {d.angle_sd:g} deg)")
@@ -532,6 +668,7 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
                    help="cross difference formula or constrained least squares (any geometry)")
     add_window_options(p)
     add_sync_options(p)
+    add_current_options(p)
     add_common_options(p)
     p.set_defaults(func=cmd_correct)
 
@@ -556,12 +693,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position")
+"""Options whose comma-separated numbers may start with a minus sign."""
+
+
 def _attach_negative_site(argv: Sequence[str]) -> list[str]:
-    """``--site -33.9,151.2`` as ``--site=-33.9,151.2``: argparse takes a leading '-' for an option."""
+    """``--site -33.9,151.2`` as ``--site=-33.9,151.2`` (and the other :data:`NEGATIVE_VALUE_OPTIONS`):
+    argparse takes a leading '-' for an option."""
     out: list[str] = []
     for arg in argv:
-        if out and out[-1] == "--site" and re.match(r"-\.?\d", arg):
-            out[-1] = f"--site={arg}"
+        if out and out[-1] in NEGATIVE_VALUE_OPTIONS and re.match(r"-\.?\d", arg):
+            out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)
     return out

@@ -4,6 +4,12 @@ Bag to bag streams in chunks through :class:`~magcal_ros.io.bag_reader.SetReader
 :class:`~magcal_ros.io.bag_writer.BagSink` (memory stays flat); anything involving CSV
 goes through an in-memory :class:`~magcal_ros.core.recording.Recording`. Outputs carry the
 same topics and types as the live correction node, every stamp exactly the input's.
+
+A calibration with interference channels subtracts ``interference @ u`` per sensor, ``u``
+the channels' currents at each set: from a CSV's ``current.<channel>`` columns, or from
+bag topics (:func:`~magcal_ros.io.bag_reader.read_current_samples`) matched to each set
+by time (:func:`~magcal_ros.core.interference.match_currents`); sets without a fresh
+current of every channel are dropped and counted.
 """
 
 from __future__ import annotations
@@ -18,6 +24,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration, CorrectedSets
+from magcal_ros.core.interference import (
+    DEFAULT_CURRENT_TOLERANCE,
+    CurrentStats,
+    match_currents,
+    tolerance_of,
+)
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
 from magcal_ros.core.units import check_tesla
@@ -29,6 +41,7 @@ from magcal_ros.io.bag_reader import (
     Progress,
     SetReader,
     open_bag,
+    read_current_samples,
     resolve_sensor_topics,
     sensor_names_of,
 )
@@ -129,6 +142,30 @@ def check_sensors(
     return [f"{recording} also has {', '.join(extra)}, which {calibration_file} does not cover: left out"]
 
 
+def check_channels(calibration: ArrayCalibration, given: Sequence[str], how: str) -> None:
+    """:class:`InputError` unless the currents ``given`` cover the calibration's channels.
+
+    ``how`` says where currents come from (for the message). With ``--currents`` every
+    topic must be one of the calibration's channels (a surplus topic is likely a typo).
+    """
+    need = calibration.channels
+    if not need:
+        if given and how == "topics":
+            raise InputError(f"--currents {','.join(given)} given, but the calibration subtracts no current "
+                             "interference (it has no interference_channels)")
+        return
+    missing = [c for c in need if c not in given]
+    if missing:
+        where = ("--currents TOPIC,... (channel = topic without its leading '/')" if how == "topics"
+                 else "current.<channel> columns")
+        raise InputError(f"the calibration subtracts the interference of {', '.join(need)}: no current of "
+                         f"{', '.join(missing)} (given: {', '.join(given) or 'none'}); give them as {where}")
+    extra = [c for c in given if c not in need]
+    if extra and how == "topics":
+        raise InputError(f"the calibration has no interference for {', '.join(extra)} "
+                         f"(its interference_channels: {', '.join(need)})")
+
+
 @dataclass(frozen=True)
 class CorrectionReport:
     """What :func:`correct_bag` did."""
@@ -140,6 +177,8 @@ class CorrectionReport:
     storage: str
     notes: tuple[str, ...] = ()
     """Sensors of the input left out (see :func:`check_sensors`)."""
+    currents: CurrentStats | None = None
+    """Sets dropped for lack of a fresh current (None: the calibration has no channels)."""
 
 
 def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
@@ -168,6 +207,8 @@ def correct_bag(
     start_ns: int | None = None,
     end_ns: int | None = None,
     calibration_name: str = "the calibration",
+    currents: Sequence[str] = (),
+    current_tolerance: float = DEFAULT_CURRENT_TOLERANCE,
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -180,15 +221,22 @@ def correct_bag(
     times. ``storage`` defaults to the input's. ``start_ns``/``end_ns`` bound the set
     stamps. The bag's sensors are matched with the calibration's first (:func:`check_sensors`,
     ``calibration_name`` names the calibration in messages) and the readings must be in
-    Tesla. Streaming and atomic: nothing is left at ``out_path`` on failure.
+    Tesla. ``currents``: the topics of the calibration's interference channels, each set's current the
+    latest value at most ``current_tolerance`` s older than the set (sets without one are
+    dropped and counted). Streaming and atomic: nothing is left at ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
     out_storage = check_storage(storage) if storage else storage_of(inp)
     check_bag_output(out_path, inp)
+    check_channels(calibration, [topics.current_channel(t) for t in currents], "topics")
+    tol = tolerance_of(current_tolerance)
     with open_bag(inp) as reader:
         notes = check_sensors(calibration, sensor_names_of(reader), inp, calibration_name, gradient_method)
         _, conns = resolve_sensor_topics(reader, inp, names)
+        samples = read_current_samples(reader, inp, currents) if calibration.channels else []
+        samples = sorted(samples, key=lambda c: calibration.channels.index(c.channel))
+        current_stats = CurrentStats(calibration.channels, tol) if calibration.channels else None
         outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
                                                 topics.BASELINE_GRADIENT]}
         if copy_topics == "all":
@@ -226,16 +274,25 @@ def correct_bag(
                     check_tesla(batch.vectors, names, str(inp))  # before anything is written
                     checked = True
                 batch = _window(batch, start_ns, end_ns)
+                u = None
+                if current_stats is not None:
+                    u, fresh = match_currents(batch.set_stamps, samples, tol)
+                    keep = current_stats.keep(fresh)
+                    batch, u = batch.take(keep), u[keep]
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
-                    sets_out = calibration.outputs(part.vectors, gradient_method)
+                    part_u = None if u is None else u[a : a + SETS_PER_WRITE]
+                    sets_out = calibration.outputs(part.vectors, gradient_method, part_u)
                     sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
             if sets.stats.sets == 0:
                 raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
+            if n_in == 0 and current_stats is not None and current_stats.dropped:
+                raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
+                                 "widen --current-tolerance")
             if n_in == 0:
                 raise InputError(f"{inp}: no synchronized sets in the selected time window")
-    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes))
+    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats)
 
 
 def write_corrected_bag(
@@ -246,16 +303,19 @@ def write_corrected_bag(
     frame_id: str = DEFAULT_FRAME_ID,
     gradient_method: str = "difference",
 ) -> None:
-    """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`."""
+    """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`.
+
+    The recording must carry the currents of the calibration's channels (:func:`corrected_input`)."""
     check_bag_output(path)
-    rec = recording.select(calibration.geometry.names)
+    rec = corrected_input(recording, calibration)
     stamps = rec.stamps
     with atomic_path(path) as tmp, BagSink.create(tmp, check_storage(storage)) as sink:
         out = correction_output(sink, rec.names, frame_id, calibration.geometry.gradient_kind)
         for a in range(0, len(rec), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
             part = SetBatch(np.repeat(ts[:, None], len(rec.names), axis=1), rec.vectors[a : a + SETS_PER_WRITE])
-            sink.write_sets(out.layout, out.encode(part, calibration.outputs(part.vectors, gradient_method)), ts)
+            u = rec.currents[a : a + SETS_PER_WRITE] if rec.channels else None  # type: ignore[index]
+            sink.write_sets(out.layout, out.encode(part, calibration.outputs(part.vectors, gradient_method, u)), ts)
 
 
 def correct_recording_csv(
@@ -264,7 +324,19 @@ def correct_recording_csv(
     calibration: ArrayCalibration,
     gradient_method: str = "difference",
 ) -> int:
-    """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count."""
-    rec = recording.select(calibration.geometry.names)
-    write_corrected_csv(path, rec.stamps, rec.names, calibration.outputs(rec.vectors, gradient_method))
+    """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count.
+
+    The recording must carry the currents of the calibration's channels (:func:`corrected_input`)."""
+    rec = corrected_input(recording, calibration)
+    sets = calibration.outputs(rec.vectors, gradient_method, rec.currents if rec.channels else None)
+    write_corrected_csv(path, rec.stamps, rec.names, sets)
     return len(rec)
+
+
+def corrected_input(recording: Recording, calibration: ArrayCalibration) -> Recording:
+    """``recording`` restricted to the calibration's sensors and current channels, in its order.
+
+    :class:`InputError` when a channel's currents are missing (:func:`check_channels`).
+    """
+    check_channels(calibration, recording.channels, "columns")
+    return recording.select(calibration.geometry.names).select_channels(calibration.channels)

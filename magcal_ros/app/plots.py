@@ -49,7 +49,7 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
     cal = result.calibration
     rec = recording.select(cal.geometry.names)
     raw = rec.vectors
-    corrected = cal.apply(raw)
+    corrected = cal.apply(raw, rec.select_channels(cal.channels).currents if cal.channels else None)
     f = result.intensity
     method = "difference" if cal.geometry.cross_layout() is not None else "least_squares"
     g_before, g_after = gradient(raw, cal.geometry, method), gradient(corrected, cal.geometry, method)

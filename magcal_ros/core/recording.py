@@ -1,4 +1,5 @@
-"""The one data type that flows from every source to every sink: synchronized raw sets."""
+"""The one data type that flows from every source to every sink: synchronized raw sets
+(and the currents of the interference channels at each set, when recorded)."""
 
 from __future__ import annotations
 
@@ -18,11 +19,16 @@ class Recording:
 
     ``stamps`` are the sets' header stamps in integer nanoseconds, exactly as recorded.
     ``vectors`` are in each sensor's own axes (raw) or in the platform frame (corrected).
+    ``currents`` (N, m) are the currents (A) of the interference ``channels`` (m names,
+    e.g. thrusters) at each set; none by default.
     """
 
     names: tuple[str, ...]
     stamps: NDArray[np.int64]
     vectors: Array
+    channels: tuple[str, ...] = ()
+    currents: Array | None = None
+    """(N, len(channels)) A; None or omitted: no channels."""
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vectors, dtype=float)
@@ -34,9 +40,19 @@ class Recording:
             raise InputError(
                 f"recording needs stamps (N,) and vectors (N, {len(self.names)}, 3), got {t.shape} and {v.shape}"
             )
+        channels = tuple(str(c) for c in self.channels)
+        u = np.zeros((len(t), 0)) if self.currents is None else np.asarray(self.currents, dtype=float)
+        if u.ndim == 1 and len(channels) == 1:
+            u = u[:, None]
+        if u.shape != (len(t), len(channels)):
+            raise InputError(f"recording needs currents (N, {len(channels)}) for channels {list(channels)}, got {u.shape}")
+        if len(set(channels)) != len(channels) or not all(channels):
+            raise InputError(f"current channel names must be unique and non-empty, got {list(channels)}")
         object.__setattr__(self, "names", tuple(self.names))
         object.__setattr__(self, "stamps", t)
         object.__setattr__(self, "vectors", v)
+        object.__setattr__(self, "channels", channels)
+        object.__setattr__(self, "currents", u)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -47,7 +63,20 @@ class Recording:
         if missing:
             raise InputError(f"recording has no sensor {', '.join(missing)} (it has {', '.join(self.names)})")
         idx = [self.names.index(n) for n in names]
-        return Recording(tuple(names), self.stamps, self.vectors[:, idx])
+        return Recording(tuple(names), self.stamps, self.vectors[:, idx], self.channels, self.currents)
+
+    def select_channels(self, channels: tuple[str, ...] | list[str]) -> "Recording":
+        """The same sets with only the current ``channels`` (in that order)."""
+        missing = [c for c in channels if c not in self.channels]
+        if missing:
+            have = ", ".join(self.channels) or "none"
+            raise InputError(f"recording has no current of channel {', '.join(missing)} (it has {have})")
+        idx = [self.channels.index(c) for c in channels]
+        return Recording(self.names, self.stamps, self.vectors, tuple(channels), self.currents[:, idx])  # type: ignore[index]
+
+    def with_currents(self, channels: tuple[str, ...] | list[str], currents: Array) -> "Recording":
+        """The same sets with ``currents`` (N, m) A of ``channels`` instead of the present ones."""
+        return Recording(self.names, self.stamps, self.vectors, tuple(channels), currents)
 
     def window(self, start_ns: int | None = None, end_ns: int | None = None) -> "Recording":
         """Sets with ``start_ns <= stamp <= end_ns`` (either bound optional)."""
@@ -60,4 +89,4 @@ class Recording:
 
     def take(self, keep: NDArray[np.bool_] | NDArray[np.int64]) -> "Recording":
         """The sets selected by a mask or index array."""
-        return Recording(self.names, self.stamps[keep], self.vectors[keep])
+        return Recording(self.names, self.stamps[keep], self.vectors[keep], self.channels, self.currents[keep])  # type: ignore[index]

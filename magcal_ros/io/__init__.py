@@ -13,6 +13,7 @@ __all__, __getattr__ = lazy_exports(
         "read_bag_sets": "magcal_ros.io.bag_reader",
         "read_csv": "magcal_ros.io.csv_recording",
         "read_recording": "magcal_ros.io.recordings",
+        "with_bag_currents": "magcal_ros.io.recordings",
         "write_csv": "magcal_ros.io.csv_recording",
         "write_recording_bag": "magcal_ros.io.bag_writer",
     },

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.interference import CurrentSamples
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.sync import (
@@ -37,7 +38,9 @@ from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
 from magcal_ros.io.cdr import (
+    CURRENT_TYPES,
     MAGNETIC_FIELD,
+    decode_current,
     decode_magnetic_field_rows,
     decode_magnetic_fields,
 )
@@ -494,6 +497,43 @@ def resolve_sensor_topics(
             raise InputError(f"{path}: no topic {t} (MagneticField topics: {have})")
         conns.append(fields[t])
     return tuple(names), conns
+
+
+def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics: Sequence[str]) -> list[CurrentSamples]:
+    """Every value of the current topics ``topics`` of an open bag, one channel per topic.
+
+    Types ``sensor_msgs/msg/BatteryState`` (``current`` at its header stamp) or
+    ``std_msgs/msg/Float64`` (``data`` at its bag time), amperes; channel names by
+    :func:`~magcal_ros.io.topics.current_channel`. A separate pass over these (low-rate)
+    topics only, so the MagneticField fast paths are untouched. Raises :class:`InputError`
+    naming a missing topic, a topic of another type or a message that does not decode.
+    """
+    wanted = [topic_names.absolute(t) for t in topics]
+    if len(set(wanted)) != len(wanted) or not all(t.strip("/") for t in wanted):
+        raise InputError(f"current topics must be named once each, got {', '.join(topics)}")
+    conns: list[Connection] = []
+    for t in wanted:
+        found = [c for c in reader.connections if c.topic == t]
+        if not found:
+            have = ", ".join(sorted({c.topic for c in reader.connections if c.msgtype in CURRENT_TYPES})) or "none"
+            raise InputError(f"{path}: no current topic {t} (BatteryState/Float64 topics: {have})")
+        wrong = [c.msgtype for c in found if c.msgtype not in CURRENT_TYPES]
+        if wrong:
+            raise InputError(f"{path}: topic {t} has type {wrong[0]}, expected {' or '.join(CURRENT_TYPES)} (A)")
+        conns += found
+    index = {c.id: wanted.index(c.topic) for c in conns}
+    types = {c.id: c.msgtype for c in conns}
+    stamps: list[list[int]] = [[] for _ in wanted]
+    values: list[list[float]] = [[] for _ in wanted]
+    for cid, bag_time, data in message_rows(reader, conns):
+        try:
+            stamp, current = decode_current(types[cid], data, bag_time)
+        except InputError as exc:
+            raise InputError(f"{path}: {wanted[index[cid]]}: {exc}") from None
+        stamps[index[cid]].append(stamp)
+        values[index[cid]].append(current)
+    return [CurrentSamples(topic_names.current_channel(t), np.array(st, np.int64), np.array(v, float))
+            for t, st, v in zip(wanted, stamps, values)]
 
 
 # --------------------------------------------------------------------------- reading

@@ -27,7 +27,13 @@ from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import atomic_path, public_path, write_failure
 from magcal_ros.io.bag_reader import first_line
-from magcal_ros.io.cdr import MAGNETIC_FIELD, magnetic_field_template, typestore
+from magcal_ros.io.cdr import (
+    BATTERY_STATE,
+    MAGNETIC_FIELD,
+    battery_state_message,
+    magnetic_field_template,
+    typestore,
+)
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
@@ -332,7 +338,10 @@ def write_recording_bag(
 
     One ``sensor_msgs/msg/MagneticField`` per sensor and set: header stamp = the set's
     stamp, ``frame_id`` = the sensor name (or ``frame_ids``), field in T, covariance zero;
-    bag time = the stamp. Atomic: written to a temporary directory, renamed at the end.
+    bag time = the stamp. The recording's current channels become one
+    ``sensor_msgs/msg/BatteryState`` topic each (``/<channel>``, ``current`` in A, header
+    stamp and bag time = the set's stamp). Atomic: written to a temporary directory,
+    renamed at the end.
     """
     check_storage(storage)
     names = recording.names
@@ -344,6 +353,7 @@ def write_recording_bag(
     templates = [magnetic_field_template(f) for f in frames]
     with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:
         conns = [sink.add_topic(topics.absolute(topics.raw(n)), MAGNETIC_FIELD) for n in names]
+        currents = [sink.add_topic(topics.current_topic(c), BATTERY_STATE) for c in recording.channels]
         layout = sink.layout([(c, t.template) for c, t in zip(conns, templates)])
         for a in range(0, len(recording), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
@@ -351,3 +361,9 @@ def write_recording_bag(
             for k, tmpl in enumerate(templates):
                 tmpl.fill(blocks, layout.offsets[k], ts, recording.vectors[a : a + SETS_PER_WRITE, k])
             sink.write_sets(layout, blocks, ts)
+            if currents:
+                sink.write_messages([
+                    (conn, t, bytes(typestore().serialize_cdr(battery_state_message(t, i), BATTERY_STATE)))
+                    for t, row in zip(ts.tolist(), recording.currents[a : a + SETS_PER_WRITE].tolist())  # type: ignore[index]
+                    for conn, i in zip(currents, row)
+                ])

@@ -10,6 +10,9 @@ fixed size as a whole.
 
 Templates are produced by rosbags' own serializer at import, so the bytes written are
 exactly what ``Typestore.serialize_cdr`` gives (the tests check this).
+
+Current channels (``sensor_msgs/msg/BatteryState`` and ``std_msgs/msg/Float64``, a few per
+second) go through rosbags' typestore one message at a time (:func:`decode_current`).
 """
 
 from __future__ import annotations
@@ -32,6 +35,11 @@ if TYPE_CHECKING:
 MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
 VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
+BATTERY_STATE = "sensor_msgs/msg/BatteryState"
+"""A current channel: ``current`` (A) at its header stamp."""
+FLOAT64 = "std_msgs/msg/Float64"
+"""A current channel: ``data`` (A); no header, so its bag time is its stamp."""
+CURRENT_TYPES: tuple[str, ...] = (BATTERY_STATE, FLOAT64)
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
 
 F8 = np.dtype("<f8")
@@ -72,6 +80,36 @@ def gradient_message(values: Any) -> Any:
     dim = t["std_msgs/msg/MultiArrayDimension"]
     layout = t["std_msgs/msg/MultiArrayLayout"](dim=[dim(label="row", size=3, stride=9), dim(label="col", size=3, stride=3)], data_offset=0)
     return t[FLOAT64_MULTI_ARRAY](layout=layout, data=np.asarray(values, dtype=float).reshape(9))
+
+
+def battery_state_message(stamp_ns: int, current: float, frame_id: str = "") -> Any:
+    """A rosbags ``BatteryState`` carrying ``current`` (A) at ``stamp_ns``; nothing else measured (NaN)."""
+    t = typestore().types
+    sec, nsec = divmod(int(stamp_ns), NS_PER_S)
+    nan = float("nan")
+    return t[BATTERY_STATE](
+        header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id),
+        voltage=nan, temperature=nan, current=float(current), charge=nan, capacity=nan, design_capacity=nan,
+        percentage=nan, power_supply_status=0, power_supply_health=0, power_supply_technology=0, present=True,
+        cell_voltage=np.zeros(0, np.float32), cell_temperature=np.zeros(0, np.float32), location="", serial_number="",
+    )
+
+
+def decode_current(msgtype: str, data: bytes, bag_time_ns: int) -> tuple[int, float]:
+    """Stamp (ns) and current (A) of one serialized current message of type ``msgtype``.
+
+    ``BatteryState``: its header stamp and ``current``; ``Float64``: ``bag_time_ns`` and
+    ``data``. Raises :class:`InputError` for another type or bytes that do not decode.
+    """
+    if msgtype not in CURRENT_TYPES:
+        raise InputError(f"{msgtype} is not a current channel type ({', '.join(CURRENT_TYPES)})")
+    try:
+        msg = typestore().deserialize_cdr(data, msgtype)
+    except Exception as exc:  # rosbags raises several kinds for bytes of another layout
+        raise InputError(f"malformed {msgtype} message ({type(exc).__name__})") from None
+    if msgtype == FLOAT64:
+        return int(bag_time_ns), float(msg.data)
+    return int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec), float(msg.current)
 
 
 def _put(out: NDArray[np.uint8], offset: int, values: Any, dtype: str) -> None:

@@ -1,12 +1,14 @@
 """CSV recordings: raw sets in, corrected sets out.
 
 Raw layout: header ``stamp,mag1.x,mag1.y,mag1.z,mag2.x,...``; stamp in decimal seconds,
-fields in Tesla, one synchronized set per row. Stamps are parsed and written exactly as
+fields in Tesla, one synchronized set per row; optionally, after the sensor columns, one
+column ``current.<channel>`` per interference channel (A, the channel's current at the set). Stamps are parsed and written exactly as
 decimal digits (9 decimals on output), never through a float, so nanoseconds survive.
 
 Rows go through the same acceptance rule as bag messages
 (:mod:`magcal_ros.core.sync`): a row whose stamp is 0, repeats or goes back is dropped
-and counted, a row with a NaN or infinite value is refused or dropped like a bag's.
+and counted, a row with a NaN or infinite value (a current included) is refused or
+dropped like a bag's.
 
 Corrected layout (``magcal correct``): ``stamp``, ``<name>.x,<name>.y,<name>.z`` per
 sensor (T, platform frame), ``field.x,field.y,field.z`` (centre field, T), then what the
@@ -37,6 +39,8 @@ AXIS_NAMES: tuple[str, ...] = ("x", "y", "z")
 TENSOR_COLUMNS: tuple[str, ...] = tuple(f"gradient.{i}{j}" for i in AXIS_NAMES for j in AXIS_NAMES)
 FIELD_COLUMNS: tuple[str, ...] = tuple(f"field.{a}" for a in AXIS_NAMES)
 BASELINE_COLUMNS: tuple[str, ...] = tuple(f"baseline_gradient.{a}" for a in AXIS_NAMES)
+CURRENT_PREFIX = "current."
+"""Columns ``current.<channel>``: a channel's current (A)."""
 NonFinite = Literal["drop", "error"]
 
 
@@ -52,22 +56,39 @@ def corrected_header(names: Sequence[str], gradient: str = "tensor") -> list[str
     return csv_header(list(names)) + list(FIELD_COLUMNS) + list(extra)
 
 
-def parse_header(header: list[str]) -> tuple[str, ...]:
-    """Sensor names of a CSV header; :class:`InputError` if it is not the contract's layout."""
+def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Sensor names and current channels of a CSV header; :class:`InputError` if it is not
+    the contract's layout (``stamp``, three columns per sensor, then ``current.<channel>``)."""
     if header:
         header = [header[0].lstrip("\ufeff")] + header[1:]  # a byte order mark is not a column name
     if not header or header[0].strip() != "stamp":
         raise InputError("CSV header must start with 'stamp' (then mag1.x,mag1.y,mag1.z,...)")
     cols = [c.strip() for c in header[1:]]
-    if len(cols) == 0 or len(cols) % 3:
-        raise InputError(f"CSV needs 3 columns per sensor after 'stamp', got {len(cols)}")
+    sensors = len(cols)
+    for k, c in enumerate(cols):  # the first current column no sensor triple claims
+        if c.startswith(CURRENT_PREFIX) and k % 3 == 0:
+            stem = c.rsplit(".", 1)[0]
+            if cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
+                sensors = k
+                break
+    sensor_cols, current_cols = cols[:sensors], cols[sensors:]
+    if len(sensor_cols) == 0 or len(sensor_cols) % 3:
+        raise InputError(f"CSV needs 3 columns per sensor after 'stamp' (then current.<channel> columns), "
+                         f"got {len(sensor_cols)}")
     names = []
-    for k in range(0, len(cols), 3):
-        stem = cols[k].rsplit(".", 1)[0]
-        if cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
-            raise InputError(f"CSV columns {cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
+    for k in range(0, len(sensor_cols), 3):
+        stem = sensor_cols[k].rsplit(".", 1)[0]
+        if sensor_cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
+            raise InputError(f"CSV columns {sensor_cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
         names.append(stem)
-    return tuple(names)
+    channels = tuple(c[len(CURRENT_PREFIX):] for c in current_cols)
+    bad = [c for c in current_cols if not c.startswith(CURRENT_PREFIX) or not c[len(CURRENT_PREFIX):]]
+    if bad:
+        raise InputError(f"CSV column {bad[0]!r} after the current columns: only current.<channel> columns "
+                         "(amperes) may follow the sensor columns")
+    if len(set(channels)) != len(channels):
+        raise InputError(f"CSV names a current channel twice: {', '.join(current_cols)}")
+    return tuple(names), channels
 
 
 def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
@@ -110,8 +131,8 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
     rows = _rows(_read_text(path))
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
-    names = parse_header(rows[0])
-    width = 1 + 3 * len(names)
+    names, channels = parse_header(rows[0])
+    width = 1 + 3 * len(names) + len(channels)
     if len(rows) == 1:
         raise InputError(f"{path} has a header but no data rows")
     stamps = np.empty(len(rows) - 1, np.int64)
@@ -126,14 +147,21 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
             raise InputError(f"{path} line {i}: non-numeric value") from None
         if nonfinite == "error" and not np.all(np.isfinite(data[i - 2])):
             raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
-    vectors = data.reshape(len(data), len(names), 3)
+    vectors = data[:, : 3 * len(names)].reshape(len(data), len(names), 3)
+    currents = data[:, 3 * len(names) :]
+    # Each sensor's messages carry their row number, so the sets the rule keeps name their
+    # rows (and so their currents); a row with a non-finite current is a non-finite row.
+    row = np.arange(len(data), dtype=float)
+    row_ok = np.all(np.isfinite(currents), axis=1)
     sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False)
     for k in range(len(names)):
-        sync.add_batch(k, stamps, vectors[:, k])
+        ok = row_ok & np.all(np.isfinite(vectors[:, k]), axis=1)
+        sync.add_batch(k, stamps, np.where(ok, row, np.nan)[:, None].repeat(3, axis=1))
     sets = sync.pop(final=True)
     if len(sets) == 0:
         raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
-    return Recording(names, sets.set_stamps, sets.vectors), sync.stats
+    rows_kept = sets.vectors[:, 0, 0].astype(np.int64)
+    return Recording(names, sets.set_stamps, vectors[rows_kept], channels, currents[rows_kept]), sync.stats
 
 
 def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:
@@ -145,11 +173,13 @@ def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:
 
 
 def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
-    """Write ``recording`` atomically as CSV."""
+    """Write ``recording`` atomically as CSV (its currents as ``current.<channel>`` columns, A)."""
+    header = csv_header(recording.names) + [CURRENT_PREFIX + c for c in recording.channels]
+    columns = np.concatenate([recording.vectors.reshape(len(recording), -1), recording.currents], axis=1)  # type: ignore[list-item]
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(csv_header(recording.names)) + "\n")
-            fh.write(format_rows(recording.stamps, recording.vectors.reshape(len(recording), -1)))
+            fh.write(",".join(header) + "\n")
+            fh.write(format_rows(recording.stamps, columns))
 
 
 def write_corrected_csv(

@@ -1,12 +1,21 @@
-"""Open a recording from a path: a CSV file or a rosbag2 directory (sqlite3 or mcap)."""
+"""Open a recording from a path: a CSV file or a rosbag2 directory (sqlite3 or mcap), with the
+currents of its interference channels (CSV columns, or bag topics matched to the sets)."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
+from magcal_ros.core.interference import (
+    DEFAULT_CURRENT_TOLERANCE,
+    CurrentStats,
+    match_currents,
+    tolerance_of,
+)
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
 from magcal_ros.errors import InputError
@@ -81,3 +90,35 @@ def open_recording(
     if len(rec) == 0:
         raise InputError(f"{p}: no synchronized sets in the selected time window")
     return rec, stats
+
+
+def with_bag_currents(
+    path: str | os.PathLike[str],
+    recording: Recording,
+    topics: Sequence[str],
+    tolerance: float = DEFAULT_CURRENT_TOLERANCE,
+) -> tuple[Recording, CurrentStats]:
+    """``recording`` (read from the bag ``path``) with the currents of ``topics`` at its sets.
+
+    Each channel's current at a set is its latest value not newer than the set's stamp
+    and at most ``tolerance`` s older (:func:`~magcal_ros.core.interference.match_currents`);
+    sets without such a value of every channel are dropped and counted. Channel names are
+    the topics without their leading ``/``. Raises :class:`InputError` for a CSV path, a
+    missing or mistyped topic, or when no set keeps a current of every channel.
+    """
+    from magcal_ros.io.bag_reader import open_bag, read_current_samples
+
+    p = Path(path)
+    if is_csv(p):
+        raise InputError(f"{p}: current topics are for bags; a CSV recording gives its currents as "
+                         "current.<channel> columns")
+    tol = tolerance_of(tolerance)
+    with open_bag(p) as reader:
+        samples = read_current_samples(reader, p, topics)
+    currents, fresh = match_currents(recording.stamps, samples, tol)
+    stats = CurrentStats(tuple(s.channel for s in samples), tol)
+    keep = stats.keep(fresh)
+    if not np.any(keep):
+        raise InputError(f"{p}: {stats.describe()}: no set left; check the topics' stamps or widen the tolerance")
+    out = recording.with_currents(stats.channels, currents).take(keep)
+    return out, stats

@@ -45,5 +45,16 @@ def sensor_of_raw(topic: str) -> str | None:
     return None
 
 
+def current_channel(topic: str) -> str:
+    """The interference channel of a current topic: the topic without its leading ``/``
+    (``/thruster1/battery`` -> ``thruster1/battery``), as calibration files and CSV columns name it."""
+    return topic.strip("/")
+
+
+def current_topic(channel: str) -> str:
+    """The absolute topic of an interference channel (inverse of :func:`current_channel`)."""
+    return absolute(channel.strip("/"))
+
+
 RAW_TOPIC_HELP = "/<name>/raw"
 """How help texts name the raw topics."""

@@ -2,14 +2,19 @@
 
 Files for an output ``OUT`` (a rosbag2 directory, or a CSV file when it ends in .csv):
 
-- ``OUT``: the raw recording, topics ``/<name>/raw`` (or CSV columns ``<name>.x,...``).
+- ``OUT``: the raw recording, topics ``/<name>/raw`` (or CSV columns ``<name>.x,...``),
+  plus one ``sensor_msgs/msg/BatteryState`` topic ``/<channel>`` per thruster (or CSV
+  columns ``current.<channel>``, A).
 - ``OUT.truth.yaml``: the true calibration as a calibration file (``magcal_correction``
-  block, loadable by ``magcal correct --calibration`` and the correction node) plus a
-  ``magcal_simulation`` block with every simulation parameter.
+  block, loadable by ``magcal correct --calibration`` and the correction node; with
+  thrusters its ``interference_channels`` and per-sensor ``interference``, the thrusters'
+  field per ampere at each sensor, T/A, platform frame) plus a ``magcal_simulation`` block
+  with every simulation parameter.
 - ``OUT.truth.npz``: per-set truth, platform frame: ``stamps`` (N,) int64 ns, ``field``
-  (N, S, 3) T at each sensor, ``centre`` (N, 3) T, ``gradient`` (N, 3, 3) T/m at the
-  centre (``G[i, j] = dB_j/dx_i``), ``attitudes`` (N, 3, 3) platform to world,
-  ``names`` (S,), ``positions`` (S, 3) m, ``earth`` (3,) T world NED.
+  (N, S, 3) T at each sensor (without the thrusters' field), ``centre`` (N, 3) T,
+  ``gradient`` (N, 3, 3) T/m at the centre (``G[i, j] = dB_j/dx_i``), ``attitudes``
+  (N, 3, 3) platform to world, ``names`` (S,), ``positions`` (S, 3) m, ``earth`` (3,) T
+  world NED, ``currents`` (N, m) A and ``channels`` (m,) of the thrusters.
 """
 
 from __future__ import annotations
@@ -43,7 +48,8 @@ def truth_paths(out: str | os.PathLike[str]) -> tuple[Path, Path]:
 def truth_yaml(spec: SimulationSpec, truth: Truth, sim: ArraySimulation) -> str:
     """The calibration file of the true calibration plus the simulation parameters."""
     cal = truth.calibration
-    params: dict[str, Any] = {k: v for k, v in asdict(spec).items() if k not in ("dipoles", "names", "position")}
+    params: dict[str, Any] = {k: v for k, v in asdict(spec).items()
+                              if k not in ("dipoles", "names", "position", "thrusters")}
     params.update(
         {
             "sets": int(len(truth.centre)),
@@ -56,6 +62,9 @@ def truth_yaml(spec: SimulationSpec, truth: Truth, sim: ArraySimulation) -> str:
     )
     if spec.dipoles:  # ROS parameter files cannot hold empty lists
         params["dipoles"] = [float(v) for d in spec.dipoles for v in d]
+    if spec.thrusters:  # x, y, z (m), mx, my, mz (A m^2 / A) per thruster, platform frame
+        params["thrusters"] = [float(v) for d in spec.thrusters for v in d]
+        params["thruster_channels"] = list(spec.channels)
     for name, s in zip(spec.names, sim.sensors):
         params[name] = {
             "scale": [float(v) for v in s.scale],
@@ -83,6 +92,7 @@ def write_simulation(out: str | os.PathLike[str], spec: SimulationSpec, storage:
             np.savez_compressed(
                 fh, stamps=rec.stamps, field=truth.field, centre=truth.centre, gradient=truth.gradient,
                 attitudes=truth.attitudes, names=np.array(rec.names), positions=sim.geometry.positions, earth=sim.earth,
+                currents=truth.currents, channels=np.array(rec.channels, dtype=str),
             )
         t_yaml.write_text(truth_yaml(spec, truth, sim))
         if csv:

@@ -14,6 +14,7 @@ __all__, __getattr__ = lazy_exports(
         "Method": "magcal_ros.methods.strategies",
         "SolveOptions": "magcal_ros.methods.pipeline",
         "calibrate_array": "magcal_ros.methods.pipeline",
+        "calibrate_interference": "magcal_ros.methods.interference",
         "paired_fit": "magcal_ros.methods.paired",
         "pso_fit": "magcal_ros.methods.pso",
     },

@@ -33,6 +33,7 @@ from magcal_ros.core.array_fit import (
 )
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.interference import describe_undetermined, undetermined_channels
 from magcal_ros.core.metrics import rms, tensor_rms, tmi_rms
 from magcal_ros.core.observability import (
     MIN_SAMPLES,
@@ -291,6 +292,42 @@ def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope
             "this manoeuvre determines")
 
 
+# -- interference channels the data cannot determine: not solved, the rest refitted ------------
+def _undetermined_channels(ana: ident.Identifiability, directions: Array, u: Array, channels: tuple[str, ...],
+                           prior: ArrayCalibration | None) -> list[int]:
+    """Channels (indices) whose interference the data cannot determine and no prior holds.
+
+    Those whose identifiability is undetermined, and those whose currents never vary or vary
+    in lockstep with another channel or the attitude (an exact degeneracy the covariance's
+    pseudo-inverse does not show).
+    """
+    if not channels:
+        return []
+    flagged = set(np.flatnonzero(undetermined_channels(u, directions)).tolist())
+    names = {f"interference {c} {a}": j for j, c in enumerate(channels) for a in ident.AXES}
+    flagged |= {names[q.name] for q in ana.undetermined() if q.name in names}
+    held = set(prior.channels) if prior is not None else set()
+    return sorted(j for j in flagged if channels[j] not in held)
+
+
+def _without_channels(unsolved: list[int], raw: ArrayLike, geometry: ArrayGeometry, reference_field: float | None,
+                      method: str, options: SolveOptions | None, prior: ArrayCalibration | None, u: Array,
+                      channels: tuple[str, ...], stamps: ArrayLike | None) -> CalibrationResult:
+    """The calibration without the ``unsolved`` channels, with a warning naming them."""
+    mask = np.isin(np.arange(len(channels)), unsolved)
+    note = f"interference not solved (undetermined): {describe_undetermined(channels, u, mask)}"
+    keep = [j for j in range(len(channels)) if not mask[j]]
+    try:
+        result = calibrate_array(raw, geometry, reference_field, method, options, prior, u[:, keep],
+                                 tuple(channels[j] for j in keep), stamps)
+    except MagcalError as exc:
+        raise type(exc)(f"{note}; without them: {exc}") from None
+    result.warnings.insert(0, note)
+    result.calibration.metadata["warnings"] = list(result.warnings)
+    result.calibration.metadata["interference_undetermined"] = [channels[j] for j in unsolved]
+    return result
+
+
 def _inclination(opts: SolveOptions, directions: Array) -> float:
     """Field inclination (rad) for the envelope: given, or from the data assuming level on average."""
     if opts.inclination_deg is not None:
@@ -422,6 +459,9 @@ def calibrate_array(
         env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
         raise ObservabilityError(_refusal(ana, sol, env))
     ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u)
+    unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
+    if unsolved:
+        return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps)
     env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
     if prior is None and ana.undetermined():
         raise ObservabilityError(_refusal(ana, sol, env))
@@ -495,9 +535,10 @@ def calibrate_array(
     return replace(result, seconds=time.perf_counter() - t0)
 
 
-def _key(name: str) -> str:
-    """A quantity name as a ROS parameter key: ``offset z`` -> ``offset_z``."""
-    return name.replace("non-orthogonality", "nonorthogonality").replace("-", "").replace(" ", "_")
+def provenance_key(name: str) -> str:
+    """A quantity name as a ROS parameter key: ``offset z`` -> ``offset_z``,
+    ``interference thruster1/battery x`` -> ``interference_thruster1_battery_x``."""
+    return name.replace("non-orthogonality", "nonorthogonality").replace("-", "").replace(" ", "_").replace("/", "_")
 
 
 def provenance(result: CalibrationResult, source: str, reference_field: float | None,
@@ -506,7 +547,7 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
     ana = result.identifiability
     uncertainty: dict[str, dict[str, float]] = {}
     for q in ana.quantities:
-        uncertainty.setdefault(q.sensor, {})[f"{_key(q.name)}_{q.unit.replace('/', '_per_')}"] = q.sigma
+        uncertainty.setdefault(q.sensor, {})[f"{provenance_key(q.name)}_{q.unit.replace('/', '_per_')}"] = q.sigma
     names = result.calibration.geometry.names
     meta: dict[str, Any] = {
         "method": result.method,

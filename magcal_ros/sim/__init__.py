@@ -10,6 +10,7 @@ __all__, __getattr__ = lazy_exports(
     {
         "ArraySimulation": "magcal_ros.sim.simulator",
         "SimulationSpec": "magcal_ros.sim.spec",
+        "Thruster": "magcal_ros.sim.simulator",
         "Truth": "magcal_ros.sim.simulator",
         "random_sensor_errors": "magcal_ros.sim.simulator",
         "run": "magcal_ros.sim.spec",

@@ -4,6 +4,13 @@ The platform sits at ``position`` (m, world NED) and takes the attitudes ``R_k``
 (platform to world). Sensor ``i`` at ``p_i`` (platform frame) sees the platform-frame
 field ``B_ik = R_k^T (B_earth + sum dipole(position + R_k p_i))`` and reads
 ``r = K_i B + o_i`` (:mod:`magcal_ros.core.sensor_model`) plus noise.
+
+Thrusters (or any current on the platform) add, at set ``k``, the platform-fixed field
+``D_i u_k``: ``D_i`` (3 x m, T/A) is the field at ``p_i`` of a dipole of moment
+``moment_per_ampere`` (A m^2 per A, platform frame) at the thruster's position (platform
+frame), ``u_k`` the thrusters' currents (A). The sensor reads ``K_i (B_ik + D_i u_k) + o_i``;
+the truth field ``B_ik`` excludes it and the true calibration carries ``D`` as its
+interference.
 """
 
 from __future__ import annotations
@@ -42,7 +49,27 @@ class Truth:
     attitudes: Array
     """(N, 3, 3) platform-to-world rotations."""
     calibration: ArrayCalibration
-    """The true per-sensor corrections (raw to the true platform frame)."""
+    """The true per-sensor corrections (raw to the true platform frame), with the thrusters'
+    interference gains (T/A) when there are thrusters."""
+    currents: Array = field(default_factory=lambda: np.zeros((0, 0)))
+    """(N, m) thruster currents (A) at each set, channels as ``calibration.channels``."""
+
+
+@dataclass(frozen=True)
+class Thruster:
+    """A current-carrying device fixed to the platform, seen as a point dipole per ampere.
+
+    ``position`` (m) and ``moment_per_ampere`` (A m^2 / A) in the platform frame; ``channel``
+    names its current (e.g. ``thruster1/battery``).
+    """
+
+    channel: str
+    position: Array
+    moment_per_ampere: Array
+
+    def gains(self, positions: ArrayLike) -> Array:
+        """(S, 3) field per ampere (T/A, platform frame) at ``positions`` (S, 3) m, platform frame."""
+        return Dipole(np.asarray(self.position, dtype=float), np.asarray(self.moment_per_ampere, dtype=float)).field(positions)
 
 
 @dataclass(frozen=True)
@@ -65,6 +92,8 @@ class ArraySimulation:
     dipoles: tuple[Dipole, ...] = ()
     position: Array = field(default_factory=lambda: np.zeros(3))
     """Array centre position (m, world frame)."""
+    thrusters: tuple[Thruster, ...] = ()
+    """Platform-fixed current interference, one channel each."""
 
     def __post_init__(self) -> None:
         if len(self.sensors) != self.geometry.size:
@@ -75,12 +104,27 @@ class ArraySimulation:
             raise InputError("noise_kind must be gaussian|uniform and noise_domain raw|sensor")
         if not (0.0 <= self.noise_correlation < 1.0):
             raise InputError("noise_correlation must be in [0, 1)")
+        for t in self.thrusters:
+            if np.min(np.linalg.norm(self.geometry.positions - np.asarray(t.position, dtype=float), axis=1)) < 1e-3:
+                raise InputError(f"thruster {t.channel} lies on a sensor position: move it away")
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The thrusters' current channels."""
+        return tuple(t.channel for t in self.thrusters)
+
+    def interference(self) -> Array:
+        """(S, 3, m) the thrusters' field per ampere at each sensor (T/A, platform frame)."""
+        gains = [t.gains(self.geometry.positions) for t in self.thrusters]
+        return np.stack(gains, axis=2) if gains else np.zeros((self.geometry.size, 3, 0))
 
     def true_calibration(self) -> ArrayCalibration:
-        """Corrections that map raw readings exactly into the true platform frame."""
+        """Corrections that map raw readings exactly into the true platform frame (and the
+        thrusters' true interference)."""
         pairs = [s.correction() for s in self.sensors]
         return ArrayCalibration(
-            self.geometry, np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]), {"method": "truth"}
+            self.geometry, np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]), {"method": "truth"},
+            None, self.channels, self.interference() if self.thrusters else None,
         )
 
     def _noise(self, shape: tuple[int, ...], rng: np.random.Generator) -> Array:
@@ -119,26 +163,34 @@ class ArraySimulation:
         rng: np.random.Generator | int | None = None,
         rate: float = 10.0,
         start: float = 0.0,
+        currents: ArrayLike | None = None,
     ) -> tuple[Recording, Truth]:
         """Raw recording and truth for the given attitudes, ``rate`` sets per second from ``start`` (s).
 
         Stamps are integer nanoseconds (``start`` rounded to the nanosecond, then ``k / rate``).
+        ``currents`` (N, m) A of the thrusters at each set (default: all off); the recording
+        carries them as its channels.
         """
         gen = np.random.default_rng(rng)
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
+        m = len(self.thrusters)
+        u = np.zeros((len(rot), m)) if currents is None else np.asarray(currents, dtype=float)
+        if u.shape != (len(rot), m) or not np.all(np.isfinite(u)):
+            raise InputError(f"need finite currents (A) of shape ({len(rot)}, {m}), got {u.shape}")
         b, c, g = self.platform_field(rot)
+        seen = b + np.einsum("sac,nc->nsa", self.interference(), u)  # the platform's own field added
         raw = np.empty_like(b)
         for i, s in enumerate(self.sensors):
             ca = s.triangular
-            z = np.einsum("ij,nj->ni", s.rotation.T, np.einsum("ij,nj->ni", np.eye(3) + s.soft_iron, b[:, i]) + s.hard_iron)
+            z = np.einsum("ij,nj->ni", s.rotation.T, np.einsum("ij,nj->ni", np.eye(3) + s.soft_iron, seen[:, i]) + s.hard_iron)
             if self.noise_domain == "sensor":
                 z = z + self._noise(z.shape, gen)
             raw[:, i] = z @ ca.T + s.offset
             if self.noise_domain == "raw":
                 raw[:, i] += self._noise(z.shape, gen)
         stamps = seconds_to_ns(start) + np.rint(np.arange(len(rot)) * (NS_PER_S / rate)).astype(np.int64)
-        rec = Recording(self.geometry.names, stamps, raw)
-        return rec, Truth(b, c, g, rot, self.true_calibration())
+        rec = Recording(self.geometry.names, stamps, raw, self.channels, u)
+        return rec, Truth(b, c, g, rot, self.true_calibration(), u)
 
 
 def random_sensor_errors(

@@ -2,6 +2,14 @@
 
 Sensor errors depend only on the seed and the error spreads, so two recordings made with
 the same ``seed`` share the same sensors: calibrate one, correct the other.
+
+Thrusters (``thrusters``, platform-fixed dipoles per ampere) run on a current schedule
+(:func:`current_schedule`): ``random:IMAX`` draws each thruster's current uniformly in
+``0..IMAX`` A at every set; ``steps:L1,L2,...`` holds levels (A) for ``step_sets`` sets
+each, the thrusters stepping like an odometer (thruster 1 changes level every
+``step_sets`` sets, thruster 2 every ``step_sets * L`` sets, ...) so that no two move in
+lockstep. Thruster ``j`` (from 1) is channel ``thrusterj/battery``: in a bag its current is
+the ``sensor_msgs/msg/BatteryState`` topic ``/thrusterj/battery``.
 """
 
 from __future__ import annotations
@@ -16,9 +24,38 @@ from magcal_ros.core.recording import Recording
 from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError
 from magcal_ros.sim import attitudes
-from magcal_ros.sim.simulator import ArraySimulation, Truth, random_sensor_errors
+from magcal_ros.sim.simulator import (
+    ArraySimulation,
+    Thruster,
+    Truth,
+    random_sensor_errors,
+)
 
 SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "paper000", "paper004", "three-axes", "random")
+CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
+
+
+def thruster_channel(index: int) -> str:
+    """Channel name of thruster ``index`` (from 1): ``thruster<index>/battery``."""
+    return f"thruster{index}/battery"
+
+
+def current_schedule(text: str, count: int, thrusters: int, step_sets: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, thrusters) currents in A from ``random:IMAX`` or ``steps:L1,L2,...`` (module docstring)."""
+    kind, _, values = text.partition(":")
+    try:
+        numbers = [float(v) for v in values.split(",") if v.strip()]
+    except ValueError:
+        numbers = []
+    if kind not in CURRENT_SCHEDULES or not numbers or not np.all(np.isfinite(numbers)) or (kind == "random" and len(numbers) != 1):
+        raise InputError(f"--thruster-current must be random:IMAX or steps:L1,L2,... (amperes), got {text!r}")
+    if kind == "random":
+        return rng.uniform(0.0, numbers[0], (count, thrusters))
+    if step_sets < 1:
+        raise InputError("--step-sets must be at least 1")
+    levels = np.asarray(numbers)
+    k = np.arange(count)
+    return np.stack([levels[(k // (step_sets * len(levels) ** j)) % len(levels)] for j in range(thrusters)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -49,6 +86,19 @@ class SimulationSpec:
     seed: int = 0
     baseline: float = 0.4
     names: tuple[str, ...] = field(default=DEFAULT_NAMES)
+    thrusters: tuple[tuple[float, ...], ...] = ()
+    """Each ``(x, y, z, mx, my, mz)``: platform position (m) and moment per ampere (A m^2 / A)."""
+    thruster_current: str = "random:20"
+    """Current schedule of the thrusters: ``random:IMAX`` or ``steps:L1,L2,...`` (A)."""
+    step_sets: int = 25
+    """Sets each level of ``steps:`` is held."""
+    still: bool = False
+    """The vehicle does not move: every set takes the schedule's first attitude."""
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Current channels of the thrusters."""
+        return tuple(thruster_channel(j + 1) for j in range(len(self.thrusters)))
 
     def check(self) -> None:
         """Raise :class:`InputError` for values no simulation can use."""
@@ -70,6 +120,10 @@ class SimulationSpec:
         for d in self.dipoles:
             if len(d) != 6 or not np.all(np.isfinite(d)):
                 raise InputError("--dipole needs 6 numbers: x,y,z (m) and mx,my,mz (A m^2)")
+        for d in self.thrusters:
+            if len(d) != 6 or not np.all(np.isfinite(d)):
+                raise InputError("--thruster needs 6 numbers: x,y,z (m) and mx,my,mz (A m^2 per A), platform frame")
+        current_schedule(self.thruster_current, 1, 1, self.step_sets, np.random.default_rng(0))
 
 
 def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
@@ -91,12 +145,16 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
         noise_domain=spec.noise_domain,  # type: ignore[arg-type]
         dipoles=tuple(Dipole(np.asarray(d[:3], float), np.asarray(d[3:], float)) for d in spec.dipoles),
         position=np.asarray(spec.position, dtype=float),
+        thrusters=tuple(Thruster(c, np.asarray(d[:3], float), np.asarray(d[3:], float))
+                        for c, d in zip(spec.channels, spec.thrusters)),
     )
     att_rng = np.random.default_rng([spec.seed, 1])
     if spec.schedule == "single-axis":
         rot = attitudes.single_axis(spec.axis, spec.count)
     else:
         rot = attitudes.SCHEDULES[spec.schedule](spec.count, att_rng)
+    if spec.still:
+        rot = np.repeat(rot[:1], len(rot), axis=0)
     for d in sim.dipoles:
         if np.min(np.linalg.norm(sim.position + np.einsum("nij,sj->nsi", rot, geometry.positions) - d.position, axis=-1)) < 1e-3:
             raise InputError("a dipole lies on a sensor position: move it away (--dipole x,y,z in m)")
@@ -106,5 +164,8 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
 def run(spec: SimulationSpec) -> tuple[Recording, Truth, ArraySimulation]:
     """Simulate: ``(recording, truth, simulation)``."""
     sim, rot = build(spec)
-    rec, truth = sim.run(rot, np.random.default_rng([spec.seed, 2]), rate=spec.rate, start=spec.start_time)
+    currents = current_schedule(spec.thruster_current, len(rot), len(sim.thrusters), spec.step_sets,
+                                np.random.default_rng([spec.seed, 3]))
+    rec, truth = sim.run(rot, np.random.default_rng([spec.seed, 2]), rate=spec.rate, start=spec.start_time,
+                         currents=currents)
     return rec, truth, sim
