@@ -117,7 +117,7 @@ def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     try:
-        return parse_header(rows[0])
+        return parse_header(rows[0])[0]
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
 
