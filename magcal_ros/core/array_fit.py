@@ -447,3 +447,12 @@ def _rotation_map(qmat: Array, shape: tuple[int, ...]) -> Array:
     t = np.eye(s * 3 * q).reshape(s, 3, q, s * 3 * q)
     t[:, :, :3, :] = np.einsum("saqp,kq->sakp", t[:, :, :3, :], qmat)
     return t.reshape(s * 3 * q, s * 3 * q)
+
+
+def information_at(w: Array, directions: Array, sigma: Array) -> Array:
+    """The information (S P, S P) that sets with unit field ``directions`` (N, 3) would add to
+    the fit ``w`` (units of F), every reading used, noise ``sigma`` (S,) in units of F, no currents."""
+    n = len(directions)
+    u = np.zeros((n, w.shape[2] - 4))
+    x = _predict(w, features(directions, u))
+    return _Normal(w, directions, x, u, np.ones((n, w.shape[0])), sigma).information()

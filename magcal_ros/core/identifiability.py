@@ -311,3 +311,60 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     out = np.broadcast_to(out, ratio.shape)
     outside = float(np.sqrt(np.sum(weight * sq * out) / np.sum(weight * out))) if out.any() else 1.0
     return Envelope(pitch_lim, roll_lim, float(np.degrees(inclination)), inside, sphere, outside)
+
+
+# -- what to fly next ----------------------------------------------------------------------
+TILT_DEG: float = 15.0
+"""Tilt of the candidate manoeuvres :func:`advise` compares."""
+CANDIDATES: tuple[tuple[str, float, float], ...] = (
+    ("pitch nose down", -TILT_DEG, 0.0), ("pitch nose up", TILT_DEG, 0.0),
+    ("roll to port", 0.0, -TILT_DEG), ("roll to starboard", 0.0, TILT_DEG),
+)
+
+
+@dataclass(frozen=True)
+class Advice:
+    """What to fly next, in words, and what it would leave undetermined."""
+
+    text: str
+    worst_effect: float
+    """Largest 1-sigma effect (T) of a quantity after flying it."""
+
+
+def tilted(directions: Array, pitch_deg: float, roll_deg: float) -> Array:
+    """Platform-frame field directions seen after tilting the vehicle by pitch, then roll (deg)."""
+    p, r = np.radians(pitch_deg), np.radians(roll_deg)
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    return directions @ (ry @ rx)  # R^T d for each row d, with R = Ry Rx
+
+
+def advise(names: Sequence[str], w: Array, intensity: float, information: Array, directions: Array,
+           noise: Array, constraints: Array | None = None) -> Advice:
+    """The candidate tilt (:data:`CANDIDATES`, flown through the same yaw turns as so far) that
+    best determines what is still undetermined; "enough" when nothing is."""
+    from magcal_ros.core.array_fit import information_at
+
+    def worst(info: Array) -> float:
+        if constraints is not None and len(constraints):
+            _, sv, vt = np.linalg.svd(constraints)
+            basis = vt[int(np.sum(sv > 1e-12 * sv[0])):].T
+            cov = basis @ np.linalg.pinv(basis.T @ info @ basis, hermitian=True) @ basis.T
+        else:
+            cov = np.linalg.pinv(info, hermitian=True)
+        ana = analyse(names, w, intensity, cov, noise)
+        return max(q.effect / max(ana.noise[names.index(q.sensor)], 1e-30) for q in ana.quantities)
+
+    now = worst(information)
+    if now <= UNDETERMINED_EFFECT:
+        return Advice("enough for a calibration: call ~/calibrate (more attitudes widen the envelope)", now)
+    sigma_f = np.asarray(noise, dtype=float) / intensity
+    best = None
+    for words, pitch, roll in CANDIDATES:
+        extra = information_at(w, tilted(directions, pitch, roll), sigma_f)
+        score = worst(information + extra)
+        if best is None or score < best[1]:
+            best = (words, score)
+    assert best is not None
+    words, score = best
+    return Advice(f"{words} {TILT_DEG:.0f} deg and keep turning", score)
