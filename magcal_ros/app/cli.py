@@ -127,7 +127,9 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
 schedules: single-axis (one turn about --axis, --count steps), paper000 (12^3 grid of 30
 deg steps, 1728 sets), paper004 (144-attitude grid), three-axes (a turn about each axis,
---count in total), random (--count uniform attitudes)."""
+--count in total), random (--count uniform attitudes), sea (what a vehicle flies: --turns
+yaw circles while pitch and roll swing +-PITCH and +-ROLL deg, plus --wobble; in time
+order), tumble (a smooth hand-held tumble through all attitudes, in time order)."""
 
 EPILOG_CORRECT = """examples:
   magcal correct survey_bag --calibration cal.yaml -o corrected_bag
@@ -429,7 +431,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     dipoles = tuple(_numbers(d, 6, "--dipole") for d in (args.dipole or []))
     thrusters = tuple(_numbers(d, 6, "--thruster") for d in (args.thruster or []))
     spec = synthetic.SimulationSpec(
-        schedule=args.schedule, count=args.count, axis=args.axis, intensity=args.intensity,
+        schedule=args.schedule, count=args.count, axis=args.axis, pitch=args.pitch, roll=args.roll,
+        wobble=args.wobble, turns=args.turns, intensity=args.intensity,
         inclination=args.inclination, declination=args.declination, scale_sd=args.scale_sd,
         angle_sd=args.angle_sd, offset_sd=args.offset_sd, misalignment_sd=args.misalignment_sd,
         hard_iron_sd=args.hard_iron_sd, soft_iron_sd=args.soft_iron_sd, noise=args.noise,
@@ -602,6 +605,13 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--schedule", default=d.schedule, choices=SCHEDULE_NAMES, help=f"rotation schedule (default {d.schedule})")
     g.add_argument("--count", type=int, default=d.count, help=f"attitudes for single-axis/three-axes/random (default {d.count})")
     g.add_argument("--axis", default=d.axis, choices=["x", "y", "z"], help="rotation axis of single-axis (default z)")
+    g.add_argument("--pitch", type=float, default=d.pitch, metavar="DEG",
+                   help=f"sea: pitch swings +-DEG while turning (default {d.pitch:g})")
+    g.add_argument("--roll", type=float, default=d.roll, metavar="DEG",
+                   help=f"sea: roll swings +-DEG while turning (default {d.roll:g})")
+    g.add_argument("--wobble", type=float, default=d.wobble, metavar="DEG",
+                   help="sea: smooth random wobble on top, e.g. waves or a hand (default 0)")
+    g.add_argument("--turns", type=float, default=d.turns, help=f"sea: full yaw turns (default {d.turns:g})")
     g.add_argument("--rate", type=float, default=d.rate, metavar="HZ", help=f"sets per second (default {d.rate:g})")
     g.add_argument("--start-time", type=float, default=d.start_time, metavar="SECONDS",
                    help=f"stamp of the first set (default {d.start_time:.0f})")

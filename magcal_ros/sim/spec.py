@@ -31,7 +31,7 @@ from magcal_ros.sim.simulator import (
     random_sensor_errors,
 )
 
-SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "paper000", "paper004", "three-axes", "random")
+SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "paper000", "paper004", "three-axes", "random", "sea", "tumble")
 CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
 
 
@@ -65,6 +65,14 @@ class SimulationSpec:
     schedule: str = "random"
     count: int = 1000
     axis: str = "z"
+    pitch: float = 5.0
+    """Sea manoeuvre: pitch swing +- (deg)."""
+    roll: float = 2.0
+    """Sea manoeuvre: roll swing +- (deg)."""
+    wobble: float = 0.0
+    """Sea manoeuvre: smooth random wobble on top (deg)."""
+    turns: float = 2.0
+    """Sea manoeuvre: full yaw turns."""
     intensity: float = 5.5e-5
     inclination: float = 60.0
     declination: float = 5.0
@@ -151,6 +159,8 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
     att_rng = np.random.default_rng([spec.seed, 1])
     if spec.schedule == "single-axis":
         rot = attitudes.single_axis(spec.axis, spec.count)
+    elif spec.schedule == "sea":
+        rot = attitudes.sea_manoeuvre(spec.count, spec.pitch, spec.roll, spec.turns, spec.wobble, att_rng)
     else:
         rot = attitudes.SCHEDULES[spec.schedule](spec.count, att_rng)
     if spec.still:
