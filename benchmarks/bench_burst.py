@@ -93,7 +93,13 @@ def _status(driver, settle: float = 0.0) -> tuple[dict[str, int], dict[str, str]
 
 
 def run(rate: float, seconds: float, workdir: Path) -> int:
-    from magcal_ros.app.ros_driver import ArrayDriver, NodeProcess, pick_domain_id, ros_args, ros_environment
+    from magcal_ros.app.ros_driver import (
+        ArrayDriver,
+        NodeProcess,
+        pick_domain_id,
+        ros_args,
+        ros_environment,
+    )
 
     domain = pick_domain_id()
     env = ros_environment(domain)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,11 @@ from magcal_ros.errors import MagcalError  # noqa: E402
 from magcal_ros.io.csv_recording import read_csv  # noqa: E402
 from magcal_ros.methods.pipeline import calibrate_array  # noqa: E402
 from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random  # noqa: E402
-from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors  # noqa: E402
+from magcal_ros.sim.simulator import (  # noqa: E402
+    ArraySimulation,
+    hard_iron_moved,
+    random_sensor_errors,
+)
 
 NT = 1e-9
 F = 51_500 * NT
@@ -108,9 +111,7 @@ def partial_recalibration() -> None:
     rng = np.random.default_rng(4)
     rec, _ = sim.run(uniform_random(1000, rng), rng)
     first = calibrate_array(rec.vectors, sim.geometry, F).calibration
-    moved = tuple(replace(s, hard_iron=s.hard_iron + rng.choice([-1, 1], 3) * rng.uniform(300, 800, 3) * NT)
-                  for s in sim.sensors)
-    new = ArraySimulation(sim.geometry, moved, sim.earth, noise=sim.noise)
+    new = hard_iron_moved(sim, rng)
     yaw, _ = new.run(sea_manoeuvre(600, 0, 0, turns=2, wobble_deg=3, rng=rng), rng)
     old = ratios(first, new)
     print(f"  previous calibration on the changed hull: TMI {old[0]:.1f}x, tensor {old[1]:.1f}x the true one")

@@ -9,7 +9,6 @@ plain numpy.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,11 @@ from magcal_ros.errors import CalibrationFailed, ObservabilityError
 from magcal_ros.io.csv_recording import read_csv
 from magcal_ros.methods.pipeline import calibrate_array
 from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random
-from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
+from magcal_ros.sim.simulator import (
+    ArraySimulation,
+    hard_iron_moved,
+    random_sensor_errors,
+)
 
 NT = 1e-9
 F = 51_500 * NT
@@ -65,9 +68,7 @@ def moved_hard_iron() -> dict[str, object]:
     rng = np.random.default_rng(4)
     rec, _ = sim.run(uniform_random(1000, rng), rng)
     first = calibrate_array(rec.vectors, sim.geometry, F).calibration
-    moved = tuple(replace(s, hard_iron=s.hard_iron + rng.choice([-1, 1], 3) * rng.uniform(300, 800, 3) * NT)
-                  for s in sim.sensors)
-    new = ArraySimulation(sim.geometry, moved, sim.earth, noise=sim.noise)
+    new = hard_iron_moved(sim, rng)
     yaw, _ = new.run(sea_manoeuvre(600, 0.0, 0.0, turns=2, wobble_deg=3.0, rng=rng), rng)
     return {"first": first, "new": new, "yaw": yaw}
 

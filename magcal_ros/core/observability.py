@@ -29,8 +29,12 @@ MIN_QUADRIC_RATIO: float = 1e-3
 _AXIS_NAMES = ("x", "y", "z")
 
 
-def _sphere_bins(count: int = 42) -> Array:
-    """Roughly uniform directions (Fibonacci sphere) for the coverage measure."""
+SPHERE_CELLS: int = 42
+"""Cells of the direction coverage measure (and of the calibration node's sample buffer)."""
+
+
+def sphere_cells(count: int = SPHERE_CELLS) -> Array:
+    """Roughly uniform unit directions (count, 3), a Fibonacci sphere: centres of direction cells."""
     k = np.arange(count) + 0.5
     z = 1.0 - 2.0 * k / count
     phi = np.pi * (1.0 + 5**0.5) * k
@@ -123,7 +127,7 @@ def excitation(readings: ArrayLike) -> Excitation:
     normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
     norms = np.linalg.norm(centred, axis=1)
     dirs = centred[norms > 0] / norms[norms > 0, None]
-    bins = _sphere_bins()
+    bins = sphere_cells()
     visited = np.unique(np.argmax(dirs @ bins.T, axis=1)) if len(dirs) else np.array([])
     ratio = 0.0
     if n >= 10:

@@ -120,7 +120,7 @@ class Method:
     reference: Reference
     needs_reference_field: bool
     joint: bool = False
-    """Finish with the joint array maximum likelihood (:mod:`magcal_ros.core.joint_fit`)."""
+    """Finish with the joint array fit (:mod:`magcal_ros.core.array_fit`)."""
 
 
 METHODS: dict[str, Method] = {

@@ -13,16 +13,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-CELLS: int = 42
+from magcal_ros.core.observability import SPHERE_CELLS, sphere_cells
 
-
-def _cell_directions(count: int = CELLS) -> NDArray[np.float64]:
-    """Unit vectors of a Fibonacci sphere (count, 3)."""
-    k = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * k / count
-    phi = np.pi * (1.0 + 5**0.5) * k
-    rho = np.sqrt(1.0 - z * z)
-    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+CELLS: int = SPHERE_CELLS
 
 
 class SetBuffer:
@@ -37,7 +30,7 @@ class SetBuffer:
         self._stamps = np.zeros(capacity, dtype=np.int64)
         self._cells = np.zeros(capacity, dtype=np.int64)
         self._counts = np.zeros(CELLS, dtype=np.int64)
-        self._dirs = _cell_directions()
+        self._dirs = sphere_cells(CELLS)
         self._rng = np.random.default_rng(seed)
         self._size = 0
         self.offered = 0

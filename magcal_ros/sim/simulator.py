@@ -212,3 +212,14 @@ def random_sensor_errors(
         hard_iron=gen.normal(0, hard_iron_sd, 3),
         soft_iron=gen.normal(0, soft_iron_sd, (3, 3)),
     )
+
+
+def hard_iron_moved(sim: ArraySimulation, rng: np.random.Generator, low: float = 300 * NT,
+                    high: float = 800 * NT) -> ArraySimulation:
+    """The same array after its hull's hard iron moved by ``low``..``high`` T per axis, random
+    signs, on every sensor (a new payload, a magnetised hull): what partial recalibration is for."""
+    from dataclasses import replace
+
+    moved = tuple(replace(s, hard_iron=s.hard_iron + rng.choice([-1.0, 1.0], 3) * rng.uniform(low, high, 3))
+                  for s in sim.sensors)
+    return replace(sim, sensors=moved)
