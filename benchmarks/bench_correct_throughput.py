@@ -36,9 +36,9 @@ if str(ROOT) not in sys.path:
 def make_recording(path: Path, sets: int, storage: str, cal_path: Path) -> float:
     """Simulated raw bag of ``sets`` x 4 messages and its true calibration; returns seconds."""
     import numpy as np
-    from magcal_ros.io.bags import write_recording_bag
 
     from magcal_ros.io import calibration_file as calfile
+    from magcal_ros.io.bag_writer import write_recording_bag
     from magcal_ros.sim.attitudes import uniform_random
     from magcal_ros.sim.spec import SimulationSpec, build
 

@@ -366,7 +366,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.max_residual is not None and not (np.isfinite(args.max_residual) and args.max_residual > 0):
         raise InputError("--max-residual must be a positive number of Tesla")
     opts = SolveOptions(
-        loss=args.loss, gradient_method=args.gradient_method, seed=args.seed, max_residual=args.max_residual,
+        loss=args.loss, gradient_method=args.gradient_method or "difference", seed=args.seed,
+        max_residual=args.max_residual,
         mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
     )
     result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps,
@@ -481,6 +482,13 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from magcal_ros.app.correct import check_sensors
 
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
+    if args.gradient_method is None:
+        # Auto: the difference formula for the cross, least squares for any other array, unless the
+        # recording holds sensors the calibration lacks (then the cross is refused, naming them).
+        from magcal_ros.core.tensor import method_for
+
+        extra = set(recording_sensors(args.input)) - set(cal.geometry.names)
+        args.gradient_method = "difference" if extra else method_for(cal.geometry)
     out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else _name_list(args.copy_topics)
     if not is_csv(args.input):
@@ -577,7 +585,8 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
                    help="one sensor: its mounting in the platform frame (deg, sensor to platform); without it the "
                    "calibrated vector is in the sensor's own axes made orthogonal")
     p.add_argument("--loss", default="linear", choices=list(LOSSES), help="loss of the per-sensor start (method ml)")
-    p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"])
+    p.add_argument("--gradient-method", default=None, choices=["difference", "least_squares"],
+                   help="tensor formula of the summary (default: difference for the cross, least_squares otherwise)")
     p.add_argument("--seed", type=int, default=0, help="random seed of stochastic methods (pso)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="draw TMI per sensor, tensor components and corrected vectors before/after (PNG)")
@@ -674,8 +683,9 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--storage", choices=["sqlite3", "mcap"], help="output storage (default: the input's; sqlite3 for CSV input)")
     p.add_argument("--frame-id", default=topics.DEFAULT_FRAME_ID,
                    help=f"platform frame of the output (default {topics.DEFAULT_FRAME_ID})")
-    p.add_argument("--gradient-method", default="difference", choices=["difference", "least_squares"],
-                   help="cross difference formula or constrained least squares (any geometry)")
+    p.add_argument("--gradient-method", default=None, choices=["difference", "least_squares"],
+                   help="cross difference formula or constrained least squares (any geometry); default: difference "
+                   "for the planar cross, least_squares otherwise")
     add_window_options(p)
     add_sync_options(p)
     add_current_options(p)

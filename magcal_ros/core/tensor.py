@@ -117,6 +117,14 @@ def gradient_least_squares(vectors: ArrayLike, geometry: ArrayGeometry) -> tuple
     return params[:, :3], np.einsum("nk,kij->nij", params[:, 3:], _BASIS)
 
 
+def method_for(geometry: ArrayGeometry, requested: str | None = None) -> str:
+    """The gradient method to use: ``requested`` if given, else ``difference`` for a planar cross
+    and ``least_squares`` for any other geometry."""
+    if requested:
+        return requested
+    return "difference" if geometry.cross_layout() is not None else "least_squares"
+
+
 def gradient(vectors: ArrayLike, geometry: ArrayGeometry, method: str = "difference") -> Array:
     """Gradient tensor (N, 3, 3) by ``method``: ``difference`` (planar cross) or ``least_squares``.
 
