@@ -24,16 +24,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from magcal_ros.core.field import earth_field  # noqa: E402
 from magcal_ros.core.geometry import ArrayGeometry  # noqa: E402
 from magcal_ros.errors import MagcalError  # noqa: E402
 from magcal_ros.io.csv_recording import read_csv  # noqa: E402
 from magcal_ros.methods.pipeline import calibrate_array  # noqa: E402
 from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random  # noqa: E402
+from magcal_ros.sim.scenarios import field_trial_array  # noqa: E402
 from magcal_ros.sim.simulator import (  # noqa: E402
     ArraySimulation,
     hard_iron_moved,
-    random_sensor_errors,
 )
 
 NT = 1e-9
@@ -42,10 +41,7 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "qmc58
 
 
 def array(seed: int, noise: float = NT, **kw: float) -> ArraySimulation:
-    rng = np.random.default_rng(seed)
-    geo = ArrayGeometry.cross()
-    return ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names), earth_field(F, 60, 5),
-                           noise=noise, **kw)
+    return field_trial_array(seed, noise, **kw)
 
 
 def ratios(cal: object, sim: ArraySimulation, seed: int = 99, attitudes: np.ndarray | None = None) -> tuple[float, float]:

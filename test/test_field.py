@@ -21,6 +21,7 @@ from magcal_ros.errors import CalibrationFailed, ObservabilityError
 from magcal_ros.io.csv_recording import read_csv
 from magcal_ros.methods.pipeline import calibrate_array
 from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random
+from magcal_ros.sim.scenarios import field_trial_array
 from magcal_ros.sim.simulator import (
     ArraySimulation,
     hard_iron_moved,
@@ -32,11 +33,8 @@ F = 51_500 * NT
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "qmc5883l_handheld.csv"
 
 
-def array(seed: int, noise: float = 1 * NT, **kw: float) -> ArraySimulation:
-    rng = np.random.default_rng(seed)
-    geo = ArrayGeometry.cross()
-    return ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names), earth_field(F, 60.0, 5.0),
-                           noise=noise, **kw)
+def array(seed: int, noise: float = NT, **kw: float) -> ArraySimulation:
+    return field_trial_array(seed, noise, **kw)
 
 
 def corrected(matrices: np.ndarray, offsets: np.ndarray, raw: np.ndarray) -> np.ndarray:

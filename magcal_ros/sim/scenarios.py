@@ -193,3 +193,19 @@ def paper004_simulation(seed: int = 4, noise: float = 1 * NT) -> ArraySimulation
     rng = np.random.default_rng(seed)
     sensors = tuple(random_sensor_errors(rng, misalignment_sd_deg=1.0) for _ in range(4))
     return ArraySimulation(ArrayGeometry.cross(0.5), sensors, earth_field(PAPER004_F, 60.0, -5.0), noise=noise)
+
+
+FIELD_TRIAL_F: float = 51_500 * NT
+"""Intensity of the field-trial arrays (T): mid-latitude, inclination 60 deg."""
+
+
+def field_trial_array(seed: int, noise: float = 1 * NT, **options: float) -> ArraySimulation:
+    """The 0.4 m cross of typical fluxgates (:func:`random_sensor_errors` from ``seed``) in a
+    51 500 nT field of inclination 60 deg: the array of the at-sea and real-data scenarios.
+
+    ``options`` go to :class:`ArraySimulation` (e.g. ``noise_correlation``).
+    """
+    rng = np.random.default_rng(seed)
+    geo = ArrayGeometry.cross()
+    return ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names),
+                           earth_field(FIELD_TRIAL_F, 60.0, 5.0), noise=noise, **options)  # type: ignore[arg-type]
