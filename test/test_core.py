@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import truth_tools as tt
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.metrics import tensor_floor, tensor_rms, tmi_rms
+from magcal_ros.core.metrics import tensor_rms, tmi_rms
 from magcal_ros.core.rotation import (
     euler_to_matrix,
     matrix_to_euler,
@@ -126,7 +127,7 @@ def test_ml_fit_reaches_noise_floor_and_reports_honest_uncertainty():
     # the offset error is within 4 reported standard deviations on every axis
     assert np.all(np.abs(err) < 4 * fit.std[6:])
     fresh, _ = sim.run(uniform_random(2000, 9), 10)
-    floor = tmi_rms(truth.calibration.apply(fresh.vectors), F)[2]
+    floor = tmi_rms(tt.correct(*tt.true_correction(sim), fresh.vectors), F)[2]
     assert tmi_rms(fit.apply(fresh.vectors[:, 2]), F) < 1.05 * floor
 
 
@@ -138,7 +139,7 @@ def test_robust_loss_survives_spikes():
     plain = ml_fit(r, F)
     robust = ml_fit(r, F, loss="cauchy", loss_scale=5 * NT)
     clean, _ = sim.run(uniform_random(1000, 7), 8)
-    floor = tmi_rms(truth.calibration.apply(clean.vectors), F)[1]
+    floor = tmi_rms(tt.correct(*tt.true_correction(sim), clean.vectors), F)[1]
     assert tmi_rms(robust.apply(clean.vectors[:, 1]), F) < 1.2 * floor
     assert tmi_rms(plain.apply(clean.vectors[:, 1]), F) > 3 * floor
 
@@ -148,14 +149,15 @@ def test_pipeline_on_fresh_data_is_at_the_floor(reference):
     sim = simulation()
     rec, _ = sim.run(paper000_grid(), 11)
     result = calibrate_array(rec.vectors, CROSS, reference)
-    fresh, truth = sim.run(uniform_random(3000, 12), 13)
+    fresh, _ = sim.run(uniform_random(3000, 12), 13)
     b = result.calibration.apply(fresh.vectors)
-    floor_tensor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
-    assert floor_tensor == pytest.approx(tensor_floor(1 * NT, 0.4), rel=0.05)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)  # the true calibration, own numpy
+    floor_tensor = tt.rms(tt.cross_rows(ideal, CROSS.positions))
+    assert floor_tensor == pytest.approx(tt.difference_floor(1 * NT, 0.4), rel=0.05)
     assert tensor_rms(gradient_difference(b, CROSS)) < 1.02 * floor_tensor
     scale = result.intensity / F  # relative mode: everything scaled by the estimated F
     assert abs(scale - 1) < (1e-12 if reference else 0.1)
-    assert np.all(tmi_rms(b / scale, F) < 1.03 * tmi_rms(truth.calibration.apply(fresh.vectors), F))
+    assert np.all(tmi_rms(b / scale, F) < 1.03 * tmi_rms(ideal, F))
     assert result.tensor_before > 1000 * result.tensor_after
 
 
@@ -213,21 +215,28 @@ def test_a_wrong_reference_field_or_a_non_uniform_field_is_refused():
 
 
 def _fresh_tensor_ratio(seed: int, count: int, options: SolveOptions) -> float:
-    """Tensor RMS on fresh data over the true calibration's, after calibrating on ``count`` sets."""
+    """Tensor RMS on fresh data over the true calibration's (both with the tests' own numpy),
+    after calibrating on ``count`` sets."""
     sim = simulation(seed)
     rec, _ = sim.run(uniform_random(count, 100 + seed), 200 + seed)
     cal = calibrate_array(rec.vectors, CROSS, F, options=options).calibration
-    fresh, truth = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
-    floor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
-    return tensor_rms(gradient_difference(cal.apply(fresh.vectors), CROSS)) / floor
+    fresh, _ = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
+    floor = tt.rms(tt.cross_rows(tt.correct(*tt.true_correction(sim), fresh.vectors), CROSS.positions))
+    return float(tt.rms(tt.cross_rows(tt.correct(cal.matrices, cal.offsets, fresh.vectors), CROSS.positions)) / floor)
 
 
-def test_48_random_attitudes_reach_within_15_percent_of_the_floor():
-    """Few attitudes: the joint array ML keeps the tensor near the floor on fresh data."""
+def test_48_random_attitudes_stay_near_the_floor_and_joint_refinement_matters():
+    """Few attitudes: the joint array ML keeps the tensor near the floor on fresh data.
+
+    Measured over 20 seeds (mean / sd / max): joint 1.046 / 0.012 / 1.063, per sensor
+    (joint=False) 1.113 / 0.047 / 1.257; in five groups of four seeds the joint mean was
+    1.039..1.054, its worst 1.051..1.063, and the joint excess at most 0.52 of the per-sensor
+    one. A 10 % worse fit (or joint refinement off) fails the mean bound."""
     joint = [_fresh_tensor_ratio(seed, 48, SolveOptions()) for seed in range(4)]
-    assert max(joint) < 1.15
+    assert max(joint) < 1.09
+    assert np.mean(joint) < 1.07
     per_sensor = [_fresh_tensor_ratio(seed, 48, SolveOptions(joint=False)) for seed in range(4)]
-    assert np.mean(joint) < np.mean(per_sensor)
+    assert np.mean(joint) - 1.0 < 0.67 * (np.mean(per_sensor) - 1.0)
 
 
 def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
