@@ -14,7 +14,7 @@ package's own ``apply`` / ``gradient``:
   1's, against the truth (rotation-invariant checks such as Li et al.'s (2018) Table 1
   cannot see it).
 
-Bounds come from the spread over 20 seeds of this exact procedure (``python
+Bounds come from the spread over 20 seeds of this exact procedure (``PYTHONPATH=. python
 test/test_accuracy.py`` prints it; the figures are in the comment above ``BOUNDS``). Each ratio bound
 lies 8 sd above the measured mean and below 1.1 x that mean, so a method whose tensor or
 TMI accuracy degrades by 10 % fails; the angle bounds (7-14 urad) are far below the 5e-5
@@ -157,16 +157,17 @@ def test_relative_alignment_against_truth(method: str) -> None:
     assert evaluate(method)["angle"] < BOUNDS[method][2]
 
 
-def _spread(seeds: int) -> None:
-    """Print mean / sd / max of every metric over ``seeds`` seeds (the figures in the comment above BOUNDS)."""
-    for method in CASES:
+def _spread(seeds: int, methods: list[str]) -> None:
+    """Print mean / sd / max of every metric over ``seeds`` seeds (the figures above ``BOUNDS``)."""
+    for method in methods:
         rows = [evaluate(method, s) for s in range(seeds)]
         parts = []
         for key, unit in (("gradient", 1), ("tmi", 1), ("angle", 1e6), ("floor", 1), ("seconds", 1)):
             v = np.array([r[key] for r in rows]) * unit
-            parts.append(f"{key} {v.mean():.4f}/{v.std(ddof=1):.4f}/{v.max():.4f}")
+            sd = v.std(ddof=1) if len(v) > 1 else 0.0
+            parts.append(f"{key} {v.mean():.4f}/{sd:.4f}/{v.max():.4f}")
         print(f"{method:10s} " + "  ".join(parts), flush=True)
 
 
-if __name__ == "__main__":
-    _spread(int(sys.argv[1]) if len(sys.argv) > 1 else 20)
+if __name__ == "__main__":  # PYTHONPATH=. python test/test_accuracy.py [SEEDS [METHOD ...]]
+    _spread(int(sys.argv[1]) if len(sys.argv) > 1 else 20, sys.argv[2:] or list(CASES))

@@ -30,7 +30,7 @@ import truth_tools as tt
 from magcal_ros.core.field import Dipole
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.sensor_model import SensorErrors
-from magcal_ros.core.tensor import baseline_gradient, gradient
+from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient, invariants
 from magcal_ros.sim.attitudes import uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, Truth
 
@@ -123,3 +123,34 @@ def test_gradient_in_a_dipole_field(name: str, kind: str) -> None:
         order[i], order[j] = j, i
         wrong = relative_error(package(kind, truth.field[:, order], geo), g_true)
         assert wrong > 2.5 * truncation and wrong > 0.3, (i, j, wrong, truncation)
+
+
+@pytest.mark.parametrize("name", list(GEOMETRIES))
+def test_centre_field_is_the_mean_of_the_sensors(name: str) -> None:
+    """The centre field (N, 3) is the sensors' mean, the field at the centre to second order for
+    any layout (the positions' mean is the centre): in the dipole's field it is off by 1.9 .. 10.5 %
+    of the dipole's part (measured), and 64x less on an array 8x smaller."""
+    geo, truth = simulate(GEOMETRIES[name])
+    c = centre_field(truth.field)
+    assert c.shape == (len(ATTITUDES), 3)
+    np.testing.assert_allclose(c, truth.field.mean(axis=1), rtol=0, atol=1e-15)
+
+    def error(t: Truth) -> float:
+        dipole_part = t.centre - np.einsum("nji,j->ni", ATTITUDES, EARTH)
+        return float(tt.rms(centre_field(t.field) - t.centre) / tt.rms(dipole_part))
+
+    big, small = error(truth), error(simulate(GEOMETRIES[name], SHRINK)[1])
+    assert big < 0.12 and small < 1.25 * big / SHRINK**2
+
+
+def test_invariants_of_a_batch_of_measured_tensors() -> None:
+    """Rows x and y are measured, so Gxy and Gyx differ; the invariants of a batch (N, 3, 3)
+    against numpy one tensor at a time."""
+    g = np.random.default_rng(2).normal(0.0, 1e-6, (7, 3, 3))
+    inv = invariants(g)
+    for k, m in enumerate(g):
+        sym = 0.5 * (m + m.T)
+        np.testing.assert_allclose(inv["eigenvalues"][k], np.linalg.eigvalsh(sym), rtol=1e-12, atol=1e-20)
+        assert inv["norm"][k] == pytest.approx(np.sqrt(np.sum(m * m)), rel=1e-12)
+        assert inv["trace"][k] == pytest.approx(np.trace(m), rel=1e-12)
+        assert inv["i2"][k] == pytest.approx(0.5 * (np.trace(m) ** 2 - np.trace(m @ m)), rel=1e-10)
