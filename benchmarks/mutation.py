@@ -89,8 +89,8 @@ class Sandbox:
         env = dict(os.environ, PYTHONPATH=str(self.dir), PYTHONDONTWRITEBYTECODE="1")
         proc = subprocess.run([sys.executable, "test/test_accuracy.py", "1", method], cwd=self.dir, env=env,
                               capture_output=True, text=True, timeout=600)
-        found = re.search(r"gradient ([\d.]+)/.*tmi ([\d.]+)/.*angle ([\d.]+)/", proc.stdout)
-        return "/".join(found.groups()) if found else "fails: " + (proc.stderr.strip().splitlines() or ["?"])[-1]
+        found = re.search(r"gradient ([\d.]+)/.*tmi ([\d.]+)/(?:.*angle ([\d.]+)/)?", proc.stdout)
+        return "/".join(g for g in found.groups() if g) if found else "fails: " + (proc.stderr.strip().splitlines() or ["?"])[-1]
 
     def close(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
@@ -109,6 +109,8 @@ class Plant:
     old: str
     new: str
     what: str
+    measure: str = ""
+    """What test/test_accuracy.py measures for the effect column (default: ``method``)."""
 
 
 PLANTS: tuple[Plant, ...] = (
@@ -124,6 +126,11 @@ PLANTS: tuple[Plant, ...] = (
           "offsets=w[:, :, 3] * f,",
           "offsets=w[:, :, 3] * f * 1.1,",
           "the joint fit's offsets 10 % off"),
+    Plant("ml-prior-offset", "ml", "magcal_ros/core/prior.py",
+          "offset: float = 2000 * NT",
+          "offset: float = 2 * NT",
+          "partial recalibration: the drift model holds every offset within 2 nT of the old calibration",
+          "prior"),
     Plant("ml-early-stop", "ml", "magcal_ros/core/array_fit.py",
           "done = cost - new_cost <= tolerance * max(cost, 1e-300)",
           "done = True",
@@ -174,7 +181,8 @@ def run_plants(names: list[str]) -> int:
         if base != "passed":
             print("the unchanged tests must pass first:", failing)
             return 1
-        print("| plant | method | bug | held-out gradient / TMI ratio / angle (urad), unchanged -> planted | "
+        print("| plant | method | bug | held-out gradient / TMI ratio / angle (urad) of test_accuracy.py, seed 0: "
+              "unchanged -> planted | "
               "failing tests |\n| --- | --- | --- | --- | --- |")
         for p in PLANTS:
             if names and p.name not in names:
@@ -183,10 +191,10 @@ def run_plants(names: list[str]) -> int:
             assert text.count(p.old) == 1, f"{p.name}: the text to replace is not unique in {p.path}"
             box.write(p.path, text.replace(p.old, p.new))
             status, failing, secs = box.pytest(PLANT_TESTS, 1800, stop_first=False)
-            effect = box.accuracy(p.method)
+            effect = box.accuracy(p.measure or p.method)
             box.restore(p.path)
             shown = ", ".join(f.split("::", 1)[1] if "::" in f else f for f in failing) or "NONE"
-            before = box.accuracy(p.method)
+            before = box.accuracy(p.measure or p.method)
             print(f"| {p.name} | {p.method} | {p.what} | {before} -> {effect} | {status}: {len(failing)} - {shown} |",
                   flush=True)
     finally:
@@ -354,7 +362,7 @@ def _short(text: str, width: int = 90) -> str:
 
 
 def run_mutants(per_module: int | None, seed: int, modules: list[str], json_out: Path | None,
-                only: set[tuple[str, int]] | None = None) -> int:
+                only: set[tuple[str, int]] | None = None, exclude: set[tuple[str, int]] | None = None) -> int:
     box = Sandbox()
     results: list[Mutant] = []
     try:
@@ -365,14 +373,14 @@ def run_mutants(per_module: int | None, seed: int, modules: list[str], json_out:
                 print(f"{module}: the unchanged subset must pass first: {status} {failing}")
                 return 1
             timeout = 3.0 * base + 30.0
-            everything = mutants_of(module)
+            everything = [m for m in mutants_of(module) if not exclude or (module, m[0].index) not in exclude]
             chosen = everything
             if per_module and len(everything) > per_module:
                 chosen = sorted(random.Random(f"{seed}:{module}").sample(everything, per_module),
                                 key=lambda m: m[0].index)
             if only is not None:
                 chosen = [c for c in chosen if (module, c[0].index) in only]
-            print(f"{module}: {len(everything)} sites, running {len(chosen)} (subset {base:.0f} s, "
+            print(f"{module}: {len(everything)} sites left, running {len(chosen)} (subset {base:.0f} s, "
                   f"timeout {timeout:.0f} s)", flush=True)
             for mutant, text in chosen:
                 box.write(module, text)
@@ -409,6 +417,8 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--json", type=Path, default=None, help="write every result here")
     m.add_argument("--only", type=Path, default=None,
                    help="a JSON of an earlier run: rerun only its survivors (same sample)")
+    m.add_argument("--exclude", type=Path, default=None,
+                   help="a JSON of an earlier run: sample only mutants it did not try (a fresh sample)")
     args = parser.parse_args(argv)
     if args.command == "plants":
         return run_plants(args.names)
@@ -420,7 +430,10 @@ def main(argv: list[str] | None = None) -> int:
     only = None
     if args.only:
         only = {(m["module"], m["index"]) for m in json.loads(args.only.read_text()) if m["status"] == "survived"}
-    return run_mutants(args.per_module, args.seed, modules, args.json, only)
+    exclude = None
+    if args.exclude:
+        exclude = {(m["module"], m["index"]) for m in json.loads(args.exclude.read_text())}
+    return run_mutants(args.per_module, args.seed, modules, args.json, only, exclude)
 
 
 if __name__ == "__main__":

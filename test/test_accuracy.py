@@ -14,6 +14,9 @@ package's own ``apply`` / ``gradient``:
   1's, against the truth (rotation-invariant checks such as Li et al.'s (2018) Table 1
   cannot see it).
 
+``ml`` is also judged where it differs most from the papers: a partial recalibration at sea
+with the previous calibration as the prior (at the end).
+
 Bounds come from the spread over 20 seeds of this exact procedure (``PYTHONPATH=. python
 test/test_accuracy.py`` prints it; the figures are in the comment above ``BOUNDS``). Each ratio bound
 lies 8 sd above the measured mean and below 1.1 x that mean, so a method whose tensor or
@@ -25,7 +28,7 @@ from __future__ import annotations
 
 import functools
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -35,7 +38,7 @@ import truth_tools as tt
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
 from magcal_ros.sim import scenarios as sc
-from magcal_ros.sim.attitudes import uniform_random
+from magcal_ros.sim.attitudes import sea_manoeuvre, uniform_random
 from magcal_ros.sim.simulator import ArraySimulation
 
 CAL_SETS = 800
@@ -157,17 +160,57 @@ def test_relative_alignment_against_truth(method: str) -> None:
     assert evaluate(method)["angle"] < BOUNDS[method][2]
 
 
+# --------------------------------------------------------------------------------------
+# ml with a prior: the partial recalibration at sea. A full calibration ashore, then the hull's
+# hard iron moves (every offset by 300 nT sd) and the vehicle flies what it flies at sea (yaw
+# circles, pitch +-5, roll +-2 deg: 600 sets in time order); the old calibration is the prior.
+# Judged on a fresh sea manoeuvre (inside the validity envelope the result reports) against the
+# drifted truth. Measured over 10 seeds (mean / sd / max): gradient 1.0030 / 0.0022 / 1.0068,
+# worst TMI 1.011 / 0.007 / 1.029; the old calibration gives 310x and 390x. Bounds mean + 8 sd.
+PRIOR_BOUNDS = (1.02, 1.07)
+
+
+@functools.lru_cache(maxsize=None)
+def evaluate_recalibration(seed: int = 0) -> dict[str, float]:
+    sim = sc.paper004_simulation()
+    rec, _ = sim.run(uniform_random(CAL_SETS, 1000 + seed), rng=2000 + seed)
+    ashore = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F).calibration
+    rng = np.random.default_rng(seed)
+    drifted = replace(sim, sensors=tuple(replace(s, offset=s.offset + rng.normal(0.0, 300 * NT, 3))
+                                         for s in sim.sensors))
+    sea, _ = drifted.run(sea_manoeuvre(600, rng=3000 + seed), rng=4000 + seed)
+    res = calibrate_array(sea.vectors, sim.geometry, sc.PAPER004_F, prior=ashore, stamps=sea.stamps)
+    fresh, _ = drifted.run(sea_manoeuvre(1000, rng=7000 + seed), rng=6000 + seed)
+    b = tt.correct(res.calibration.matrices, res.calibration.offsets, fresh.vectors)
+    b_true = tt.correct(*tt.true_correction(drifted), fresh.vectors)
+    pos = sim.geometry.positions
+    tmi = tt.rms(np.linalg.norm(b, axis=2) - sc.PAPER004_F, axis=0)
+    tmi_true = tt.rms(np.linalg.norm(b_true, axis=2) - sc.PAPER004_F, axis=0)
+    return {"gradient": float(tt.rms(tt.cross_rows(b, pos)) / tt.rms(tt.cross_rows(b_true, pos))),
+            "tmi": float(np.max(tmi / tmi_true)),
+            "offsets_updated": float({"offset x", "offset y", "offset z"} <= {q.name for q in res.identifiability.updated()})}
+
+
+def test_partial_recalibration_at_sea_on_fresh_data() -> None:
+    r = evaluate_recalibration()
+    assert r["offsets_updated"], "the offsets are what a sea manoeuvre must update"
+    assert r["gradient"] < PRIOR_BOUNDS[0]
+    assert r["tmi"] < PRIOR_BOUNDS[1]
+
+
 def _spread(seeds: int, methods: list[str]) -> None:
     """Print mean / sd / max of every metric over ``seeds`` seeds (the figures above ``BOUNDS``)."""
     for method in methods:
-        rows = [evaluate(method, s) for s in range(seeds)]
+        rows = [evaluate_recalibration(s) if method == "prior" else evaluate(method, s) for s in range(seeds)]
         parts = []
         for key, unit in (("gradient", 1), ("tmi", 1), ("angle", 1e6), ("floor", 1), ("seconds", 1)):
+            if key not in rows[0]:
+                continue
             v = np.array([r[key] for r in rows]) * unit
             sd = v.std(ddof=1) if len(v) > 1 else 0.0
             parts.append(f"{key} {v.mean():.4f}/{sd:.4f}/{v.max():.4f}")
         print(f"{method:10s} " + "  ".join(parts), flush=True)
 
 
-if __name__ == "__main__":  # PYTHONPATH=. python test/test_accuracy.py [SEEDS [METHOD ...]]
+if __name__ == "__main__":  # PYTHONPATH=. python test/test_accuracy.py [SEEDS [METHOD ... | prior]]
     _spread(int(sys.argv[1]) if len(sys.argv) > 1 else 20, sys.argv[2:] or list(CASES))

@@ -311,6 +311,8 @@ def test_zero_reference_field_means_relative_and_the_linear_fit_reports_its_resi
         a, b = fit(r, 0.0), fit(r, None)
         np.testing.assert_array_equal(a.matrix, b.matrix)
         assert a.intensity == b.intensity
+        # relative: F is the mean norm of the centred readings
+        assert b.intensity == pytest.approx(np.mean(np.linalg.norm(r - r.mean(axis=0), axis=1)), rel=1e-12)
     lin = algebraic_fit(r, F)
     own = np.sqrt(np.mean((np.linalg.norm((r - lin.offset) @ lin.matrix.T, axis=1) - F) ** 2))
     assert lin.residual_rms == pytest.approx(own, rel=1e-12)
@@ -356,21 +358,31 @@ def test_strong_noise_bias_correction_rescales_by_sigma_squared():
     gain = (np.linalg.det(corrected.matrix) / np.linalg.det(plain.matrix)) ** (1 / 3) - 1.0
     assert gain == pytest.approx((sd / F) ** 2, rel=0.1)
     assert corrected.residual_rms == pytest.approx(sd, rel=0.05)
+    own = np.sqrt(np.mean((np.linalg.norm(corrected.apply(r), axis=1) - F) ** 2))
+    assert corrected.residual_rms == pytest.approx(own, rel=1e-9)  # about F, not about the target
 
 
 def test_trimmed_start_flags_spikes_but_not_a_common_bias():
+    """The closed-form start keeps readings within TRIM_SIGMAS = 5 robust sd of the median norm
+    residual: 20 readings 8 sd off in norm are flagged and the start refitted without them. A
+    fit whose F is 0.2 % off shifts every residual by 100 sd: judged from the median residual,
+    it flags exactly the spikes (500 sd here) and nothing else."""
     sim = simulation(noise=1 * NT)
     r = sim.run(uniform_random(400, 7), 8)[0].vectors[:, 0]
+    clean = ml_fit(r, F)
+    radial = (r - clean.offset) / np.linalg.norm(r - clean.offset, axis=1, keepdims=True)
     spiky = r.copy()
-    spiky[::20] += 2000 * NT  # 20 spikes of 2000 sigma
+    spiky[::20] += 8 * NT * radial[::20]
     fit, keep = trimmed_algebraic_fit(spiky, F)
     assert not keep[::20].any() and keep.sum() >= 375
-    clean = ml_fit(r, F)
     np.testing.assert_allclose(fit.offset, clean.offset, atol=2 * NT)
-    # A fit whose F is 0.2 % off: every residual shifts by ~100 sigma, none stands out.
+    gross = r.copy()
+    gross[::20] += 500 * NT * radial[::20]
     biased = algebraic_fit(r, F)
     shifted = ScalarFit(biased.matrix * 1.002, biased.offset, F, biased.residual_rms)
-    assert inliers(shifted, r).all()
+    expected = np.ones(len(r), bool)
+    expected[::20] = False
+    assert np.array_equal(inliers(shifted, gross), expected)
 
 
 def test_two_by_two_inverses_of_the_direction_blocks():

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from magcal_ros.core.sync import PERIOD_WINDOW, RESTART_JUMP, SetSynchronizer, SyncStats
+from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer, SyncStats, tolerance_ns
 
 MS = 1_000_000
 NS = 1_000_000_000
@@ -88,6 +88,8 @@ def feed_batches(streams: list[list[int]], tol: int, rng: np.random.Generator) -
             sync.add_batch(k, part, np.tile([1.0 * k, 0.0, 0.0], (len(part), 1)))
         batch = sync.pop()
         assert np.array_equal(batch.set_stamps, batch.stamps[:, 0]), "a set's stamp is its first sensor's"
+        assert batch.vectors.shape == (len(batch), len(streams), 3)
+        assert np.array_equal(batch.vectors[:, :, 0], np.tile(np.arange(len(streams), dtype=float), (len(batch), 1)))
         got += [tuple(int(x) for x in row) for row in batch.stamps]
     got += [tuple(int(x) for x in row) for row in sync.pop(final=True).stamps]
     return got, sync
@@ -245,9 +247,9 @@ def test_both_paths_follow_the_rule_where_the_period_cap_decides(seed: int) -> N
 
 
 @pytest.mark.parametrize("path", ["live", "bag"])
-def test_a_restart_is_a_jump_back_of_more_than_restart_jump(path: str) -> None:
-    """Exactly RESTART_JUMP back is an out-of-order stamp; one nanosecond more is a restart."""
-    jump = int(RESTART_JUMP * NS)
+def test_a_restart_is_a_jump_back_of_more_than_a_second(path: str) -> None:
+    """Exactly 1 s back (RESTART_JUMP) is an out-of-order stamp; one nanosecond more is a restart."""
+    jump = NS
     for back, restarts in ((jump, 0), (jump + 1, 1)):
         stamps = [100 * NS, 100 * NS + 10 * MS, 100 * NS + 10 * MS - back]
         sync = SetSynchronizer(2, MS)
@@ -297,3 +299,37 @@ def test_every_drop_counter_counts_as_dropped() -> None:
     assert stats.dropped() == 21
     text = stats.describe()
     assert text.startswith("100 sets, 1 messages without") and "6 undecodable" in text and "7 source restarts" in text
+
+
+@pytest.mark.parametrize("path", ["live", "bag"])
+def test_sets_after_a_restart_carry_their_own_readings(path: str) -> None:
+    """Both sources restart (stamps jump from 100 s back to 5 s): the queues are emptied once and
+    the sets on either side pair each stamp with its own vector."""
+    sync = SetSynchronizer(2, MS)
+    before = [100 * NS + k * 10 * MS for k in range(3)]
+    after = [5 * NS + k * 10 * MS for k in range(3)]
+    got: list[tuple[int, float]] = []
+    for part in (before, after):
+        stamps = np.array(part, dtype=np.int64)
+        if path == "live":
+            for t in part:
+                for k in range(2):
+                    s = sync.add(k, t, t / NS, float(k), 0.0)
+                    if s is not None:
+                        got += list(zip(s.stamps, [v[0] for v in s.values]))
+        else:
+            for k in range(2):
+                sync.add_batch(k, stamps, np.column_stack([stamps / NS, np.full(len(stamps), float(k)), np.zeros(3)]))
+            batch = sync.pop()
+            got += list(zip(batch.stamps.ravel().tolist(), batch.vectors[:, :, 0].ravel().tolist()))
+    assert sync.stats.restarts == 1
+    assert all(v == pytest.approx(t / NS, rel=1e-15) for t, v in got)
+    assert {t for t, _ in got} >= set(after)
+
+
+def test_a_zero_tolerance_pairs_equal_stamps_only() -> None:
+    assert tolerance_ns(0) == 0 and tolerance_ns(0.0005) == 500_000
+    with pytest.raises(ValueError):
+        tolerance_ns(1.0)
+    sync = SetSynchronizer(2, 0)
+    assert feed(sync, [(0, 10 * MS, 1.0), (1, 10 * MS, 1.0), (0, 20 * MS, 1.0), (1, 20 * MS + 1, 1.0)]) == [(10 * MS, 10 * MS)]

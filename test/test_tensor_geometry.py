@@ -30,7 +30,8 @@ import truth_tools as tt
 from magcal_ros.core.field import Dipole
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.sensor_model import SensorErrors
-from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient, invariants
+from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient, gradient_least_squares, invariants
+from magcal_ros.errors import InputError
 from magcal_ros.sim.attitudes import uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, Truth
 
@@ -154,3 +155,27 @@ def test_invariants_of_a_batch_of_measured_tensors() -> None:
         assert inv["norm"][k] == pytest.approx(np.sqrt(np.sum(m * m)), rel=1e-12)
         assert inv["trace"][k] == pytest.approx(np.trace(m), rel=1e-12)
         assert inv["i2"][k] == pytest.approx(0.5 * (np.trace(m) ** 2 - np.trace(m @ m)), rel=1e-10)
+
+
+@pytest.mark.parametrize("name", ["six sensors in 3-D", "planar triangle"])
+def test_least_squares_centre_field_of_an_array_away_from_the_origin(name: str) -> None:
+    """The least-squares fit also gives the field B0 at the array's centre; with the whole array
+    0.7 m off the platform origin (its centre is not the origin) B0 and G equal the independent
+    fit's (B0 is what it is relative to the truth: the centre-field test above)."""
+    pos = np.asarray(GEOMETRIES[name]) + np.array([0.5, -0.4, 0.3])
+    geo, truth = simulate(pos.tolist())
+    b0, g = gradient_least_squares(truth.field, geo)
+    b0_ref, g_ref = tt.least_squares_tensor(truth.field, geo.positions, with_centre=True)
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-10 * tt.rms(g_ref))
+    np.testing.assert_allclose(b0, b0_ref, rtol=0, atol=1e-10 * tt.rms(b0_ref))
+
+
+def test_positions_that_determine_no_tensor_are_refused_saying_what_they_do_determine() -> None:
+    one = ArrayGeometry(("a",), [[0.0, 0.0, 0.0]])
+    line = ArrayGeometry(("a", "b", "c"), [[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    with pytest.raises(InputError, match="one sensor position determines no gradient"):
+        gradient(np.zeros((1, 1, 3)), one)
+    with pytest.raises(InputError, match=r"on one line .*only the gradient along it"):
+        gradient(np.zeros((1, 3, 3)), line, "least_squares")
+    with pytest.raises(InputError, match="needs sensors on one line"):
+        baseline_gradient(np.zeros((1, 4, 3)), ArrayGeometry.cross())

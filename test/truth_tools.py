@@ -133,9 +133,10 @@ def cross_difference(b: Array, positions: Array) -> Array:
     return g
 
 
-def least_squares_tensor(b: Array, positions: Array) -> Array:
+def least_squares_tensor(b: Array, positions: Array, with_centre: bool = False) -> Array | tuple[Array, Array]:
     """Symmetric traceless ``G`` (N, 3, 3) fitting ``B_i = B0 + G^T (p_i - c)`` by least squares,
-    ``c`` the mean position: the 8 unknowns ``B0, Gxx, Gyy, Gxy, Gxz, Gyz`` (``Gzz = -Gxx - Gyy``)."""
+    ``c`` the mean position: the 8 unknowns ``B0, Gxx, Gyy, Gxy, Gxz, Gyz`` (``Gzz = -Gxx - Gyy``).
+    ``with_centre``: return ``(B0 (N, 3), G)``."""
     rel = np.asarray(positions, dtype=float) - np.mean(positions, axis=0)
     rows = []
     for x, y, z in rel:
@@ -147,5 +148,6 @@ def least_squares_tensor(b: Array, positions: Array) -> Array:
     design = np.array(rows, dtype=float)
     sol = np.linalg.lstsq(design, np.asarray(b, dtype=float).reshape(len(b), -1).T, rcond=None)[0].T
     gxx, gyy, gxy, gxz, gyz = sol[:, 3], sol[:, 4], sol[:, 5], sol[:, 6], sol[:, 7]
-    return np.stack([np.stack([gxx, gxy, gxz], 1), np.stack([gxy, gyy, gyz], 1),
-                     np.stack([gxz, gyz, -gxx - gyy], 1)], axis=1)
+    g = np.stack([np.stack([gxx, gxy, gxz], 1), np.stack([gxy, gyy, gyz], 1),
+                  np.stack([gxz, gyz, -gxx - gyy], 1)], axis=1)
+    return (sol[:, :3], g) if with_centre else g
