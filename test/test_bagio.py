@@ -107,6 +107,34 @@ def test_decode_rejects_other_types() -> None:
         cdr.decode_magnetic_fields([b"\x00\x01\x00\x00" + b"\x00" * 10])
 
 
+def test_decode_edges_empty_input_nanosecond_range_and_trailing_padding() -> None:
+    """Empty input gives empty arrays; an encapsulation other than plain CDR (little or big
+    endian) is refused; nanosec 999999999 is a stamp, 1000000000 is malformed; up to 3 bytes of
+    trailing padding are accepted (as rosbags does), 4 are not. Batch and single-message
+    decoders alike."""
+    stamps, vecs = cdr.decode_magnetic_fields([])
+    assert stamps.shape == (0,) and vecs.shape == (0, 3)
+    stamps, vecs = cdr.decode_magnetic_field_rows(np.empty((0, 132), np.uint8))
+    assert stamps.shape == (0,) and vecs.shape == (0, 3)
+    msg = bytes(ts().serialize_cdr(cdr.magnetic_field_message(7, 999_999_999, "mag1", (1e-5, 2e-5, 3e-5)),
+                                   cdr.MAGNETIC_FIELD, little_endian=True))
+    for pad in (0, 1, 3):
+        data = msg + b"\x00" * pad
+        assert cdr.decode_magnetic_fields([data, data])[0].tolist() == [7_999_999_999] * 2
+        assert cdr.decode_magnetic_field(data) == (7_999_999_999, 1e-5, 2e-5, 3e-5)
+    for kind in (2, 3, 7):  # PL_CDR and XCDR2 encapsulations are not plain CDR
+        other = msg[:1] + bytes([kind]) + msg[2:]
+        for decode in (lambda m: cdr.decode_magnetic_fields([m]), cdr.decode_magnetic_field):
+            with pytest.raises(InputError, match="not plain CDR|not a plain CDR"):
+                decode(other)
+    bad_ns = msg[:8] + (1_000_000_000).to_bytes(4, "little") + msg[12:]
+    for bad in (msg + b"\x00" * 4, bad_ns):
+        with pytest.raises(InputError, match="malformed"):
+            cdr.decode_magnetic_fields([bad])
+        with pytest.raises(InputError, match="malformed"):
+            cdr.decode_magnetic_field(bad)
+
+
 def test_stamp_conversion() -> None:
     t = np.array([0.0, 1.5, 1.7e9 + 0.123456789, 12.999999999])
     ns_ = stamp_units.seconds_to_ns(t)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+import truth_tools as tt
 from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.metrics import tensor_rms, tmi_rms
@@ -53,11 +54,15 @@ def test_calibrate_writes_a_parameters_file_that_corrects_fresh_data(tmp_path, s
     assert len(params["mag3"]["matrix"]) == 9 and len(params["mag3"]["offset"]) == 3
     assert doc["magcal_provenance"]["ros__parameters"]["samples"] == 400
     cal = calfile.read(out)
-    fresh, truth = sim.run(uniform_random(2000, 3), 4)
-    floor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), cal.geometry))
+    # Against the true calibration on 2000 fresh sets (the tests' own numpy). Measured over 20
+    # seeds (mean / sd / max): tensor 1.0049 / 0.0017 / 1.0076, worst sensor's TMI 1.011 /
+    # 0.0034 / 1.019; bounds about mean + 9 sd, far below a 10 % worse calibration.
+    fresh, _ = sim.run(uniform_random(2000, 3), 4)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)
+    floor = tt.rms(tt.cross_rows(ideal, cal.geometry.positions))
     b = cal.apply(fresh.vectors)
-    assert tensor_rms(gradient_difference(b, cal.geometry)) < 1.1 * floor
-    assert np.all(tmi_rms(b, F) < 1.1 * tmi_rms(truth.calibration.apply(fresh.vectors), F))
+    assert tensor_rms(gradient_difference(b, cal.geometry)) < 1.02 * floor
+    assert np.all(tmi_rms(b, F) < 1.04 * tmi_rms(ideal, F))
 
 
 def test_recalibration_keeps_the_previous_file_as_backup(tmp_path, rotation_csv):

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+import truth_tools as tt
+from magcal_ros.core.alignment import paper000_angles
+from magcal_ros.core.array_fit import _inv2, fit_array
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.metrics import tensor_floor, tensor_rms, tmi_rms
+from magcal_ros.core.metrics import tensor_rms, tmi_rms
 from magcal_ros.core.rotation import (
     euler_to_matrix,
     matrix_to_euler,
     procrustes,
     rotation_angle,
 )
-from magcal_ros.core.scalar_fit import algebraic_fit, ml_fit
+from magcal_ros.core.scalar_fit import ScalarFit, algebraic_fit, inliers, ml_fit, trimmed_algebraic_fit
 from magcal_ros.core.sensor_model import SensorErrors
 from magcal_ros.core.tensor import (
     gradient_difference,
@@ -126,7 +130,7 @@ def test_ml_fit_reaches_noise_floor_and_reports_honest_uncertainty():
     # the offset error is within 4 reported standard deviations on every axis
     assert np.all(np.abs(err) < 4 * fit.std[6:])
     fresh, _ = sim.run(uniform_random(2000, 9), 10)
-    floor = tmi_rms(truth.calibration.apply(fresh.vectors), F)[2]
+    floor = tmi_rms(tt.correct(*tt.true_correction(sim), fresh.vectors), F)[2]
     assert tmi_rms(fit.apply(fresh.vectors[:, 2]), F) < 1.05 * floor
 
 
@@ -138,7 +142,7 @@ def test_robust_loss_survives_spikes():
     plain = ml_fit(r, F)
     robust = ml_fit(r, F, loss="cauchy", loss_scale=5 * NT)
     clean, _ = sim.run(uniform_random(1000, 7), 8)
-    floor = tmi_rms(truth.calibration.apply(clean.vectors), F)[1]
+    floor = tmi_rms(tt.correct(*tt.true_correction(sim), clean.vectors), F)[1]
     assert tmi_rms(robust.apply(clean.vectors[:, 1]), F) < 1.2 * floor
     assert tmi_rms(plain.apply(clean.vectors[:, 1]), F) > 3 * floor
 
@@ -148,14 +152,15 @@ def test_pipeline_on_fresh_data_is_at_the_floor(reference):
     sim = simulation()
     rec, _ = sim.run(paper000_grid(), 11)
     result = calibrate_array(rec.vectors, CROSS, reference)
-    fresh, truth = sim.run(uniform_random(3000, 12), 13)
+    fresh, _ = sim.run(uniform_random(3000, 12), 13)
     b = result.calibration.apply(fresh.vectors)
-    floor_tensor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
-    assert floor_tensor == pytest.approx(tensor_floor(1 * NT, 0.4), rel=0.05)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)  # the true calibration, own numpy
+    floor_tensor = tt.rms(tt.cross_rows(ideal, CROSS.positions))
+    assert floor_tensor == pytest.approx(tt.difference_floor(1 * NT, 0.4), rel=0.05)
     assert tensor_rms(gradient_difference(b, CROSS)) < 1.02 * floor_tensor
     scale = result.intensity / F  # relative mode: everything scaled by the estimated F
     assert abs(scale - 1) < (1e-12 if reference else 0.1)
-    assert np.all(tmi_rms(b / scale, F) < 1.03 * tmi_rms(truth.calibration.apply(fresh.vectors), F))
+    assert np.all(tmi_rms(b / scale, F) < 1.03 * tmi_rms(ideal, F))
     assert result.tensor_before > 1000 * result.tensor_after
 
 
@@ -213,21 +218,28 @@ def test_a_wrong_reference_field_or_a_non_uniform_field_is_refused():
 
 
 def _fresh_tensor_ratio(seed: int, count: int, options: SolveOptions) -> float:
-    """Tensor RMS on fresh data over the true calibration's, after calibrating on ``count`` sets."""
+    """Tensor RMS on fresh data over the true calibration's (both with the tests' own numpy),
+    after calibrating on ``count`` sets."""
     sim = simulation(seed)
     rec, _ = sim.run(uniform_random(count, 100 + seed), 200 + seed)
     cal = calibrate_array(rec.vectors, CROSS, F, options=options).calibration
-    fresh, truth = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
-    floor = tensor_rms(gradient_difference(truth.calibration.apply(fresh.vectors), CROSS))
-    return tensor_rms(gradient_difference(cal.apply(fresh.vectors), CROSS)) / floor
+    fresh, _ = sim.run(uniform_random(2000, 300 + seed), 400 + seed)
+    floor = tt.rms(tt.cross_rows(tt.correct(*tt.true_correction(sim), fresh.vectors), CROSS.positions))
+    return float(tt.rms(tt.cross_rows(tt.correct(cal.matrices, cal.offsets, fresh.vectors), CROSS.positions)) / floor)
 
 
-def test_48_random_attitudes_reach_within_15_percent_of_the_floor():
-    """Few attitudes: the joint array ML keeps the tensor near the floor on fresh data."""
+def test_48_random_attitudes_stay_near_the_floor_and_joint_refinement_matters():
+    """Few attitudes: the joint array ML keeps the tensor near the floor on fresh data.
+
+    Measured over 20 seeds (mean / sd / max): joint 1.046 / 0.012 / 1.063, per sensor
+    (joint=False) 1.113 / 0.047 / 1.257; in five groups of four seeds the joint mean was
+    1.039..1.054, its worst 1.051..1.063, and the joint excess at most 0.52 of the per-sensor
+    one. A 10 % worse fit (or joint refinement off) fails the mean bound."""
     joint = [_fresh_tensor_ratio(seed, 48, SolveOptions()) for seed in range(4)]
-    assert max(joint) < 1.15
+    assert max(joint) < 1.09
+    assert np.mean(joint) < 1.07
     per_sensor = [_fresh_tensor_ratio(seed, 48, SolveOptions(joint=False)) for seed in range(4)]
-    assert np.mean(joint) < np.mean(per_sensor)
+    assert np.mean(joint) - 1.0 < 0.67 * (np.mean(per_sensor) - 1.0)
 
 
 def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
@@ -235,3 +247,268 @@ def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
     rec, _ = simulation().run(single_axis("z", 12)[:10], 1)
     with pytest.raises(ObservabilityError, match=r"one axis only \(about z.*x or y"):
         calibrate_array(rec.vectors, CROSS, F)
+
+
+# ---------------------------------------------------------------------------------------
+# Small exact checks of the core's math (each kills mutants of benchmarks/mutation.py that the
+# accuracy tests cannot see: docs/mutation_report.md).
+
+
+def test_rotation_angle_is_the_angle_of_the_rotation():
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    for angle in (0.0, 1e-3, 0.3, 1.2, 2.5, np.pi):
+        assert rotation_angle(Rotation.from_rotvec(angle * axis).as_matrix()) == pytest.approx(angle, abs=2e-8)
+    # rounding can put the cosine just outside [-1, 1] (trace 3 + 3e-15, or -1 - 3e-15)
+    assert rotation_angle(np.eye(3) * (1 + 1e-15)) == 0.0
+    assert rotation_angle(np.diag([1.0, -1.0, -1.0]) * (1 + 1e-15)) == pytest.approx(np.pi)
+
+
+def test_weighted_procrustes_ignores_pairs_of_weight_zero():
+    rng = np.random.default_rng(3)
+    r_true = euler_to_matrix(0.2, -0.4, 0.9)
+    src = rng.normal(size=(50, 3))
+    dst = src @ r_true.T
+    dst[:10] = rng.normal(size=(10, 3))  # ten wrong pairs ...
+    w = np.r_[np.zeros(10), np.full(40, 2.0)]  # ... weighted out
+    np.testing.assert_allclose(procrustes(src, dst, w), r_true, atol=1e-12)
+    assert rotation_angle(procrustes(src, dst).T @ r_true) > 1e-2  # unweighted they do bend it
+
+
+def test_euler_angles_stay_finite_when_rounding_pushes_a_sine_past_one():
+    """At 90 deg a product of rotations can give |T[0, 2]| = 1 + 1e-16; and the least-squares
+    rows of Li et al.'s aligner have the sensor's gain in them (1 + 1e-9 here)."""
+    for sign in (1.0, -1.0):
+        t = euler_to_matrix(0.0, sign * np.pi / 2, 0.0)
+        t[0, 2] = -sign * (1.0 + 2e-16)
+        assert matrix_to_euler(t)[1] == pytest.approx(sign * np.pi / 2)
+    b = np.random.default_rng(4).normal(0.0, 5e-5, (20, 3))
+    for angles in ((np.pi / 2, 0.0, 0.3), (-np.pi / 2, 0.0, 0.3)):  # heel of +-90 deg: sin(alpha) = +-1
+        t = euler_to_matrix(*angles)
+        np.testing.assert_allclose(euler_to_matrix(*paper000_angles(b, (1 + 1e-9) * b @ t.T)), t, atol=1e-6)
+    for sign in (1.0, -1.0):  # pitch of +-90 deg: sin(beta) = +-1 (gimbal lock: only beta is defined)
+        t = euler_to_matrix(0.0, sign * np.pi / 2, 0.0)
+        assert paper000_angles(b, (1 + 1e-9) * b @ t.T)[1] == pytest.approx(sign * np.pi / 2)
+
+
+def test_angle_alignment_accepts_three_close_but_independent_directions():
+    """Three field directions 0.6 deg apart still span 3-D (smallest singular value 3e-4 F);
+    three in one plane do not and are refused."""
+    eps = 0.01
+    d = np.array([[1.0, 0.0, 0.0], [1.0, eps, 0.0], [1.0, 0.0, eps]])
+    b = F * d / np.linalg.norm(d, axis=1, keepdims=True)
+    t = euler_to_matrix(0.02, -0.03, 0.05)
+    np.testing.assert_allclose(paper000_angles(b, b @ t.T), (0.02, -0.03, 0.05), atol=1e-9)
+    flat = b.copy()
+    flat[2] = F * np.array([1.0, 0.5 * eps, 0.0]) / np.hypot(1.0, 0.5 * eps)
+    with pytest.raises(InputError, match="span 3-D"):
+        paper000_angles(flat, flat @ t.T)
+
+
+def test_zero_reference_field_means_relative_and_the_linear_fit_reports_its_residual():
+    sim = simulation(noise=1 * NT)
+    r = sim.run(uniform_random(200, 1), 2)[0].vectors[:, 0]
+    for fit in (algebraic_fit, ml_fit):
+        a, b = fit(r, 0.0), fit(r, None)
+        np.testing.assert_array_equal(a.matrix, b.matrix)
+        assert a.intensity == b.intensity
+        # relative: F is the mean norm of the centred readings
+        assert b.intensity == pytest.approx(np.mean(np.linalg.norm(r - r.mean(axis=0), axis=1)), rel=1e-12)
+    lin = algebraic_fit(r, F)
+    own = np.sqrt(np.mean((np.linalg.norm((r - lin.offset) @ lin.matrix.T, axis=1) - F) ** 2))
+    assert lin.residual_rms == pytest.approx(own, rel=1e-12)
+
+
+def _textbook_std(r: np.ndarray, fit) -> np.ndarray:
+    """1-sigma of ``[M00, M01, M02, M11, M12, M22, o / F]`` from a finite-difference Jacobian of
+    ``|M (r / F - o)| - 1`` at the fit, ``s^2 = RSS / (N - 9)``; offsets returned in T."""
+    f = fit.intensity
+    iu = np.triu_indices(3)
+    p0 = np.concatenate([fit.matrix[iu], fit.offset / f])
+
+    def res(p: np.ndarray) -> np.ndarray:
+        m = np.zeros((3, 3))
+        m[iu] = p[:6]
+        return np.linalg.norm((r / f - p[6:]) @ m.T, axis=1) - 1.0
+
+    jac = np.stack([(res(p0 + h) - res(p0 - h)) / 2e-7 for h in np.eye(9) * 1e-7], axis=1)
+    e = res(p0)
+    std = np.sqrt(np.diag(np.linalg.inv(jac.T @ jac)) * (e @ e) / (len(r) - 9))
+    std[6:] *= f
+    return std
+
+
+@pytest.mark.parametrize("count", [10, 100])
+def test_ml_fit_uncertainty_is_the_textbook_covariance(count: int) -> None:
+    """The reported std against an independent computation (N - 9 degrees of freedom, offsets in T)."""
+    sim = simulation(noise=2 * NT)
+    r = sim.run(uniform_random(count, 5), 6)[0].vectors[:, 1]
+    fit = ml_fit(r, F)
+    np.testing.assert_allclose(fit.std, _textbook_std(r, fit), rtol=1e-3)
+
+
+def test_strong_noise_bias_correction_rescales_by_sigma_squared():
+    """Wu et al.'s (2013) regime, noise 2 % of F per axis: noise inflates the mean norm by
+    sigma^2 / F, the fit targets 1 + sigma^2 (units of F) and reports the residual about it."""
+    rng = np.random.default_rng(0)
+    k, o = SensorErrors(scale=[1.05, 0.97, 1.02], angles=np.radians([1.0, -0.7, 0.5]),
+                        offset=np.array([300.0, -150.0, 80.0]) * NT).forward()
+    sd = 0.02 * F
+    r = (uniform_random(4000, rng) @ np.array([0.0, 0.0, F])) @ k.T + o + rng.normal(0.0, sd, (4000, 3))
+    plain, corrected = ml_fit(r, F, bias_correction=False), ml_fit(r, F)
+    gain = (np.linalg.det(corrected.matrix) / np.linalg.det(plain.matrix)) ** (1 / 3) - 1.0
+    assert gain == pytest.approx((sd / F) ** 2, rel=0.1)
+    assert corrected.residual_rms == pytest.approx(sd, rel=0.05)
+    own = np.sqrt(np.mean((np.linalg.norm(corrected.apply(r), axis=1) - F) ** 2))
+    assert corrected.residual_rms == pytest.approx(own, rel=1e-9)  # about F, not about the target
+
+
+def test_trimmed_start_flags_spikes_but_not_a_common_bias():
+    """The closed-form start keeps readings within TRIM_SIGMAS = 5 robust sd of the median norm
+    residual: 20 readings 8 sd off in norm are flagged and the start refitted without them. A
+    fit whose F is 0.2 % off shifts every residual by 100 sd: judged from the median residual,
+    it flags exactly the spikes (500 sd here) and nothing else."""
+    sim = simulation(noise=1 * NT)
+    r = sim.run(uniform_random(400, 7), 8)[0].vectors[:, 0]
+    clean = ml_fit(r, F)
+    radial = (r - clean.offset) / np.linalg.norm(r - clean.offset, axis=1, keepdims=True)
+    spiky = r.copy()
+    spiky[::20] += 8 * NT * radial[::20]
+    fit, keep = trimmed_algebraic_fit(spiky, F)
+    assert not keep[::20].any() and keep.sum() >= 375
+    np.testing.assert_allclose(fit.offset, clean.offset, atol=2 * NT)
+    gross = r.copy()
+    gross[::20] += 500 * NT * radial[::20]
+    biased = algebraic_fit(r, F)
+    shifted = ScalarFit(biased.matrix * 1.002, biased.offset, F, biased.residual_rms)
+    expected = np.ones(len(r), bool)
+    expected[::20] = False
+    assert np.array_equal(inliers(shifted, gross), expected)
+
+
+def test_two_by_two_inverses_of_the_direction_blocks():
+    rng = np.random.default_rng(9)
+    a = rng.normal(size=(50, 2, 2))
+    c = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(2)  # symmetric positive definite, like the blocks
+    c[:, 0, 1] += 0.3  # and some not symmetric
+    np.testing.assert_allclose(_inv2(c), np.linalg.inv(c), rtol=1e-10, atol=1e-12)
+    assert np.array_equal(_inv2(np.zeros((1, 2, 2))), np.zeros((1, 2, 2)))  # a set no sensor sees
+
+
+def test_joint_fit_information_matches_its_scores_for_white_noise():
+    """With white noise the per-set scores' outer products add up to the Fisher information
+    (measured: trace ratio 1.0004 on 600 sets); the noise is found per sensor."""
+    sim = simulation(noise=1 * NT)
+    rec, truth = sim.run(uniform_random(600, 3), 4)
+    sol = fit_array(rec.vectors, truth.calibration.matrices, truth.calibration.offsets, F)
+    assert np.trace(sol.scores.T @ sol.scores) / np.trace(sol.information) == pytest.approx(1.0, abs=0.05)
+    np.testing.assert_allclose(sol.sigma, 1 * NT, rtol=0.06)
+    assert sol.iterations >= 1
+    assert np.all(sol.weights == 1.0)  # clean data: nothing excluded
+
+
+def test_current_interference_is_estimated_in_the_platform_frame():
+    """A thruster current u (A) adds E_i u to sensor i's raw reading (T/A, raw axes); the
+    calibration must find D_i = M_i E_i and take it out. 1-sigma of D here is
+    sigma / (sd(u) sqrt(N)) = 0.02 nT/A against 5..30 nT/A; the worst component's error over
+    10 seeds was 0.035 / 0.008 / 0.047 nT/A (mean / sd / max)."""
+    sim = simulation(noise=1 * NT)
+    rec, _ = sim.run(uniform_random(600, 5), 6)
+    rng = np.random.default_rng(7)
+    u = rng.uniform(-5.0, 5.0, (600, 1))
+    e_raw = np.array([[20.0, -10.0, 5.0], [-15.0, 25.0, 8.0], [6.0, 9.0, -30.0], [12.0, -7.0, 18.0]]) * NT
+    raw = rec.vectors + u[:, :, None] * e_raw[None]
+    res = calibrate_array(raw, CROSS, F, currents=u, channels=("thruster",))
+    m_true, _ = tt.true_correction(sim)
+    d_true = np.einsum("sij,sj->si", m_true, e_raw)
+    # the solved platform frame differs from the true one by one small rotation (the gauge),
+    # found from the corrected fields (not from the interference under test)
+    b_est = res.calibration.apply(raw, u)
+    q = procrustes(tt.correct(m_true, tt.true_correction(sim)[1], rec.vectors).reshape(-1, 3), b_est.reshape(-1, 3))
+    assert rotation_angle(q) < np.radians(5)
+    assert np.abs(res.calibration.interference[:, :, 0] - d_true @ q.T).max() < 0.1 * NT
+    assert np.abs(res.calibration.interference[:, :, 0]).max() > 10 * NT
+    fresh, _ = sim.run(uniform_random(500, 8), 9)
+    u2 = rng.uniform(-5.0, 5.0, (500, 1))
+    b = res.calibration.apply(fresh.vectors + u2[:, :, None] * e_raw[None], u2)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)
+    assert tt.rms(tt.cross_rows(b, CROSS.positions)) < 1.05 * tt.rms(tt.cross_rows(ideal, CROSS.positions))
+    # Recalibrating with that result as the prior (no gauge to fix: the prior's frame is kept)
+    # keeps the interference in that frame.
+    again = calibrate_array(raw, CROSS, F, currents=u, channels=("thruster",), prior=res.calibration)
+    np.testing.assert_allclose(again.calibration.interference, res.calibration.interference, rtol=0, atol=0.05 * NT)
+
+
+def test_spikes_are_excluded_reading_by_reading():
+    """Gross spikes (3000 sigma) on one sensor, and on three of four sensors in the same sets:
+    exactly those readings are excluded; the fourth sensor's clean reading in those sets is
+    kept although no other sensor of its set can vouch for it, and the tensor stays at the floor."""
+    sim = simulation(noise=1 * NT)
+    rec, _ = sim.run(uniform_random(400, 11), 12)
+    raw = rec.vectors.copy()
+    rng = np.random.default_rng(1)
+    three = np.arange(10, 400, 40)
+    raw[three, 1:] += rng.choice([-1.0, 1.0], (len(three), 3, 3)) * 3000 * NT
+    one = np.arange(25, 400, 50)
+    raw[one, 0] += 3000 * NT
+    res = calibrate_array(raw, CROSS, F)
+    assert res.outliers.tolist() == [len(one), len(three), len(three), len(three)]
+    fresh, _ = sim.run(uniform_random(1000, 13), 14)
+    b = tt.correct(res.calibration.matrices, res.calibration.offsets, fresh.vectors)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)
+    assert tt.rms(tt.cross_rows(b, CROSS.positions)) < 1.02 * tt.rms(tt.cross_rows(ideal, CROSS.positions))
+
+
+def test_robust_start_loss_scale_defaults_to_three_times_the_closed_form_residual():
+    """The documented default of ``loss_scale`` (ml_fit docstring), on readings with a few
+    moderate outliers (5 sigma: inside 6x, outside 3x the residual)."""
+    r = simulation(noise=1 * NT).run(uniform_random(300, 15), 16)[0].vectors[:, 2].copy()
+    r[::30] += 5 * NT
+    default = ml_fit(r, F, loss="huber")
+    start_rms = algebraic_fit(r, F).residual_rms
+    np.testing.assert_allclose(default.matrix, ml_fit(r, F, loss="huber", loss_scale=3.0 * start_rms).matrix, rtol=1e-9)
+    assert np.abs(default.matrix - ml_fit(r, F, loss="huber", loss_scale=6.0 * start_rms).matrix).max() > 1e-8
+
+
+def _ml_by_scipy(raw: np.ndarray, start, sigma: np.ndarray, used: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The array's maximum likelihood written out plainly and solved by scipy: every K_i (raw =
+    K_i F d_k + o_i), o_i and each set's unit direction d_k free, residuals weighted by 1/sigma_i,
+    and by the square root of the weight ``used`` (N, S) of each reading. Returns K (S, 3, 3) and
+    offsets (S, 3) in T."""
+    from scipy.optimize import least_squares
+
+    n, s, _ = raw.shape
+    x = raw / F
+    k0 = np.linalg.inv(start.matrices)
+    d0 = np.einsum("sab,nsb->nsa", start.matrices, x - start.offsets / F).mean(axis=1)
+    p0 = np.concatenate([k0.ravel(), (start.offsets / F).ravel(), d0.ravel()])
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        k = p[: 9 * s].reshape(s, 3, 3)
+        o = p[9 * s : 12 * s].reshape(s, 3)
+        d = p[12 * s :].reshape(n, 3)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        pred = np.einsum("sab,nb->nsa", k, d) + o
+        return ((pred - x) * (F / sigma)[None, :, None] * np.sqrt(used)[:, :, None]).ravel()
+
+    p = least_squares(residuals, p0, method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15, x_scale="jac").x
+    return p[: 9 * s].reshape(s, 3, 3), p[9 * s : 12 * s].reshape(s, 3) * F
+
+
+@pytest.mark.parametrize("seed, tolerance", [(1, 5e-10), (0, 3e-7)])
+def test_joint_fit_reaches_the_maximum_likelihood_optimum(seed: int, tolerance: float) -> None:
+    """48 sets (where the joint fit matters most) against the same likelihood solved by scipy from
+    the same start, with the noise and reading weights the fit settled on: the relative
+    calibration K_j M_i (free of the frame) agrees to 5e-11 (seed 1; measured) and 3e-8 (seed 0,
+    where one clean reading is excluded and the noise weights of the fit's last round are not
+    reproducible from outside), against 2e-5 for the per-sensor start and the fit's own 1-sigma
+    of 3e-6; a fit stopping short of the optimum (the direction step or the first noise
+    estimate wrong) is off by 2e-9 .. 4e-6."""
+    sim = simulation(seed)
+    rec, _ = sim.run(uniform_random(48, 100 + seed), 200 + seed)
+    start = calibrate_array(rec.vectors, CROSS, F, options=SolveOptions(joint=False)).calibration
+    sol = fit_array(rec.vectors, start.matrices, start.offsets, F)
+    k_ref, o_ref = _ml_by_scipy(rec.vectors, start, sol.sigma, sol.weights)
+    rel = np.einsum("jab,ibc->ijac", np.linalg.inv(sol.matrices), sol.matrices)
+    rel_ref = np.einsum("jab,ibc->ijac", k_ref, np.linalg.inv(k_ref))
+    assert np.abs(rel - rel_ref).max() < tolerance
+    assert np.abs(sol.offsets - o_ref).max() < 0.1 * NT

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import truth_tools as tt
 from magcal_ros.core.metrics import tmi_rms
 from magcal_ros.core.sensor_model import SensorErrors
 from magcal_ros.core.units import NT
@@ -156,14 +157,24 @@ def test_paired_needs_enough_readings() -> None:
 # --- both methods in the array pipeline -------------------------------------------------
 
 
-@pytest.mark.parametrize("method, reference", [("pso", sc.PAPER000_F), ("paired", sc.PAPER000_F), ("paired", None)])
-def test_pipeline_methods(method: str, reference: float | None) -> None:
+@pytest.mark.parametrize("method, reference, tmi_bound, tensor_bound", [
+    ("pso", sc.PAPER000_F, 1.01, 1.015), ("paired", sc.PAPER000_F, 1.04, 1.035), ("paired", None, 1.04, 1.035)])
+def test_pipeline_methods(method: str, reference: float | None, tmi_bound: float, tensor_bound: float) -> None:
+    """On the fit data (576 sets of Li et al.'s grid) against the true calibration on the same
+    data. Measured over 10 noise seeds (mean / sd / max), worst sensor's TMI and the tensor:
+    pso 0.996 / 0.0015 / 0.998 and 1.001 / 0.002 / 1.004; paired (with or without F, the
+    same up to scale) 1.006 / 0.005 / 1.015 and 1.009 / 0.004 / 1.015. The summary's own
+    tensor figure against sqrt(2) sigma / d: 1.002..1.011 / 0.015 / 1.04 (sampling of 576 sets)."""
     sim = sc.paper000_simulation()
-    rec, truth = sim.run(paper000_grid()[::3], rng=2)
+    rec, _ = sim.run(paper000_grid()[::3], rng=2)
     opts = SolveOptions(pso_particles=40, pso_iterations=300)
     res = calibrate_array(rec.vectors, sim.geometry, reference, method=method, options=opts)
-    floor = tmi_rms(truth.calibration.apply(rec.vectors), sc.PAPER000_F)
+    ideal = tt.correct(*tt.true_correction(sim), rec.vectors)
+    floor = tmi_rms(ideal, sc.PAPER000_F)
     assert res.relative == (reference is None)
     scale = sc.PAPER000_F / res.intensity
-    assert np.all(tmi_rms(res.calibration.apply(rec.vectors) * scale, sc.PAPER000_F) < 1.1 * floor)
-    assert res.tensor_after * scale < 1.1 * np.sqrt(2) * 1 * NT / sc.PAPER000_BASELINE
+    b = tt.correct(res.calibration.matrices * scale, res.calibration.offsets, rec.vectors)
+    assert np.all(tmi_rms(b, sc.PAPER000_F) < tmi_bound * floor)
+    pos = sim.geometry.positions
+    assert tt.rms(tt.cross_rows(b, pos)) < tensor_bound * tt.rms(tt.cross_rows(ideal, pos))
+    assert res.tensor_after * scale < 1.1 * tt.difference_floor(1 * NT, sc.PAPER000_BASELINE)

@@ -2,7 +2,9 @@
 
 Truth always comes from the simulator (its platform field, its true corrections), never
 from the solver under test. Noise floors are measured on the same noisy data by applying
-the true correction, so each tolerance is stated relative to what noise allows.
+the true correction with the tests' own numpy (:mod:`truth_tools`, not the package's
+``apply`` / ``gradient``), so each tolerance is stated relative to what noise allows.
+Bounds quote the spread measured over seeds (mean / sd / max).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import truth_tools as tt
 from magcal_ros.core.alignment import align_procrustes, paper000_angles
 from magcal_ros.core.metrics import tensor_component_rms, tensor_floor, tmi_rms
 from magcal_ros.core.recording import Recording
@@ -48,28 +51,39 @@ def p000_ml(p000: tuple[ArraySimulation, Recording, Truth]) -> CalibrationResult
     return calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method="ml")
 
 
-@pytest.mark.parametrize("method", ["ml", "linear"])
-def test_paper000_table1_sensor_parameters(p000, method: str) -> None:
+@pytest.mark.parametrize("method, angle_bound", [("ml", 4e-6), ("linear", 10e-6)])
+def test_paper000_table1_sensor_parameters(request: pytest.FixtureRequest, p000, method: str,
+                                           angle_bound: float) -> None:
     """All 36 sensor parameters. With N = 1728 and sigma/F = 1.7e-5 the fit's 1-sigma is
     about 1e-6 (relative) for gains, 6e-5 deg for angles and 0.05 nT for offsets (the fit's
-    own ``std``); the bounds are ~10 sigma. The paper's PMED (its Table 1) is 2e-5..4e-3 %."""
+    own ``std``); the bounds are ~10 sigma. The paper's PMED (its Table 1) is 2e-5..4e-3 %.
+
+    These parameters do not change when a sensor is rotated, so the sensor-to-sensor
+    rotation (what the tensor needs) is checked too, against the truth: measured over 10
+    noise seeds (worst sensor, mean / sd / max) 1.5 / 0.2 / 1.8 urad (ml) and 2.6 / 0.9 /
+    4.1 urad (linear); bounds mean + 8 sd; an aligner off by 5e-5 rad fails them."""
     sim, rec, _ = p000
-    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method=method)
+    if method == "ml":
+        res = request.getfixturevalue("p000_ml")
+    else:
+        res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method=method)
     for i, true in enumerate(sim.sensors):
         est = SensorErrors.from_correction(res.calibration.matrices[i], res.calibration.offsets[i])
         assert np.degrees(np.abs(est.angles - true.angles)).max() < 1e-3
         assert np.abs(est.scale / true.scale - 1.0).max() < 1e-5
         assert np.abs(est.offset - true.offset).max() < 0.5 * NT
+    assert tt.relative_angles(res.calibration.matrices, tt.true_forward(sim)).max() < angle_bound
 
 
 def test_paper000_table2_tmi(p000, p000_ml: CalibrationResult) -> None:
-    """TMI RMSE per sensor: paper 0.98..1.02 nT after, 6715..9042 nT before."""
-    _, rec, truth = p000
-    floor = tmi_rms(truth.calibration.apply(rec.vectors), sc.PAPER000_F)
+    """TMI RMSE per sensor: paper 0.98..1.02 nT after, 6715..9042 nT before. After over the
+    floor (worst sensor, |ratio - 1|) over 10 noise seeds: 0.0035 / 0.0020 / 0.0079."""
+    sim, rec, _ = p000
+    floor = tt.rms(np.linalg.norm(tt.correct(*tt.true_correction(sim), rec.vectors), axis=2) - sc.PAPER000_F, axis=0)
     assert np.all(np.abs(floor / NT - 1.0) < 0.05)  # sigma = 1 nT by construction
     after = p000_ml.tmi_after
     assert np.all(np.abs(after / NT - 1.0) < 0.05)
-    assert np.all(np.abs(after / floor - 1.0) < 0.02)
+    assert np.all(np.abs(after / floor - 1.0) < 0.015)
     before = p000_ml.tmi_before / NT
     assert np.allclose(before, sc.REPORTED["000"]["tmi_before"], rtol=0.15)
 
@@ -90,13 +104,21 @@ def test_paper000_table3_misalignment(p000, samples: list[int]) -> None:
 
 def test_paper000_table4_tensor(p000, p000_ml: CalibrationResult) -> None:
     """Six tensor components: paper 3.47..3.96 nT/m after alignment (floor 3.54), tens of
-    thousands before and still thousands after scalar calibration only."""
+    thousands before and still thousands after scalar calibration only.
+
+    Per component (1728 sets: sd 1.7 %) the worst |after / floor - 1| over 10 noise seeds was
+    0.027 / 0.007 / 0.038; over all six against the realized floor (the true calibration on
+    the same data) 0.9988 / 0.0004 / 0.9993."""
     sim, rec, _ = p000
     floor = tensor_floor(1 * NT, sc.PAPER000_BASELINE)
     assert floor / NT == pytest.approx(3.5355, abs=1e-3)
+    assert tt.difference_floor(1 * NT, sc.PAPER000_BASELINE) == pytest.approx(floor, rel=1e-12)
     g_after = p000_ml.calibration.field_and_gradient(rec.vectors)[2]
     after = tensor_component_rms(g_after)
-    assert np.all(np.abs(after / floor - 1.0) < 0.10)
+    assert np.all(np.abs(after / floor - 1.0) < 0.07)
+    pos = sim.geometry.positions
+    realized = tt.rms(tt.cross_rows(tt.correct(*tt.true_correction(sim), rec.vectors), pos))
+    assert tt.rms(g_after[:, :2]) / realized < 1.005
     before = tensor_component_rms(gradient(rec.vectors, sim.geometry)) / NT
     assert np.all((before > 1e4) & (before < 1e5))
     scalar_only = np.stack([ml_fit(rec.vectors[:, i], sc.PAPER000_F).apply(rec.vectors[:, i]) for i in range(4)], 1)
@@ -113,28 +135,35 @@ def test_paper000_single_z_rotation_refused(p000) -> None:
 
 
 def test_paper000_fresh_data(p000, p000_ml: CalibrationResult) -> None:
-    """Calibrate on the grid, evaluate on 500 new attitudes with new noise."""
+    """Calibrate on the grid, evaluate on 500 new attitudes with new noise. Over 10 seeds:
+    worst component |ratio - 1| 0.011 / 0.005 / 0.024, worst sensor TMI 1.005 / 0.003 / 1.012."""
     sim, _, _ = p000
-    fresh, truth = sim.run(uniform_random(500, 11), rng=12)
+    fresh, _ = sim.run(uniform_random(500, 11), rng=12)
     est = p000_ml.calibration.field_and_gradient(fresh.vectors)
-    ideal = truth.calibration.field_and_gradient(fresh.vectors)
-    ratio = tensor_component_rms(est[2]) / tensor_component_rms(ideal[2])
-    assert np.all(np.abs(ratio - 1.0) < 0.05)
-    tmi = tmi_rms(est[0], sc.PAPER000_F) / tmi_rms(ideal[0], sc.PAPER000_F)
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)
+    ratio = tensor_component_rms(est[2]) / tt.rms(tt.cross_rows(ideal, sim.geometry.positions), axis=0).reshape(6)
+    assert np.all(np.abs(ratio - 1.0) < 0.04)
+    tmi = tmi_rms(est[0], sc.PAPER000_F) / tt.rms(np.linalg.norm(ideal, axis=2) - sc.PAPER000_F, axis=0)
     assert np.all(tmi < 1.02)
 
 
 def test_random_48_attitudes_fresh_data() -> None:
-    """48 random attitudes (a short manoeuvre): on new data within 15 % of the floor."""
+    """48 random attitudes (a short manoeuvre), on new data against the true calibration on the
+    same data. Measured over 20 seeds (mean / sd / max): tensor 1.041 / 0.009 / 1.058 (bound:
+    mean + 5 sd, a 10 % worse method reaches 1.145); TMI over the array 1.057 / 0.022 / 1.116
+    (bound mean + 3.8 sd; 10 % worse: 1.163); worst sensor 1.09 / 0.036 / 1.197 (too spread
+    for a 10 % bound from one seed; kept at 1.15)."""
     sim = sc.paper000_simulation()
     rec, _ = sim.run(uniform_random(48, 21), rng=22)
     res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F, method="ml")
-    fresh, truth = sim.run(uniform_random(500, 23), rng=24)
+    fresh, _ = sim.run(uniform_random(500, 23), rng=24)
     g = res.calibration.field_and_gradient(fresh.vectors)[2]
-    g_ideal = truth.calibration.field_and_gradient(fresh.vectors)[2]
-    assert float(np.sqrt(np.mean(tensor_component_rms(g) ** 2) / np.mean(tensor_component_rms(g_ideal) ** 2))) < 1.15
+    ideal = tt.correct(*tt.true_correction(sim), fresh.vectors)
+    assert tt.rms(g[:, :2]) / tt.rms(tt.cross_rows(ideal, sim.geometry.positions)) < 1.09
     tmi = tmi_rms(res.calibration.apply(fresh.vectors), sc.PAPER000_F)
-    assert np.all(tmi / tmi_rms(truth.calibration.apply(fresh.vectors), sc.PAPER000_F) < 1.15)
+    tmi_ideal = tt.rms(np.linalg.norm(ideal, axis=2) - sc.PAPER000_F, axis=0)
+    assert np.sqrt(np.mean(tmi**2) / np.mean(tmi_ideal**2)) < 1.14
+    assert np.all(tmi / tmi_ideal < 1.15)
 
 
 # ---------------------------------------------------------------------------------------
@@ -152,10 +181,16 @@ def _p002_sensor0(table: int, a_nt: float) -> tuple[np.ndarray, float, float]:
     return r, floor, before
 
 
+# The noise levels differ only in scale: the same uniform draws times a, a fit that is exact
+# without noise and invariant to the noise scale. So the ratio to the floor is the same at every
+# level (measured 0.97134 Table 1, 0.97264 Table 2 at 2, 5 and 10 nT) and is tested once, at
+# 2 nT; what differs between the levels, the residual itself, is tested against the paper.
+
+
 @pytest.mark.parametrize("table", [1, 2])
-@pytest.mark.parametrize("a_nt", sc.PAPER002_NOISE_PP_NT)
+@pytest.mark.parametrize("a_nt", [0.0, 2.0])
 def test_paper002_ml_at_noise_floor(table: int, a_nt: float) -> None:
-    """Paper: 0.58 / 1.42 / 2.84 (Table 1), 0.532 / 1.329 / 2.659 nT (Table 2) = a/sqrt(12)."""
+    """Noise-free: exact. At a = 2 nT: at the floor the true calibration gives on the same data."""
     r, floor, _ = _p002_sensor0(table, a_nt)
     fit = ml_fit(r, sc.PAPER002_F)
     if a_nt == 0:
@@ -168,23 +203,38 @@ def test_paper002_ml_at_noise_floor(table: int, a_nt: float) -> None:
 
 
 @pytest.mark.parametrize("table", [1, 2])
-@pytest.mark.parametrize("a_nt", sc.PAPER002_NOISE_PP_NT)
+def test_paper002_residual_follows_the_noise_level(table: int) -> None:
+    """Paper (improved PSO, = ML): 0.58 / 1.42 / 2.84 nT (Table 1), 0.532 / 1.329 / 2.659 nT
+    (Table 2) at a = 2 / 5 / 10 nT; measured 0.553 / 1.382 / 2.764 and 0.533 / 1.332 / 2.663:
+    proportional to a (to 1e-5) and within 5 % of the paper's."""
+    levels = [a for a in sc.PAPER002_NOISE_PP_NT if a > 0]
+    res = np.array([ml_fit(_p002_sensor0(table, a)[0], sc.PAPER002_F).residual_rms / NT for a in levels])
+    per_level = res / np.array(levels)
+    assert np.ptp(per_level) < 1e-4 * per_level.mean()
+    reported = np.array(sc.REPORTED["002"][f"table{table}_improved"][1:])
+    assert np.all(np.abs(res / reported - 1.0) < 0.05)
+
+
+@pytest.mark.parametrize("table", [1, 2])
+@pytest.mark.parametrize("a_nt", [0.0, 2.0])
 def test_paper002_array_ml(table: int, a_nt: float) -> None:
     """The array pipeline, default method: 4 sensors with the paper's errors (and random
-    2-deg misalignments), on the fit data and on 500 new attitudes with new noise."""
+    2-deg misalignments), on the fit data and on 500 new attitudes with new noise (one noise
+    level: the ratios do not depend on it, see above)."""
     sim = sc.paper002_simulation(table, a_nt * NT)
-    rec, truth = sim.run(uniform_random(300, 7), rng=3)
+    rec, _ = sim.run(uniform_random(300, 7), rng=3)
     res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER002_F, method="ml")
     if a_nt == 0:
         assert np.all(res.tmi_after < 1e-12 * sc.PAPER002_F)
         return
-    floor = tmi_rms(truth.calibration.apply(rec.vectors), sc.PAPER002_F)
+    truth_cal = tt.true_correction(sim)
+    floor = tt.rms(np.linalg.norm(tt.correct(*truth_cal, rec.vectors), axis=2) - sc.PAPER002_F, axis=0)
     assert np.all(np.abs(res.tmi_after / floor - 1.0) < 0.05)
     # New data: 9 parameters from 300 sets add ~9/600 = 1.5 % in expectation; per sensor
     # the excess scatters (measured up to 3.7 %), over the array it stays within 2 %.
-    fresh, fresh_truth = sim.run(uniform_random(500, 8), rng=9)
+    fresh, _ = sim.run(uniform_random(500, 8), rng=9)
     new = tmi_rms(res.calibration.apply(fresh.vectors), sc.PAPER002_F)
-    ideal = tmi_rms(fresh_truth.calibration.apply(fresh.vectors), sc.PAPER002_F)
+    ideal = tt.rms(np.linalg.norm(tt.correct(*truth_cal, fresh.vectors), axis=2) - sc.PAPER002_F, axis=0)
     assert np.all(new / ideal < 1.05)
     assert np.sqrt(np.mean(new**2) / np.mean(ideal**2)) < 1.02
 
@@ -242,14 +292,17 @@ def test_paper003_noise_free() -> None:
 def test_paper003_strong_noise() -> None:
     """sd = 1e-2 units (100 nT, 0.5 % of |B|). The extracted paper gives no J values.
 
-    Measured over 20 seeds: median J 0.021 (paired) and 0.020 (ML, which also fits an
-    offset); J grows linearly with sd (0.0021 at sd 1e-3), so neither is breaking down.
+    Measured over 30 seeds (mean / sd / max): J 0.0207 / 0.0101 / 0.049 (paired) and
+    0.0221 / 0.0150 / 0.063 (ML, which also fits an offset). One seed's J scatters by 50 %,
+    so no handful of seeds can resolve 10 %: the means over these six seeds (0.0252 paired,
+    0.0247 ML; five disjoint groups of six gave 0.017..0.025) are held within 1.1x. The same
+    noise draws at a tenth of the sd give a tenth of J (9.9x measured): linear, no breakdown.
     """
     jp, jm = _p003_j(1e-2, range(6))
-    assert jp < 0.04 and jm < 0.04
+    assert jp < 0.0275 and jm < 0.027
     assert jm < 1.25 * jp
     jp3, _ = _p003_j(1e-3, range(6))
-    assert 5.0 < jp / jp3 < 20.0
+    assert 9.5 < jp / jp3 < 10.5
 
 
 # ---------------------------------------------------------------------------------------
@@ -314,13 +367,17 @@ def axis_angles_deg(matrices: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
-@pytest.mark.parametrize("method", ["reference", "ml"])
-def test_paper004_axis_angle(method: str) -> None:
-    """Paper: about 1 deg (up to 2) before, < 0.01 deg after alignment."""
+@pytest.mark.parametrize("method, bound_deg", [("reference", 0.0025), ("ml", 0.0015)])
+def test_paper004_axis_angle(method: str, bound_deg: float) -> None:
+    """Paper: about 1 deg (up to 2) before, < 0.01 deg after alignment.
+
+    Measured over 20 noise seeds (worst axis, deg, mean / sd / max): reference 0.00096 /
+    0.00031 / 0.0018, ml 0.00063 / 0.00016 / 0.0010; the bounds are the mean + 5 sd, below
+    the 0.0029 deg of an aligner off by 5e-5 rad."""
     sim = sc.paper004_simulation()
     rec, _ = sim.run(paper004_grid(), rng=5)
     forward = np.stack([s.forward()[0] for s in sim.sensors])
     before = axis_angles_deg(np.tile(np.eye(3), (4, 1, 1)), forward)
     assert 0.5 < before.max() < 5.0
     res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F, method=method)
-    assert axis_angles_deg(res.calibration.matrices, forward).max() < 0.01
+    assert axis_angles_deg(res.calibration.matrices, forward).max() < bound_deg

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer
+from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer, SyncStats, tolerance_ns
 
 MS = 1_000_000
 NS = 1_000_000_000
@@ -71,6 +71,7 @@ def feed_streaming(streams: list[list[int]], tol: int, rng: np.random.Generator)
         pos[k] += 1
         if s is not None:
             assert s.values == tuple((1.0 * i, 0.0, 0.0) for i in range(len(streams)))
+            assert s.stamp == s.stamps[0], "a set's stamp is its first sensor's"
             got.append(s.stamps)
 
 
@@ -85,7 +86,11 @@ def feed_batches(streams: list[list[int]], tol: int, rng: np.random.Generator) -
             part = np.array(s[pos[k] : pos[k] + n], dtype=np.int64)
             pos[k] += n
             sync.add_batch(k, part, np.tile([1.0 * k, 0.0, 0.0], (len(part), 1)))
-        got += [tuple(int(x) for x in row) for row in sync.pop().stamps]
+        batch = sync.pop()
+        assert np.array_equal(batch.set_stamps, batch.stamps[:, 0]), "a set's stamp is its first sensor's"
+        assert batch.vectors.shape == (len(batch), len(streams), 3)
+        assert np.array_equal(batch.vectors[:, :, 0], np.tile(np.arange(len(streams), dtype=float), (len(batch), 1)))
+        got += [tuple(int(x) for x in row) for row in batch.stamps]
     got += [tuple(int(x) for x in row) for row in sync.pop(final=True).stamps]
     return got, sync
 
@@ -223,3 +228,108 @@ def test_a_source_restart_resets_instead_of_dropping_everything() -> None:
     assert feed(sync, [(0, base, 1.0), (1, base, 1.0)]) == [(base, base)]
     assert feed(sync, [(0, 5 * MS, 1.0), (1, 5 * MS, 1.0)]) == [(5 * MS, 5 * MS)]
     assert sync.stats.restarts == 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_both_paths_follow_the_rule_where_the_period_cap_decides(seed: int) -> None:
+    """2 kHz with +-150 us jitter and 10 % loss: spreads of 0..300 us against a window capped at
+    half the period (~250 us), so the sets depend on each sensor's median interval: both
+    paths must compute it as the rule does (median of the last 8, halved)."""
+    rng = np.random.default_rng(seed)
+    n, period = 1500, 500_000
+    base = 1_700_000_000 * NS + np.arange(n, dtype=np.int64) * period
+    streams = [(base + rng.integers(-150_000, 150_001, n))[rng.random(n) > 0.1].tolist() for _ in range(4)]
+    expected = rule_sets(streams, MS)
+    live, _ = feed_streaming(streams, MS, rng)
+    batch, _ = feed_batches(streams, MS, rng)
+    assert live == batch == expected
+    assert 0.3 * n < len(expected) < 0.95 * n
+
+
+@pytest.mark.parametrize("path", ["live", "bag"])
+def test_a_restart_is_a_jump_back_of_more_than_a_second(path: str) -> None:
+    """Exactly 1 s back (RESTART_JUMP) is an out-of-order stamp; one nanosecond more is a restart."""
+    jump = NS
+    for back, restarts in ((jump, 0), (jump + 1, 1)):
+        stamps = [100 * NS, 100 * NS + 10 * MS, 100 * NS + 10 * MS - back]
+        sync = SetSynchronizer(2, MS)
+        if path == "live":
+            for t in stamps:
+                sync.add(0, t, 1.0, 0.0, 0.0)
+        else:
+            sync.add_batch(0, np.array(stamps, dtype=np.int64), np.ones((3, 3)))
+            sync.pop()
+        assert (sync.stats.restarts, sync.stats.out_of_order) == (restarts, 1 - restarts), back
+
+
+def test_a_message_waits_for_its_partners_at_most_the_default_lag() -> None:
+    """Live: a head exactly DEFAULT_LAG (1 s) behind the newest stamp still waits; 1 ns more and
+    it is given up while its partner stays silent."""
+    sync = SetSynchronizer(2, MS)
+    sync.add(0, 5 * NS, 1.0, 0.0, 0.0)
+    sync.add(0, 6 * NS, 1.0, 0.0, 0.0)
+    assert (sync.pending, sync.stats.unmatched) == (2, 0)
+    sync.add(0, 6 * NS + 1, 1.0, 0.0, 0.0)
+    assert (sync.pending, sync.stats.unmatched) == (2, 1)
+
+
+def test_a_message_no_partner_can_still_match_is_given_up_at_once() -> None:
+    """Sensor 2's reading at 30 ms was NaN: it will never send 10 ms, so sensor 1's 10 ms is dropped
+    now instead of waiting for the lag."""
+    sync = SetSynchronizer(2, MS)
+    assert sync.add(1, 30 * MS, float("nan"), 0.0, 0.0) is None
+    assert sync.add(0, 10 * MS, 1.0, 0.0, 0.0) is None
+    assert (sync.pending, sync.stats.unmatched, sync.stats.nonfinite) == (0, 1, 1)
+
+
+def test_exactly_max_pending_queued_messages_are_kept() -> None:
+    sync = SetSynchronizer(2, MS, max_pending=5)
+    for k in range(1, 6):
+        sync.add(0, k * 10 * MS, 1.0, 0.0, 0.0)
+    assert sync.add(1, 10 * MS, 1.0, 0.0, 0.0) is not None  # one set out, four still queued
+    sync.add(0, 60 * MS, 1.0, 0.0, 0.0)  # five queued again (the consumed one still in the list)
+    assert (sync.pending, sync.stats.unmatched) == (5, 0)
+    sync.add(0, 70 * MS, 1.0, 0.0, 0.0)  # six: the oldest is given up
+    assert (sync.pending, sync.stats.unmatched) == (5, 1)
+
+
+def test_every_drop_counter_counts_as_dropped() -> None:
+    stats = SyncStats(sets=100, unmatched=1, nonfinite=2, duplicate=3, out_of_order=4, zero_stamp=5, malformed=6,
+                      restarts=7)
+    assert stats.dropped() == 21
+    text = stats.describe()
+    assert text.startswith("100 sets, 1 messages without") and "6 undecodable" in text and "7 source restarts" in text
+
+
+@pytest.mark.parametrize("path", ["live", "bag"])
+def test_sets_after_a_restart_carry_their_own_readings(path: str) -> None:
+    """Both sources restart (stamps jump from 100 s back to 5 s): the queues are emptied once and
+    the sets on either side pair each stamp with its own vector."""
+    sync = SetSynchronizer(2, MS)
+    before = [100 * NS + k * 10 * MS for k in range(3)]
+    after = [5 * NS + k * 10 * MS for k in range(3)]
+    got: list[tuple[int, float]] = []
+    for part in (before, after):
+        stamps = np.array(part, dtype=np.int64)
+        if path == "live":
+            for t in part:
+                for k in range(2):
+                    s = sync.add(k, t, t / NS, float(k), 0.0)
+                    if s is not None:
+                        got += list(zip(s.stamps, [v[0] for v in s.values]))
+        else:
+            for k in range(2):
+                sync.add_batch(k, stamps, np.column_stack([stamps / NS, np.full(len(stamps), float(k)), np.zeros(3)]))
+            batch = sync.pop()
+            got += list(zip(batch.stamps.ravel().tolist(), batch.vectors[:, :, 0].ravel().tolist()))
+    assert sync.stats.restarts == 1
+    assert all(v == pytest.approx(t / NS, rel=1e-15) for t, v in got)
+    assert {t for t, _ in got} >= set(after)
+
+
+def test_a_zero_tolerance_pairs_equal_stamps_only() -> None:
+    assert tolerance_ns(0) == 0 and tolerance_ns(0.0005) == 500_000
+    with pytest.raises(ValueError):
+        tolerance_ns(1.0)
+    sync = SetSynchronizer(2, 0)
+    assert feed(sync, [(0, 10 * MS, 1.0), (1, 10 * MS, 1.0), (0, 20 * MS, 1.0), (1, 20 * MS + 1, 1.0)]) == [(10 * MS, 10 * MS)]
