@@ -33,8 +33,8 @@ from typing import Any, Callable
 
 import numpy as np
 import pytest
-
 import truth_tools as tt
+
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
 from magcal_ros.sim import scenarios as sc

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import truth_tools as tt
 import yaml
 
-import truth_tools as tt
 from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.metrics import tensor_rms, tmi_rms

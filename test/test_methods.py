@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 import truth_tools as tt
+
 from magcal_ros.core.metrics import tmi_rms
 from magcal_ros.core.sensor_model import SensorErrors
 from magcal_ros.core.units import NT

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import truth_tools as tt
 import yaml
 from rosbags.rosbag2 import Reader
 
-import truth_tools as tt
 from magcal_ros.app.progress import ProgressBar
 from magcal_ros.core.metrics import tensor_rms
 from magcal_ros.core.recording import Recording

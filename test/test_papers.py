@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 import truth_tools as tt
+
 from magcal_ros.core.alignment import align_procrustes, paper000_angles
 from magcal_ros.core.metrics import tensor_component_rms, tensor_floor, tmi_rms
 from magcal_ros.core.recording import Recording

@@ -25,12 +25,18 @@ import itertools
 
 import numpy as np
 import pytest
-
 import truth_tools as tt
+
 from magcal_ros.core.field import Dipole
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.sensor_model import SensorErrors
-from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient, gradient_least_squares, invariants
+from magcal_ros.core.tensor import (
+    baseline_gradient,
+    centre_field,
+    gradient,
+    gradient_least_squares,
+    invariants,
+)
 from magcal_ros.errors import InputError
 from magcal_ros.sim.attitudes import uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, Truth

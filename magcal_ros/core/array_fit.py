@@ -90,13 +90,10 @@ class JointSolution:
     eliminated, noise-whitened; P = 3 (4 + m)."""
     scores: Array
     """(N, S P) per-set contributions to the reduced gradient at the solution (whitened)."""
-    gauge: Array
-    """(S P, 3) the three global rotations (the frame the data cannot fix), orthonormal."""
     w: Array
     """(S, 3, 4 + m) the fitted ``W_i`` (units of F)."""
     intensity: float
     """F (T)."""
-    iterations: int
 
 
 def tangent_bases(u: Array) -> Array:
@@ -111,20 +108,6 @@ def tangent_bases(u: Array) -> Array:
 def features(directions: Array, currents: Array) -> Array:
     """(N, 4 + m) ``phi_k = [d_k, 1, u_k]``."""
     return np.concatenate([directions, np.ones((len(directions), 1)), currents], axis=1)
-
-
-def rotation_gauge(w: Array) -> Array:
-    """(S P, 3) orthonormal basis of the global rotations ``K_i -> K_i (I + [omega]x)^T``."""
-    s, _, q = w.shape
-    basis = np.zeros((s, 3, q, 3))
-    for j in range(3):
-        omega = np.zeros(3)
-        omega[j] = 1.0
-        skew = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
-        basis[:, :, :3, j] = -w[:, :, :3] @ skew  # dK = K [omega]x^T = -K [omega]x
-    g = basis.reshape(s * 3 * q, 3)
-    qmat, _ = np.linalg.qr(g)
-    return qmat
 
 
 class _Normal:
@@ -301,7 +284,7 @@ def _outliers(w: Array, x: Array, u: Array, weights: Array) -> Array:
         others = np.maximum(wsum - weights, 0.0)
         ref = (total[:, None, :] - weights[:, :, None] * b) / np.where(others > 0, others, 1.0)[:, :, None]
         q = np.sum((b - ref) ** 2, axis=2)
-        q[others[:, :, 0] == 0 if others.ndim == 3 else others == 0] = 0.0  # no other reading: TMI test only
+        q[others == 0] = 0.0  # no other reading: the TMI test only
         tests.append((q, 3.0))
     for q, dof in tests:
         bound = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, dof)
@@ -369,10 +352,8 @@ def fit_array(
     dof = 3.0 - 2.0 / s if s > 0 else 1.0
     pred = _predict(w, features(_directions(w, x, u, weights), u))
     sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
-    total_steps = 0
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
-        w, d, steps = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
-        total_steps += steps
+        w, d, _ = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
         e = _predict(w, features(d, u)) - x
         sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
         if not robust:
@@ -386,8 +367,7 @@ def fit_array(
             break
         weights = new_weights
     else:
-        w, d, steps = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
-        total_steps += steps
+        w, d, _ = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
     if not np.all(np.isfinite(w)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
     e = _predict(w, features(d, u)) - x
@@ -406,10 +386,8 @@ def fit_array(
         residuals=e * f,
         information=info,
         scores=scores,
-        gauge=rotation_gauge(w),
         w=w,
         intensity=f,
-        iterations=total_steps,
     )
 
 
@@ -434,10 +412,8 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
         residuals=solution.residuals,
         information=tinv.T @ solution.information @ tinv,
         scores=solution.scores @ tinv,
-        gauge=rotation_gauge(w),
         w=w,
         intensity=solution.intensity,
-        iterations=solution.iterations,
     )
 
 
