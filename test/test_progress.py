@@ -7,10 +7,10 @@ manoeuvre that was not enough to one that is.
 from __future__ import annotations
 
 import re
-from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_field import moved_hard_iron  # noqa: F401 - the fixture: hard iron moved, then a yaw circle
 
 from magcal_ros.core import identifiability as ident
 from magcal_ros.core.field import earth_field
@@ -122,15 +122,9 @@ def test_following_the_advice_turns_a_yaw_circle_into_a_calibration() -> None:
     assert tmi < 1.3 * NT, tmi / NT  # 1 nT noise: at the floor inside the envelope
 
 
-def test_with_a_prior_a_yaw_circle_is_enough_and_says_what_the_prior_keeps() -> None:
-    sim = array(4)
-    rng = np.random.default_rng(4)
-    rec, _ = sim.run(uniform_random(1000, rng), rng)
-    first = calibrate_array(rec.vectors, sim.geometry, F).calibration
-    moved = tuple(replace(s, hard_iron=s.hard_iron + rng.choice([-1, 1], 3) * rng.uniform(300, 800, 3) * NT)
-                  for s in sim.sensors)
-    new = ArraySimulation(sim.geometry, moved, sim.earth, noise=sim.noise)
-    yaw, _ = new.run(sea_manoeuvre(600, 0, 0, turns=2, wobble_deg=3, rng=rng), rng)
+def test_with_a_prior_a_yaw_circle_is_enough_and_says_what_the_prior_keeps(moved_hard_iron: dict) -> None:
+    """The hull's hard iron moved after a full calibration; a yaw circle (test_field's scenario)."""
+    first, new, yaw = moved_hard_iron["first"], moved_hard_iron["new"], moved_hard_iron["yaw"]
     without = assess(yaw.vectors, new.geometry, F, stamps=yaw.stamps)
     assert not without.ready and "scale z" in without.undetermined and TILT_ADVICE.match(without.advice)
     a = assess(yaw.vectors, new.geometry, F, first, yaw.stamps)
