@@ -159,6 +159,7 @@ def test_one_sensor_calibrates_over_dds_to_the_noise_floor(world: Any) -> None:
     message = _calibrate(one)
     assert message.startswith("calibrated 1 sensor from") and "frame: sensor axes made orthogonal" in message
     assert "valid over the whole sphere" in message and "tensor" not in message
+    assert "no outlying readings excluded" in message and "prior: none (prior: none)" in message
     live = _live_calibration(one.driver, one.correction, ONE)
     mapping, published = _replay(one, one.fresh)
     corrected = one.driver.corrected(published)
