@@ -27,7 +27,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.identifiability import UNDETERMINED_EFFECT
 from magcal_ros.core.stamps import seconds_to_ns
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
@@ -190,6 +189,8 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
     :mod:`~magcal_ros.core.identifiability`), or when ``v_j`` is below
     :data:`MIN_CURRENT_VARIATION` (the current never varies, or varies in lockstep).
     """
+    from magcal_ros.core.identifiability import UNDETERMINED_EFFECT  # here: the live nodes need no scipy
+
     u = np.asarray(currents, dtype=float)
     n, m = u.shape
     extra = np.zeros((n, 0)) if regressors is None else np.asarray(regressors, dtype=float).reshape(n, -1)
