@@ -116,20 +116,20 @@ def world(tmp_path_factory: pytest.TempPathFactory, sea_data: Sea, thruster_data
     workdir = tmp_path_factory.mktemp("field")
     run = h.RosRun(workdir, domain_id=h.pick_domain_id(seed=os.getpid() + 61))
     fast = {"status_period": 0.25, "sensor_timeout": 0.5, "output_timeout": 1.5}
+    reliable = {"raw_reliability": "reliable", "qos_depth": 1000}  # no set lost on a busy machine
     try:
-        run.start("correction_node", params=dict(fast, **h.UNCORRECTED), namespace="sea", log_name="sea_correction")
+        run.start("correction_node", params=dict(fast, **h.UNCORRECTED, **reliable), namespace="sea",
+                  log_name="sea_correction")
         run.start("calibration_node", namespace="sea", log_name="sea_calibration", params={
             "site": SITE, "date": DATE, "calibration_file": str(sea_data.file), "service_timeout": 10.0,
-            "progress_period": 0.5, "assess_period": 1.0})
+            "progress_period": 0.5, "assess_period": 1.0, **reliable})
         truth = workdir / "thrusters.yaml"
         truth.write_text(calfile.dumps(thruster_data.true, node_name=THR_CORRECTION))
-        reliable = {"raw_reliability": "reliable"}
         run.start("correction_node", params=dict(fast, **reliable), params_files=[truth], namespace="thrusters",
                   log_name="thr_correction")
         run.start("calibration_node", namespace="thrusters", log_name="thr_calibration", params=dict(reliable, **{
             "reference_field": F_THR, "interference_channels": list(CHANNELS), "prior": "none",
-            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": 10.0, "progress_period": 0.5,
-            "assess_period": 1.0}))
+            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": 10.0, "progress_period": 0.5}))
         yield run
     finally:
         codes = run.close()
@@ -450,9 +450,10 @@ def test_the_calibration_node_solves_the_interference_with_the_calibration(
     assert ok, message
     assert "interference of thruster1/battery, thruster2/battery solved" in message
     names = thruster_data.sim.geometry.names
-    p = thr.get_parameters(THR_CORRECTION, CAL_PARAMS + ["interference_channels"]
-                           + [f"{n}.interference" for n in names])
-    assert p["interference_channels"] == list(CHANNELS)
+    p = thr.get_parameters(THR_CORRECTION, CAL_PARAMS + ["interference_channels", "interference_topics",
+                                                         "interference_types"] + [f"{n}.interference" for n in names])
+    assert p["interference_channels"] == p["interference_topics"] == list(CHANNELS)
+    assert p["interference_types"] == [BATTERY, BATTERY]
     nested: dict[str, Any] = {"sensor_names": p["sensor_names"], "positions": p["positions"],
                               "interference_channels": p["interference_channels"]}
     for n in names:

@@ -610,7 +610,8 @@ class CalibrationNode(Node):
     def _calibrate(self) -> tuple[bool, str]:
         with self._lock:
             stamps, raw, currents = self._buffer.snapshot_all()
-            geo, channels = self._geometry, self._inputs.channels
+            geo, inputs = self._geometry, self._inputs
+        channels = inputs.channels
         if len(raw) == 0:
             return self._fail("no synchronized sets collected" + ("" if self._collecting else " (not collecting)")
                               + f"; {WHAT_TO_DO}")
@@ -652,7 +653,7 @@ class CalibrationNode(Node):
             return self._fail(f"solved but not applied: {exc}; nothing was changed")
         path = self._calibration_path()
         params = calfile.parameters(cal)
-        params.setdefault("interference_channels", [])  # no channels: the node's earlier ones must go too
+        params.update(_channel_parameters(inputs, cal.channels))  # no channels: the node's earlier ones must go too
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
         keep = int(self.get_parameter("backups").value)
@@ -755,7 +756,7 @@ class CalibrationNode(Node):
     def _wanted(names: Sequence[str]) -> list[str]:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
         per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference")]
-        return ["sensor_names", "positions", "interference_channels"] + per_sensor
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3]] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
         """ParameterValue messages of the correction node's parameters ``names`` that are set.
@@ -778,8 +779,9 @@ class CalibrationNode(Node):
         """The correction node's current calibration parameters, to restore if needed."""
         found = self._fetch(self._wanted(names))
         out = [ParameterMsg(name=n, value=v) for n, v in found.items()]
-        if "interference_channels" not in found:  # none before: none again on restore
-            out.append(common.parameter_message("interference_channels", []))
+        for name in common.INTERFERENCE_PARAMETERS[:3]:  # none before: none again on restore
+            if name not in found:
+                out.append(common.parameter_message(name, []))
         return out
 
     def _target_values(self, names: Sequence[str]) -> dict[str, Any]:
@@ -799,9 +801,24 @@ class CalibrationNode(Node):
             raise CallFailed(f"{self._target_name()} rejected the calibration: {reply.result.reason}")
 
 
+def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:
+    """The channels of a calibration with the topics and types they were read from (the correction node
+    is to read the same currents; channels a calibration left unsolved are left out)."""
+    keep = [inputs.channels.index(c) for c in solved]
+    return {"interference_channels": list(solved), "interference_topics": [inputs.topics[j] for j in keep],
+            "interference_types": [inputs.types[j] for j in keep]}
+
+
+ANALYSIS_NICENESS: int = 10
+"""The analysis process yields the CPU to the nodes (and the sensors' drivers) when they need it."""
+
+
 def _quiet_worker() -> None:
-    """In the analysis process: Ctrl-C to the process group is for the node, which ends this process."""
+    """In the analysis process: Ctrl-C to the process group is for the node, which ends this process; a
+    lower priority, so that a busy machine drops no sensor message for it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(ANALYSIS_NICENESS)
 
 
 def _envelope_text(assessed: progress.Assessment | None) -> str:
