@@ -146,10 +146,12 @@ class RosRun:
             raise AssertionError(f"{executable} did not start:\n{proc.log()}")
         return proc
 
-    def driver(self, names: Sequence[str], namespace: str = "") -> ArrayDriver:
-        """A driver node on this domain (publishing and listening in ``namespace``)."""
+    def driver(self, names: Sequence[str], namespace: str = "", kind: str = "tensor",
+               currents: Sequence[tuple[str, str]] = ()) -> ArrayDriver:
+        """A driver node on this domain (publishing and listening in ``namespace``; ``kind`` and
+        ``currents`` as :class:`ArrayDriver` takes them)."""
         d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}",
-                        namespace=namespace)
+                        namespace=namespace, kind=kind, currents=currents)
         self.drivers.append(d)
         return d
 

@@ -68,3 +68,18 @@ def test_drops_above_the_fraction_are_a_warning_with_the_losses_named() -> None:
     assert report.values["lost"] == "19" and report.values["mag2.gaps"] == "19"
     quiet = health.assess(3100 * MS, sync.stats.as_dict(), "sets published")  # nothing new: no drops
     assert quiet.level == OK
+
+
+def test_stale_currents_are_counted_per_channel_and_warned_once_per_period() -> None:
+    from magcal_ros.nodes.health import CurrentHealth
+
+    health = CurrentHealth(("t1/battery", "t2/battery"), ("/t1/battery", "/ns/t2/battery"), 500 * MS)
+    assert health.count([True, True]) and not health.count([True, False]) and not health.count([False, False])
+    text, values = health.assess([10, 0], [12.5, None], "withheld")
+    assert text == ("stale current (no value within 500 ms before the set), sets withheld: t1/battery on "
+                    "/t1/battery: 1 sets, t2/battery on /ns/t2/battery (none received yet): 2 sets")
+    assert values == {"t1/battery.stale_current": "1", "t1/battery.current_received": "10", "t1/battery.current_A": "12.5",
+                      "t2/battery.stale_current": "2", "t2/battery.current_received": "0", "t2/battery.current_A": ""}
+    again, values = health.assess([11, 0], [12.0, None], "withheld")  # nothing new: no warning, counts kept
+    assert again is None and values["t2/battery.stale_current"] == "2"
+    assert CurrentHealth((), (), 0).assess([], [], "withheld") == (None, {})

@@ -17,6 +17,7 @@ from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.interference import (
     CurrentSamples,
     CurrentStats,
+    LatestCurrents,
     estimate_interference,
     match_currents,
     undetermined_channels,
@@ -120,6 +121,48 @@ def test_match_currents_takes_the_latest_value_not_newer_than_the_set() -> None:
     np.testing.assert_array_equal(stats.keep(fresh), [False, False, False, True, False])
     assert (stats.dropped, stats.stale) == (4, [1, 4])
     assert stats.describe() == "4 of 5 sets dropped without a current of every channel within 0.5 s before the set (a: 1, b: 4)"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_live_currents_follow_the_offline_rule_whatever_the_arrival_order(seed: int) -> None:
+    """The correction node's store (values arriving live, in any order, before or after the set) gives
+    every set the same currents and staleness as the offline matching of the same values."""
+    rng = np.random.default_rng(seed)
+    ms = 1_000_000
+    tol = 300 * ms
+    samples = []
+    for channel in ("a", "b"):
+        t = np.sort(rng.choice(np.arange(0, 20_000, 7), 400, replace=False)) * ms
+        t[50:53] = t[50]  # repeated stamps: the one received last counts
+        v = rng.uniform(0, 20, len(t))
+        v[rng.random(len(t)) < 0.05] = np.nan  # no value
+        samples.append(CurrentSamples(channel, t, v))
+    sets = np.sort(rng.integers(0, 20_000, 300)) * ms
+    expected_u, expected_fresh = match_currents(sets, samples, tol)
+    store = LatestCurrents(2, tol, keep_ns=60_000 * ms)
+    events = [(t, j, k) for j, s in enumerate(samples) for k, t in enumerate(s.stamps)]
+    jitter = rng.normal(0, 200 * ms, len(events))  # arrival order: stamp plus up to ~0.5 s of jitter,
+    jitter[[e for e, (t, j, _) in enumerate(events) if t == samples[j].stamps[50]]] = 0.0  # equal stamps in order
+    arrivals = sorted(range(len(events)), key=lambda e: (events[e][0] + jitter[e], events[e][2]))
+    for e in arrivals:
+        t, j, k = events[e]
+        store.add(j, int(t), float(samples[j].values[k]))
+    for i, t in enumerate(sets):
+        u, fresh = store.at(int(t))
+        np.testing.assert_array_equal(fresh, expected_fresh[i])
+        np.testing.assert_array_equal(np.where(fresh, u, 0.0), expected_u[i])
+    assert store.received == [int(np.isfinite(s.values).sum()) for s in samples]
+
+
+def test_live_currents_forget_old_values() -> None:
+    ms = 1_000_000
+    store = LatestCurrents(1, 500 * ms, keep_ns=2000 * ms)
+    for k in range(100):
+        store.add(0, k * 100 * ms, float(k))
+    assert store.at(9_900 * ms) == ([99.0], [True])
+    assert store.at(9_000 * ms) == ([90.0], [True])
+    assert store.at(7_000 * ms) == ([0.0], [False])  # older than the 2 s kept: forgotten, stale
+    assert store.latest(0) == 99.0 and LatestCurrents(1, 0).latest(0) is None
 
 
 def test_csv_current_columns_round_trip_with_dropped_rows(tmp_path: Path) -> None:

@@ -46,3 +46,82 @@ def test_raw_magnetic_field_decoding_matches_rclpy_and_rosbags() -> None:
         rb = magnetic_field_message(1_700_000_000, 123_456_789, frame, (1.5e-5, -2.25e-5, 4.125e-5))
         big = bytes(typestore().serialize_cdr(rb, MAGNETIC_FIELD, little_endian=False))
         assert big[1] == 0 and decode_magnetic_field(big) == expected
+
+
+def test_buffer_keeps_the_currents_with_their_sets() -> None:
+    buf = SetBuffer(capacity=3, sensors=1, seed=0, channels=2)
+    for k, v in enumerate(((1e-5, 0, 0), (0, 1e-5, 0), (0, 0, 1e-5), (-1e-5, 0, 0))):
+        buf.add(100 - k, (v,), (float(k), 10.0 + k))
+    stamps, raw, currents = buf.snapshot_all()
+    assert len(stamps) == 3 and np.all(np.diff(stamps) > 0)
+    for t, r, u in zip(stamps, raw, currents):  # each set kept its own currents
+        k = 100 - int(t)
+        assert u.tolist() == [float(k), 10.0 + k] and np.isclose(np.abs(r).sum(), 1e-5)
+
+
+def test_node_geometry_defaults_by_sensor_count() -> None:
+    import pytest
+
+    from magcal_ros.errors import InputError
+    from magcal_ros.nodes import common
+
+    assert common.geometry(["mag1"], None).positions.tolist() == [[0.0, 0.0, 0.0]]
+    assert common.geometry(["mag1"], []).gradient_kind == "none"
+    assert common.default_positions(4) == common.DEFAULT_POSITIONS and common.default_positions(1) == [0.0] * 3
+    assert common.default_positions(2) is None
+    with pytest.raises(InputError, match="positions needs 3 numbers per sensor .*: 6 for 2 sensors, none given"):
+        common.geometry(["a", "b"], None)
+    assert common.geometry(["a", "b"], [0.2, 0, 0, -0.2, 0, 0]).gradient_kind == "baseline"
+
+
+def test_current_inputs_default_to_the_channel_names_and_battery_state() -> None:
+    import pytest
+
+    from magcal_ros.errors import InputError
+    from magcal_ros.nodes import common
+
+    inputs = common.current_inputs({"interference_channels": ["thruster1/battery", "pump"], "current_tolerance": 0.25})
+    assert inputs.topics == ("thruster1/battery", "pump") and inputs.types == (common.BATTERY_STATE,) * 2
+    assert inputs.tolerance_ns == 250_000_000
+    assert common.current_inputs({}) == common.CurrentInputs()
+    for values, why in [
+        ({"interference_channels": ["a", "a"]}, "unique"),
+        ({"interference_channels": ["a"], "interference_topics": ["x", "y"]}, "one entry per interference channel"),
+        ({"interference_channels": ["a"], "interference_types": ["std_msgs/msg/Int32"]}, "not supported"),
+        ({"interference_channels": ["a"], "interference_topics": ["no spaces"]}, "interference_topics: Invalid"),
+        ({"interference_channels": ["a"], "current_tolerance": -1.0}, "positive number"),
+        ({"interference_channels": "a"}, "list of strings"),
+    ]:
+        with pytest.raises(InputError, match=why):
+            common.current_inputs(values)
+
+
+def test_the_running_calibration_is_a_prior_only_when_calibrated() -> None:
+    from magcal_ros.core.geometry import ArrayGeometry
+    from magcal_ros.nodes import common
+
+    geo = ArrayGeometry.cross()
+    values = {"sensor_names": list(geo.names), "interference_channels": ["t1"]}
+    for k, n in enumerate(geo.names):
+        values[f"{n}.matrix"] = [1.01, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        values[f"{n}.offset"] = [1e-7 * (k + 1), 0.0, 0.0]
+        values[f"{n}.interference"] = [1e-9, 2e-9, 3e-9]
+    cal, why = common.running_calibration(values, geo)
+    assert why == "" and cal.channels == ("t1",) and np.allclose(cal.offsets[2], [3e-7, 0, 0])
+    assert np.allclose(cal.interference[1, :, 0], [1e-9, 2e-9, 3e-9])
+    blank = dict(values, **{"mag3.matrix": common.IDENTITY, "mag3.offset": common.ZEROS, "uncorrected_sensors": ["mag3"]})
+    assert common.running_calibration(blank, geo) == (
+        None, "mag3 at identity matrix and zero offset (never calibrated; mag3 uncorrected on purpose)")
+    cal, why = common.running_calibration(dict(values, sensor_names=["mag1"]), geo)
+    assert cal is None and why.startswith("it has no sensor mag2, mag3, mag4")
+    cal, why = common.running_calibration(dict(values, **{"mag2.offset": [1.0, 0.0, 0.0]}), geo)
+    assert cal is None and "unusable" in why and "Tesla" in why
+
+
+def test_empty_string_lists_go_out_as_string_arrays() -> None:
+    from rcl_interfaces.msg import ParameterType
+
+    from magcal_ros.nodes import common
+
+    assert common.parameter_message("interference_channels", []).value.type == ParameterType.PARAMETER_STRING_ARRAY
+    assert common.parameter_message("positions", [0, 1]).value.type == ParameterType.PARAMETER_DOUBLE_ARRAY

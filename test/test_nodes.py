@@ -164,6 +164,10 @@ def test_calibration_file_reloads_into_a_fresh_node(calibrated: dict[str, Any], 
 def test_single_axis_rotation_is_refused_and_nothing_changes(
     calibrated: dict[str, Any], run: h.RosRun, driver: Any, data: h.Data, bags: dict[str, Path]
 ) -> None:
+    """Without a prior (prior: none); with the running calibration as the prior it would be a
+    partial recalibration (tests in test_node_field.py)."""
+    (ok, reason), = driver.set_parameters(h.CALIBRATION, {"prior": "none"})
+    assert ok, reason
     ok, message = driver.trigger(f"/{h.CALIBRATION}/start")
     assert ok, message
     sent = driver.replay(bag_messages(bags["single_axis"]), rate=h.REPLAY_RATE)
@@ -183,6 +187,7 @@ def test_single_axis_rotation_is_refused_and_nothing_changes(
         assert np.array_equal(g, calibrated["gradients"][t])
     ok, _ = driver.trigger(f"/{h.CALIBRATION}/reset")
     assert ok
+    assert driver.set_parameters(h.CALIBRATION, {"prior": "running"})[0][0]
 
 
 def test_bad_samples_are_dropped_and_good_sets_corrected(

@@ -1,15 +1,20 @@
 """End-to-end demo: simulate a rotation manoeuvre, calibrate it live over ROS 2, show the gain.
 
-    python -m magcal_ros.app.demo [--sets 1200] [--rate 400] [--relative] [--keep DIR]
+    python -m magcal_ros.app.demo [--sets 1200] [--rate 400] [--relative] [--no-thrusters] [--keep DIR]
 
 1. simulates a four-fluxgate cross (0.4 m) with realistic per-sensor errors, 1 nT noise,
-   turning through random attitudes in a uniform 51 500 nT field, and writes the
-   manoeuvre as a rosbag2 (``/magN/raw``);
+   turning through random attitudes in a uniform 51 500 nT field, with two thrusters 0.7 m
+   behind the array drawing random currents of 0-20 A while it turns (the survey runs them
+   too), and writes the manoeuvre as a rosbag2 (``/magN/raw``, ``/thrusterN/battery``);
 2. starts ``correction_node`` and ``calibration_node`` as separate processes on a private
-   ROS domain (localhost discovery only);
-3. replays fresh sets through the uncalibrated correction node (before), replays the bag
-   into the calibration node, calls ``~/start`` and ``~/calibrate``, replays fresh sets
-   again (after), and prints the tensor and TMI residuals against the noise floor.
+   ROS domain (localhost discovery only); the calibration node collects the thrusters'
+   currents (``sensor_msgs/BatteryState``) with the sets;
+3. replays fresh survey sets (thrusters running) through the uncalibrated correction node
+   (before), replays the manoeuvre into the calibration node, calls ``~/start`` and
+   ``~/calibrate`` (calibration and the thrusters' interference solved jointly), replays
+   the survey again with the correction node subtracting the live currents (after), and
+   once more with the subtraction switched off, and prints the tensor and TMI residuals
+   against the noise floor.
 """
 
 from __future__ import annotations
@@ -30,10 +35,18 @@ from magcal_ros.core.metrics import tensor_floor, tensor_rms, tmi_rms
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.units import NT
 from magcal_ros.sim.attitudes import uniform_random
-from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
+from magcal_ros.sim.simulator import ArraySimulation, Thruster, random_sensor_errors
 
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT
+THRUSTERS: tuple[Thruster, ...] = (
+    Thruster("thruster1/battery", np.array([-0.7, 0.25, 0.1]), np.array([0.06, 0.0, 0.04])),
+    Thruster("thruster2/battery", np.array([-0.7, -0.25, 0.1]), np.array([0.0, -0.06, 0.04])),
+)
+"""Two thrusters 0.7 m behind the array (platform frame, m; dipole moment per ampere, A m^2/A)."""
+MAX_CURRENT = 20.0
+"""The thrusters draw random currents of 0..MAX_CURRENT A."""
+BATTERY_STATE = "sensor_msgs/msg/BatteryState"
 
 
 class Clock:
@@ -47,23 +60,28 @@ class Clock:
         print(f"[demo {time.monotonic() - self.start:5.1f} s] {text}", flush=True)
 
 
-def simulate(sets: int, fresh: int, seed: int) -> tuple[ArraySimulation, Recording, Recording]:
-    """The array, a calibration manoeuvre and a separate set of fresh attitudes."""
+def simulate(sets: int, fresh: int, seed: int, thrusters: bool = True) -> tuple[ArraySimulation, Recording, Recording]:
+    """The array, a calibration manoeuvre and a separate survey of fresh attitudes (thrusters running in both)."""
     rng = np.random.default_rng(seed)
     geometry = ArrayGeometry.cross()
     sensors = tuple(random_sensor_errors(rng) for _ in geometry.names)
-    sim = ArraySimulation(geometry, sensors, earth_field(INTENSITY, 60.0, 5.0), noise=NOISE)
-    manoeuvre, _ = sim.run(uniform_random(sets, rng), rng, rate=50.0)
-    check, _ = sim.run(uniform_random(fresh, rng), rng, rate=50.0, start=1000.0)
+    sim = ArraySimulation(geometry, sensors, earth_field(INTENSITY, 60.0, 5.0), noise=NOISE,
+                          thrusters=THRUSTERS if thrusters else ())
+    m = len(sim.thrusters)
+    manoeuvre, _ = sim.run(uniform_random(sets, rng), rng, rate=50.0, currents=rng.uniform(0, MAX_CURRENT, (sets, m)))
+    check, _ = sim.run(uniform_random(fresh, rng), rng, rate=50.0, start=1000.0,
+                       currents=rng.uniform(0, MAX_CURRENT, (fresh, m)))
     return sim, manoeuvre, check
 
 
 def measure(driver, check: Recording, rate: float) -> tuple[float, float, int]:  # type: ignore[no-untyped-def]
-    """Replay ``check`` into the correction node; tensor RMS (T/m), worst TMI RMS (T), sets received."""
+    """Replay ``check`` (and its currents) into the correction node; tensor RMS (T/m), worst TMI RMS (T),
+    sets received."""
     from magcal_ros.app.ros_driver import recording_messages
 
     driver.clear_outputs()
-    mapping = driver.replay(recording_messages(check.names, check.stamps, check.vectors), rate=rate)
+    mapping = driver.replay(recording_messages(check.names, check.stamps, check.vectors), rate=rate,
+                            currents=check.currents if check.channels else None)
     stamps = list(mapping.values())
     driver.wait_for_outputs(stamps, timeout=60.0)
     gradients = driver.gradients(stamps)
@@ -93,13 +111,15 @@ def run(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     domain = pick_domain_id()
     env = ros_environment(domain)
-    sim, manoeuvre, check = simulate(args.sets, args.fresh, args.seed)
+    sim, manoeuvre, check = simulate(args.sets, args.fresh, args.seed, thrusters=not args.no_thrusters)
+    channels = list(sim.channels)
     bag = work / "manoeuvre_bag"
     if bag.exists():
         shutil.rmtree(bag)
     write_recording_bag(bag, manoeuvre, storage=args.storage)
+    running = f", thrusters {', '.join(channels)} at 0-{MAX_CURRENT:g} A" if channels else ""
     clock.say(f"simulated {len(manoeuvre)} sets of a rotation manoeuvre (random attitudes, 1 nT noise, "
-              f"{INTENSITY / NT:.0f} nT field) -> {bag} ({args.storage})")
+              f"{INTENSITY / NT:.0f} nT field{running}) -> {bag} ({args.storage})")
     calibration_file = work / "calibration.yaml"
     nodes: list[NodeProcess] = []
     driver = None
@@ -107,37 +127,55 @@ def run(args: argparse.Namespace) -> int:
         # Uncalibrated at first, on purpose (the "before" figures): raw readings for every sensor.
         raw = {"uncorrected_sensors": list(sim.geometry.names)}
         nodes.append(NodeProcess("correction_node", ros_args(params=raw), env, work / "correction_node.log"))
-        cal_params = {"calibration_file": str(calibration_file),
-                      "reference_field": 0.0 if args.relative else INTENSITY}
+        cal_params: dict[str, object] = {"calibration_file": str(calibration_file),
+                                         "reference_field": 0.0 if args.relative else INTENSITY}
+        if channels:
+            cal_params["interference_channels"] = channels  # currents on /thrusterN/battery, collected with the sets
         nodes.append(NodeProcess("calibration_node", ros_args(params=cal_params), env, work / "calibration_node.log"))
         clock.say(f"started correction_node (pid {nodes[0].pid}) and calibration_node (pid {nodes[1].pid}) "
                   f"on ROS_DOMAIN_ID={domain}, localhost discovery")
-        driver = ArrayDriver(sim.geometry.names, domain, node_name="magcal_demo")
+        driver = ArrayDriver(sim.geometry.names, domain, node_name="magcal_demo",
+                             currents=[(c, BATTERY_STATE) for c in channels])
         if not (driver.wait_for_subscribers(2, 30.0) and driver.wait_for_output_publishers(30.0)
                 and driver.prime(30.0)):
             raise RuntimeError("the nodes were not discovered within 30 s")
         clock.say("nodes discovered")
 
         t_before, tmi_before, n = measure(driver, check, args.rate)
-        clock.say(f"before calibration: {n} fresh sets through the correction node")
+        clock.say(f"before calibration: {n} fresh survey sets through the correction node")
         ok, message = driver.trigger("/magcal_calibration/start")
         clock.say(f"~/start -> {message}")
         messages = bag_messages(bag)
-        sent = driver.replay(messages, rate=args.rate)
+        sent = driver.replay(messages, rate=args.rate, currents=manoeuvre.currents if channels else None)
         progress = wait_for_samples(driver, "magcal_calibration", len(sent), timeout=15.0)
-        clock.say(f"replayed {len(messages)} bag messages; the calibration node holds {progress.get('samples', '?')} "
-                  f"sets, coverage {float(progress.get('coverage', 0)):.0%}, ready={progress.get('ready', '?')}")
+        clock.say(f"replayed {len(messages)} bag messages{' with the thruster currents' if channels else ''}; the "
+                  f"calibration node holds {progress.get('samples', '?')} sets, coverage "
+                  f"{float(progress.get('coverage', 0)):.0%}, ready={progress.get('ready', '?')}")
         ok, message = driver.trigger("/magcal_calibration/calibrate")
         clock.say(f"~/calibrate -> success={ok}: {message}")
         if not ok:
             return 1
         t_after, tmi_after, n = measure(driver, check, args.rate)
-        clock.say(f"after calibration: {n} fresh sets (not used for the calibration) through the correction node")
+        clock.say(f"after calibration: {n} fresh survey sets (not used for the calibration) through the correction "
+                  f"node{', subtracting the live thruster currents' if channels else ''}")
+        rows = [("before calibration", t_before, tmi_before)]
+        if channels:
+            (ok, reason), = driver.set_parameters("magcal_correction", {"interference_channels": []})
+            if not ok:
+                raise RuntimeError(f"the correction node refused to stop subtracting: {reason}")
+            t_off, tmi_off, n = measure(driver, check, args.rate)
+            clock.say(f"the same {n} survey sets with the thrusters' interference NOT subtracted")
+            rows.append(("calibrated, thrusters not compensated", t_off, tmi_off))
+            rows.append(("calibrated, thrusters compensated", t_after, tmi_after))
+        else:
+            rows.append(("after calibration", t_after, tmi_after))
         floor = tensor_floor(NOISE, 0.4)
         print()
-        print(f"  {'':24}{'before':>12}{'after':>12}{'noise floor':>14}")
-        print(f"  {'tensor RMS (nT/m)':24}{t_before / NT:12.1f}{t_after / NT:12.2f}{floor / NT:14.2f}")
-        print(f"  {'worst TMI RMS (nT)':24}{tmi_before / NT:12.1f}{tmi_after / NT:12.2f}{NOISE / NT:14.2f}")
+        print(f"  {'fresh survey sets' + (' (thrusters running)' if channels else ''):44}{'tensor RMS':>12}"
+              f"{'worst TMI RMS':>15}")
+        for label, tensor, tmi in rows:
+            print(f"  {label:44}{tensor / NT:9.2f} nT/m{tmi / NT:10.2f} nT")
+        print(f"  {'noise floor':44}{floor / NT:9.2f} nT/m{NOISE / NT:10.2f} nT")
         kept = "" if args.keep else " (removed at exit; --keep DIR keeps it)"
         print(f"  calibration file: {calibration_file}{kept}")
         print()
@@ -165,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--fresh", type=int, default=500, help="fresh sets replayed before and after (default 500)")
     parser.add_argument("--rate", type=float, default=400.0, help="replay rate, sets per second (default 400)")
     parser.add_argument("--relative", action="store_true", help="calibrate without the reference field")
+    parser.add_argument("--no-thrusters", action="store_true",
+                        help="no thrusters (by default two run at 0-20 A during the manoeuvre and the survey)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="mcap", help="bag storage (default mcap)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--keep", metavar="DIR", help="keep the bag, calibration file and node logs in DIR")

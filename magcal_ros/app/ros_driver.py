@@ -277,6 +277,9 @@ class Outputs:
     stamped_names: list[tuple[str, ...]] = default(default_factory=list)
     covariances: dict[str, NDArray[np.float64]] = default(default_factory=dict)
     """Last magnetic_field_covariance (9,) received on field and each <name>/corrected, by topic name."""
+    baseline: dict[int, NDArray[np.float64]] = default(default_factory=dict)
+    """Baseline gradient dB/ds (3,) T/m by its header stamp (a collinear array)."""
+    baseline_frames: set[str] = default(default_factory=set)
 
 
 class ArrayDriver:
@@ -291,15 +294,22 @@ class ArrayDriver:
         publish_depth: int = 1000,
         namespace: str = "",
         listen: bool = True,
+        kind: str = "tensor",
+        currents: Sequence[tuple[str, str]] = (),
     ) -> None:
         """``namespace``: the nodes' namespace; raw topics are published and outputs read in it.
-        ``listen=False``: publish only (no subscriptions to the outputs)."""
+        ``listen=False``: publish only (no subscriptions to the outputs). ``kind``: the gradient
+        the correction node publishes for this array (``tensor``: ``gradient`` and
+        ``gradient_stamped``; ``baseline``: ``baseline_gradient``; ``none``: only ``field``).
+        ``currents``: (topic, type) of each current channel to publish (type
+        ``sensor_msgs/msg/BatteryState`` or ``std_msgs/msg/Float64``)."""
         import rclpy
+        from geometry_msgs.msg import Vector3Stamped
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import JointState, MagneticField
-        from std_msgs.msg import Float64MultiArray
+        from sensor_msgs.msg import BatteryState, JointState, MagneticField
+        from std_msgs.msg import Float64, Float64MultiArray
 
         self._rclpy = rclpy
         isolate_this_process(domain_id)
@@ -313,6 +323,14 @@ class ArrayDriver:
         self.publishers = {
             n: self.node.create_publisher(MagneticField, self.topic(f"{n}/raw"), reliable) for n in self.names
         }
+        if kind not in ("tensor", "baseline", "none"):
+            raise ValueError(f"kind must be tensor, baseline or none, got {kind!r}")
+        self.kind = kind
+        self._current_types = {"sensor_msgs/msg/BatteryState": BatteryState, "std_msgs/msg/Float64": Float64}
+        self.current_publishers = [
+            (self.node.create_publisher(self._current_types[t], self.topic(topic), reliable), t)
+            for topic, t in currents
+        ]
         self.outputs = Outputs()
         self._lock = threading.Lock()
         self._fields: deque[int] = deque()
@@ -320,9 +338,15 @@ class ArrayDriver:
         out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.subscriptions = [
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
-            self.node.create_subscription(Float64MultiArray, self.topic("gradient"), self._on_gradient, out_qos),
-            self.node.create_subscription(JointState, self.topic("gradient_stamped"), self._on_stamped, out_qos),
         ] if listen else []
+        if listen and kind == "tensor":
+            self.subscriptions += [
+                self.node.create_subscription(Float64MultiArray, self.topic("gradient"), self._on_gradient, out_qos),
+                self.node.create_subscription(JointState, self.topic("gradient_stamped"), self._on_stamped, out_qos),
+            ]
+        if listen and kind == "baseline":
+            self.subscriptions.append(self.node.create_subscription(
+                Vector3Stamped, self.topic("baseline_gradient"), self._on_baseline, out_qos))
         if collect_corrected and listen:
             for n in self.names:
                 self.outputs.corrected[n] = {}
@@ -365,8 +389,9 @@ class ArrayDriver:
         with self._lock:
             self.outputs.field[t] = np.array([f.x, f.y, f.z])
             self.outputs.covariances["field"] = np.array(msg.magnetic_field_covariance, dtype=float)
-            self._fields.append(t)
-            self._pair()
+            if self.kind == "tensor":
+                self._fields.append(t)
+                self._pair()
 
     def _on_gradient(self, msg: Any) -> None:
         now = time.time_ns()
@@ -385,6 +410,18 @@ class ArrayDriver:
             self.outputs.stamped_frames.add(msg.header.frame_id)
             if not self.outputs.stamped_names:
                 self.outputs.stamped_names.append(tuple(msg.name))
+
+    def _on_baseline(self, msg: Any) -> None:
+        t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        v = msg.vector
+        with self._lock:
+            self.outputs.baseline[t] = np.array([v.x, v.y, v.z])
+            self.outputs.baseline_frames.add(msg.header.frame_id)
+
+    def _received(self) -> dict[int, Any]:
+        """What marks a set as come back, by stamp: its gradient, baseline gradient, or field (one sensor).
+        Call with the lock held."""
+        return {"tensor": self.outputs.gradient, "baseline": self.outputs.baseline, "none": self.outputs.field}[self.kind]
 
     def _pair(self) -> None:
         """Match gradients to fields in publication order (the node sends field, then gradient)."""
@@ -414,6 +451,7 @@ class ArrayDriver:
             self.outputs.latency.clear()
             self.outputs.stamped.clear()
             self.outputs.covariances.clear()
+            self.outputs.baseline.clear()
             self._fields.clear()
             self._tensors.clear()
 
@@ -432,8 +470,19 @@ class ArrayDriver:
                     out[t] = np.stack(rows)  # type: ignore[arg-type]
         return out
 
+    def fields(self, stamps: Iterable[int]) -> dict[int, NDArray[np.float64]]:
+        """Received centre fields (3,) T for the given set stamps (missing ones left out)."""
+        with self._lock:
+            return {t: self.outputs.field[t] for t in stamps if t in self.outputs.field}
+
+    def baselines(self, stamps: Iterable[int]) -> dict[int, NDArray[np.float64]]:
+        """Received baseline gradients (3,) T/m for the given set stamps (missing ones left out)."""
+        with self._lock:
+            return {t: self.outputs.baseline[t] for t in stamps if t in self.outputs.baseline}
+
     def wait_for_outputs(self, stamps: Sequence[int], timeout: float = 60.0, settle: float = 5.0) -> int:
-        """Wait until gradients for all ``stamps`` arrived, or none arrived for ``settle`` s.
+        """Wait until the outputs of all ``stamps`` arrived (gradients; baseline gradients, or fields for
+        one sensor, see ``kind``), or none arrived for ``settle`` s.
 
         Returns how many arrived. Never fails on time: the caller checks what it got.
         """
@@ -442,7 +491,8 @@ class ArrayDriver:
         last_count, last_change = -1, time.monotonic()
         while time.monotonic() < deadline:
             with self._lock:
-                count = sum(1 for t in wanted if t in self.outputs.gradient)
+                received = self._received()
+                count = sum(1 for t in wanted if t in received)
             if count == len(wanted):
                 return count
             if count != last_count:
@@ -472,7 +522,7 @@ class ArrayDriver:
         return False
 
     def prime(self, timeout: float = 30.0) -> bool:
-        """Publish probe sets until both ``field`` and ``gradient`` come back, then forget them.
+        """Publish probe sets until both ``field`` and the gradient (see ``kind``) come back, then forget them.
 
         Discovery is not symmetric: this side may see the node's writers before they see
         this side's readers, and early messages of one topic can be lost while the other's
@@ -488,7 +538,9 @@ class ArrayDriver:
                 self.publish(RawMessage(n, stamp, probe))
             time.sleep(0.2)
             with self._lock:
-                ok = bool(self.outputs.field) and (bool(self.outputs.gradient) or bool(self._tensors))
+                gradient = {"tensor": bool(self.outputs.gradient) or bool(self._tensors),
+                            "baseline": bool(self.outputs.baseline), "none": True}[self.kind]
+                ok = bool(self.outputs.field) and gradient
             if ok:
                 break
         time.sleep(0.3)
@@ -504,12 +556,26 @@ class ArrayDriver:
         msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = message.vector
         self.publishers[message.name].publish(msg)
 
+    def publish_current(self, channel: int, stamp_ns: int, amperes: float) -> None:
+        """Publish one current (A) on channel ``channel``'s topic: a BatteryState stamped ``stamp_ns``,
+        or a Float64 (no stamp: the receiver stamps it on arrival)."""
+        pub, kind = self.current_publishers[channel]
+        msg = self._current_types[kind]()
+        if kind.endswith("BatteryState"):
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), NS_PER_S)
+            msg.current = float(amperes)
+        else:
+            msg.data = float(amperes)
+        pub.publish(msg)
+
     def replay(
         self,
         messages: Sequence[RawMessage],
         rate: float = 200.0,
         restamp: bool = True,
         progress: Any = None,
+        currents: NDArray[np.float64] | None = None,
+        current_lead: int = 25,
     ) -> dict[int, int]:
         """Publish ``messages`` in order, ``rate`` sets (distinct stamps) per second.
 
@@ -517,12 +583,33 @@ class ArrayDriver:
         + k / rate), like a live sensor sampling at ``rate``: stamps keep their spacing even
         when publishing lags, and latency is measured from the sampling instant. Returns
         ``{original stamp: published stamp}``.
+
+        ``currents`` (sets, m) A: the channels' currents of each set (in order of the sets'
+        first messages), published on the :attr:`current_publishers` with the set's stamp
+        ``current_lead`` sets ahead of the set itself (the first sets start that much later), so
+        that a receiver has them whatever the order in which its topics are served (a receiver
+        keeps recent values and takes the latest stamped not after the set).
         """
         mapping: dict[int, int] = {}
         period = 1.0 / rate if rate > 0 else 0.0
         spacing = int(period * NS_PER_S) if period else 10_000_000
-        start = time.monotonic()
-        start_ns = time.time_ns()
+        lead = current_lead if currents is not None else 0  # the current sensors started that much earlier
+        start = time.monotonic() + lead * period
+        start_ns = time.time_ns() + lead * spacing
+        originals = list(dict.fromkeys(m.stamp_ns for m in messages)) if currents is not None else []
+        sent_currents = 0
+
+        def stamp_of(k: int) -> int:
+            return start_ns + k * spacing if restamp else originals[k]
+
+        def send_currents(upto: int) -> None:
+            nonlocal sent_currents
+            while currents is not None and sent_currents < min(upto, len(originals)):
+                for j, amperes in enumerate(currents[sent_currents]):
+                    self.publish_current(j, stamp_of(sent_currents), float(amperes))
+                sent_currents += 1
+
+        send_currents(lead)
         for m in messages:
             stamp = mapping.get(m.stamp_ns)
             if stamp is None:
@@ -531,6 +618,7 @@ class ArrayDriver:
                     delay = start + k * period - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
+                send_currents(k + 1 + lead)
                 stamp = start_ns + k * spacing if restamp else m.stamp_ns
                 mapping[m.stamp_ns] = stamp
                 if progress is not None and (k + 1) % 500 == 0:

@@ -19,6 +19,7 @@ be told apart (:func:`undetermined_channels`).
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -26,7 +27,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.identifiability import UNDETERMINED_EFFECT
 from magcal_ros.core.stamps import seconds_to_ns
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
@@ -121,6 +121,61 @@ def tolerance_of(seconds: float) -> int:
     return int(seconds_to_ns(seconds))
 
 
+class LatestCurrents:
+    """The currents of the channels as a live node receives them, matched to each set by the
+    rule of :func:`match_currents`: a channel's current at a set stamped ``t`` is its latest
+    value stamped in ``[t - tolerance_ns, t]``.
+
+    Values may arrive in any order, before or after the set; each channel keeps those of the
+    last ``keep_ns`` (behind its newest stamp) and at most ``most`` of them. Non-finite values
+    are no values. Stamps are int ns, currents A.
+    """
+
+    def __init__(self, channels: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096) -> None:
+        self.tolerance_ns = int(tolerance_ns)
+        self.keep_ns = max(int(keep_ns), 2 * self.tolerance_ns)
+        self.most = most
+        self._stamps: list[list[int]] = [[] for _ in range(channels)]
+        self._values: list[list[float]] = [[] for _ in range(channels)]
+        self.received = [0] * channels
+        """Values received per channel (finite ones)."""
+
+    @property
+    def channels(self) -> int:
+        """Number of channels."""
+        return len(self._stamps)
+
+    def add(self, channel: int, stamp_ns: int, value: float) -> None:
+        """Keep one value (A) of ``channel`` stamped ``stamp_ns``."""
+        if not np.isfinite(value):
+            return
+        st, val = self._stamps[channel], self._values[channel]
+        k = bisect.bisect_right(st, stamp_ns)  # after equal stamps: the one received last wins
+        st.insert(k, int(stamp_ns))
+        val.insert(k, float(value))
+        self.received[channel] += 1
+        old = bisect.bisect_left(st, st[-1] - self.keep_ns)
+        old = max(old, len(st) - self.most)
+        if old > 0:
+            del st[:old], val[:old]
+
+    def latest(self, channel: int) -> float | None:
+        """The newest value of ``channel`` (A), or None."""
+        val = self._values[channel]
+        return val[-1] if val else None
+
+    def at(self, stamp_ns: int) -> tuple[list[float], list[bool]]:
+        """Every channel's current (A) at a set stamped ``stamp_ns`` and whether it is fresh (a
+        value stamped in ``[t - tolerance, t]``); a stale channel's current is 0."""
+        currents, fresh = [], []
+        for st, val in zip(self._stamps, self._values):
+            k = bisect.bisect_right(st, stamp_ns) - 1
+            ok = k >= 0 and stamp_ns - st[k] <= self.tolerance_ns
+            currents.append(val[k] if ok else 0.0)
+            fresh.append(ok)
+        return currents, fresh
+
+
 # -- what a run determines ------------------------------------------------------------------
 def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = None) -> NDArray[np.bool_]:
     """(m,) True for the channels whose gains the currents ``(N, m)`` A cannot determine.
@@ -134,6 +189,8 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
     :mod:`~magcal_ros.core.identifiability`), or when ``v_j`` is below
     :data:`MIN_CURRENT_VARIATION` (the current never varies, or varies in lockstep).
     """
+    from magcal_ros.core.identifiability import UNDETERMINED_EFFECT  # here: the live nodes need no scipy
+
     u = np.asarray(currents, dtype=float)
     n, m = u.shape
     extra = np.zeros((n, 0)) if regressors is None else np.asarray(regressors, dtype=float).reshape(n, -1)

@@ -1,5 +1,6 @@
 """Calibration methods: one pipeline (:mod:`.pipeline`), each method a set of strategies
-(:mod:`.strategies`), and the papers' own solvers (particle swarm, paired norms)."""
+(:mod:`.strategies`), the papers' own solvers (particle swarm, paired norms), and the
+progress analysis of a manoeuvre being collected (:mod:`.progress`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ __all__, __getattr__ = lazy_exports(
         "SolveOptions": "magcal_ros.methods.pipeline",
         "calibrate_array": "magcal_ros.methods.pipeline",
         "calibrate_interference": "magcal_ros.methods.interference",
+        "Assessment": "magcal_ros.methods.progress",
+        "assess": "magcal_ros.methods.progress",
         "paired_fit": "magcal_ros.methods.paired",
         "pso_fit": "magcal_ros.methods.pso",
     },

@@ -203,6 +203,26 @@ def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
     return gains[:, None, None] * np.eye(3)[None], offsets, intensity
 
 
+def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_ref: float | None,
+                 channels: tuple[str, ...]) -> tuple[Array, Array, Array, float]:
+    """A start at the prior: matrices (S, 3, 3), offsets (S, 3) T, interference (S, 3, m) T/A of
+    ``channels`` (0 for channels the prior does not know) and F (given, or the median corrected norm)."""
+    idx = [prior.geometry.names.index(nm) for nm in geometry.names if nm in prior.geometry.names]
+    if len(idx) != geometry.size:
+        missing = [nm for nm in geometry.names if nm not in prior.geometry.names]
+        raise InputError(f"the prior calibration has no sensor {', '.join(missing)}")
+    interference = np.zeros((geometry.size, 3, len(channels)))
+    for c, name in enumerate(channels):
+        if name in prior.channels:
+            interference[:, :, c] = prior.interference[idx][:, :, prior.channels.index(name)]  # type: ignore[index]
+    matrices, offsets = prior.matrices[idx], prior.offsets[idx]
+    if f_ref:
+        intensity = f_ref
+    else:  # the prior's correction with the currents off
+        intensity = float(np.median(np.linalg.norm(np.einsum("sij,nsj->nsi", matrices, r - offsets), axis=2)))
+    return matrices, offsets, interference, intensity
+
+
 def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
               opts: SolveOptions) -> ParameterPrior | None:
     return None if prior is None else opts.drift.prior(prior, geometry, f, channels)
@@ -427,20 +447,7 @@ def calibrate_array(
     start_failed: Exception | None = None
     start_interference = None
     if prior is not None:
-        idx = [prior.geometry.names.index(nm) for nm in geometry.names if nm in prior.geometry.names]
-        if len(idx) != s:
-            missing = [nm for nm in geometry.names if nm not in prior.geometry.names]
-            raise InputError(f"the prior calibration has no sensor {', '.join(missing)}")
-        matrices, offsets = prior.matrices[idx], prior.offsets[idx]
-        start_interference = np.zeros((s, 3, len(channels)))
-        for c, name in enumerate(channels):
-            if name in prior.channels:
-                start_interference[:, :, c] = prior.interference[idx][:, :, prior.channels.index(name)]  # type: ignore[index]
-        if f_ref:
-            intensity = f_ref
-        else:
-            idle = np.zeros((n, len(prior.channels))) if prior.channels else None
-            intensity = float(np.median(np.linalg.norm(prior.apply(r, idle), axis=2)))
+        matrices, offsets, start_interference, intensity = _prior_start(prior, geometry, r, f_ref, channels)
     else:
         try:
             matrices, offsets, intensity = _start(spec, r, clean, f_ref, opts)

@@ -10,6 +10,8 @@ rare attitudes a calibration needs.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -19,14 +21,16 @@ CELLS: int = SPHERE_CELLS
 
 
 class SetBuffer:
-    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns)."""
+    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns) and the currents (A) of
+    ``channels`` interference channels at each set."""
 
-    def __init__(self, capacity: int, sensors: int, seed: int | None = 0) -> None:
+    def __init__(self, capacity: int, sensors: int, seed: int | None = 0, channels: int = 0) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.capacity = capacity
         self.sensors = sensors
         self._raw = np.empty((capacity, sensors, 3))
+        self._currents = np.zeros((capacity, channels))
         self._stamps = np.zeros(capacity, dtype=np.int64)
         self._cells = np.zeros(capacity, dtype=np.int64)
         self._counts = np.zeros(CELLS, dtype=np.int64)
@@ -45,8 +49,8 @@ class SetBuffer:
         self._counts[:] = 0
         self.offered = 0
 
-    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...]) -> None:
-        """Store one set (S raw vectors, T), replacing a crowded one when full."""
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
+        """Store one set (S raw vectors, T; the channels' currents, A), replacing a crowded one when full."""
         raw = np.asarray(values, dtype=float)
         cell = int(np.argmax(self._dirs @ raw.sum(axis=0)))
         self.offered += 1
@@ -61,14 +65,20 @@ class SetBuffer:
             slot = int(members[self._rng.integers(len(members))])
             self._counts[target] -= 1
         self._raw[slot] = raw
+        self._currents[slot] = currents
         self._stamps[slot] = stamp_ns
         self._cells[slot] = cell
         self._counts[cell] += 1
 
     def snapshot(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Copies of the stored stamps (N,) ns and raw sets (N, S, 3) T, in stamp order."""
+        stamps, raw, _ = self.snapshot_all()
+        return stamps, raw
+
+    def snapshot_all(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Copies of the stored stamps (N,) ns, raw sets (N, S, 3) T and currents (N, m) A, in stamp order."""
         order = np.argsort(self._stamps[: self._size], kind="stable")
-        return self._stamps[order].copy(), self._raw[order].copy()
+        return self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy()
 
     @property
     def cells_visited(self) -> int:

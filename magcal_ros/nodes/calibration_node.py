@@ -19,13 +19,28 @@ attitudes. Services (std_srvs/srv/Trigger):
 ``correction_node`` is a node name resolved like a topic: relative names live in this
 node's namespace. The file's node key is the correction node's fully qualified name.
 
+``prior``: what ``~/calibrate`` starts from and keeps where the collected sets do not
+determine a quantity (partial recalibration at sea): ``running`` (default) the correction
+node's calibration, fetched through its ``get_parameters`` service (when it is not
+reachable or not calibrated, no prior, and the answer says so), ``none``, or a calibration
+file. The reference intensity is ``reference_field``, or the World Magnetic Model's at
+``site`` on ``date``; ``max_residual`` overrides the noise-aware acceptance rule. With
+``interference_channels`` the currents of those channels (``interference_topics``,
+``interference_types``) are collected with every set (a set without a fresh current of
+every channel is not collected) and their interference is solved with the calibration.
+
 ``~/progress`` (diagnostic_msgs/DiagnosticStatus, every ``progress_period`` s): level OK
-when a solve would pass the observability checks, WARN when not yet (message says why),
-values ``collecting``, ``samples``, ``max_samples``, ``offered``, ``coverage`` (fraction
-of 42 sphere cells), ``thickness`` (thinnest/widest spread, ~0 for one rotation axis),
-``ready`` and ``problem``. ``/diagnostics`` (DiagnosticArray, same period): the health of
-the raw streams (silent or late sensors, drops, sets lost before the node, no complete
-set for ``output_timeout``), as the correction node reports it.
+when a solve would succeed, WARN when not yet (message says why and what to fly), values
+``collecting``, ``samples``, ``max_samples``, ``offered``, ``coverage`` (fraction of 42
+sphere cells), ``thickness`` (thinnest/widest spread, ~0 for one rotation axis), ``ready``,
+``problem`` and, from an analysis of the collected sets run at most every
+``assess_period`` s in a separate process, so that it never holds up the callbacks
+(:func:`magcal_ros.methods.progress.assess`, 0.1-2 s of one core each):
+``assessed`` (sets analysed), ``envelope`` ("valid within pitch +-P deg, roll +-R deg"),
+``envelope_pitch_deg``, ``envelope_roll_deg``, ``undetermined``, ``advice`` (what to fly
+next, in words) and ``prior``. ``/diagnostics`` (DiagnosticArray, same period): the
+health of the raw streams (silent or late sensors, drops, sets lost before the node, no
+complete set for ``output_timeout``, stale currents), as the correction node reports it.
 
 Usage::
 
@@ -39,9 +54,13 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import multiprocessing
 import os
+import signal
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from collections.abc import Sequence
 from typing import Any
 
@@ -53,18 +72,22 @@ from rcl_interfaces.srv import GetParameters, SetParametersAtomically
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.task import Future
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
 from magcal_ros.core import sync
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_field
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.observability import excitation
 from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
+from magcal_ros.methods import progress
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -74,11 +97,16 @@ from magcal_ros.methods.pipeline import (
 )
 from magcal_ros.nodes import common
 from magcal_ros.nodes.buffer import SetBuffer
-from magcal_ros.nodes.health import ArrayHealth
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
 
 NODE_NAME = "magcal_calibration"
 DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
 WHAT_TO_DO = "call ~/start, turn the array through large angles about at least two axes, then call ~/calibrate"
+PRIORS: tuple[str, ...] = ("running", "none")
+"""The ``prior`` settings besides a file path."""
+RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance",
+                                       *common.INTERFERENCE_PARAMETERS})
+"""Parameters whose change drops the collected sets and subscribes afresh."""
 
 
 class CallFailed(Exception):
@@ -106,12 +134,21 @@ class CalibrationNode(Node):
         self._solve_lock = threading.Lock()
         self._stopping = threading.Event()
         self._worker: threading.Thread | None = None
+        self._assessor: threading.Thread | None = None
         self._last_solved: tuple[str, str] | None = None
         """(fingerprint of the sets and settings, answer) of the last successful calibration."""
+        self._generation = 0
+        """Counts collections (start, reset, reconfiguration): an assessment belongs to one."""
+        self._assessment: tuple[int, int, progress.Assessment, str] | None = None
+        """(generation, sets offered, assessment, prior used) of the latest progress analysis."""
+        self._progress_prior: tuple[int, ArrayCalibration | None, str] | None = None
+        """(generation, prior, what it is) the progress analysis uses for that collection."""
+        self._analyser: ProcessPoolExecutor | None = None
+        """The process the progress analyses run in (started with the first one)."""
         self._declare_parameters()
         self._limits = common.declare_health(self)
         try:
-            self._geometry = self._read_geometry({})
+            self._geometry = self._validate({})
         except (TypeError, ValueError) as exc:
             raise InputError(f"invalid parameter: {exc}") from None
         self._collecting = bool(self.get_parameter("autostart").value)
@@ -132,23 +169,49 @@ class CalibrationNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
+        self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
+        channels = self._inputs.channels
         self.get_logger().info(
-            f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}; "
+            f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}"
+            + (f" and the currents of {', '.join(channels)}" if channels else "") + "; "
             f"{'collecting' if self._collecting else 'idle: call ~/start to collect'}; "
-            f"method {self.get_parameter('method').value}, results go to "
+            f"method {self.get_parameter('method').value}, prior {self.get_parameter('prior').value}, results go to "
             f"{self._target_name()} and {self._calibration_path() or '(no file)'}"
         )
 
     # -- parameters -----------------------------------------------------------------
     def _declare_parameters(self) -> None:
         d = common.describe
-        self.declare_parameter("sensor_names", common.DEFAULT_SENSOR_NAMES, d(common.SENSOR_NAMES_DOC))
-        self.declare_parameter("positions", common.DEFAULT_POSITIONS, d(common.POSITIONS_DOC, numbers=True))
+        common.declare_geometry(self)
         self.declare_parameter(
             "reference_field", 0.0,
             d("total field intensity during the manoeuvre (T); 0 = unknown: relative calibration "
-              "(methods ml and paired only)", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
+              "(methods ml and paired only), or from site", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
               floats=(0.0, 1e-3)),
+        )
+        self.declare_parameter(
+            "site", None,
+            d("where the manoeuvre is flown, for the reference intensity from the World Magnetic Model: [lat_deg, "
+              "lon_deg] or [lat_deg, lon_deg, alt_m] (north and east positive, altitude above sea level, negative "
+              "under water); not set = not used. Excludes reference_field > 0",
+              constraints="lat -90..90, lon -180..360, alt -1000..850000 m", numbers=True),
+        )
+        self.declare_parameter(
+            "date", "",
+            d("date (YYYY-MM-DD, UTC) at which site evaluates the World Magnetic Model; empty = today",
+              constraints="2015-01-01 .. 2029-12-31; needs site"),
+        )
+        self.declare_parameter(
+            "max_residual", 0.0,
+            d("accept a calibration whose residual per axis is below this (T) whatever the sensor noise; 0 = the "
+              "noise-aware rule (the residual compared with the noise estimated from the data)",
+              numbers=True, floats=(0.0, 1e-3)),
+        )
+        self.declare_parameter(
+            "prior", "running",
+            d("what ~/calibrate starts from and keeps where the collected sets do not determine a quantity: "
+              "running (the correction node's calibration; none when it is unreachable or not calibrated), none, "
+              "or the path of a calibration file"),
         )
         self.declare_parameter(
             "method", DEFAULT_METHOD,
@@ -179,6 +242,7 @@ class CalibrationNode(Node):
             d("largest spread (s) of header stamps within one set; capped at half the sample period",
               constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
+        common.declare_currents(self)
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
         self.declare_parameter(
             "service_timeout", 5.0, d("how long (s) to wait for the correction node's services", numbers=True,
@@ -186,12 +250,17 @@ class CalibrationNode(Node):
         )
         self.declare_parameter("progress_period", 1.0, d("period (s) of ~/progress and /diagnostics",
                                                          read_only=True, numbers=True, floats=common.PERIOD_RANGE))
+        self.declare_parameter(
+            "assess_period", 5.0,
+            d("shortest interval (s) between two analyses of the collected sets for ~/progress (envelope, what is "
+              "undetermined, advice); each runs in a separate process (0.1-2 s of one core)", read_only=True,
+              numbers=True, floats=common.PERIOD_RANGE))
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
 
     def _value(self, name: str, updates: dict[str, Any]) -> Any:
-        return updates[name] if name in updates else self.get_parameter(name).value
+        return updates[name] if name in updates else self.get_parameter_or(name).value  # unset: None
 
     def _number(self, name: str, updates: dict[str, Any]) -> float:
         value = self._value(name, updates)
@@ -199,7 +268,7 @@ class CalibrationNode(Node):
             raise InputError(f"{name} must be a number, got {value!r}")
         return float(value)
 
-    def _read_geometry(self, updates: dict[str, Any]) -> ArrayGeometry:
+    def _validate(self, updates: dict[str, Any]) -> ArrayGeometry:
         """Validate the combined parameter state; return the array geometry."""
         geo = common.geometry(self._value("sensor_names", updates), self._value("positions", updates))
         method = self._value("method", updates)
@@ -208,6 +277,12 @@ class CalibrationNode(Node):
         ref = self._number("reference_field", updates)
         if not (ref == 0.0 or 1e-7 <= ref <= 1e-3):
             raise InputError(f"reference_field {ref} T is not Earth-like (1e-7 .. 1e-3 T, or 0 for relative)")
+        self._site(updates)
+        residual = self._number("max_residual", updates)
+        if not 0.0 <= residual <= 1e-3:
+            raise InputError(f"max_residual must be 0 (the noise-aware rule) or a residual in T up to 1e-3, got {residual}")
+        if not str(self._value("prior", updates)).strip():
+            raise InputError("prior must be running, none or the path of a calibration file")
         if int(self._value("max_samples", updates)) < 20:
             raise InputError("max_samples must be at least 20")
         common.tolerance_ns(self._number("sync_tolerance", updates))
@@ -215,15 +290,42 @@ class CalibrationNode(Node):
             raise InputError("service_timeout must be > 0 s")
         if not str(self._value("correction_node", updates)).strip("/"):
             raise InputError("correction_node must name a node")
+        common.current_inputs({n: self._value(n, updates) for n in common.INTERFERENCE_PARAMETERS})
         return geo
+
+    def _site(self, updates: dict[str, Any]) -> SiteField | None:
+        """The model's field at ``site`` on ``date`` (None when site is not set); :class:`InputError` with the
+        reason for a bad site or date, or a site given with reference_field."""
+        site, when = self._value("site", updates), str(self._value("date", updates) or "")
+        if not site:
+            if when.strip():
+                raise InputError("date needs site (the date is when the magnetic model is evaluated at the site)")
+            return None
+        if self._number("reference_field", updates) > 0:
+            raise InputError("give either reference_field or site, not both (site looks the intensity up)")
+        try:
+            values = [float(v) for v in site]
+        except (TypeError, ValueError):
+            raise InputError(f"site must be numbers [lat_deg, lon_deg] or [lat_deg, lon_deg, alt_m], got {site!r}") from None
+        try:
+            return site_field(*parse_site(values), parse_date(when))
+        except InputError as exc:
+            raise InputError(f"site {values} date {when or 'today'}: {exc}") from None
+
+    def _reference(self) -> tuple[float | None, SiteField | None]:
+        """The reference intensity (T, None: relative) and the site it came from (None: reference_field)."""
+        site = self._site({})
+        if site is not None:
+            return site.intensity, site
+        return float(self.get_parameter("reference_field").value) or None, None
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
-            why = common.check_number_array(p) if p.name == "positions" else None
-            if why:
+            why = common.check_number_array(p) if p.name in ("positions", "site") else None
+            if why and not (p.name == "site" and p.type_ == Parameter.Type.NOT_SET):
                 return SetParametersResult(successful=False, reason=why)
         try:
-            self._read_geometry({p.name: p.value for p in params})
+            self._validate({p.name: p.value for p in params})
         except (InputError, TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
@@ -232,26 +334,37 @@ class CalibrationNode(Node):
         names = {p.name for p in params}
         if "correction_node" in names:
             self._service_clients()
-        if names & {"sensor_names", "positions", "max_samples", "sync_tolerance"}:
+        if names & RECONNECT:
             with self._lock:
                 self._disconnect()
-                self._geometry = self._read_geometry({})
+                self._geometry = self._validate({})
                 self._connect(self._geometry)
                 self._last_solved = None
             self._drops.reset()
             self.get_logger().info(f"reconfigured ({', '.join(sorted(names))}): collected sets dropped")
+        if names & {"prior", "correction_node", "reference_field", "site", "date"}:
+            with self._lock:
+                self._generation += 1  # the progress analysis starts afresh with the new settings
 
     # -- collecting -----------------------------------------------------------------
     def _connect(self, geo: ArrayGeometry) -> None:
+        inputs = common.current_inputs({n: self._value(n, {}) for n in common.INTERFERENCE_PARAMETERS})
+        self._inputs = inputs
         self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value))
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
-        self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size)
+        self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
+        self._generation += 1
         self._subs = [
             self.create_subscription(
                 MagneticField, topics.raw(n), self._raw_callback(i), self._raw_qos
             )
             for i, n in enumerate(geo.names)
         ]
+        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns)
+        self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
+                                             inputs.tolerance_ns)
+        clock = common.clock_reader(self)
+        self._subs += common.subscribe_currents(self, inputs, self._currents, self._raw_qos, lambda: clock())
 
     def _disconnect(self) -> None:
         for s in self._subs:
@@ -266,8 +379,14 @@ class CalibrationNode(Node):
             with self._lock:
                 self._health.seen(index, stamp)
                 synced = self._sync.add(index, stamp, f.x, f.y, f.z)
-                if synced is not None and self._collecting:
-                    self._buffer.add(synced.stamp, synced.values)
+                if synced is None or not self._collecting:
+                    return
+                currents: list[float] = []
+                if self._inputs.channels:
+                    currents, fresh = self._currents.at(synced.stamp)
+                    if not self._current_health.count(fresh):
+                        return  # a set without a fresh current of every channel is not collected
+                self._buffer.add(synced.stamp, synced.values, currents)
 
         return callback
 
@@ -275,6 +394,7 @@ class CalibrationNode(Node):
         with self._lock:
             self._buffer.clear()
             self._collecting = True
+            self._generation += 1
         response.success = True
         response.message = (
             f"collecting up to {self._buffer.capacity} sets from {', '.join(self._geometry.names)}: "
@@ -288,10 +408,59 @@ class CalibrationNode(Node):
             dropped = len(self._buffer)
             self._buffer.clear()
             self._collecting = False
+            self._generation += 1
         response.success = True
         response.message = f"dropped {dropped} collected sets; call ~/start to collect again"
         self.get_logger().info(response.message)
         return response
+
+    # -- progress ---------------------------------------------------------------------
+    def _assess_tick(self) -> None:
+        """Start an analysis of the collected sets (a worker thread hands it to the analysis process), if they
+        changed and none is running."""
+        if self._stopping.is_set() or (self._assessor is not None and self._assessor.is_alive()):
+            return
+        with self._lock:
+            if not self._collecting or len(self._buffer) == 0:
+                return
+            key = (self._generation, self._buffer.offered)
+            if self._assessment is not None and self._assessment[:2] == key:
+                return
+            stamps, raw, currents = self._buffer.snapshot_all()
+            geo, channels = self._geometry, self._inputs.channels
+        self._assessor = threading.Thread(target=self._assess, args=(key, geo, channels, stamps, raw, currents),
+                                          name="magcal-progress", daemon=True)
+        self._assessor.start()
+
+    def _assess(self, key: tuple[int, int], geo: ArrayGeometry, channels: tuple[str, ...], stamps: np.ndarray,
+                raw: np.ndarray, currents: np.ndarray) -> None:
+        """The progress analysis (worker thread; the math in the analysis process, so the GIL stays free for
+        the callbacks): envelope, what is undetermined, what to fly."""
+        try:
+            cached = self._progress_prior
+            if cached is None or cached[0] != key[0]:
+                prior, note = self._resolve_prior(geo)
+                cached = self._progress_prior = (key[0], prior, note)
+            _, prior, note = cached
+            reference, site = self._reference()
+            if self._analyser is None:
+                self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
+            job = self._analyser.submit(progress.assess, raw, geo, reference, prior, stamps,
+                                        currents if channels else None, channels,
+                                        inclination_deg=site.inclination_deg if site is not None else None)
+            result = job.result()
+        except Stopping:
+            return
+        except Exception as exc:  # noqa: BLE001 - progress must never stop the node
+            if self._stopping.is_set():
+                return
+            if isinstance(exc, BrokenProcessPool):
+                self._analyser = None  # start a new one next time
+            note = "none"
+            result = progress.Assessment(len(raw), False, None, (), f"cannot analyse the collected sets: {exc}")
+        with self._lock:
+            if key[0] == self._generation:
+                self._assessment = (*key, result, note)
 
     def _publish_progress(self) -> None:
         now = common.now_ns(self)
@@ -301,12 +470,22 @@ class CalibrationNode(Node):
             stats = self._sync.stats.as_dict()
             stats["pending"] = self._sync.pending
             self._health.output(stats["sets"], now)
-            health = self._health.assess(now, stats, "complete sets")
+            store = self._currents
+            stale, current_values = self._current_health.assess(
+                store.received, [store.latest(j) for j in range(store.channels)], "not collected")
+            health = self._health.assess(now, stats, "complete sets", stale)
+            health.values.update(current_values)
+            latest = self._assessment if self._assessment and self._assessment[0] == self._generation else None
         self._drops.update(stats, f"{stats['sets']} complete sets")
         for line in health.notices:
             self.get_logger().warn(line)
         exc = excitation(raw.mean(axis=1)) if len(raw) else excitation(np.zeros((0, 3)))
-        problem = exc.problem()
+        assessed = latest[2] if latest is not None else None
+        with_prior = latest is not None and not latest[3].startswith("none")
+        problem = None if with_prior else exc.problem()
+        if problem is None and assessed is not None and not assessed.ready:
+            problem = (f"undetermined: {', '.join(assessed.undetermined)}; " if assessed.undetermined else "") + \
+                assessed.advice
         values = {
             "collecting": str(collecting).lower(),
             "samples": str(len(raw)),
@@ -314,19 +493,27 @@ class CalibrationNode(Node):
             "offered": str(offered),
             "coverage": f"{exc.coverage:.3f}",
             "thickness": f"{exc.thickness:.3f}",
-            "ready": str(problem is None).lower(),
+            "ready": str(problem is None and len(raw) > 0).lower(),
             "problem": problem or "",
             "unmatched": str(stats["unmatched"]),
             "bad_samples": str(stats["nonfinite"] + stats["out_of_order"] + stats["duplicate"] + stats["zero_stamp"]),
+            "assessed": str(assessed.samples if assessed is not None else 0),
+            "envelope": _envelope_text(assessed),
+            "envelope_pitch_deg": f"{assessed.envelope.pitch_deg:g}" if assessed and assessed.envelope else "",
+            "envelope_roll_deg": f"{assessed.envelope.roll_deg:g}" if assessed and assessed.envelope else "",
+            "undetermined": ", ".join(assessed.undetermined) if assessed is not None else "",
+            "advice": assessed.advice if assessed is not None else "",
+            "prior": latest[3] if latest is not None else "",
         }
-        if problem is None:
-            message = f"ready: {len(raw)} sets, coverage {exc.coverage:.0%}; call ~/calibrate"
-        elif not collecting and not len(raw):
+        if not collecting and not len(raw):
             message = "idle: call ~/start to collect"
+        elif problem is None and len(raw):
+            where = f", {values['envelope']}" if assessed is not None else ""
+            message = f"ready: {len(raw)} sets, coverage {exc.coverage:.0%}{where}; call ~/calibrate"
         else:
-            message = problem
+            message = problem or "collecting"
         status = DiagnosticStatus(
-            level=DiagnosticStatus.OK if problem is None else DiagnosticStatus.WARN,
+            level=DiagnosticStatus.OK if values["ready"] == "true" else DiagnosticStatus.WARN,
             name=self.get_fully_qualified_name(),
             message=message,
             hardware_id=",".join(self._geometry.names),
@@ -379,47 +566,94 @@ class CalibrationNode(Node):
         if worker is not None and worker.is_alive():
             self.get_logger().info("shutting down during a calibration: it is abandoned, nothing is changed")
             worker.join(2.0)
+        if self._analyser is not None:
+            self._analyser.shutdown(wait=False, cancel_futures=True)
+        assessor = self._assessor
+        if assessor is not None and assessor.is_alive():
+            assessor.join(2.0)
 
     def _check_stop(self) -> None:
         if self._stopping.is_set():
             raise Stopping()
 
-    def _fingerprint(self, raw: np.ndarray, geo: ArrayGeometry, method: str, reference: float | None) -> str:
-        """Identifies a calibration: the collected sets, geometry, method settings and where it goes."""
+    def _fingerprint(self, raw: np.ndarray, currents: np.ndarray, geo: ArrayGeometry, settings: tuple[Any, ...]) -> str:
+        """Identifies a calibration: the collected sets and currents, geometry, settings and where it goes."""
         h = hashlib.sha256(np.ascontiguousarray(raw).tobytes())
+        h.update(np.ascontiguousarray(currents).tobytes())
         where = (self._target_name(), self._calibration_path())
-        h.update(repr((geo.names, geo.positions.tolist(), method, reference, where)).encode())
+        h.update(repr((geo.names, geo.positions.tolist(), settings, where)).encode())
         return h.hexdigest()
+
+    def _resolve_prior(self, geo: ArrayGeometry) -> tuple[ArrayCalibration | None, str]:
+        """The prior of a calibration and what it is, in words (``none ...`` when there is none).
+
+        ``running``: the correction node's calibration, or none (with the reason) when it cannot be
+        fetched or is not calibrated. A file that cannot be read is an :class:`InputError`.
+        """
+        setting = str(self.get_parameter("prior").value).strip()
+        if setting == "none":
+            return None, "none (prior: none)"
+        if setting == "running":
+            target = self._target_name()
+            try:
+                values = self._target_values(geo.names)
+            except CallFailed as exc:
+                return None, f"none (the running calibration could not be fetched: {exc})"
+            prior, why = common.running_calibration(values, geo)
+            if prior is None:
+                return None, f"none ({target} is not calibrated: {why})"
+            return prior, f"the running calibration of {target}"
+        path = os.path.expanduser(setting)
+        prior = calfile.read(path, self._target_name().lstrip("/"))
+        return prior, f"the calibration file {path}"
 
     def _calibrate(self) -> tuple[bool, str]:
         with self._lock:
-            _, raw = self._buffer.snapshot()
-            geo = self._geometry
+            stamps, raw, currents = self._buffer.snapshot_all()
+            geo, inputs = self._geometry, self._inputs
+        channels = inputs.channels
         if len(raw) == 0:
             return self._fail("no synchronized sets collected" + ("" if self._collecting else " (not collecting)")
                               + f"; {WHAT_TO_DO}")
         method = str(self.get_parameter("method").value)
-        reference = float(self.get_parameter("reference_field").value) or None
-        fingerprint = self._fingerprint(raw, geo, method, reference)
+        try:
+            reference, site = self._reference()
+        except InputError as exc:
+            return self._fail(f"calibration not possible: {exc}; nothing was changed")
+        residual = float(self.get_parameter("max_residual").value) or None
+        setting = str(self.get_parameter("prior").value).strip()
+        settings = (method, reference, residual, setting, channels)
+        fingerprint = self._fingerprint(raw, currents, geo, settings)
         if self._last_solved is not None and self._last_solved[0] == fingerprint:
             message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
                        f"so nothing was solved, applied or written again; call ~/start to collect new sets "
                        f"(last result: {self._last_solved[1]})")
             self.get_logger().info(message)
             return True, message
-        self.get_logger().info(f"solving from {len(raw)} sets (method {method})")
         try:
-            result = calibrate_array(raw, geo, reference, method, SolveOptions())
+            prior, prior_note = self._resolve_prior(geo)
+        except InputError as exc:
+            return self._fail(f"calibration not possible: prior {exc}; set prior (running, none or a file); "
+                              "nothing was changed")
+        self._check_stop()
+        self.get_logger().info(f"solving from {len(raw)} sets (method {method}, prior: {prior_note})")
+        opts = SolveOptions(max_residual=residual, inclination_deg=site.inclination_deg if site is not None else None)
+        try:
+            result = calibrate_array(raw, geo, reference, method, opts, prior, currents if channels else None,
+                                     channels, stamps)
         except MagcalError as exc:
-            return self._fail(f"calibration not possible: {exc}; nothing was changed")
+            return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()
         cal = result.calibration
+        if site is not None:
+            cal.metadata.update(site.provenance())
         try:
             previous = self._get_target_parameters(cal.geometry.names)
         except CallFailed as exc:
             return self._fail(f"solved but not applied: {exc}; nothing was changed")
         path = self._calibration_path()
         params = calfile.parameters(cal)
+        params.update(_channel_parameters(inputs, cal.channels))  # no channels: the node's earlier ones must go too
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
         keep = int(self.get_parameter("backups").value)
@@ -447,14 +681,25 @@ class CalibrationNode(Node):
             return self._fail(f"solved but not applied: {exc}; {undo}")
         with self._lock:
             self._collecting = False
-        message = self._success_message(result, path)
+            self._generation += 1
+        message = self._success_message(result, path, prior_note, site)
         self._last_solved = (fingerprint, message)
         self.get_logger().info(message)
         return True, message
 
-    def _success_message(self, result: CalibrationResult, path: str) -> str:
+    def _success_message(self, result: CalibrationResult, path: str, prior_note: str, site: SiteField | None) -> str:
         where = f"applied to {self._target_name()}" + (f", written {path}" if path else ", no file written")
-        return f"{result.summary()}; {where}"
+        parts = [result.summary()]
+        if not int(result.outliers.sum()):
+            parts.append("no outlying readings excluded")
+        parts.append(f"prior: {prior_note}")
+        if site is not None:
+            parts.append(f"reference F from {site.describe()} (the model's own error, ~"
+                         f"{site.intensity_error * 1e9:.0f} nT, sets the absolute scale only)")
+        if result.calibration.channels:
+            parts.append(f"interference of {', '.join(result.calibration.channels)} solved")
+        parts.extend(w for w in result.warnings if not w.startswith(result.envelope.describe()))  # said already
+        return "; ".join(parts + [where])
 
     def _fail(self, message: str) -> tuple[bool, str]:
         self.get_logger().warn(message)
@@ -507,13 +752,42 @@ class CalibrationNode(Node):
             raise CallFailed(f"{client.srv_name} did not answer within {timeout:g} s", unknown_outcome=True)
         return future.result()
 
+    @staticmethod
+    def _wanted(names: Sequence[str]) -> list[str]:
+        """The correction node's parameters that make up its calibration for sensors ``names``."""
+        per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference")]
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3]] + per_sensor
+
+    def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
+        """ParameterValue messages of the correction node's parameters ``names`` that are set.
+
+        rclpy answers a request naming an unset parameter with no values at all: then each
+        name is asked on its own.
+        """
+        _, getter = self._service_clients()
+        reply = self._call(getter, GetParameters.Request(names=list(names)))
+        if len(reply.values) != len(names):
+            values = []
+            for name in names:
+                one = self._call(getter, GetParameters.Request(names=[name])).values
+                values.append(one[0] if one else None)
+        else:
+            values = list(reply.values)
+        return {n: v for n, v in zip(names, values) if v is not None and v.type != ParameterType.PARAMETER_NOT_SET}
+
     def _get_target_parameters(self, names: Sequence[str]) -> list[ParameterMsg]:
         """The correction node's current calibration parameters, to restore if needed."""
-        _, getter = self._service_clients()
-        wanted = ["sensor_names", "positions"] + [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance")]
-        reply = self._call(getter, GetParameters.Request(names=wanted))
-        return [ParameterMsg(name=n, value=v) for n, v in zip(wanted, reply.values)
-                if v.type != ParameterType.PARAMETER_NOT_SET]
+        found = self._fetch(self._wanted(names))
+        out = [ParameterMsg(name=n, value=v) for n, v in found.items()]
+        for name in common.INTERFERENCE_PARAMETERS[:3]:  # none before: none again on restore
+            if name not in found:
+                out.append(common.parameter_message(name, []))
+        return out
+
+    def _target_values(self, names: Sequence[str]) -> dict[str, Any]:
+        """The correction node's calibration parameters for ``names`` as Python values (unset ones left out)."""
+        found = self._fetch(self._wanted(names) + ["uncorrected_sensors"])
+        return {n: parameter_value_to_python(v) for n, v in found.items()}
 
     def _push(self, params: Any, raw_messages: bool = False) -> None:
         """Set the calibration on the correction node, all parameters at once."""
@@ -525,6 +799,33 @@ class CalibrationNode(Node):
         reply = self._call(setter, SetParametersAtomically.Request(parameters=msgs))
         if not reply.result.successful:
             raise CallFailed(f"{self._target_name()} rejected the calibration: {reply.result.reason}")
+
+
+def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:
+    """The channels of a calibration with the topics and types they were read from (the correction node
+    is to read the same currents; channels a calibration left unsolved are left out)."""
+    keep = [inputs.channels.index(c) for c in solved]
+    return {"interference_channels": list(solved), "interference_topics": [inputs.topics[j] for j in keep],
+            "interference_types": [inputs.types[j] for j in keep]}
+
+
+ANALYSIS_NICENESS: int = 10
+"""The analysis process yields the CPU to the nodes (and the sensors' drivers) when they need it."""
+
+
+def _quiet_worker() -> None:
+    """In the analysis process: Ctrl-C to the process group is for the node, which ends this process; a
+    lower priority, so that a busy machine drops no sensor message for it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(ANALYSIS_NICENESS)
+
+
+def _envelope_text(assessed: progress.Assessment | None) -> str:
+    """The envelope of an assessment in words ('' before the first one)."""
+    if assessed is None:
+        return ""
+    return assessed.envelope_text()
 
 
 def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:

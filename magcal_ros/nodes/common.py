@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import yaml
@@ -18,6 +19,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from magcal_ros.core import sync
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
+from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, LatestCurrents, tolerance_of
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes.entry import quiet_signals
@@ -32,9 +34,12 @@ UNKNOWN_COVARIANCE: list[float] = [-1.0] + [0.0] * 8
 """ROS convention for an unknown covariance: -1 in element 0, zeros elsewhere."""
 
 SENSOR_NAMES_DOC = "sensor names; each subscribes <name>/raw (sensor_msgs/MagneticField, T)"
-POSITIONS_DOC = "sensor positions, 3 per sensor in sensor_names order (m, platform frame)"
+POSITIONS_DOC = (
+    "sensor positions, 3 per sensor in sensor_names order (m, platform frame); default: the 0.4 m cross for "
+    "4 sensors, the origin for 1 sensor, none (must be given) otherwise"
+)
 RELIABILITY_DOC = (
-    "QoS reliability of the <name>/raw subscriptions: best_effort (matches every publisher) "
+    "QoS reliability of the <name>/raw and current subscriptions: best_effort (matches every publisher) "
     "or reliable (lossless, needs a reliable publisher)"
 )
 
@@ -171,14 +176,184 @@ def tolerance_ns(seconds_value: Any) -> int:
     return sync.tolerance_ns(t)
 
 
-def geometry(names: Sequence[str], positions: Sequence[float]) -> ArrayGeometry:
-    """The array geometry from parameter values (:class:`InputError` if inconsistent)."""
-    return ArrayGeometry(tuple(str(n) for n in names), list(positions))
+def default_positions(count: int) -> list[float] | None:
+    """The positions a node assumes for ``count`` sensors: the default cross for 4, the origin for
+    1, none otherwise (they must be given)."""
+    return {4: DEFAULT_POSITIONS, 1: [0.0, 0.0, 0.0]}.get(count)
+
+
+def declare_geometry(node: Any) -> list[str]:
+    """Declare ``sensor_names`` and ``positions`` (default by the sensor count); the names."""
+    names = node.declare_parameter("sensor_names", DEFAULT_SENSOR_NAMES, describe(SENSOR_NAMES_DOC)).value
+    node.declare_parameter("positions", default_positions(len(names)), describe(POSITIONS_DOC, numbers=True))
+    return list(names)
+
+
+def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGeometry:
+    """The array geometry from parameter values (:class:`InputError` if inconsistent).
+
+    ``positions`` None or empty (an empty list in a params file is no value) is the origin
+    for one sensor and an error naming what to give otherwise.
+    """
+    names = tuple(str(n) for n in names)
+    if not positions:
+        if len(names) != 1:
+            raise InputError(f"positions needs 3 numbers per sensor (m, platform frame): {3 * len(names)} for "
+                             f"{len(names)} sensors, none given")
+        positions = [0.0, 0.0, 0.0]
+    return ArrayGeometry(names, list(positions))
+
+
+# -- current interference channels (both nodes) ----------------------------------------------------
+BATTERY_STATE = "sensor_msgs/msg/BatteryState"
+FLOAT64 = "std_msgs/msg/Float64"
+CURRENT_TYPES: tuple[str, ...] = (BATTERY_STATE, FLOAT64)
+"""Message types of a current channel: BatteryState (its ``current``, A, at its header stamp) or
+Float64 (``data``, A, stamped on receipt with the node clock: it has no header)."""
+
+
+@dataclass(frozen=True)
+class CurrentInputs:
+    """Where each interference channel's current comes from."""
+
+    channels: tuple[str, ...] = ()
+    topics: tuple[str, ...] = ()
+    """Topic per channel (relative names resolve in the node's namespace)."""
+    types: tuple[str, ...] = ()
+    """One of :data:`CURRENT_TYPES` per channel."""
+    tolerance_ns: int = tolerance_of(DEFAULT_CURRENT_TOLERANCE)
+    """Largest age of a channel's value at a set's stamp."""
+
+    def sources(self) -> tuple[tuple[str, str, str], ...]:
+        """(channel, topic, type) of every channel: what the subscriptions depend on."""
+        return tuple(zip(self.channels, self.topics, self.types))
+
+
+def _strings(name: str, value: Any) -> list[str]:
+    if value is None:
+        return []
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise InputError(f"{name} must be a list of strings")
+    return [v.strip() for v in value]
+
+
+def current_inputs(values: dict[str, Any]) -> CurrentInputs:
+    """The current channels from parameter values (dotted names): ``interference_channels``,
+    ``interference_topics`` (default: each channel's name, relative), ``interference_types``
+    (default BatteryState) and ``current_tolerance`` (s). :class:`InputError` naming what is wrong."""
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_topic_name import validate_topic_name
+
+    channels = _strings("interference_channels", values.get("interference_channels"))
+    if len(set(channels)) != len(channels) or not all(channels):
+        raise InputError(f"interference_channels must be unique, non-empty names, got {channels}")
+    topics_ = _strings("interference_topics", values.get("interference_topics")) or list(channels)
+    types = _strings("interference_types", values.get("interference_types")) or [BATTERY_STATE] * len(channels)
+    for name, given in (("interference_topics", topics_), ("interference_types", types)):
+        if len(given) != len(channels):
+            raise InputError(f"{name} needs one entry per interference channel ({len(channels)}: "
+                             f"{', '.join(channels) or 'none'}), got {len(given)}")
+    for topic in topics_:
+        try:
+            validate_topic_name(topic)
+        except InvalidTopicNameException as exc:
+            raise InputError(f"interference_topics: {str(exc).splitlines()[0]}: {topic!r}") from None
+    bad = [t for t in types if t not in CURRENT_TYPES]
+    if bad:
+        raise InputError(f"interference_types {bad[0]!r} is not supported; use {' or '.join(CURRENT_TYPES)}")
+    tolerance = values.get("current_tolerance", DEFAULT_CURRENT_TOLERANCE)
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
+        raise InputError(f"current_tolerance must be a positive number of seconds, got {tolerance!r}")
+    return CurrentInputs(tuple(channels), tuple(topics_), tuple(types), tolerance_of(float(tolerance)))
+
+
+INTERFERENCE_PARAMETERS: tuple[str, ...] = (
+    "interference_channels", "interference_topics", "interference_types", "current_tolerance",
+)
+
+
+def declare_currents(node: Any) -> None:
+    """Declare the interference channel parameters both nodes share (no channels by default)."""
+    d = describe
+    node.declare_parameter(
+        "interference_channels", Parameter.Type.STRING_ARRAY,
+        d("current channels whose interference is subtracted (correction node) or estimated (calibration node), "
+          "e.g. [thruster1/battery]; none = no current interference"))
+    node.declare_parameter(
+        "interference_topics", Parameter.Type.STRING_ARRAY,
+        d("topic of each channel's current, in interference_channels order; default: the channel name (relative)"))
+    node.declare_parameter(
+        "interference_types", Parameter.Type.STRING_ARRAY,
+        d(f"message type of each channel's topic: {BATTERY_STATE} (current, A, header stamp; default) or "
+          f"{FLOAT64} (data, A, stamped on receipt)", constraints=" | ".join(CURRENT_TYPES)))
+    node.declare_parameter(
+        "current_tolerance", DEFAULT_CURRENT_TOLERANCE,
+        d("a channel's latest current stamped more than this (s) before a set is stale: the set is not used",
+          numbers=True, floats=(0.0, 3600.0)))
+
+
+def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, qos: QoSProfile,
+                       clock: Callable[[], int]) -> list[Any]:
+    """Subscribe every channel's topic, feeding its values into ``store`` (BatteryState at its
+    header stamp, Float64 at ``clock()`` ns on receipt)."""
+    from sensor_msgs.msg import BatteryState
+    from std_msgs.msg import Float64
+
+    subs = []
+    for j, (topic, kind) in enumerate(zip(inputs.topics, inputs.types)):
+        if kind == BATTERY_STATE:
+            def on_battery(msg: Any, j: int = j) -> None:
+                store.add(j, stamp_ns(msg.header.stamp), float(msg.current))
+
+            subs.append(node.create_subscription(BatteryState, topic, on_battery, qos))
+        else:
+            def on_float(msg: Any, j: int = j) -> None:
+                store.add(j, clock(), float(msg.data))
+
+            subs.append(node.create_subscription(Float64, topic, on_float, qos))
+    return subs
+
+
+def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tuple[Any, str]:
+    """The calibration a correction node runs for ``geometry``'s sensors, from its parameter values
+    (Python values by dotted name, unset ones absent), or ``(None, why not)``.
+
+    A sensor it does not have, or holds at the defaults (identity matrix, zero offset: never
+    calibrated, e.g. listed in ``uncorrected_sensors``), means it runs no calibration to start from.
+    """
+    from magcal_ros.core.calibration import ArrayCalibration
+
+    names = geometry.names
+    theirs = list(values.get("sensor_names") or [])
+    absent = [n for n in names if n not in theirs]
+    if absent:
+        return None, f"it has no sensor {', '.join(absent)} (its sensors: {', '.join(theirs) or 'none'})"
+    blank = [n for n in names if list(values.get(f"{n}.matrix") or IDENTITY) == IDENTITY
+             and list(values.get(f"{n}.offset") or ZEROS) == ZEROS]
+    if blank:
+        raw = [n for n in blank if n in list(values.get("uncorrected_sensors") or [])]
+        why = f"; {', '.join(raw)} uncorrected on purpose" if raw else ""
+        return None, f"{', '.join(blank)} at identity matrix and zero offset (never calibrated{why})"
+    channels = list(values.get("interference_channels") or [])
+    params: dict[str, Any] = {"sensor_names": list(names), "positions": list(geometry.positions.reshape(-1)),
+                              "interference_channels": channels}
+    for n in names:
+        params[n] = {"matrix": list(values[f"{n}.matrix"]), "offset": list(values[f"{n}.offset"])}
+        if channels and f"{n}.interference" in values:
+            params[n]["interference"] = list(values[f"{n}.interference"])
+    try:
+        return ArrayCalibration.from_parameters(params), ""
+    except InputError as exc:
+        return None, f"its calibration is unusable ({exc})"
+
+
+STRING_LISTS: frozenset[str] = frozenset({"sensor_names", "uncorrected_sensors", *INTERFERENCE_PARAMETERS[:3]})
+"""Parameters that are lists of strings, also when empty."""
 
 
 def parameter_message(name: str, value: Any) -> Any:
     """An rcl_interfaces/Parameter message for a Python value (lists of str or float)."""
-    if isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
+    if isinstance(value, (list, tuple)) and (name in STRING_LISTS or value and all(isinstance(v, str) for v in value)):
         return Parameter(name, Parameter.Type.STRING_ARRAY, list(value)).to_parameter_msg()
     if isinstance(value, (list, tuple)):
         return Parameter(name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in value]).to_parameter_msg()

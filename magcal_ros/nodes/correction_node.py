@@ -1,17 +1,33 @@
-"""Live correction node: raw sensor vectors in, corrected vectors, centre field and tensor out.
+"""Live correction node: raw sensor vectors in, corrected vectors, centre field and gradient out.
 
 Subscribes ``<name>/raw`` (sensor_msgs/MagneticField, T) for every name in
 ``sensor_names``, groups the messages into synchronized sets by header stamp and, per
-set, publishes ``<name>/corrected`` (``matrix @ (raw - offset)``, platform frame, with
-``<name>.covariance``), ``field`` (centre field, T, covariance of the mean),
-``gradient`` (std_msgs/Float64MultiArray, 3x3 row-major, ``G[i][j] = dB_j/dx_i`` in T/m)
-and ``gradient_stamped`` (sensor_msgs/JointState: the same nine components in
-``position``, named ``gradient.xx`` ... ``gradient.zz``, stamped with the set's stamp and
-``frame_id``). All are relative names: a namespace or a remap moves them. The
-calibration comes from parameters (``<name>.matrix``, ``<name>.offset``,
-``<name>.covariance``, ``positions``) and can be replaced at runtime through the standard
-parameter services; a replacement is validated as a whole and swapped in between two
-sets, an invalid one is rejected with a reason.
+set, publishes ``<name>/corrected`` (``matrix @ (raw - offset) - interference @ u``,
+platform frame, with ``<name>.covariance``), ``field`` (centre field, T, covariance of the
+mean) and the gradient the positions determine:
+
+- three or more sensors spread in a plane or in space: ``gradient``
+  (std_msgs/Float64MultiArray, 3x3 row-major, ``G[i][j] = dB_j/dx_i`` in T/m) and
+  ``gradient_stamped`` (sensor_msgs/JointState: the same nine components in ``position``,
+  named ``gradient.xx`` ... ``gradient.zz``, stamped with the set's stamp and ``frame_id``);
+- sensors on one line (two sensors): ``baseline_gradient`` (geometry_msgs/Vector3Stamped,
+  ``dB/ds`` in T/m along the line from the first sensor towards the last);
+- one sensor: no gradient topic at all (its ``positions`` may be left out).
+
+Topics the sensor count does not support are not created. All are relative names: a
+namespace or a remap moves them. The calibration comes from parameters
+(``<name>.matrix``, ``<name>.offset``, ``<name>.covariance``, ``positions``,
+``interference_channels`` and ``<name>.interference``) and can be replaced at runtime
+through the standard parameter services; a replacement is validated as a whole and
+swapped in between two sets, an invalid one is rejected with a reason.
+
+Current interference: with ``interference_channels`` the node subscribes each channel's
+topic (``interference_topics``, default the channel name; ``interference_types``
+BatteryState or Float64), keeps the values of the last seconds and subtracts
+``interference @ u`` from every set, ``u`` each channel's latest current stamped at most
+``current_tolerance`` before the set (the rule of ``magcal correct``). A set without such
+a current of every channel is not published (counted per channel as ``stale_current``,
+a WARN on ``/diagnostics`` naming the channel), never corrected with a stale current.
 
 A sensor whose matrix and offset were never given (params file, ``-p`` or a parameter
 update) is not calibrated: the node warns, naming it, and publishes neither ``field`` nor
@@ -47,11 +63,13 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.sync import SetSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
@@ -59,13 +77,18 @@ from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
 from magcal_ros.nodes import common
-from magcal_ros.nodes.health import ArrayHealth
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
     "sensor_names", "positions", "frame_id", "sync_tolerance", "gradient_method", "uncorrected_sensors",
+    *common.INTERFERENCE_PARAMETERS,
 )
-SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance")
+SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
+GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
+    "tensor": (topics.GRADIENT, topics.GRADIENT_STAMPED), "baseline": (topics.BASELINE_GRADIENT,), "none": (),
+}
+"""The gradient topics published for each kind of array geometry."""
 UNKNOWN_COVARIANCE = common.UNKNOWN_COVARIANCE
 
 
@@ -83,11 +106,18 @@ class CorrectionState:
     """Per sensor, 9 numbers row-major (T^2), or :data:`UNKNOWN_COVARIANCE`."""
     field_covariance: tuple[float, ...] = tuple(UNKNOWN_COVARIANCE)
     """Covariance of the centre field (the mean of the sensors): sum / S^2, or unknown."""
+    currents: common.CurrentInputs = common.CurrentInputs()
+    """The interference channels' current topics (the calibration's ``channels``)."""
 
     @property
     def names(self) -> tuple[str, ...]:
         """Sensor names, in set order."""
         return self.calibration.geometry.names
+
+    @property
+    def gradient_kind(self) -> str:
+        """``tensor``, ``baseline`` or ``none``: what the positions determine."""
+        return self.calibration.geometry.gradient_kind
 
 
 def _covariances(values: dict[str, Any], cal: ArrayCalibration) -> tuple[tuple[tuple[float, ...], ...], tuple[float, ...]]:
@@ -124,19 +154,28 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     names = values.get("sensor_names")
     if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
         raise InputError("sensor_names must be a list of strings")
-    geo = common.geometry(names, values.get("positions", []))
+    geo = common.geometry(names, values.get("positions"))
     uncorrected = values.get("uncorrected_sensors") or []
     if not all(isinstance(n, str) for n in uncorrected):
         raise InputError("uncorrected_sensors must be a list of sensor names")
     strangers = sorted(set(uncorrected) - set(geo.names))
     if strangers:
         raise InputError(f"uncorrected_sensors names {', '.join(strangers)}, not in sensor_names")
-    params: dict[str, Any] = {"sensor_names": list(geo.names), "positions": list(geo.positions.reshape(-1))}
+    currents = common.current_inputs(values)
+    params: dict[str, Any] = {"sensor_names": list(geo.names), "positions": list(geo.positions.reshape(-1)),
+                              "interference_channels": list(currents.channels)}
     for name in geo.names:
         params[name] = {
-            "matrix": values.get(f"{name}.matrix", common.IDENTITY),
-            "offset": values.get(f"{name}.offset", common.ZEROS),
+            "matrix": values.get(f"{name}.matrix") or common.IDENTITY,
+            "offset": values.get(f"{name}.offset") or common.ZEROS,
         }
+        if currents.channels:
+            gains = values.get(f"{name}.interference")
+            if gains is None and name not in uncorrected:
+                raise InputError(f"interference_channels is set ({', '.join(currents.channels)}) but {name}.interference "
+                                 f"is not: give 3 x {len(currents.channels)} numbers (row-major, T/A) for every sensor")
+            if gains is not None:
+                params[name]["interference"] = list(gains)
     cal = ArrayCalibration.from_parameters(params)
     missing = tuple(
         n for n in geo.names
@@ -146,12 +185,13 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     method = values.get("gradient_method")
     if method not in GRADIENT_METHODS:
         raise InputError(f"unknown gradient_method {method!r}; choose one of {', '.join(GRADIENT_METHODS)}")
-    gradient(np.zeros((1, geo.size, 3)), geo, method)  # raises if the geometry does not suit the method
+    if geo.gradient_kind == "tensor":
+        gradient(np.zeros((1, geo.size, 3)), geo, method)  # raises if the geometry does not suit the method
     frame = values.get("frame_id")
     if not isinstance(frame, str) or not frame.strip():
         raise InputError("frame_id must be a non-empty string")
     return CorrectionState(cal, method, frame, common.tolerance_ns(values.get("sync_tolerance")), missing,
-                           covariances, field_covariance)
+                           covariances, field_covariance, currents)
 
 
 def _gradient_message() -> Float64MultiArray:
@@ -167,7 +207,7 @@ def _gradient_message() -> Float64MultiArray:
 
 
 class CorrectionNode(Node):
-    """Applies the array calibration to synchronized raw sets and publishes the tensor."""
+    """Applies the array calibration to synchronized raw sets and publishes field and gradient."""
 
     def __init__(self, node_name: str = NODE_NAME, argv: Sequence[str] = (), **kwargs: Any) -> None:
         super().__init__(node_name, allow_undeclared_parameters=True, **kwargs)
@@ -179,33 +219,36 @@ class CorrectionNode(Node):
         self._subs: list[Any] = []
         self._corrected_pubs: list[Any] = []
         self._corrected_msgs: list[MagneticField] = []
+        self._gradient_pubs: dict[str, Any] = {}
+        self._current_subs: list[Any] = []
         self._msg_state: CorrectionState | None = None
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
         self._out_qos = common.output_qos(depth)
         self._limits = common.declare_health(self)
         self._field_pub = self.create_publisher(MagneticField, topics.FIELD, self._out_qos)
-        self._gradient_pub = self.create_publisher(Float64MultiArray, topics.GRADIENT, self._out_qos)
-        self._stamped_pub = self.create_publisher(JointState, topics.GRADIENT_STAMPED, self._out_qos)
         self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
         self._field_msg = MagneticField()
         self._gradient_msg = _gradient_message()
         self._stamped_msg = JointState(name=list(TENSOR_COLUMNS))
+        self._baseline_msg = Vector3Stamped()
         self._now = common.clock_reader(self)
         self._published = 0
         self._withheld = 0
         self._ages: list[int] = []
         self._drops = common.DropReporter(self.get_logger())
         self._connect(self._state)
+        self._gradient_outputs(self._state.gradient_kind)
+        self._connect_currents(self._state.currents)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
         self.create_timer(max(period, 0.05), self._report)
         self.get_logger().info(
-            f"correcting {', '.join(self._state.names)} -> <name>/corrected, field, gradient, gradient_stamped "
-            f"({self._state.gradient_method}) in {self.get_namespace()}, frame {self._state.frame_id}, "
-            f"sync tolerance {self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
+            f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
+            f"{self.get_namespace()}, frame {self._state.frame_id}, sync tolerance "
+            f"{self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
         )
         self._warn_missing(self._state)
         self._warn_unmatched_files(argv)
@@ -213,10 +256,7 @@ class CorrectionNode(Node):
     # -- parameters -----------------------------------------------------------------
     def _declare_parameters(self) -> None:
         d = common.describe
-        names = self.declare_parameter(
-            "sensor_names", common.DEFAULT_SENSOR_NAMES, d(common.SENSOR_NAMES_DOC)
-        ).value
-        self.declare_parameter("positions", common.DEFAULT_POSITIONS, d(common.POSITIONS_DOC, numbers=True))
+        names = common.declare_geometry(self)
         for name in names:
             self.declare_parameter(
                 f"{name}.matrix", common.IDENTITY,
@@ -235,11 +275,18 @@ class CorrectionNode(Node):
                   "published in its magnetic_field_covariance; -1.0 first = unknown",
                   constraints="symmetric positive semi-definite, or -1.0 first", numbers=True),
             )
+            self.declare_parameter(
+                f"{name}.interference", None,
+                d(f"current interference of {name}: 3 x m numbers row-major (T/A, platform frame), one column per "
+                  "channel of interference_channels; B = matrix (raw - offset) - interference @ u",
+                  constraints="finite; needed for every sensor when interference_channels is set", numbers=True),
+            )
         self.declare_parameter(
             "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
             d("sensors used without a calibration on purpose (raw readings); any other sensor without "
-              "matrix and offset stops field and tensor output"),
+              "matrix and offset stops field and gradient output"),
         )
+        common.declare_currents(self)
         self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID, d("frame of all outputs (platform frame)"))
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
@@ -248,8 +295,8 @@ class CorrectionNode(Node):
         )
         self.declare_parameter(
             "gradient_method", "difference",
-            d("tensor formula: difference (planar cross) or least_squares (any geometry)",
-              constraints=" | ".join(GRADIENT_METHODS)),
+            d("tensor formula: difference (planar cross) or least_squares (any geometry with 3 or more sensors "
+              "not on one line)", constraints=" | ".join(GRADIENT_METHODS)),
         )
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions and the outputs",
@@ -259,7 +306,7 @@ class CorrectionNode(Node):
 
     def _current_values(self) -> dict[str, Any]:
         names = self.list_parameters([], 0).names
-        return {n: self.get_parameter_or(n).value for n in names}  # uncorrected_sensors may be unset: None
+        return {n: self.get_parameter_or(n).value for n in names}  # unset parameters: None
 
     def _known(self, name: str, names: Sequence[str]) -> bool:
         if name in CORE_PARAMETERS:
@@ -281,7 +328,7 @@ class CorrectionNode(Node):
                 return SetParametersResult(
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
-                    f"<name>.offset and <name>.covariance for a name in sensor_names",
+                    f"<name>.offset, <name>.covariance and <name>.interference for a name in sensor_names",
                 )
             if known and (p.name == "positions" or p.name.endswith(SENSOR_SUFFIXES)):
                 why = common.check_number_array(p)
@@ -316,11 +363,27 @@ class CorrectionNode(Node):
             self._state = new
             if new.tolerance_ns != old.tolerance_ns:
                 self._sync.tolerance_ns = new.tolerance_ns
+        if new.gradient_kind != old.gradient_kind:
+            self._gradient_outputs(new.gradient_kind)
+        if new.currents.sources() != old.currents.sources():
+            self._connect_currents(new.currents)
+        elif new.currents.tolerance_ns != old.currents.tolerance_ns:
+            self._currents.tolerance_ns = new.currents.tolerance_ns
+            self._current_health.tolerance_ns = new.currents.tolerance_ns
         self.get_logger().info(
             f"parameters updated ({', '.join(p.name for p in params)}): {self._describe(new)}"
+            + (f"; now publishing {self._outputs_text(new)}" if new.gradient_kind != old.gradient_kind else "")
         )
         if new.missing != old.missing:
             self._warn_missing(new)
+
+    @staticmethod
+    def _outputs_text(state: CorrectionState) -> str:
+        gradients = GRADIENT_TOPICS[state.gradient_kind]
+        what = {"tensor": "", "baseline": f" ({state.names[0]} to {state.names[-1]}: sensors on one line)",
+                "none": " (one sensor position: no gradient)"}[state.gradient_kind]
+        method = f" ({state.gradient_method})" if state.gradient_kind == "tensor" else ""
+        return ", ".join(["<name>/corrected", topics.FIELD, *gradients]) + method + what
 
     def _describe(self, state: CorrectionState) -> str:
         names = state.names
@@ -329,18 +392,24 @@ class CorrectionNode(Node):
         parts = [f"calibrated sensors: {', '.join(calibrated)}" if calibrated else "no calibration loaded"]
         if raw:
             parts.append(f"uncorrected on purpose: {', '.join(raw)}")
+        if state.currents.channels:
+            parts.append("subtracting current interference of " + ", ".join(
+                f"{c} ({t}, {k.rsplit('/', 1)[-1]})" for c, t, k in state.currents.sources()))
         return "; ".join(parts)
 
     def _warn_missing(self, state: CorrectionState) -> None:
         if state.missing:
+            names = [topics.FIELD, *GRADIENT_TOPICS[state.gradient_kind]]
+            outputs = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
+            verb = "are" if len(names) > 1 else "is"
             self.get_logger().warn(
-                f"no calibration (matrix and offset) for {', '.join(state.missing)}: field, gradient and "
-                f"gradient_stamped are NOT published, nor the corrected vectors of these sensors; load a "
-                f"calibration file with every sensor, call the calibration node's ~/calibrate, or list the "
-                f"sensors in uncorrected_sensors to use their raw readings on purpose"
+                f"no calibration (matrix and offset) for {', '.join(state.missing)}: {outputs} {verb} NOT published, "
+                f"nor the corrected vectors of these sensors; load a calibration file with every sensor, call the "
+                f"calibration node's ~/calibrate, or list the sensors in uncorrected_sensors to use their raw "
+                f"readings on purpose"
             )
         else:
-            self.get_logger().info("every sensor calibrated or uncorrected on purpose: publishing field and tensor")
+            self.get_logger().info("every sensor calibrated or uncorrected on purpose: publishing field and gradient")
 
     def _warn_unmatched_files(self, argv: Sequence[str]) -> None:
         """Warn about a params file whose calibration block is keyed for another node (so not loaded)."""
@@ -375,6 +444,24 @@ class CorrectionNode(Node):
             self.destroy_publisher(p)
         self._subs, self._corrected_pubs = [], []
 
+    def _gradient_outputs(self, kind: str) -> None:
+        """Advertise the gradient topics of ``kind`` (and no other)."""
+        for pub in self._gradient_pubs.values():
+            self.destroy_publisher(pub)
+        types = {topics.GRADIENT: Float64MultiArray, topics.GRADIENT_STAMPED: JointState,
+                 topics.BASELINE_GRADIENT: Vector3Stamped}
+        self._gradient_pubs = {t: self.create_publisher(types[t], t, self._out_qos) for t in GRADIENT_TOPICS[kind]}
+
+    def _connect_currents(self, inputs: common.CurrentInputs) -> None:
+        """Subscribe the current channels afresh (their values so far are dropped)."""
+        for s in self._current_subs:
+            self.destroy_subscription(s)
+        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns)
+        self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
+                                             inputs.tolerance_ns)
+        self._current_subs = common.subscribe_currents(self, inputs, self._currents, self._raw_qos,
+                                                       lambda: self._now())
+
     def _raw_callback(self, index: int) -> Any:
         add, decode, seen = self._sync.add, decode_magnetic_field, self._health.seen
 
@@ -399,16 +486,23 @@ class CorrectionNode(Node):
         self._msg_state = state
 
     def _publish(self, synced: SyncedSet) -> None:
-        """Correct one set; publish corrected vectors, then field, gradient and gradient_stamped."""
+        """Correct one set; publish corrected vectors, then field and the gradient topics."""
         state = self._state
         if state is not self._msg_state:
             self._apply_covariances(state)
+        currents = None
+        if state.currents.channels:
+            values, fresh = self._currents.at(synced.stamp)
+            if not self._current_health.count(fresh):
+                self._withheld += 1  # never corrected with a stale current
+                return
+            currents = np.array([values])
         raw = np.array(synced.values, dtype=float).reshape(1, -1, 3)
-        vectors, centre, tensor = state.calibration.field_and_gradient(raw, state.gradient_method)
+        out = state.calibration.outputs(raw, state.gradient_method, currents)
         frame = state.frame_id
         missing = state.missing
         for name, msg, pub, stamp, v in zip(state.names, self._corrected_msgs, self._corrected_pubs, synced.stamps,
-                                            vectors[0].tolist()):
+                                            out.vectors[0].tolist()):
             if missing and name in missing:
                 continue
             common.set_stamp(msg.header.stamp, stamp)
@@ -423,16 +517,24 @@ class CorrectionNode(Node):
         common.set_stamp(msg.header.stamp, synced.stamp)
         msg.header.frame_id = frame
         f = msg.magnetic_field
-        f.x, f.y, f.z = centre[0].tolist()
+        f.x, f.y, f.z = out.centre[0].tolist()
         self._field_pub.publish(msg)
-        components = tensor[0].reshape(9).tolist()
-        self._gradient_msg.data = components
-        self._gradient_pub.publish(self._gradient_msg)
-        stamped = self._stamped_msg
-        common.set_stamp(stamped.header.stamp, synced.stamp)
-        stamped.header.frame_id = frame
-        stamped.position = components
-        self._stamped_pub.publish(stamped)
+        if out.tensor is not None:
+            components = out.tensor[0].reshape(9).tolist()
+            self._gradient_msg.data = components
+            self._gradient_pubs[topics.GRADIENT].publish(self._gradient_msg)
+            stamped = self._stamped_msg
+            common.set_stamp(stamped.header.stamp, synced.stamp)
+            stamped.header.frame_id = frame
+            stamped.position = components
+            self._gradient_pubs[topics.GRADIENT_STAMPED].publish(stamped)
+        elif out.baseline is not None:
+            base = self._baseline_msg
+            common.set_stamp(base.header.stamp, synced.stamp)
+            base.header.frame_id = frame
+            v3 = base.vector
+            v3.x, v3.y, v3.z = out.baseline[0].tolist()
+            self._gradient_pubs[topics.BASELINE_GRADIENT].publish(base)
         self._published += 1
         self._ages.append(self._now() - synced.stamp)
 
@@ -451,8 +553,14 @@ class CorrectionNode(Node):
         now = common.now_ns(self)
         self._health.output(self._published, now)
         state = self._state
-        extra = f"not calibrated: {', '.join(state.missing)} (see uncorrected_sensors)" if state.missing else None
-        assessment = self._health.assess(now, counters, "sets published", extra)
+        extras = [f"not calibrated: {', '.join(state.missing)} (see uncorrected_sensors)"] if state.missing else []
+        store = self._currents
+        stale, current_values = self._current_health.assess(
+            store.received, [store.latest(j) for j in range(store.channels)], "withheld")
+        if stale:
+            extras.append(stale)
+        assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)
+        assessment.values.update(current_values)
         for line in assessment.notices:
             self.get_logger().warn(line)
         ages, self._ages = self._ages, []

@@ -178,3 +178,46 @@ class ArrayHealth:
         level = max((lv for lv, _ in problems), default=OK)
         message = "; ".join(text for _, text in problems) if problems else "ok"
         return Assessment(level, message, values, [line] if line else [])
+
+
+class CurrentHealth:
+    """Sets met without a fresh current, per interference channel (see
+    :class:`~magcal_ros.core.interference.LatestCurrents`): counted, shown as
+    ``<channel>.stale_current`` and a WARN naming the channel in the period it happens."""
+
+    def __init__(self, channels: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
+        self.channels = channels
+        self.topics = topics
+        self.tolerance_ns = tolerance_ns
+        self.stale = [0] * len(channels)
+        self._reported = [0] * len(channels)
+
+    def count(self, fresh: list[bool]) -> bool:
+        """Count one set (``fresh`` per channel); True when every channel is fresh."""
+        ok = True
+        for j, f in enumerate(fresh):
+            if not f:
+                self.stale[j] += 1
+                ok = False
+        return ok
+
+    def assess(self, received: list[int], latest: list[float | None], what: str) -> tuple[str | None, dict[str, str]]:
+        """(WARN text naming the channels that were stale since the last call, or None; values).
+
+        ``received``: values received per channel; ``latest``: newest value (A) or None;
+        ``what``: what happened to such sets (``withheld``, ``not collected``)."""
+        values: dict[str, str] = {}
+        late = []
+        for j, name in enumerate(self.channels):
+            values[f"{name}.stale_current"] = str(self.stale[j])
+            values[f"{name}.current_received"] = str(received[j])
+            values[f"{name}.current_A"] = "" if latest[j] is None else f"{latest[j]:.6g}"
+            new = self.stale[j] - self._reported[j]
+            if new:
+                never = " (none received yet)" if not received[j] else ""
+                late.append(f"{name} on {self.topics[j]}{never}: {new} sets")
+        self._reported = list(self.stale)
+        if not late:
+            return None, values
+        return (f"stale current (no value within {_ms(self.tolerance_ns)} ms before the set), sets {what}: "
+                + ", ".join(late)), values
