@@ -23,6 +23,7 @@ import pytest
 import ros_harness as h
 
 from magcal_ros.app.ros_driver import (
+    ArrayDriver,
     NodeProcess,
     recording_messages,
     ros_args,

@@ -31,7 +31,12 @@ import pytest
 import ros_harness as h
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from magcal_ros.app.ros_driver import ArrayDriver, recording_messages, status_values, wait_for_samples
+from magcal_ros.app.ros_driver import (
+    ArrayDriver,
+    recording_messages,
+    status_values,
+    wait_for_samples,
+)
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geomagnetic import site_field
 from magcal_ros.core.geometry import ArrayGeometry

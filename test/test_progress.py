@@ -18,7 +18,12 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.errors import MagcalError
 from magcal_ros.methods.pipeline import calibrate_array
 from magcal_ros.methods.progress import MAX_SETS, assess
-from magcal_ros.sim.attitudes import sea_manoeuvre, single_axis, uniform_random, yaw_pitch_roll
+from magcal_ros.sim.attitudes import (
+    sea_manoeuvre,
+    single_axis,
+    uniform_random,
+    yaw_pitch_roll,
+)
 from magcal_ros.sim.simulator import ArraySimulation, Thruster, random_sensor_errors
 
 NT = 1e-9
@@ -122,7 +127,7 @@ def test_following_the_advice_turns_a_yaw_circle_into_a_calibration() -> None:
     assert tmi < 1.3 * NT, tmi / NT  # 1 nT noise: at the floor inside the envelope
 
 
-def test_with_a_prior_a_yaw_circle_is_enough_and_says_what_the_prior_keeps(moved_hard_iron: dict) -> None:
+def test_with_a_prior_a_yaw_circle_is_enough_and_says_what_the_prior_keeps(moved_hard_iron: dict) -> None:  # noqa: F811
     """The hull's hard iron moved after a full calibration; a yaw circle (test_field's scenario)."""
     first, new, yaw = moved_hard_iron["first"], moved_hard_iron["new"], moved_hard_iron["yaw"]
     without = assess(yaw.vectors, new.geometry, F, stamps=yaw.stamps)

@@ -189,7 +189,9 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
     :mod:`~magcal_ros.core.identifiability`), or when ``v_j`` is below
     :data:`MIN_CURRENT_VARIATION` (the current never varies, or varies in lockstep).
     """
-    from magcal_ros.core.identifiability import UNDETERMINED_EFFECT  # here: the live nodes need no scipy
+    from magcal_ros.core.identifiability import (
+        UNDETERMINED_EFFECT,  # here: the live nodes need no scipy
+    )
 
     u = np.asarray(currents, dtype=float)
     n, m = u.shape

@@ -19,7 +19,11 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from magcal_ros.core import sync
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
-from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, LatestCurrents, tolerance_of
+from magcal_ros.core.interference import (
+    DEFAULT_CURRENT_TOLERANCE,
+    LatestCurrents,
+    tolerance_of,
+)
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes.entry import quiet_signals

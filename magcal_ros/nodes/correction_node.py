@@ -59,11 +59,11 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
