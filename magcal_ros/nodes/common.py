@@ -251,6 +251,11 @@ def current_inputs(values: dict[str, Any]) -> CurrentInputs:
     channels = _strings("interference_channels", values.get("interference_channels"))
     if len(set(channels)) != len(channels) or not all(channels):
         raise InputError(f"interference_channels must be unique, non-empty names, got {channels}")
+    tolerance = values.get("current_tolerance", DEFAULT_CURRENT_TOLERANCE)
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
+        raise InputError(f"current_tolerance must be a positive number of seconds, got {tolerance!r}")
+    if not channels:  # no interference: the topics and types of earlier channels do not matter
+        return CurrentInputs((), (), (), tolerance_of(float(tolerance)))
     topics_ = _strings("interference_topics", values.get("interference_topics")) or list(channels)
     types = _strings("interference_types", values.get("interference_types")) or [BATTERY_STATE] * len(channels)
     for name, given in (("interference_topics", topics_), ("interference_types", types)):
@@ -265,9 +270,6 @@ def current_inputs(values: dict[str, Any]) -> CurrentInputs:
     bad = [t for t in types if t not in CURRENT_TYPES]
     if bad:
         raise InputError(f"interference_types {bad[0]!r} is not supported; use {' or '.join(CURRENT_TYPES)}")
-    tolerance = values.get("current_tolerance", DEFAULT_CURRENT_TOLERANCE)
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
-        raise InputError(f"current_tolerance must be a positive number of seconds, got {tolerance!r}")
     return CurrentInputs(tuple(channels), tuple(topics_), tuple(types), tolerance_of(float(tolerance)))
 
 
