@@ -16,6 +16,7 @@ Run: ``python benchmarks/bench_field.py`` from the repository root.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -37,7 +38,9 @@ from magcal_ros.sim.simulator import (  # noqa: E402
 
 NT = 1e-9
 F = 51_500 * NT
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "qmc5883l_handheld.csv"
+# The real hand-held QMC5883L recording: MAGCAL_REAL_RECORDING, else beside the checkout.
+REAL = Path(os.environ.get("MAGCAL_REAL_RECORDING", Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+                           / "qmc5883l_handheld.csv"))
 
 
 def array(seed: int, noise: float = NT, **kw: float) -> ArraySimulation:

@@ -9,6 +9,7 @@ plain numpy.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,9 @@ from magcal_ros.sim.simulator import (
 
 NT = 1e-9
 F = 51_500 * NT
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "qmc5883l_handheld.csv"
+# The real hand-held QMC5883L recording: MAGCAL_REAL_RECORDING, else beside the checkout.
+REAL = Path(os.environ.get("MAGCAL_REAL_RECORDING", Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+                           / "qmc5883l_handheld.csv"))
 
 
 def array(seed: int, noise: float = NT, **kw: float) -> ArraySimulation:
