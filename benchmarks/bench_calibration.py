@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from magcal_ros.core.alignment import paper000_angles  # noqa: E402
+from magcal_ros.core.alignment import li2018_angles  # noqa: E402
 from magcal_ros.core.field import earth_field  # noqa: E402
 from magcal_ros.core.geometry import ArrayGeometry  # noqa: E402
 from magcal_ros.core.metrics import tensor_component_rms, tensor_rms, tmi_rms  # noqa: E402
@@ -43,8 +43,8 @@ from magcal_ros.methods.pipeline import CalibrationResult, calibrate_array  # no
 from magcal_ros.methods.pso import pso_fit  # noqa: E402
 from magcal_ros.sim import scenarios as sc  # noqa: E402
 from magcal_ros.sim.attitudes import (  # noqa: E402
-    paper000_grid,
-    paper004_grid,
+    li2018_grid,
+    coaxial2022_grid,
     three_rotations,
     uniform_random,
 )
@@ -74,15 +74,15 @@ def random_array(seed: int = 5) -> ArraySimulation:
 
 def scenarios() -> list[Scenario]:
     """Li et al. (2018)'s grid, Ding's (2024) tables at each noise level, short and long random runs."""
-    out = [Scenario("Li et al. (2018) grid (1728 sets, sigma 1 nT)", sc.paper000_simulation(), paper000_grid(), sc.PAPER000_F)]
+    out = [Scenario("Li et al. (2018) grid (1728 sets, sigma 1 nT)", sc.li2018_simulation(), li2018_grid(), sc.LI2018_F)]
     for table in (1, 2):
-        for a in sc.PAPER002_NOISE_PP_NT:
+        for a in sc.DING2024_NOISE_PP_NT:
             out.append(
                 Scenario(
                     f"Ding (2024) Table {table}, noise {a:g} nT p-p (300 random sets)",
-                    sc.paper002_simulation(table, a * NT),
+                    sc.ding2024_simulation(table, a * NT),
                     uniform_random(300, 7),
-                    sc.PAPER002_F,
+                    sc.DING2024_F,
                 )
             )
     out.append(Scenario("random errors, 48 random sets", random_array(), uniform_random(48, 8), 50_000 * NT))
@@ -189,32 +189,32 @@ def fmt(values: np.ndarray | tuple, spec: str = ".4g") -> str:
     return " / ".join(format(float(v), spec) for v in values)
 
 
-def paper000_reproduction() -> None:
+def li2018_reproduction() -> None:
     """Li et al. (2018) Tables 2-4 with method ml (Table 1 is covered by test_papers.py)."""
-    sim = sc.paper000_simulation()
-    rec, truth = sim.run(paper000_grid(), rng=1)
-    res = calibrate_array(rec.vectors, sim.geometry, sc.PAPER000_F)
+    sim = sc.li2018_simulation()
+    rec, truth = sim.run(li2018_grid(), rng=1)
+    res = calibrate_array(rec.vectors, sim.geometry, sc.LI2018_F)
     rep = sc.REPORTED["000"]
     print("\nLi et al. (2018) (ml on the full grid; the paper used 10 samples of one z turn, see pitfall B)")
     print(f"  TMI before nT   ours {fmt(res.tmi_before / NT, '.1f')}   paper {fmt(rep['tmi_before'], '.1f')}")
     print(f"  TMI after nT    ours {fmt(res.tmi_after / NT)}   paper {fmt(rep['tmi_after'])}")
     before = tensor_component_rms(gradient(rec.vectors, sim.geometry)) / NT
-    scalar = np.stack([ml_fit(rec.vectors[:, i], sc.PAPER000_F).apply(rec.vectors[:, i]) for i in range(4)], 1)
+    scalar = np.stack([ml_fit(rec.vectors[:, i], sc.LI2018_F).apply(rec.vectors[:, i]) for i in range(4)], 1)
     only = tensor_component_rms(gradient(scalar, sim.geometry)) / NT
     after = tensor_component_rms(res.calibration.field_and_gradient(rec.vectors)[2]) / NT
     print(f"  tensor before   ours {fmt(before, '.0f')}   paper {fmt(rep['tensor_before'], '.0f')} nT/m")
     print(f"  scalar only     ours {fmt(only, '.0f')}   paper {fmt(rep['tensor_scalar_only'], '.0f')} nT/m")
     print(f"  tensor after    ours {fmt(after)}   paper {fmt(rep['tensor_after'])} nT/m (floor 3.536)")
     errs = []
-    for i, preset in enumerate(sc.PAPER000_MISALIGNMENT_RAD):
-        b = ml_fit(rec.vectors[:, i], sc.PAPER000_F).apply(rec.vectors[[0, 4, 8], i])
-        errs.append(np.abs(np.array(paper000_angles(b, truth.field[[0, 4, 8], i])) - preset).max())
+    for i, preset in enumerate(sc.LI2018_MISALIGNMENT_RAD):
+        b = ml_fit(rec.vectors[:, i], sc.LI2018_F).apply(rec.vectors[[0, 4, 8], i])
+        errs.append(np.abs(np.array(li2018_angles(b, truth.field[[0, 4, 8], i])) - preset).max())
     print(f"  Table 3, 3 samples: worst angle error per sensor (rad) {fmt(errs, '.2e')}")
 
 
-def paper001_reproduction(runs: int = 50) -> None:
+def gradiometer_reproduction(runs: int = 50) -> None:
     """The two-fluxgate gradiometer paper: medians over ``runs`` noise seeds of the peak-to-peak errors (nT)."""
-    sim = sc.paper001_simulation()
+    sim = sc.gradiometer_simulation()
     f = float(np.linalg.norm(sim.earth))
     rows = []
     for seed in range(runs):
@@ -233,20 +233,20 @@ def paper001_reproduction(runs: int = 50) -> None:
     print(f"  diff after  ours {fmt(med[7:10], '.2f')}   paper {fmt(rep['diff_ptp_after'], '.2f')}")
 
 
-def paper002_pso(seeds: int = 5) -> None:
+def ding2024_pso(seeds: int = 5) -> None:
     """Ding (2024) single sensor: ML and both PSO variants at two budgets (TMI RMS, nT)."""
     print("\nDing (2024) single sensor, TMI RMS nT (PSO small budget: median of 5 seeds)")
     print(f"  {'case':12s} {'floor':>9s} {'ml':>9s} {'imp 50x400':>10s} {'plain 50x400':>12s} "
           f"{'imp 30x150':>10s} {'plain 30x150':>12s} {'paper imp':>9s} {'paper plain':>11s}")
     rep = sc.REPORTED["002"]
     for table in (1, 2):
-        for k, a in enumerate(sc.PAPER002_NOISE_PP_NT):
-            sim = sc.paper002_simulation(table, a * NT)
+        for k, a in enumerate(sc.DING2024_NOISE_PP_NT):
+            sim = sc.ding2024_simulation(table, a * NT)
             rec, _ = sim.run(uniform_random(300, 7), rng=3)
             r = rec.vectors[:, 0]
             m, o = sim.sensors[0].correction()
-            floor = np.sqrt(np.mean((np.linalg.norm((r - o) @ m.T, axis=1) - sc.PAPER002_F) ** 2))
-            f = sc.PAPER002_F
+            floor = np.sqrt(np.mean((np.linalg.norm((r - o) @ m.T, axis=1) - sc.DING2024_F) ** 2))
+            f = sc.DING2024_F
             big = [pso_fit(r, f, seed=0, improved=v).residual_rms for v in (True, False)]
             small = [np.median([pso_fit(r, f, 30, 150, seed=s, improved=v).residual_rms for s in range(seeds)])
                      for v in (True, False)]
@@ -256,30 +256,30 @@ def paper002_pso(seeds: int = 5) -> None:
                   f"{rep[f'table{table}_improved'][k]:9.3g} {plain}")
 
 
-def paper003_j(seeds: int = 10) -> None:
+def wu2013_j(seeds: int = 10) -> None:
     """Wu et al. (2013): mean J over ``seeds`` (2N = 1440 samples, three full turns)."""
     print("\nWu et al. (2013) index J (mean of 10 seeds; the extracted paper prints no J values)")
     print(f"  {'sd (1e4 nT)':>11s} {'paired (paper)':>14s} {'paired+offset':>13s} {'ml':>9s}")
     for sd in (1e-4, 1e-3, 1e-2, 3e-2):
-        sim = sc.paper003_simulation(sd)
+        sim = sc.wu2013_simulation(sd)
         js = []
         for seed in range(seeds):
             r = sim.run(three_rotations(480), rng=seed)[0].vectors[:, 0]
             fits = (paired_fit(r, None, seed=seed, fit_offset=False), paired_fit(r, None, seed=seed), ml_fit(r, None))
-            js.append([j_index(q_to_angles(matrix_to_q(x.matrix)), sc.PAPER003_TRUTH) for x in fits])
+            js.append([j_index(q_to_angles(matrix_to_q(x.matrix)), sc.WU2013_TRUTH) for x in fits])
         mean = np.mean(js, axis=0)
         print(f"  {sd:11.0e} {mean[0]:14.3g} {mean[1]:13.3g} {mean[2]:9.3g}")
 
 
-def paper004_axis() -> None:
+def coaxial2022_axis() -> None:
     """The JNWPU 2022 coaxial calibration paper: worst inter-sensor axis angle (deg) before and after, per method."""
-    sim = sc.paper004_simulation()
-    rec, _ = sim.run(paper004_grid(), rng=5)
+    sim = sc.coaxial2022_simulation()
+    rec, _ = sim.run(coaxial2022_grid(), rng=5)
     forward = np.stack([s.forward()[0] for s in sim.sensors])
     print("\nthe JNWPU 2022 coaxial calibration paper worst axis angle to sensor 1 (deg; paper: ~1-2 before, < 0.01 after)")
     print(f"  before {axis_error_deg(np.tile(np.eye(3), (4, 1, 1)), forward):.3f}")
     for method in METHODS:
-        cal = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F, method=method).calibration
+        cal = calibrate_array(rec.vectors, sim.geometry, sc.COAXIAL2022_F, method=method).calibration
         print(f"  {method:10s} {axis_error_deg(cal.matrices, forward):.2e}")
 
 
@@ -288,11 +288,11 @@ def main() -> None:
     print("magcal_ros calibration benchmark (PSO budget: 50 particles x 400 iterations)")
     for scen in scenarios():
         run_scenario(scen)
-    paper000_reproduction()
-    paper001_reproduction()
-    paper002_pso()
-    paper003_j()
-    paper004_axis()
+    li2018_reproduction()
+    gradiometer_reproduction()
+    ding2024_pso()
+    wu2013_j()
+    coaxial2022_axis()
     t = time_ml_2000()
     print(f"\nfull 4-sensor 'ml' solve on 2000 sets: {t:.3f} s (target < 0.5 s) {'OK' if t < 0.5 else 'SLOW'}")
 

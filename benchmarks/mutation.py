@@ -220,16 +220,16 @@ _FIT = ["test/test_accuracy.py", "test/test_methods.py", "test/test_core.py",
         "--deselect", "test/test_core.py::test_48_random_attitudes_stay_near_the_floor_and_joint_refinement_matters",
         "--deselect", "test/test_core.py::test_pipeline_on_fresh_data_is_at_the_floor"]
 SUBSETS: dict[str, list[str]] = {
-    "magcal_ros/core/scalar_fit.py": ["test/test_papers.py::test_paper002_ml_at_noise_floor",
-                                      "test/test_papers.py::test_paper000_table3_misalignment", *_FIT],
+    "magcal_ros/core/scalar_fit.py": ["test/test_papers.py::test_ding2024_ml_at_noise_floor",
+                                      "test/test_papers.py::test_li2018_table3_misalignment", *_FIT],
     "magcal_ros/core/array_fit.py": _FIT,
-    "magcal_ros/core/alignment.py": ["test/test_papers.py::test_paper000_table3_misalignment",
-                                     "test/test_papers.py::test_paper004_axis_angle", *_FIT],
+    "magcal_ros/core/alignment.py": ["test/test_papers.py::test_li2018_table3_misalignment",
+                                     "test/test_papers.py::test_coaxial2022_axis_angle", *_FIT],
     "magcal_ros/core/tensor.py": ["test/test_tensor_geometry.py", "test/test_core.py",
                                   "test/test_methods.py::test_pipeline_methods"],
     "magcal_ros/core/sync.py": ["test/test_sync.py", "test/test_bagio.py"],
     "magcal_ros/io/cdr.py": ["test/test_bagio.py", "test/test_node_helpers.py"],
-    "magcal_ros/core/rotation.py": ["test/test_papers.py::test_paper000_table3_misalignment", *_FIT],
+    "magcal_ros/core/rotation.py": ["test/test_papers.py::test_li2018_table3_misalignment", *_FIT],
 }
 """The fast test subset each module's mutants run (pytest arguments), a few seconds each."""
 

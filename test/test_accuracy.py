@@ -60,20 +60,20 @@ class Case:
     options: SolveOptions | None = None
 
 
-def _p001_intensity() -> float:
-    return float(np.linalg.norm(sc.PAPER001_FIELD_NT * NT))
+def _gradiometer_intensity() -> float:
+    return float(np.linalg.norm(sc.GRADIOMETER_FIELD_NT * NT))
 
 
 CASES: dict[str, Case] = {
     # Li et al. (2018)'s cross, sensor errors and noise (sigma = 1 nT on the orthogonal output).
-    "ml": Case(sc.paper000_simulation, sc.PAPER000_F, True, False),
-    "linear": Case(sc.paper000_simulation, sc.PAPER000_F, True, False),
-    "pso": Case(sc.paper000_simulation, sc.PAPER000_F, True, False, PSO_BUDGET),
-    "paired": Case(sc.paper000_simulation, sc.PAPER000_F, False, False),  # Wu et al. (2013): no reference
+    "ml": Case(sc.li2018_simulation, sc.LI2018_F, True, False),
+    "linear": Case(sc.li2018_simulation, sc.LI2018_F, True, False),
+    "pso": Case(sc.li2018_simulation, sc.LI2018_F, True, False, PSO_BUDGET),
+    "paired": Case(sc.li2018_simulation, sc.LI2018_F, False, False),  # Wu et al. (2013): no reference
     # The JNWPU 2022 coaxial calibration's cross (0.5 m, F 48750 nT, raw noise 1 nT).
-    "reference": Case(sc.paper004_simulation, sc.PAPER004_F, True, True),
+    "reference": Case(sc.coaxial2022_simulation, sc.COAXIAL2022_F, True, True),
     # The two-fluxgate gradiometer paper: two sensors 0.5 m apart, raw noise 1 nT.
-    "regression": Case(sc.paper001_simulation, _p001_intensity(), True, True),
+    "regression": Case(sc.gradiometer_simulation, _gradiometer_intensity(), True, True),
 }
 
 SIGMA = 1 * NT  # every scenario above simulates 1 nT per axis
@@ -172,20 +172,20 @@ PRIOR_BOUNDS = (1.02, 1.07)
 
 @functools.lru_cache(maxsize=None)
 def evaluate_recalibration(seed: int = 0) -> dict[str, float]:
-    sim = sc.paper004_simulation()
+    sim = sc.coaxial2022_simulation()
     rec, _ = sim.run(uniform_random(CAL_SETS, 1000 + seed), rng=2000 + seed)
-    ashore = calibrate_array(rec.vectors, sim.geometry, sc.PAPER004_F).calibration
+    ashore = calibrate_array(rec.vectors, sim.geometry, sc.COAXIAL2022_F).calibration
     rng = np.random.default_rng(seed)
     drifted = replace(sim, sensors=tuple(replace(s, offset=s.offset + rng.normal(0.0, 300 * NT, 3))
                                          for s in sim.sensors))
     sea, _ = drifted.run(sea_manoeuvre(600, rng=3000 + seed), rng=4000 + seed)
-    res = calibrate_array(sea.vectors, sim.geometry, sc.PAPER004_F, prior=ashore, stamps=sea.stamps)
+    res = calibrate_array(sea.vectors, sim.geometry, sc.COAXIAL2022_F, prior=ashore, stamps=sea.stamps)
     fresh, _ = drifted.run(sea_manoeuvre(1000, rng=7000 + seed), rng=6000 + seed)
     b = tt.correct(res.calibration.matrices, res.calibration.offsets, fresh.vectors)
     b_true = tt.correct(*tt.true_correction(drifted), fresh.vectors)
     pos = sim.geometry.positions
-    tmi = tt.rms(np.linalg.norm(b, axis=2) - sc.PAPER004_F, axis=0)
-    tmi_true = tt.rms(np.linalg.norm(b_true, axis=2) - sc.PAPER004_F, axis=0)
+    tmi = tt.rms(np.linalg.norm(b, axis=2) - sc.COAXIAL2022_F, axis=0)
+    tmi_true = tt.rms(np.linalg.norm(b_true, axis=2) - sc.COAXIAL2022_F, axis=0)
     return {"gradient": float(tt.rms(tt.cross_rows(b, pos)) / tt.rms(tt.cross_rows(b_true, pos))),
             "tmi": float(np.max(tmi / tmi_true)),
             "offsets_updated": float({"offset x", "offset y", "offset z"} <= {q.name for q in res.identifiability.updated()})}

@@ -54,25 +54,25 @@ def calibrate_csv(tmp: Path, rec: Recording, *args: object) -> tuple[object, str
 def test_one_sensor_at_the_tmi_floor_of_the_true_calibration(tmp_path: Path, table: int) -> None:
     """Ding (2024) Tables 1 and 2, 300 random attitudes, 2 and 10 nT peak-to-peak noise, no positions."""
     for peak in (2 * NT, 10 * NT):
-        sim = ArraySimulation(ArrayGeometry.single("mag1"), (sc.paper002_sensor(table),),
-                              earth_field(sc.PAPER002_F, 52.0, -7.0), noise=peak / np.sqrt(12), noise_kind="uniform")
+        sim = ArraySimulation(ArrayGeometry.single("mag1"), (sc.ding2024_sensor(table),),
+                              earth_field(sc.DING2024_F, 52.0, -7.0), noise=peak / np.sqrt(12), noise_kind="uniform")
         rng = np.random.default_rng(table)
         rec, _ = sim.run(uniform_random(300, rng), rng)
-        cal, out = calibrate_csv(tmp_path, rec, "--reference-field", sc.PAPER002_F)
+        cal, out = calibrate_csv(tmp_path, rec, "--reference-field", sc.DING2024_F)
         assert "calibrated 1 sensor" in out and "sensor axes made orthogonal" in out
         assert cal.geometry.gradient_kind == "none"
         fresh, _ = sim.run(uniform_random(4000, rng), rng)
         m_true, o_true = true_correction(sim)
-        ratio = tmi_rms(corrected(cal.matrices, cal.offsets, fresh.vectors), sc.PAPER002_F) / tmi_rms(
-            corrected(m_true, o_true, fresh.vectors), sc.PAPER002_F)
+        ratio = tmi_rms(corrected(cal.matrices, cal.offsets, fresh.vectors), sc.DING2024_F) / tmi_rms(
+            corrected(m_true, o_true, fresh.vectors), sc.DING2024_F)
         assert ratio < 1.03, f"table {table}, {peak / NT:g} nT p-p: TMI {ratio:.3f}x the true calibration"
 
 
 def test_one_sensor_at_strong_noise_without_a_reference(tmp_path: Path) -> None:
     """Wu et al. (2013): noise sd 1e-2 of the field unit, no offset, no reference intensity."""
-    s = sc.paper003_sensor()
-    sim = ArraySimulation(ArrayGeometry.single("s1"), (s,), np.array([1.0, 1.0, np.sqrt(2.0)]) * sc.PAPER003_UNIT,
-                          noise=1e-2 * sc.PAPER003_UNIT)
+    s = sc.wu2013_sensor()
+    sim = ArraySimulation(ArrayGeometry.single("s1"), (s,), np.array([1.0, 1.0, np.sqrt(2.0)]) * sc.WU2013_UNIT,
+                          noise=1e-2 * sc.WU2013_UNIT)
     rng = np.random.default_rng(3)
     rec, _ = sim.run(uniform_random(720, rng), rng)
     cal, _ = calibrate_csv(tmp_path, rec)
@@ -87,7 +87,7 @@ def test_one_sensor_at_strong_noise_without_a_reference(tmp_path: Path) -> None:
 def test_two_sensor_gradiometer_baseline_gradient_at_its_floor(tmp_path: Path) -> None:
     """The two-fluxgate gradiometer paper: 0.5 m apart, three turns of 10 points; the gradient along
     the baseline within 10 % of sqrt(2) sigma / d on fresh data."""
-    sim = sc.paper001_simulation()
+    sim = sc.gradiometer_simulation()
     f = float(np.linalg.norm(sim.earth))
     rng = np.random.default_rng(1)
     rec, _ = sim.run(np.concatenate([three_rotations(40), uniform_random(400, rng)]), rng)

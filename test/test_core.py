@@ -7,7 +7,7 @@ import pytest
 import truth_tools as tt
 from scipy.spatial.transform import Rotation
 
-from magcal_ros.core.alignment import paper000_angles
+from magcal_ros.core.alignment import li2018_angles
 from magcal_ros.core.array_fit import _inv2, fit_array
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import ArrayGeometry
@@ -35,7 +35,7 @@ from magcal_ros.core.units import NT
 from magcal_ros.errors import CalibrationFailed, InputError, ObservabilityError
 from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
 from magcal_ros.sim.attitudes import (
-    paper000_grid,
+    li2018_grid,
     single_axis,
     three_rotations,
     uniform_random,
@@ -67,7 +67,7 @@ def test_sensor_errors_round_trip_through_matrices():
     np.testing.assert_allclose(back.offset, e.offset, atol=1e-20)
 
 
-def test_euler_convention_matches_paper000_eq6():
+def test_euler_convention_matches_li2018_eq6():
     a, b, g = np.radians([-21.97, 12.88, 13.64])
     t = euler_to_matrix(a, b, g)
     assert t[0, 2] == pytest.approx(-np.sin(b))
@@ -156,7 +156,7 @@ def test_robust_loss_survives_spikes():
 @pytest.mark.parametrize("reference", [F, None])
 def test_pipeline_on_fresh_data_is_at_the_floor(reference):
     sim = simulation()
-    rec, _ = sim.run(paper000_grid(), 11)
+    rec, _ = sim.run(li2018_grid(), 11)
     result = calibrate_array(rec.vectors, CROSS, reference)
     fresh, _ = sim.run(uniform_random(3000, 12), 13)
     b = result.calibration.apply(fresh.vectors)
@@ -248,7 +248,7 @@ def test_48_random_attitudes_stay_near_the_floor_and_joint_refinement_matters():
     assert np.mean(joint) - 1.0 < 0.67 * (np.mean(per_sensor) - 1.0)
 
 
-def test_paper000_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
+def test_li2018_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
     """docs/methods.md, pitfall B: Li et al.'s (2018) own 10 samples (one z turn) cannot determine M."""
     rec, _ = simulation().run(single_axis("z", 12)[:10], 1)
     with pytest.raises(ObservabilityError, match=r"one axis only \(about z.*x or y"):
@@ -290,10 +290,10 @@ def test_euler_angles_stay_finite_when_rounding_pushes_a_sine_past_one():
     b = np.random.default_rng(4).normal(0.0, 5e-5, (20, 3))
     for angles in ((np.pi / 2, 0.0, 0.3), (-np.pi / 2, 0.0, 0.3)):  # heel of +-90 deg: sin(alpha) = +-1
         t = euler_to_matrix(*angles)
-        np.testing.assert_allclose(euler_to_matrix(*paper000_angles(b, (1 + 1e-9) * b @ t.T)), t, atol=1e-6)
+        np.testing.assert_allclose(euler_to_matrix(*li2018_angles(b, (1 + 1e-9) * b @ t.T)), t, atol=1e-6)
     for sign in (1.0, -1.0):  # pitch of +-90 deg: sin(beta) = +-1 (gimbal lock: only beta is defined)
         t = euler_to_matrix(0.0, sign * np.pi / 2, 0.0)
-        assert paper000_angles(b, (1 + 1e-9) * b @ t.T)[1] == pytest.approx(sign * np.pi / 2)
+        assert li2018_angles(b, (1 + 1e-9) * b @ t.T)[1] == pytest.approx(sign * np.pi / 2)
 
 
 def test_angle_alignment_accepts_three_close_but_independent_directions():
@@ -303,11 +303,11 @@ def test_angle_alignment_accepts_three_close_but_independent_directions():
     d = np.array([[1.0, 0.0, 0.0], [1.0, eps, 0.0], [1.0, 0.0, eps]])
     b = F * d / np.linalg.norm(d, axis=1, keepdims=True)
     t = euler_to_matrix(0.02, -0.03, 0.05)
-    np.testing.assert_allclose(paper000_angles(b, b @ t.T), (0.02, -0.03, 0.05), atol=1e-9)
+    np.testing.assert_allclose(li2018_angles(b, b @ t.T), (0.02, -0.03, 0.05), atol=1e-9)
     flat = b.copy()
     flat[2] = F * np.array([1.0, 0.5 * eps, 0.0]) / np.hypot(1.0, 0.5 * eps)
     with pytest.raises(InputError, match="span 3-D"):
-        paper000_angles(flat, flat @ t.T)
+        li2018_angles(flat, flat @ t.T)
 
 
 def test_zero_reference_field_means_relative_and_the_linear_fit_reports_its_residual():

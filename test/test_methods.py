@@ -30,7 +30,7 @@ from magcal_ros.methods.pso import (
     upper_triangular,
 )
 from magcal_ros.sim import scenarios as sc
-from magcal_ros.sim.attitudes import paper000_grid, uniform_random
+from magcal_ros.sim.attitudes import li2018_grid, uniform_random
 
 F = 50_000 * NT
 
@@ -115,14 +115,14 @@ def test_pso_bad_arguments() -> None:
 
 
 def test_q_angles_round_trip() -> None:
-    q = angles_to_q(*sc.PAPER003_TRUTH)
+    q = angles_to_q(*sc.WU2013_TRUTH)
     # Wu et al. (2013)'s true G (digest, checked with sympy).
     expected = [[0.954766, -0.084247, -0.063473], [0.0, 1.050841, 0.040021], [0.0, 0.0, 1.0]]
     assert np.allclose(q_to_matrix(q), expected, atol=1e-6)
-    assert np.allclose(q_to_angles(q), sc.PAPER003_TRUTH, atol=1e-14)
+    assert np.allclose(q_to_angles(q), sc.WU2013_TRUTH, atol=1e-14)
     assert np.allclose(matrix_to_q(3.0 * q_to_matrix(q)), q)
-    assert np.allclose(np.linalg.inv(sc.paper003_sensor().triangular), q_to_matrix(q))
-    assert j_index(sc.PAPER003_TRUTH, sc.PAPER003_TRUTH) == 0.0
+    assert np.allclose(np.linalg.inv(sc.wu2013_sensor().triangular), q_to_matrix(q))
+    assert j_index(sc.WU2013_TRUTH, sc.WU2013_TRUTH) == 0.0
 
 
 def test_split_pairs_is_a_partition() -> None:
@@ -158,23 +158,23 @@ def test_paired_needs_enough_readings() -> None:
 
 
 @pytest.mark.parametrize("method, reference, tmi_bound, tensor_bound", [
-    ("pso", sc.PAPER000_F, 1.01, 1.015), ("paired", sc.PAPER000_F, 1.04, 1.035), ("paired", None, 1.04, 1.035)])
+    ("pso", sc.LI2018_F, 1.01, 1.015), ("paired", sc.LI2018_F, 1.04, 1.035), ("paired", None, 1.04, 1.035)])
 def test_pipeline_methods(method: str, reference: float | None, tmi_bound: float, tensor_bound: float) -> None:
     """On the fit data (576 sets of Li et al.'s grid) against the true calibration on the same
     data. Measured over 10 noise seeds (mean / sd / max), worst sensor's TMI and the tensor:
     pso 0.996 / 0.0015 / 0.998 and 1.001 / 0.002 / 1.004; paired (with or without F, the
     same up to scale) 1.006 / 0.005 / 1.015 and 1.009 / 0.004 / 1.015. The summary's own
     tensor figure against sqrt(2) sigma / d: 1.002..1.011 / 0.015 / 1.04 (sampling of 576 sets)."""
-    sim = sc.paper000_simulation()
-    rec, _ = sim.run(paper000_grid()[::3], rng=2)
+    sim = sc.li2018_simulation()
+    rec, _ = sim.run(li2018_grid()[::3], rng=2)
     opts = SolveOptions(pso_particles=40, pso_iterations=300)
     res = calibrate_array(rec.vectors, sim.geometry, reference, method=method, options=opts)
     ideal = tt.correct(*tt.true_correction(sim), rec.vectors)
-    floor = tmi_rms(ideal, sc.PAPER000_F)
+    floor = tmi_rms(ideal, sc.LI2018_F)
     assert res.relative == (reference is None)
-    scale = sc.PAPER000_F / res.intensity
+    scale = sc.LI2018_F / res.intensity
     b = tt.correct(res.calibration.matrices * scale, res.calibration.offsets, rec.vectors)
-    assert np.all(tmi_rms(b, sc.PAPER000_F) < tmi_bound * floor)
+    assert np.all(tmi_rms(b, sc.LI2018_F) < tmi_bound * floor)
     pos = sim.geometry.positions
     assert tt.rms(tt.cross_rows(b, pos)) < tensor_bound * tt.rms(tt.cross_rows(ideal, pos))
-    assert res.tensor_after * scale < 1.1 * tt.difference_floor(1 * NT, sc.PAPER000_BASELINE)
+    assert res.tensor_after * scale < 1.1 * tt.difference_floor(1 * NT, sc.LI2018_BASELINE)

@@ -366,7 +366,7 @@ def test_single_axis_rotation_is_refused_clearly(tmp_path: Path) -> None:
 
 def test_simulate_options(tmp_path: Path) -> None:
     out = tmp_path / "grid.csv"
-    proc = ok(magcal("simulate", out, "--schedule", "paper004", "--hard-iron-sd", "1e-7", "--soft-iron-sd", "0.01",
+    proc = ok(magcal("simulate", out, "--schedule", "coaxial2022", "--hard-iron-sd", "1e-7", "--soft-iron-sd", "0.01",
                      "--noise-kind", "uniform", "--intensity", "4.8e-5", "--inclination", "-30", "--declination", "12",
                      "--rate", "50", "--baseline", "0.5", "--scale-sd", "0.01", "--angle-sd", "0.5",
                      "--offset-sd", "1e-7", "--misalignment-sd", "1"))
@@ -376,7 +376,7 @@ def test_simulate_options(tmp_path: Path) -> None:
     np.testing.assert_allclose(np.linalg.norm(truth["earth"]), 4.8e-5)
     np.testing.assert_allclose(np.abs(truth["positions"]).max(), 0.25)
     sim = yaml.safe_load(truth_paths(out)[0].read_text())["magcal_simulation"]["ros__parameters"]
-    assert sim["schedule"] == "paper004" and sim["noise_kind"] == "uniform" and sim["hard_iron_sd"] == 1e-7
+    assert sim["schedule"] == "coaxial2022" and sim["noise_kind"] == "uniform" and sim["hard_iron_sd"] == 1e-7
     bad = magcal("simulate", tmp_path / "x", "--dipole", "1,2,3")
     assert bad.returncode == 2 and "--dipole" in bad.stderr and not (tmp_path / "x").exists()
 

@@ -29,7 +29,7 @@ NS = 1_000_000_000
 def odd_recording(n: int = 200) -> Recording:
     """Sets 10 ms apart plus odd nanoseconds, from a simulated array (any readings would do)."""
     rng = np.random.default_rng(2)
-    sim = scenarios.paper004_simulation()
+    sim = scenarios.coaxial2022_simulation()
     rec, _ = sim.run(uniform_random(n, rng), rng)
     stamps = 1_763_900_000 * NS + np.arange(n, dtype=np.int64) * 10_000_000 + rng.integers(1, 999, n) * 1_000_003
     return Recording(rec.names, np.sort(stamps) + 7, rec.vectors)
@@ -40,7 +40,7 @@ def calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("cal") / "identity.yaml"
     from magcal_ros.core.calibration import ArrayCalibration
 
-    path.write_text(calfile.dumps(ArrayCalibration.identity(scenarios.paper004_simulation().geometry)))
+    path.write_text(calfile.dumps(ArrayCalibration.identity(scenarios.coaxial2022_simulation().geometry)))
     return path
 
 

@@ -97,7 +97,7 @@ methods:
 
 EPILOG_SIMULATE = """examples:
   magcal simulate rotation_bag                       # 1000 random attitudes, sqlite3 bag
-  magcal simulate rotation.mcap_bag --storage mcap --schedule paper000
+  magcal simulate rotation.mcap_bag --storage mcap --schedule li2018
   magcal simulate rotation.csv --count 2000 --noise 2e-9 --seed 7
   magcal simulate survey_bag --schedule single-axis --axis z --count 360 \\
       --dipole 3,1,0.5,20,0,50 --position 0,0,0   # same --seed: same sensors as rotation_bag
@@ -125,8 +125,9 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
   magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
-schedules: single-axis (one turn about --axis, --count steps), paper000 (12^3 grid of 30
-deg steps, 1728 sets), paper004 (144-attitude grid), three-axes (a turn about each axis,
+schedules: single-axis (one turn about --axis, --count steps), li2018 (Li et al. 2018: 12^3
+grid of 30 deg steps, 1728 sets), coaxial2022 (the 2022 coaxial array calibration paper: x
+every 60 deg, y every 90, z every 60, 144 sets), three-axes (a turn about each axis,
 --count in total), random (--count uniform attitudes), sea (what a vehicle flies: --turns
 yaw circles while pitch and roll swing +-PITCH and +-ROLL deg, plus --wobble; in time
 order), tumble (a smooth hand-held tumble through all attitudes, in time order)."""
@@ -600,7 +601,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from magcal_ros.sim.spec import SCHEDULE_NAMES, SimulationSpec
+    from magcal_ros.sim.spec import SCHEDULE_ALIASES, SCHEDULE_NAMES, SimulationSpec
 
     d = SimulationSpec()
     p = _subcommand(
@@ -611,7 +612,8 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     )
     p.add_argument("output", metavar="OUT", help="rosbag2 directory to create, or a .csv file")
     g = p.add_argument_group("attitudes")
-    g.add_argument("--schedule", default=d.schedule, choices=SCHEDULE_NAMES, help=f"rotation schedule (default {d.schedule})")
+    g.add_argument("--schedule", default=d.schedule, choices=SCHEDULE_NAMES + tuple(SCHEDULE_ALIASES),
+                   metavar="{" + ",".join(SCHEDULE_NAMES) + "}", help=f"rotation schedule (default {d.schedule})")
     g.add_argument("--count", type=int, default=d.count, help=f"attitudes for single-axis/three-axes/random (default {d.count})")
     g.add_argument("--axis", default=d.axis, choices=["x", "y", "z"], help="rotation axis of single-axis (default z)")
     g.add_argument("--pitch", type=float, default=d.pitch, metavar="DEG",

@@ -20,7 +20,7 @@ def align_procrustes(b: ArrayLike, reference: ArrayLike) -> Array:
     return procrustes(b, reference)
 
 
-def paper000_angles(b: ArrayLike, reference: ArrayLike) -> tuple[float, float, float]:
+def li2018_angles(b: ArrayLike, reference: ArrayLike) -> tuple[float, float, float]:
     """Li et al. (2018) eq. 7-10: rows ``Vx``, ``Vy`` of ``T`` by linear least squares, then angles.
 
     Returns ``(alpha, beta, gamma)`` in rad with ``B ~ T(alpha, beta, gamma) b``. Needs
@@ -40,7 +40,7 @@ def paper000_angles(b: ArrayLike, reference: ArrayLike) -> tuple[float, float, f
 
 def align_angles(b: ArrayLike, reference: ArrayLike) -> Array:
     """Li et al. (2018)'s least-squares angles as a rotation matrix."""
-    return euler_to_matrix(*paper000_angles(b, reference))
+    return euler_to_matrix(*li2018_angles(b, reference))
 
 
 def affine_regression(raw: ArrayLike, reference: ArrayLike) -> tuple[Array, Array]:

@@ -44,12 +44,12 @@ def nested_grid(steps_deg: tuple[float, float, float]) -> Array:
     return np.concatenate(out)
 
 
-def paper000_grid() -> Array:
+def li2018_grid() -> Array:
     """Li et al. (2018): 30 deg steps about z, y, x: 1728 attitudes."""
     return nested_grid((30.0, 30.0, 30.0))
 
 
-def paper004_grid() -> Array:
+def coaxial2022_grid() -> Array:
     """The JNWPU 2022 coaxial calibration paper: x every 60 deg, y every 90 deg, z every 60 deg: 144 attitudes."""
     return nested_grid((60.0, 90.0, 60.0))
 
@@ -113,8 +113,8 @@ def tumble(count: int, step_deg: float = 3.0, rng: np.random.Generator | int | N
 
 SCHEDULES = {
     "single-axis": lambda n, rng: single_axis("z", n),
-    "paper000": lambda n, rng: paper000_grid(),
-    "paper004": lambda n, rng: paper004_grid(),
+    "li2018": lambda n, rng: li2018_grid(),
+    "coaxial2022": lambda n, rng: coaxial2022_grid(),
     "three-axes": lambda n, rng: three_rotations(max(1, n // 3)),
     "random": lambda n, rng: uniform_random(n, rng),
     "tumble": lambda n, rng: tumble(n, rng=rng),

@@ -19,16 +19,16 @@ from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 Array = NDArray[np.float64]
 
 # Li et al. (2018) (Li et al. 2018): Table 1 sensor errors, Table 3 misalignments, sections 5.1-5.2.
-PAPER000_F: float = 60_000 * NT
-PAPER000_BASELINE: float = 0.4
-PAPER000_ANGLES_DEG: Array = np.array(  # (phi, theta, psi) per sensor
+LI2018_F: float = 60_000 * NT
+LI2018_BASELINE: float = 0.4
+LI2018_ANGLES_DEG: Array = np.array(  # (phi, theta, psi) per sensor
     [[3.56, -1.85, 2.27], [-2.74, 3.11, 1.66], [1.86, -2.95, 3.02], [-3.28, 2.44, -1.88]]
 )
-PAPER000_SCALE: Array = np.array(
+LI2018_SCALE: Array = np.array(
     [[1.253, 1.175, 0.859], [0.951, 1.202, 1.105], [1.110, 0.799, 1.308], [0.853, 1.235, 1.186]]
 )
-PAPER000_OFFSET_NT: Array = np.array([[357, 160, -213], [-253, 183, 97], [169, -364, 245], [256, 169, -166]], float)
-PAPER000_MISALIGNMENT_RAD: Array = np.array(  # (alpha, beta, gamma), Table 3 in rad
+LI2018_OFFSET_NT: Array = np.array([[357, 160, -213], [-253, 183, 97], [169, -364, 245], [256, 169, -166]], float)
+LI2018_MISALIGNMENT_RAD: Array = np.array(  # (alpha, beta, gamma), Table 3 in rad
     [
         [-0.383449, 0.224798, 0.238063],
         [0.218341, -0.069115, 0.373850],
@@ -38,8 +38,8 @@ PAPER000_MISALIGNMENT_RAD: Array = np.array(  # (alpha, beta, gamma), Table 3 in
 )
 
 # Ding (2024) (Ding 2024): Tables 1 and 2, F 51500 nT, D -7 deg, I 52 deg.
-PAPER002_F: float = 51_500 * NT
-PAPER002_TABLES: dict[int, dict[str, Array]] = {
+DING2024_F: float = 51_500 * NT
+DING2024_TABLES: dict[int, dict[str, Array]] = {
     1: {
         "offset_nt": np.array([75.5, 57.3, -42.6]),
         "scale": np.array([1.031, 0.988, 0.982]),
@@ -55,24 +55,24 @@ PAPER002_TABLES: dict[int, dict[str, Array]] = {
         "soft_iron": np.array([[0.09, 0.05, 0.09], [0.15, -0.04, 0.10], [-0.04, 0.09, 0.15]]),
     },
 }
-PAPER002_NOISE_PP_NT: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0)
+DING2024_NOISE_PP_NT: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0)
 """Peak-to-peak uniform noise amplitudes of Ding (2024) (sd = a / sqrt(12))."""
 
 # Wu et al. (2013) (Wu et al. 2013): (theta, phi, psi) rad and gains k'xz, k'yz relative to z.
-PAPER003_TRUTH: Array = np.array([0.06, 0.08, -0.04, 0.95, 1.05])
-PAPER003_UNIT: float = 1e4 * NT
+WU2013_TRUTH: Array = np.array([0.06, 0.08, -0.04, 0.95, 1.05])
+WU2013_UNIT: float = 1e4 * NT
 """Wu et al. (2013)'s field unit: the field is (1, 1, sqrt 2) units and noise sd is quoted in units."""
 
 # The two-fluxgate gradiometer paper: field vector as printed (x, y, z) nT, Tables 1-2 (non-orthogonality P, sensitivity K, offset E).
-PAPER001_FIELD_NT: Array = np.array([31653.3, -1968.8, 41810.1])
-PAPER001_P: tuple[Array, Array] = (
+GRADIOMETER_FIELD_NT: Array = np.array([31653.3, -1968.8, 41810.1])
+GRADIOMETER_P: tuple[Array, Array] = (
     np.array([[0.9994, 0.0140, 0.0], [0.0, 0.9998, 0.0], [0.0349, -0.0175, 1.0]]),
     np.array([[0.9988, 0.0331, -0.0209], [-0.0349, 0.9985, -0.0007], [0.0349, -0.0436, 0.9998]]),
 )
-PAPER001_K: tuple[Array, Array] = (np.diag([0.9870, 1.0460, 1.0120]), np.diag([0.9910, 0.9890, 1.0120]))
-PAPER001_E_NT: tuple[Array, Array] = (np.array([-30.0, 60.0, 110.0]), np.array([600.0, -70.0, 20.0]))
+GRADIOMETER_K: tuple[Array, Array] = (np.diag([0.9870, 1.0460, 1.0120]), np.diag([0.9910, 0.9890, 1.0120]))
+GRADIOMETER_E_NT: tuple[Array, Array] = (np.array([-30.0, 60.0, 110.0]), np.array([600.0, -70.0, 20.0]))
 
-PAPER004_F: float = 48_750 * NT
+COAXIAL2022_F: float = 48_750 * NT
 
 REPORTED: dict[str, dict[str, tuple[float, ...]]] = {
     "000": {
@@ -90,34 +90,34 @@ REPORTED: dict[str, dict[str, tuple[float, ...]]] = {
 }
 
 
-def paper000_sensors() -> tuple[SensorErrors, ...]:
+def li2018_sensors() -> tuple[SensorErrors, ...]:
     """Li et al. (2018)'s four sensors: Table 1 errors and Table 3 misalignments."""
     return tuple(
         SensorErrors(
-            scale=PAPER000_SCALE[i],
-            angles=np.radians(PAPER000_ANGLES_DEG[i]),
-            offset=PAPER000_OFFSET_NT[i] * NT,
-            misalignment=PAPER000_MISALIGNMENT_RAD[i],
+            scale=LI2018_SCALE[i],
+            angles=np.radians(LI2018_ANGLES_DEG[i]),
+            offset=LI2018_OFFSET_NT[i] * NT,
+            misalignment=LI2018_MISALIGNMENT_RAD[i],
         )
         for i in range(4)
     )
 
 
-def paper000_simulation(noise: float = 1 * NT) -> ArraySimulation:
+def li2018_simulation(noise: float = 1 * NT) -> ArraySimulation:
     """Li et al. (2018): cross of 0.4 m, F 60000 nT, I 57, D -5 deg, Gaussian noise on the
     misaligned orthogonal output (before scale and non-orthogonality)."""
     return ArraySimulation(
-        ArrayGeometry.cross(PAPER000_BASELINE),
-        paper000_sensors(),
-        earth_field(PAPER000_F, 57.0, -5.0),
+        ArrayGeometry.cross(LI2018_BASELINE),
+        li2018_sensors(),
+        earth_field(LI2018_F, 57.0, -5.0),
         noise=noise,
         noise_domain="sensor",
     )
 
 
-def paper002_sensor(table: int, misalignment_deg: ArrayLike | None = None) -> SensorErrors:
+def ding2024_sensor(table: int, misalignment_deg: ArrayLike | None = None) -> SensorErrors:
     """Ding (2024) Table 1 or 2 sensor with hull hard and soft iron."""
-    t = PAPER002_TABLES[table]
+    t = DING2024_TABLES[table]
     return SensorErrors(
         scale=t["scale"],
         angles=np.radians(t["angles_deg"]),
@@ -128,71 +128,71 @@ def paper002_sensor(table: int, misalignment_deg: ArrayLike | None = None) -> Se
     )
 
 
-def paper002_simulation(table: int, peak_to_peak: float, seed: int = 0) -> ArraySimulation:
+def ding2024_simulation(table: int, peak_to_peak: float, seed: int = 0) -> ArraySimulation:
     """A cross array of Ding (2024) sensors: Table ``table`` errors on every sensor plus a
     random 2-deg misalignment each (the paper has one sensor and no array), uniform noise
     of ``peak_to_peak`` (T) on the raw output."""
     rng = np.random.default_rng(seed)
-    sensors = tuple(paper002_sensor(table, rng.normal(0.0, 2.0, 3)) for _ in range(4))
+    sensors = tuple(ding2024_sensor(table, rng.normal(0.0, 2.0, 3)) for _ in range(4))
     return ArraySimulation(
         ArrayGeometry.cross(),
         sensors,
-        earth_field(PAPER002_F, 52.0, -7.0),
+        earth_field(DING2024_F, 52.0, -7.0),
         noise=peak_to_peak / np.sqrt(12.0),
         noise_kind="uniform",
         noise_domain="raw",
     )
 
 
-def paper003_sensor() -> SensorErrors:
+def wu2013_sensor() -> SensorErrors:
     """Wu et al. (2013)'s sensor: ``Gamma = diag(1/k'xz, 1/k'yz, 1) A(theta, phi, psi)``.
 
     Wu et al. (2013)'s theta (elevation) and phi (azimuth) are this package's phi and theta.
     """
-    theta, phi, psi, kxz, kyz = PAPER003_TRUTH
+    theta, phi, psi, kxz, kyz = WU2013_TRUTH
     return SensorErrors(scale=[1.0 / kxz, 1.0 / kyz, 1.0], angles=[theta, phi, psi])
 
 
-def paper003_simulation(sd_units: float) -> ArraySimulation:
+def wu2013_simulation(sd_units: float) -> ArraySimulation:
     """Wu et al. (2013): field (1, 1, sqrt 2) x 1e4 nT, Gaussian raw noise of ``sd_units`` x 1e4 nT,
     no offset. Two identical sensors (an array needs two); use sensor 0."""
-    s = paper003_sensor()
+    s = wu2013_sensor()
     return ArraySimulation(
         ArrayGeometry(("s1", "s2"), [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]),
         (s, s),
-        np.array([1.0, 1.0, np.sqrt(2.0)]) * PAPER003_UNIT,
-        noise=sd_units * PAPER003_UNIT,
+        np.array([1.0, 1.0, np.sqrt(2.0)]) * WU2013_UNIT,
+        noise=sd_units * WU2013_UNIT,
     )
 
 
-def paper001_sensors() -> tuple[SensorErrors, SensorErrors]:
+def gradiometer_sensors() -> tuple[SensorErrors, SensorErrors]:
     """The two-fluxgate gradiometer paper's two sensors, ``r = K P^-1 B + E`` (the composition that fits its eq. 8)."""
     s1, s2 = (
         SensorErrors.from_forward(k @ np.linalg.inv(p), e * NT)
-        for p, k, e in zip(PAPER001_P, PAPER001_K, PAPER001_E_NT)
+        for p, k, e in zip(GRADIOMETER_P, GRADIOMETER_K, GRADIOMETER_E_NT)
     )
     return s1, s2
 
 
-def paper001_simulation(noise: float = 1 * NT) -> ArraySimulation:
+def gradiometer_simulation(noise: float = 1 * NT) -> ArraySimulation:
     """The two-fluxgate gradiometer paper: two sensors 0.5 m apart in the printed field vector (F = its norm,
     52477.5 nT), Gaussian raw noise (sd 1 nT fits the paper's results)."""
     return ArraySimulation(
         ArrayGeometry(("s1", "s2"), [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]),
-        paper001_sensors(),
-        PAPER001_FIELD_NT * NT,
+        gradiometer_sensors(),
+        GRADIOMETER_FIELD_NT * NT,
         noise=noise,
     )
 
 
-def paper004_simulation(seed: int = 4, noise: float = 1 * NT) -> ArraySimulation:
+def coaxial2022_simulation(seed: int = 4, noise: float = 1 * NT) -> ArraySimulation:
     """The JNWPU 2022 coaxial calibration paper: cross of 0.5 m, F 48750 nT. Not given by the paper and chosen here:
     field direction (I 60, D -5 deg), errors of a typical fluxgate
     (:func:`random_sensor_errors`, 1-deg misalignments: its axis angles before calibration
     are about 1-2 deg), Gaussian raw noise 1 nT."""
     rng = np.random.default_rng(seed)
     sensors = tuple(random_sensor_errors(rng, misalignment_sd_deg=1.0) for _ in range(4))
-    return ArraySimulation(ArrayGeometry.cross(0.5), sensors, earth_field(PAPER004_F, 60.0, -5.0), noise=noise)
+    return ArraySimulation(ArrayGeometry.cross(0.5), sensors, earth_field(COAXIAL2022_F, 60.0, -5.0), noise=noise)
 
 
 FIELD_TRIAL_F: float = 51_500 * NT

@@ -31,8 +31,18 @@ from magcal_ros.sim.simulator import (
     random_sensor_errors,
 )
 
-SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "paper000", "paper004", "three-axes", "random", "sea", "tumble")
+SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "li2018", "coaxial2022", "three-axes", "random", "sea", "tumble")
+SCHEDULE_ALIASES: dict[str, str] = {"paper000": "li2018", "paper004": "coaxial2022"}
+"""Schedule names of the first release, still accepted."""
 CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
+
+
+def schedule_name(name: str) -> str:
+    """The schedule called ``name`` (an alias resolved); :class:`InputError` when there is none."""
+    name = SCHEDULE_ALIASES.get(name, name)
+    if name not in SCHEDULE_NAMES:
+        raise InputError(f"unknown schedule {name!r}; choose one of {', '.join(SCHEDULE_NAMES)}")
+    return name
 
 
 def thruster_channel(index: int) -> str:
@@ -110,8 +120,7 @@ class SimulationSpec:
 
     def check(self) -> None:
         """Raise :class:`InputError` for values no simulation can use."""
-        if self.schedule not in SCHEDULE_NAMES:
-            raise InputError(f"unknown schedule {self.schedule!r}; choose one of {', '.join(SCHEDULE_NAMES)}")
+        schedule_name(self.schedule)
         if self.axis not in ("x", "y", "z"):
             raise InputError("--axis must be x, y or z")
         if self.count < 1:
@@ -162,7 +171,7 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
     elif spec.schedule == "sea":
         rot = attitudes.sea_manoeuvre(spec.count, spec.pitch, spec.roll, spec.turns, spec.wobble, att_rng)
     else:
-        rot = attitudes.SCHEDULES[spec.schedule](spec.count, att_rng)
+        rot = attitudes.SCHEDULES[schedule_name(spec.schedule)](spec.count, att_rng)
     if spec.still:
         rot = np.repeat(rot[:1], len(rot), axis=0)
     for d in sim.dipoles:
