@@ -43,10 +43,6 @@ REAL = Path(os.environ.get("MAGCAL_REAL_RECORDING", Path(__file__).resolve().par
                            / "qmc5883l_handheld.csv"))
 
 
-def array(seed: int, noise: float = NT, **kw: float) -> ArraySimulation:
-    return field_trial_array(seed, noise, **kw)
-
-
 def ratios(cal: object, sim: ArraySimulation, seed: int = 99, attitudes: np.ndarray | None = None) -> tuple[float, float]:
     """(TMI, tensor rows x and y) RMS over the true calibration's on fresh data."""
     rng = np.random.default_rng(seed)
@@ -63,7 +59,7 @@ def ratios(cal: object, sim: ArraySimulation, seed: int = 99, attitudes: np.ndar
 def outliers() -> None:
     print("outliers (1000 random sets; ratios to the clean-data calibration on fresh data)")
     for fraction in (0.05, 0.2):
-        sim = array(2)
+        sim = field_trial_array(2, NT)
         rng = np.random.default_rng(2)
         rec, _ = sim.run(uniform_random(1000, rng), rng)
         clean = ratios(calibrate_array(rec.vectors, sim.geometry, F).calibration, sim)
@@ -84,7 +80,7 @@ def envelopes(seeds: int = 4) -> None:
     for pitch, roll in ((30, 15), (15, 5), (5, 2)):
         env, pred, meas, inside, refused = [], [], [], [], 0
         for seed in range(seeds):
-            sim = array(10 + seed)
+            sim = field_trial_array(10 + seed, NT)
             rng = np.random.default_rng(seed)
             rec, _ = sim.run(sea_manoeuvre(600, pitch, roll, turns=2, rng=rng), rng)
             try:
@@ -106,7 +102,7 @@ def envelopes(seeds: int = 4) -> None:
 
 def partial_recalibration() -> None:
     print("partial recalibration (hard iron moved 300-800 nT per axis; yaw circle, +-3 deg wobble, 600 sets)")
-    sim = array(4)
+    sim = field_trial_array(4, NT)
     rng = np.random.default_rng(4)
     rec, _ = sim.run(uniform_random(1000, rng), rng)
     first = calibrate_array(rec.vectors, sim.geometry, F).calibration
@@ -128,7 +124,7 @@ def partial_recalibration() -> None:
 def correlated(runs: int = 30) -> None:
     print(f"honest uncertainty ({runs}-run Monte Carlo, smooth tumble of 800 sets): reported 1-sigma / actual spread")
     for rho in (0.0, 0.9, 0.98):
-        sim = array(7, noise_correlation=rho)
+        sim = field_trial_array(7, NT, noise_correlation=rho)
         rng = np.random.default_rng(7)
         att = tumble(800, 3.0, rng)
         vals, sigs = [], []
@@ -161,7 +157,7 @@ def real() -> None:
 
 
 def solve_time(repeats: int = 5) -> None:
-    sim = array(1)
+    sim = field_trial_array(1, NT)
     rng = np.random.default_rng(1)
     rec, _ = sim.run(uniform_random(2000, rng), rng)
     best = min(_timed(lambda: calibrate_array(rec.vectors, sim.geometry, F)) for _ in range(repeats))
