@@ -265,6 +265,14 @@ def test_site_date_max_residual_and_prior_parameters_are_checked_with_reasons(wo
     d = sea.describe_parameters(SEA, ["site", "date", "max_residual", "prior", "assess_period"])
     assert all(d[n].description for n in d) and d["max_residual"].floating_point_range[0].to_value == 1e-3
     assert sea.get_parameters(SEA, ["site", "date"]) == {"site": SITE, "date": DATE}
+    # An empty list clears the site (ros2 param set NODE site "[]"); then it can be given again.
+    assert sea.set_parameters(SEA, {"site": [], "date": ""})[0][0]
+    try:
+        (ok, reason), = sea.set_parameters(SEA, {"date": DATE})
+        assert not ok and "date needs site" in reason, reason
+    finally:
+        assert sea.set_parameters(SEA, {"site": SITE, "date": DATE})[0][0]
+    assert sea.get_parameters(SEA, ["site", "date"]) == {"site": SITE, "date": DATE}
 
 
 # --------------------------------------------------------------------------- at sea
@@ -305,7 +313,8 @@ def test_max_residual_below_the_noise_refuses_and_changes_nothing(first: dict[st
     try:
         _collect(sea, SEA, sea_data.manoeuvre.window(None, sea_data.manoeuvre.stamps[399]))
         ok, message = sea.trigger(f"{SEA}/calibrate")
-        assert not ok and "--max-residual 0.3 nT" in message and "nothing was changed" in message, message
+        assert not ok and "max residual 0.3 nT" in message and "nothing was changed" in message, message
+        assert "max_residual parameter" in message
         assert sea.get_parameters(SEA_CORRECTION, CAL_PARAMS) == first["params"]
         assert sea_data.file.read_text() == first["file"]
     finally:

@@ -125,3 +125,42 @@ def test_empty_string_lists_go_out_as_string_arrays() -> None:
 
     assert common.parameter_message("interference_channels", []).value.type == ParameterType.PARAMETER_STRING_ARRAY
     assert common.parameter_message("positions", [0, 1]).value.type == ParameterType.PARAMETER_DOUBLE_ARRAY
+
+
+def test_unstamped_currents_count_from_their_arrival() -> None:
+    """A BatteryState with a zero header stamp (many battery drivers) is stamped on receipt like a
+    Float64, live, and at its bag time offline; a stamped one keeps its stamp."""
+    from sensor_msgs.msg import BatteryState
+    from std_msgs.msg import Float64
+
+    from magcal_ros.core.interference import LatestCurrents
+    from magcal_ros.io import cdr
+    from magcal_ros.nodes import common
+
+    class Subscriber:
+        def __init__(self) -> None:
+            self.callbacks: list = []
+
+        def create_subscription(self, kind, topic, callback, qos):  # noqa: ANN001, ANN202
+            self.callbacks.append((kind, callback))
+
+    inputs = common.current_inputs({"interference_channels": ["a", "b"],
+                                    "interference_types": [common.BATTERY_STATE, common.FLOAT64]})
+    store = LatestCurrents(2, inputs.tolerance_ns)
+    node, arrival = Subscriber(), 1_700_000_000_123_456_789
+    common.subscribe_currents(node, inputs, store, common.output_qos(10), clock=lambda: arrival)
+    (battery_type, on_battery), (float_type, on_float) = node.callbacks
+    assert (battery_type, float_type) == (BatteryState, Float64)
+    on_battery(BatteryState(current=3.5))  # header stamp 0
+    on_float(Float64(data=7.0))
+    assert store.at(arrival) == ([3.5, 7.0], [True, True])  # both fresh
+    stamped = BatteryState(current=4.0)
+    stamped.header.stamp.sec, stamped.header.stamp.nanosec = 1_700_000_000, 200_000_000
+    on_battery(stamped)
+    assert store.at(1_700_000_000_200_000_000) == ([4.0, 7.0], [True, True])
+
+    ts = cdr.typestore()
+    zero = bytes(ts.serialize_cdr(cdr.battery_state_message(0, 2.0), cdr.BATTERY_STATE))
+    assert cdr.decode_current(cdr.BATTERY_STATE, zero, 42) == (42, 2.0)
+    given = bytes(ts.serialize_cdr(cdr.battery_state_message(1_000_000_007, 2.0), cdr.BATTERY_STATE))
+    assert cdr.decode_current(cdr.BATTERY_STATE, given, 42) == (1_000_000_007, 2.0)

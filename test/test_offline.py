@@ -381,6 +381,30 @@ def test_simulate_options(tmp_path: Path) -> None:
     assert bad.returncode == 2 and "--dipole" in bad.stderr and not (tmp_path / "x").exists()
 
 
+def test_first_release_schedule_names_resolve(tmp_path: Path) -> None:
+    out = tmp_path / "grid.csv"
+    proc = ok(magcal("simulate", out, "--schedule", "paper004"))
+    assert "schedule coaxial2022" in proc.stdout and "paper004" not in proc.stdout
+    sim = yaml.safe_load(truth_paths(out)[0].read_text())["magcal_simulation"]["ros__parameters"]
+    assert sim["schedule"] == "coaxial2022"
+    bad = magcal("simulate", tmp_path / "x.csv", "--schedule", "bogus")
+    assert bad.returncode == 2 and "unknown schedule 'bogus'" in bad.stderr.strip().splitlines()[-1]
+    assert "li2018" in bad.stderr and "paper000" not in bad.stderr and not (tmp_path / "x.csv").exists()
+
+
+def test_a_closed_stdout_pipe_stops_quietly(tmp_path: Path) -> None:
+    """``magcal ... | head``: the reader leaves first; no traceback, no error line, the shell's 141."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    read, write = os.pipe()
+    os.close(read)  # nobody will read what magcal prints
+    with os.fdopen(write, "w") as stdout:
+        proc = subprocess.run([sys.executable, "-m", "magcal_ros.app.cli", "simulate", str(tmp_path / "a.csv"),
+                               "--count", "30"], stdout=stdout, stderr=subprocess.PIPE, text=True, env=env, timeout=120)
+    assert proc.returncode == 141 and proc.stderr == ""
+    assert load_truth(tmp_path / "a.csv")["stamps"].size > 0
+
+
 @pytest.mark.parametrize("command", [None, "simulate", "calibrate", "correct"])
 def test_help_has_examples(command: str | None) -> None:
     proc = ok(magcal(*([command] if command else []), "--help"))

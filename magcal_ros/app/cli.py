@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import signal
 import sys
@@ -600,8 +601,18 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.set_defaults(func=cmd_calibrate)
 
 
+def _schedule_arg(text: str) -> str:
+    """``--schedule`` value: a schedule name (a first-release alias is resolved to today's name)."""
+    from magcal_ros.sim.spec import schedule_name
+
+    try:
+        return schedule_name(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from magcal_ros.sim.spec import SCHEDULE_ALIASES, SCHEDULE_NAMES, SimulationSpec
+    from magcal_ros.sim.spec import SCHEDULE_NAMES, SimulationSpec
 
     d = SimulationSpec()
     p = _subcommand(
@@ -612,7 +623,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     )
     p.add_argument("output", metavar="OUT", help="rosbag2 directory to create, or a .csv file")
     g = p.add_argument_group("attitudes")
-    g.add_argument("--schedule", default=d.schedule, choices=SCHEDULE_NAMES + tuple(SCHEDULE_ALIASES),
+    g.add_argument("--schedule", default=d.schedule, type=_schedule_arg,
                    metavar="{" + ",".join(SCHEDULE_NAMES) + "}", help=f"rotation schedule (default {d.schedule})")
     g.add_argument("--count", type=int, default=d.count, help=f"attitudes for single-axis/three-axes/random (default {d.count})")
     g.add_argument("--axis", default=d.axis, choices=["x", "y", "z"], help="rotation axis of single-axis (default z)")
@@ -771,6 +782,16 @@ def _check_paths(args: argparse.Namespace) -> None:
         seen[where] = out
 
 
+def _silence_stdout() -> None:
+    """Point stdout at the null device so the interpreter's final flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: one clear line on stderr and exit 2 for any bad input.
 
@@ -791,6 +812,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MagcalError as exc:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader of stdout went away (``magcal ... | head``): stop quietly as shell tools do.
+        _silence_stdout()
+        return 128 + int(signal.SIGPIPE)
     except OSError as exc:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"magcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)

@@ -233,7 +233,7 @@ def judge(
             return verdict
     for i, name in enumerate(names):
         if max_residual is not None:
-            limit, rule = max_residual, f"the limit --max-residual {max_residual / NT:.3g} nT"
+            limit, rule = max_residual, f"the given limit max residual {max_residual / NT:.3g} nT"
         elif smooth:
             limit = RESIDUAL_RATIO * noise[i]
             rule = f"{RESIDUAL_RATIO:g}x the sensor noise the data show ({noise[i] / NT:.3g} nT)"
@@ -259,7 +259,8 @@ def judge(
             why = ("the field was not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving "
                    "through a gradient, drift), or the sensor is faulty")
         verdict.cause = (f"{name}'s residual after calibration is {resid[i] / NT:.3g} nT, above {rule}: {why}; "
-                         "to accept it anyway give a larger --max-residual")
+                         "to accept it anyway raise the limit (magcal --max-residual, or the calibration node's "
+                         "max_residual parameter)")
         return verdict
     for i, name in enumerate(names):
         q = quantisation_step(raw[:, i])

@@ -502,7 +502,8 @@ def resolve_sensor_topics(
 def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics: Sequence[str]) -> list[CurrentSamples]:
     """Every value of the current topics ``topics`` of an open bag, one channel per topic.
 
-    Types ``sensor_msgs/msg/BatteryState`` (``current`` at its header stamp) or
+    Types ``sensor_msgs/msg/BatteryState`` (``current`` at its header stamp, or at its bag
+    time when that is zero) or
     ``std_msgs/msg/Float64`` (``data`` at its bag time), amperes; channel names by
     :func:`~magcal_ros.io.topics.current_channel`. A separate pass over these (low-rate)
     topics only, so the MagneticField fast paths are untouched. Raises :class:`InputError`

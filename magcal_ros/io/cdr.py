@@ -98,7 +98,8 @@ def battery_state_message(stamp_ns: int, current: float, frame_id: str = "") -> 
 def decode_current(msgtype: str, data: bytes, bag_time_ns: int) -> tuple[int, float]:
     """Stamp (ns) and current (A) of one serialized current message of type ``msgtype``.
 
-    ``BatteryState``: its header stamp and ``current``; ``Float64``: ``bag_time_ns`` and
+    ``BatteryState``: its header stamp (``bag_time_ns`` when that is zero) and ``current``;
+    ``Float64``: ``bag_time_ns`` and
     ``data``. Raises :class:`InputError` for another type or bytes that do not decode.
     """
     if msgtype not in CURRENT_TYPES:
@@ -109,7 +110,8 @@ def decode_current(msgtype: str, data: bytes, bag_time_ns: int) -> tuple[int, fl
         raise InputError(f"malformed {msgtype} message ({type(exc).__name__})") from None
     if msgtype == FLOAT64:
         return int(bag_time_ns), float(msg.data)
-    return int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec), float(msg.current)
+    stamp = int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec)
+    return stamp or int(bag_time_ns), float(msg.current)  # an unstamped header: the bag time
 
 
 def _put(out: NDArray[np.uint8], offset: int, values: Any, dtype: str) -> None:

@@ -193,7 +193,7 @@ class CalibrationNode(Node):
             "site", None,
             d("where the manoeuvre is flown, for the reference intensity from the World Magnetic Model: [lat_deg, "
               "lon_deg] or [lat_deg, lon_deg, alt_m] (north and east positive, altitude above sea level, negative "
-              "under water); not set = not used. Excludes reference_field > 0",
+              "under water); not set or [] = not used. Excludes reference_field > 0",
               constraints="lat -90..90, lon -180..360, alt -1000..850000 m", numbers=True),
         )
         self.declare_parameter(
@@ -322,7 +322,7 @@ class CalibrationNode(Node):
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
             why = common.check_number_array(p) if p.name in ("positions", "site") else None
-            if why and not (p.name == "site" and p.type_ == Parameter.Type.NOT_SET):
+            if why and not (p.name == "site" and _unset(p)):
                 return SetParametersResult(successful=False, reason=why)
         try:
             self._validate({p.name: p.value for p in params})
@@ -799,6 +799,13 @@ class CalibrationNode(Node):
         reply = self._call(setter, SetParametersAtomically.Request(parameters=msgs))
         if not reply.result.successful:
             raise CallFailed(f"{self._target_name()} rejected the calibration: {reply.result.reason}")
+
+
+def _unset(param: Parameter) -> bool:
+    """True for a parameter that says "not set": never given, or an empty list of any type."""
+    if param.type_ == Parameter.Type.NOT_SET:
+        return True
+    return param.type_.name.endswith("_ARRAY") and len(param.value) == 0
 
 
 def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:

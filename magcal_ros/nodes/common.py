@@ -212,7 +212,8 @@ def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGe
 BATTERY_STATE = "sensor_msgs/msg/BatteryState"
 FLOAT64 = "std_msgs/msg/Float64"
 CURRENT_TYPES: tuple[str, ...] = (BATTERY_STATE, FLOAT64)
-"""Message types of a current channel: BatteryState (its ``current``, A, at its header stamp) or
+"""Message types of a current channel: BatteryState (its ``current``, A, at its header stamp, or on
+receipt when the header stamp is zero) or
 Float64 (``data``, A, stamped on receipt with the node clock: it has no header)."""
 
 
@@ -290,7 +291,8 @@ def declare_currents(node: Any) -> None:
         d("topic of each channel's current, in interference_channels order; default: the channel name (relative)"))
     node.declare_parameter(
         "interference_types", Parameter.Type.STRING_ARRAY,
-        d(f"message type of each channel's topic: {BATTERY_STATE} (current, A, header stamp; default) or "
+        d(f"message type of each channel's topic: {BATTERY_STATE} (current, A, header stamp, or receipt time when "
+          f"it is zero; default) or "
           f"{FLOAT64} (data, A, stamped on receipt)", constraints=" | ".join(CURRENT_TYPES)))
     node.declare_parameter(
         "current_tolerance", DEFAULT_CURRENT_TOLERANCE,
@@ -301,7 +303,7 @@ def declare_currents(node: Any) -> None:
 def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, qos: QoSProfile,
                        clock: Callable[[], int]) -> list[Any]:
     """Subscribe every channel's topic, feeding its values into ``store`` (BatteryState at its
-    header stamp, Float64 at ``clock()`` ns on receipt)."""
+    header stamp, or at ``clock()`` ns on receipt when that is zero; Float64 on receipt)."""
     from sensor_msgs.msg import BatteryState
     from std_msgs.msg import Float64
 
@@ -309,7 +311,8 @@ def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, 
     for j, (topic, kind) in enumerate(zip(inputs.topics, inputs.types)):
         if kind == BATTERY_STATE:
             def on_battery(msg: Any, j: int = j) -> None:
-                store.add(j, stamp_ns(msg.header.stamp), float(msg.current))
+                # Many battery drivers leave the header empty: an unstamped value counts from its receipt.
+                store.add(j, stamp_ns(msg.header.stamp) or clock(), float(msg.current))
 
             subs.append(node.create_subscription(BatteryState, topic, on_battery, qos))
         else:
