@@ -181,7 +181,7 @@ def _log(run: h.RosRun, name: str) -> str:
     return next(p for p in run.processes if p.log_path.stem == name).log()
 
 
-def _progress(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 60.0) -> dict[str, str]:
+def _progress(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 180.0) -> dict[str, str]:
     seen: dict[str, str] = {}
 
     def check(msg: DiagnosticStatus) -> bool:

@@ -6,8 +6,10 @@ sensor, onto the quantities an engineer reasons in: offsets (nT), scale factors,
 non-orthogonality and misalignment angles (deg), current interference (nT/A). A quantity
 whose 1-sigma *effect* on the field (the offset itself, or the scale or angle times F, or
 the interference times the RMS current) exceeds :data:`UNDETERMINED_EFFECT` times the
-sensor noise is undetermined: the data cannot fix it. With a prior, a quantity whose
-uncertainty the data did not at least halve is *kept* at the prior, the others *updated*.
+sensor noise is undetermined: the data cannot fix it. Above :data:`WEAK_EFFECT` it is
+*weak*: fixed near the attitudes flown, not far from them, so the calibration holds inside
+its envelope only. With a prior, a quantity whose uncertainty the data did not at least
+halve is *kept* at the prior, the others *updated*.
 
 The same covariance predicts the TMI error at any attitude; over pitch and roll (the
 array's z axis taken as the vehicle's vertical, full yaw) it gives the envelope inside which
@@ -27,10 +29,13 @@ from magcal_ros.core.units import NT
 
 Array = NDArray[np.float64]
 
-UNDETERMINED_EFFECT: float = 30.0
-"""A quantity is undetermined when its 1-sigma effect exceeds this many noise sd (a yaw circle
-with a few degrees of pitch and roll leaves scale z and offset z at 100-150 sd, a manoeuvre
-through +-15 deg of pitch at about 10)."""
+UNDETERMINED_EFFECT: float = 400.0
+"""A quantity is undetermined when its 1-sigma effect exceeds this many noise sd: 600 sets of a
+yaw circle with +-3 deg of wobble leave scale z at 1,500-6,500 sd (refused without a prior),
+a glider's +-5/+-2 deg of pitch and roll at 70-110 (weak: valid within about +-9 deg)."""
+WEAK_EFFECT: float = 30.0
+"""A quantity is weak when its 1-sigma effect exceeds this many noise sd (+-10/+-4 deg of
+pitch and roll: 15-25 sd; +-15 deg of pitch: about 10; a full tumble: below 1)."""
 KEPT_FRACTION: float = 0.5
 """With a prior, a quantity whose posterior 1-sigma is above this fraction of the prior's is kept."""
 ENVELOPE_RATIO: float = 1.5
@@ -53,7 +58,8 @@ class Quantity:
     effect: float
     """1-sigma effect on the field (T)."""
     status: str
-    """``determined``, ``undetermined``, ``updated`` or ``kept`` (the last two with a prior)."""
+    """``determined``, ``weak`` (determined near the attitudes flown only), ``undetermined``,
+    ``updated`` or ``kept`` (the last two with a prior)."""
     prior_sigma: float | None = None
 
     def describe(self) -> str:
@@ -115,6 +121,10 @@ class Identifiability:
         """Quantities the data cannot fix (no prior)."""
         return [q for q in self.quantities if q.status == "undetermined"]
 
+    def weak(self) -> list[Quantity]:
+        """Quantities determined near the attitudes flown only (no prior): they bound the envelope."""
+        return [q for q in self.quantities if q.status == "weak"]
+
     def kept(self) -> list[Quantity]:
         """Quantities left at the prior."""
         return [q for q in self.quantities if q.status == "kept"]
@@ -141,7 +151,7 @@ def analyse(
     """Physical quantities of every sensor from the fitted ``W`` (S, 3, 4 + m) and its covariance.
 
     ``prior_cov`` (S P, S P) marks the quantities as updated/kept; without it they are
-    determined or undetermined by their effect against ``noise`` (S,) T.
+    determined, weak or undetermined by their effect against ``noise`` (S,) T.
     """
     s, _, q = w.shape
     m = q - 4
@@ -168,7 +178,8 @@ def analyse(
             else:
                 effect = sig[j] * intensity
             if psig is None:
-                status = "undetermined" if effect > UNDETERMINED_EFFECT * noise[i] else "determined"
+                status = ("undetermined" if effect > UNDETERMINED_EFFECT * noise[i]
+                          else "weak" if effect > WEAK_EFFECT * noise[i] else "determined")
                 prior_j = None
             else:
                 prior_j = float(_to_unit(np.array([psig[j]]), unit)[0])
@@ -328,7 +339,7 @@ class Advice:
 
     text: str
     worst_effect: float
-    """Largest 1-sigma effect (T) of a quantity after flying it."""
+    """Largest 1-sigma effect of a quantity, in noise sd, after flying it (as flown when enough)."""
 
 
 def tilted(directions: Array, pitch_deg: float, roll_deg: float) -> Array:
@@ -342,7 +353,8 @@ def tilted(directions: Array, pitch_deg: float, roll_deg: float) -> Array:
 def advise(names: Sequence[str], w: Array, intensity: float, information: Array, directions: Array,
            noise: Array, constraints: Array | None = None) -> Advice:
     """The candidate tilt (:data:`CANDIDATES`, flown through the same yaw turns as so far) that
-    best determines what is still undetermined; "enough" when nothing is."""
+    best determines what is still undetermined or weak; "enough" when nothing is undetermined
+    (with the tilt that would widen the envelope when something is weak)."""
     from magcal_ros.core.array_fit import information_at
 
     def worst(info: Array) -> float:
@@ -356,7 +368,7 @@ def advise(names: Sequence[str], w: Array, intensity: float, information: Array,
         return max(q.effect / max(ana.noise[names.index(q.sensor)], 1e-30) for q in ana.quantities)
 
     now = worst(information)
-    if now <= UNDETERMINED_EFFECT:
+    if now <= WEAK_EFFECT:
         return Advice("enough for a calibration: call ~/calibrate (more attitudes widen the envelope)", now)
     sigma_f = np.asarray(noise, dtype=float) / intensity
     best = None
@@ -367,4 +379,7 @@ def advise(names: Sequence[str], w: Array, intensity: float, information: Array,
             best = (words, score)
     assert best is not None
     words, score = best
+    if now <= UNDETERMINED_EFFECT:
+        return Advice(f"enough for a calibration valid near the attitudes flown: call ~/calibrate; to widen its "
+                      f"envelope, {words} {TILT_DEG:.0f} deg and keep turning", now)
     return Advice(f"{words} {TILT_DEG:.0f} deg and keep turning", score)

@@ -185,12 +185,12 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
     by ``v_j`` (RMS, A). Its gains then have a 1-sigma of ``noise / (sqrt(N) v_j)``, an
     effect at the channel's RMS current ``rms_j`` of ``rms_j / (sqrt(N) v_j)`` noise sd:
     the channel is undetermined when that exceeds
-    :data:`~magcal_ros.core.identifiability.UNDETERMINED_EFFECT` (the rule of
-    :mod:`~magcal_ros.core.identifiability`), or when ``v_j`` is below
+    :data:`~magcal_ros.core.identifiability.WEAK_EFFECT` (a weak interference has no
+    envelope to hold in: it is left out like an undetermined one), or when ``v_j`` is below
     :data:`MIN_CURRENT_VARIATION` (the current never varies, or varies in lockstep).
     """
     from magcal_ros.core.identifiability import (
-        UNDETERMINED_EFFECT,  # here: the live nodes need no scipy
+        WEAK_EFFECT,  # here: the live nodes need no scipy
     )
 
     u = np.asarray(currents, dtype=float)
@@ -202,7 +202,7 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
         coef = np.linalg.lstsq(x, u[:, j], rcond=None)[0]
         v = float(np.sqrt(np.mean((u[:, j] - x @ coef) ** 2)))
         rms = float(np.sqrt(np.mean(u[:, j] ** 2)))
-        out[j] = v < MIN_CURRENT_VARIATION or rms > UNDETERMINED_EFFECT * np.sqrt(n) * v
+        out[j] = v < MIN_CURRENT_VARIATION or rms > WEAK_EFFECT * np.sqrt(n) * v
     return out
 
 

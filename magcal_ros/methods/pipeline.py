@@ -9,7 +9,8 @@
    robust maximum a posteriori fit of every sensor, outliers re-decided until they settle;
 4. the covariance of the result (time-correlated noise included) and what it determines
    (:mod:`magcal_ros.core.identifiability`): without a prior an undetermined quantity is a
-   refusal naming the rotation that would determine it; with a prior it is kept;
+   refusal naming the rotation that would determine it, and a weak one (determined near the
+   attitudes flown only) a warning beside the envelope it bounds; with a prior it is kept;
 5. noise-aware quality gates (:mod:`magcal_ros.core.quality`) and the validity envelope.
 """
 
@@ -314,6 +315,21 @@ def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope
             "this manoeuvre determines")
 
 
+def _weak_warning(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope) -> str:
+    """What a manoeuvre determined only near the attitudes flown, where the result holds, and what
+    to fly to widen it."""
+    weak = ana.weak()
+    names = sorted({q.name for q in weak}, key=lambda n: [q.name for q in ana.quantities].index(n))
+    worst = max(weak, key=lambda q: q.effect)
+    axis, _ = _manoeuvre_axis(sol.directions)
+    others = " or ".join(a for a in ("x", "y", "z") if a != axis)
+    fly = "pitch and roll the vehicle more" if axis == "z" else f"turn it about {others} too"
+    return (f"{env.describe()} only: the manoeuvre turned mostly about {axis}, so {', '.join(names[:6])}"
+            f"{' ...' if len(names) > 6 else ''} are determined only near the attitudes flown (worst "
+            f"{worst.describe()}); outside the envelope the predicted TMI error exceeds "
+            f"{ident.ENVELOPE_RATIO:g}x the noise; to widen it {fly} (a rotation about {others})")
+
+
 # -- interference channels the data cannot determine: not solved, the rest refitted ------------
 def _undetermined_channels(ana: ident.Identifiability, directions: Array, u: Array, channels: tuple[str, ...],
                            prior: ArrayCalibration | None) -> list[int]:
@@ -327,7 +343,7 @@ def _undetermined_channels(ana: ident.Identifiability, directions: Array, u: Arr
         return []
     flagged = set(np.flatnonzero(undetermined_channels(u, directions)).tolist())
     names = {f"interference {c} {a}": j for j, c in enumerate(channels) for a in ident.AXES}
-    flagged |= {names[q.name] for q in ana.undetermined() if q.name in names}
+    flagged |= {names[q.name] for q in ana.undetermined() + ana.weak() if q.name in names}
     held = set(prior.channels) if prior is not None else set()
     return sorted(j for j in flagged if channels[j] not in held)
 
@@ -508,9 +524,11 @@ def calibrate_array(
     if verdict.cause:
         raise CalibrationFailed(verdict.cause)
     warnings = list(verdict.warnings)
-    if prior is None and not env.whole_sphere:
-        weak = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
-        warnings.append(f"{env.describe()} (least determined: {', '.join(weak)}); outside it the predicted TMI "
+    if prior is None and ana.weak():
+        warnings.append(_weak_warning(ana, sol, env))
+    elif prior is None and not env.whole_sphere:
+        least = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
+        warnings.append(f"{env.describe()} (least determined: {', '.join(least)}); outside it the predicted TMI "
                         f"error exceeds {ident.ENVELOPE_RATIO:g}x the noise")
     if prior is not None and not reference_field:
         warnings.append(f"used the prior's intensity {sol.intensity / NT:.1f} nT: if the site changed, give the "
@@ -578,6 +596,8 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         "uncertainty_inflation": result.inflation,
         "summary": result.summary(),
     }
+    if ana.weak():
+        meta["weak"] = [f"{q.sensor} {q.name}" for q in ana.weak()]
     if result.prior:
         meta["updated"] = [f"{q.sensor} {q.name}" for q in ana.updated()] or ["nothing"]
         meta["kept"] = [f"{q.sensor} {q.name}" for q in ana.kept()] or ["nothing"]
