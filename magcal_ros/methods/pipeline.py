@@ -324,10 +324,10 @@ def _weak_warning(ana: ident.Identifiability, sol: JointSolution, env: ident.Env
     axis, _ = _manoeuvre_axis(sol.directions)
     others = " or ".join(a for a in ("x", "y", "z") if a != axis)
     fly = "pitch and roll the vehicle more" if axis == "z" else f"turn it about {others} too"
-    return (f"{env.describe()} only: the manoeuvre turned mostly about {axis}, so {', '.join(names[:6])}"
-            f"{' ...' if len(names) > 6 else ''} are determined only near the attitudes flown (worst "
-            f"{worst.describe()}); outside the envelope the predicted TMI error exceeds "
-            f"{ident.ENVELOPE_RATIO:g}x the noise; to widen it {fly} (a rotation about {others})")
+    return (f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''} determined only near the attitudes flown "
+            f"(the manoeuvre turned mostly about {axis}; worst {worst.describe()}): {env.describe()} only, outside "
+            f"it the predicted TMI error exceeds {ident.ENVELOPE_RATIO:g}x the noise; to widen it {fly} "
+            f"(a rotation about {others})")
 
 
 # -- interference channels the data cannot determine: not solved, the rest refitted ------------
