@@ -337,7 +337,7 @@ def _report_quantities(result: Any) -> None:
                   + ", ".join(sorted({q.name for q in kept})))
         return
     worst = sorted(ana.quantities, key=lambda q: -q.effect / max(ana.noise[0], 1e-30))[:3]
-    print("  least determined: " + "; ".join(f"{q.describe()} ({q.effect / NT:.2g} nT effect)" for q in worst))
+    print("  least determined: " + "; ".join(f"{q.describe()} ({float(f'{q.effect / NT:.2g}'):g} nT effect)" for q in worst))
     if result.inflation > 1.5:
         print(f"  uncertainties widened {np.sqrt(result.inflation):.1f}x for time-correlated residuals")
 

@@ -63,8 +63,12 @@ class Quantity:
     prior_sigma: float | None = None
 
     def describe(self) -> str:
-        """``mag1 offset z 12.3 +- 0.4 nT``."""
-        return f"{self.sensor} {self.name} {self.value:.4g} +- {self.sigma:.2g} {self.unit}"
+        """``mag1 offset z 12.3 +- 0.4 nT``; a scale as a gain with its 1-sigma in ppm:
+        ``mag1 scale z 1.0381 +- 1300 ppm``."""
+        sigma = f"{float(f'{self.sigma:.2g}'):g}"  # two significant digits, no exponent below 1e6
+        if self.unit == "ppm":
+            return f"{self.sensor} {self.name} {self.value * 1e-6:.5f} +- {sigma} ppm"
+        return f"{self.sensor} {self.name} {self.value:.4g} +- {sigma} {self.unit}"
 
 
 def _phys(w_row: Array, f: float, m: int) -> Array:
