@@ -203,7 +203,35 @@ def test_half_the_readings_spiked_is_refused_naming_outliers() -> None:
         calibrate_array(raw, sim.geometry, F)
 
 
+def test_a_sensor_frozen_for_ten_sets_is_excluded_not_blamed_on_the_field() -> None:
+    """A sensor that holds its last value for 10 sets (a stalled driver): those readings are
+    excluded as outliers and counted; the calibration stays at the floor. It used to be refused
+    as a field that is not uniform, the gate counting readings the fit had all but removed."""
+    for seed in (15, 17):
+        sim = array(seed)
+        rng = np.random.default_rng(seed)
+        rec, _ = sim.run(uniform_random(1000, rng), rng)
+        raw, j = rec.vectors.copy(), seed % 4
+        raw[400:410, j] = raw[399, j]
+        res = calibrate_array(raw, sim.geometry, F, stamps=rec.stamps)
+        assert res.outliers[j] >= 9 and res.calibration.metadata["outliers_excluded"]["total"] >= 9
+        tmi, tensor = fresh_ratios(res.calibration, sim, seed)
+        assert tmi < 1.05 and tensor < 1.05, (tmi, tensor)
+
+
 # -- noise-aware gates ------------------------------------------------------------------------
+def test_the_gate_residual_is_per_axis_like_the_noise() -> None:
+    """White residuals of 3 nT per axis read as a 3 nT residual and 3 nT of noise (not 3/sqrt(3))."""
+    from magcal_ros.core import quality
+
+    rng = np.random.default_rng(8)
+    e = rng.normal(0.0, 3 * NT, (4000, 2, 3))
+    verdict = quality.judge(("a", "b"), e, np.ones((4000, 2)), np.zeros((4000, 2)), np.zeros((4000, 2, 3)))
+    np.testing.assert_allclose(verdict.residual, 3 * NT, rtol=0.03)
+    np.testing.assert_allclose(verdict.noise, 3 * NT, rtol=0.05)
+    assert verdict.cause is None
+
+
 def test_a_consumer_sensor_with_1_percent_noise_calibrates() -> None:
     sim = array(5, noise=0.01 * F)
     rng = np.random.default_rng(5)

@@ -581,8 +581,8 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
                    help="the previous calibration: recalibrate what this manoeuvre determines (e.g. the offsets "
                    "from a yaw circle after the hard iron moved) and keep the rest; method ml")
     p.add_argument("--max-residual", type=float, metavar="TESLA",
-                   help="accept a residual (per axis) up to this, instead of the noise-aware rule (10x the "
-                   "noise the data show, or 1%% of F for sets in no time order)")
+                   help="accept a residual (per axis) up to this, instead of the noise-aware rule (17x the "
+                   "noise the data show, or 1.7%% of F for sets in no time order)")
     p.add_argument("--mounting", metavar="ROLL,PITCH,YAW",
                    help="one sensor: its mounting in the platform frame (deg, sensor to platform); without it the "
                    "calibrated vector is in the sensor's own axes made orthogonal")

@@ -370,6 +370,10 @@ def fit_array(
         w, d, _ = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
     if not np.all(np.isfinite(w)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
+    # A reading the soft weighting has all but removed (beyond sqrt(2 SOFT_BOUND) noise sd: a
+    # spike, a frozen sensor) is excluded, as the outlier tests already treat it: counted as an
+    # outlier, and kept out of the residuals the quality gates judge.
+    weights = np.where(weights < 0.5, 0.0, weights)
     e = _predict(w, features(d, u)) - x
     sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
     final = _Normal(w, d, x, u, weights, sigma)

@@ -39,11 +39,11 @@ from magcal_ros.core.units import NT
 
 Array = NDArray[np.float64]
 
-RESIDUAL_RATIO: float = 10.0
-"""Largest accepted fit residual over the white noise the data show. Generous: strongly
-time-correlated noise (AR(1) 0.98) already leaves 4x, and a field that is not uniform leaves
-tens to thousands."""
-WARN_RATIO: float = 2.0
+RESIDUAL_RATIO: float = 17.0
+"""Largest accepted fit residual (RMS per axis) over the white noise the data show. Generous:
+strongly time-correlated noise (AR(1) 0.98) already leaves 7-9x, and a field that is not
+uniform leaves tens to thousands."""
+WARN_RATIO: float = 3.5
 """A residual beyond this many times the white noise is reported as a warning."""
 MAX_OUTLIER_FRACTION: float = 0.25
 """Largest accepted fraction of a sensor's readings excluded as outliers."""
@@ -56,15 +56,16 @@ WARN_GAIN_ERROR: float = 0.03
 ORDER_FRACTION: float = 0.3
 """Sets are in time order when consecutive field directions differ by less than this fraction
 of the typical angle between any two; then second differences read the sensor noise."""
-MAX_RESIDUAL_FRACTION: float = 0.01
-"""Largest accepted residual, as a fraction of F, when the noise cannot be read from the data."""
+MAX_RESIDUAL_FRACTION: float = 0.017
+"""Largest accepted residual (RMS per axis), as a fraction of F, when the noise cannot be read
+from the data (a consumer sensor with 1 % noise passes)."""
 STEP_EXPLAINED: float = 0.25
 """A single step explaining this much of the TMI residual's variance ..."""
 STEP_SIGMAS: float = 5.0
 """... and this significant (its size over its standard error, widened for time correlation) ..."""
 STEP_NOISE: float = 20.0
 """... and, for sets in time order, this many white-noise sd in size is a change of the field."""
-COLLAPSE_RATIO: float = 0.25
+COLLAPSE_RATIO: float = 0.43
 """A residual below this fraction of the quantisation noise means a collapsed fit."""
 
 
@@ -194,7 +195,7 @@ def judge(
         used = weights[:, i] > 0
         e = residuals[used, i]
         noise[i] = float(np.nanmean(white_noise(e))) if used.sum() >= 5 else np.nan
-        resid[i] = float(np.sqrt(np.mean(e * e) / 3.0)) if used.any() else np.nan
+        resid[i] = float(np.sqrt(np.mean(e * e))) if used.any() else np.nan  # per axis, like the noise
     verdict.noise, verdict.residual = noise, resid
     t = ns_to_seconds(stamps_ns) if stamps_ns is not None else np.arange(len(raw), dtype=float)
 
@@ -239,7 +240,7 @@ def judge(
             rule = f"{RESIDUAL_RATIO:g}x the sensor noise the data show ({noise[i] / NT:.3g} nT)"
         elif intensity is not None:
             limit = MAX_RESIDUAL_FRACTION * intensity
-            rule = (f"{MAX_RESIDUAL_FRACTION:.0%} of F (the sets are not in time order, so the sensor noise "
+            rule = (f"{MAX_RESIDUAL_FRACTION:.1%} of F (the sets are not in time order, so the sensor noise "
                     "cannot be read from them)")
         else:
             continue
