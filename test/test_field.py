@@ -18,10 +18,12 @@ import pytest
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.identifiability import ENVELOPE_RATIO
+from magcal_ros.core.recording import Recording
 from magcal_ros.errors import CalibrationFailed, ObservabilityError
 from magcal_ros.io.csv_recording import read_csv
 from magcal_ros.methods.pipeline import calibrate_array
-from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random
+from magcal_ros.sim.attitudes import sea_manoeuvre, tumble, uniform_random, yaw_pitch_roll
 from magcal_ros.sim.scenarios import field_trial_array
 from magcal_ros.sim.simulator import (
     ArraySimulation,
@@ -217,6 +219,76 @@ def test_a_sensor_frozen_for_ten_sets_is_excluded_not_blamed_on_the_field() -> N
         assert res.outliers[j] >= 9 and res.calibration.metadata["outliers_excluded"]["total"] >= 9
         tmi, tensor = fresh_ratios(res.calibration, sim, seed)
         assert tmi < 1.05 and tensor < 1.05, (tmi, tensor)
+
+
+F_COMPASS = 5e-5
+
+
+def compass(seed: int, noise: float, offset: float, wobble: float | None = None) -> tuple[ArraySimulation, Recording]:
+    """One consumer-grade sensor (5 % scale errors, hard iron of about ``offset`` T) turned by hand
+    at 50 Hz: a 30 s tumble, or three yaw circles with ``wobble`` deg of hand wobble."""
+    rng = np.random.default_rng(seed)
+    sensor = random_sensor_errors(rng, scale_sd=0.05, offset_sd=offset)
+    sim = ArraySimulation(ArrayGeometry.single("mag1"), (sensor,), earth_field(F_COMPASS, 60, 5), noise=noise)
+    motion = tumble(1500, 3.0, rng) if wobble is None else sea_manoeuvre(1800, 0, 0, turns=3, wobble_deg=wobble, rng=rng)
+    return sim, sim.run(motion, rng, rate=50)[0]
+
+
+def single_ratio(cal: ArrayCalibration, sim: ArraySimulation, seed: int = 5, attitudes: np.ndarray | None = None) -> float:
+    """TMI RMS on fresh attitudes (default: all) over the true calibration's (floor from the
+    simulator's truth)."""
+    rng = np.random.default_rng(seed)
+    fresh, _ = sim.run(uniform_random(3000, rng) if attitudes is None else attitudes, rng)
+    err = [np.sqrt(np.mean((np.linalg.norm(c.apply(fresh.vectors), axis=-1) - F_COMPASS) ** 2))
+           for c in (cal, sim.true_calibration())]
+    return float(err[0] / err[1])
+
+
+def test_two_samples_at_full_scale_do_not_bend_the_start() -> None:
+    """Two readings at -2 G on every axis (a sensor's overflow value): left out of the closed-form
+    start and excluded; the calibration is the clean one. They used to collapse the fit."""
+    sim, rec = compass(77, 0.005 * F_COMPASS, 2e-5)
+    raw = rec.vectors.copy()
+    raw[[100, 900], 0] = -2e-4
+    res = calibrate_array(raw, sim.geometry, F_COMPASS, stamps=rec.stamps)
+    assert res.outliers[0] >= 2 and single_ratio(res.calibration, sim) < 1.05
+
+
+def test_a_noisy_yaw_circle_with_hand_wobble_does_not_collapse() -> None:
+    """A consumer sensor (0.5 % noise, quantised) turned in yaw with 20 deg of hand wobble: the
+    closed-form start collapses (gains of 0.01-0.1), so the fit starts again from a sphere and
+    calibrates, at the noise inside the envelope it reports. It used to be refused as 'not a
+    fluxgate correction'."""
+    for seed in (46, 47):
+        sim, rec = compass(seed, 0.005 * F_COMPASS, 0.5 * F_COMPASS, wobble=20.0)
+        q = 1e-4 / 12000
+        res = calibrate_array(np.round(rec.vectors / q) * q, sim.geometry, F_COMPASS, stamps=rec.stamps)
+        env, rng = res.envelope, np.random.default_rng(seed)
+        assert 5 <= env.pitch_deg <= 30 and 5 <= env.roll_deg <= 30, env  # about the wobble
+        inside = yaw_pitch_roll(rng.uniform(0, 360, 3000), rng.uniform(-env.pitch_deg, env.pitch_deg, 3000),
+                                rng.uniform(-env.roll_deg, env.roll_deg, 3000))
+        assert single_ratio(res.calibration, sim, seed, inside) < ENVELOPE_RATIO  # what the envelope promises
+
+
+@pytest.mark.parametrize("fraction,accepted", [(0.95, True), (0.85, False)])
+def test_clipped_axes_are_excluded_or_refused_as_saturated(fraction: float, accepted: bool) -> None:
+    """Readings clipped at a full-scale value (an axis at the same extreme in many readings): with
+    some clipped they are excluded and named as saturated; with more than a quarter the sensor is
+    refused as saturated, not blamed on spikes."""
+    sim, rec = compass(78, 0.005 * F_COMPASS, 2 * F_COMPASS)
+    full_scale = fraction * np.abs(rec.vectors).max()
+    raw = np.clip(rec.vectors, -full_scale, full_scale)
+    hit = np.any(np.abs(rec.vectors) > full_scale, axis=(1, 2))
+    if not accepted:
+        assert hit.mean() > 0.25
+        with pytest.raises(CalibrationFailed, match="mag1 is saturated"):
+            calibrate_array(raw, sim.geometry, F_COMPASS, stamps=rec.stamps)
+        return
+    assert 0.05 < hit.mean() < 0.25
+    res = calibrate_array(raw, sim.geometry, F_COMPASS, stamps=rec.stamps)
+    assert res.outliers[0] >= 0.9 * hit.sum()
+    assert any("at its full-scale value: saturated" in w for w in res.warnings), res.warnings
+    assert single_ratio(res.calibration, sim) < 1.2
 
 
 # -- noise-aware gates ------------------------------------------------------------------------

@@ -6,7 +6,8 @@ sensor, onto the quantities an engineer reasons in: offsets (nT), scale factors,
 non-orthogonality and misalignment angles (deg), current interference (nT/A). A quantity
 whose 1-sigma *effect* on the field (the offset itself, or the scale or angle times F, or
 the interference times the RMS current) exceeds :data:`UNDETERMINED_EFFECT` times the
-sensor noise is undetermined: the data cannot fix it. Above :data:`WEAK_EFFECT` it is
+sensor noise (or :data:`UNDETERMINED_FRACTION` of F) is undetermined: the data cannot fix
+it. Above :data:`WEAK_EFFECT` it is
 *weak*: fixed near the attitudes flown, not far from them, so the calibration holds inside
 its envelope only. With a prior, a quantity whose uncertainty the data did not at least
 halve is *kept* at the prior, the others *updated*.
@@ -33,6 +34,10 @@ UNDETERMINED_EFFECT: float = 400.0
 """A quantity is undetermined when its 1-sigma effect exceeds this many noise sd: 600 sets of a
 yaw circle with +-3 deg of wobble leave scale z at 1,500-6,500 sd (refused without a prior),
 a glider's +-5/+-2 deg of pitch and roll at 70-110 (weak: valid within about +-9 deg)."""
+UNDETERMINED_FRACTION: float = 0.15
+"""... or when its 1-sigma effect exceeds this fraction of F, whatever the noise: a consumer
+sensor (0.5 % noise) turned in yaw with a few degrees of hand wobble leaves scale z at 25-200 %
+of F, only 50-300 of its large noise sd."""
 WEAK_EFFECT: float = 30.0
 """A quantity is weak when its 1-sigma effect exceeds this many noise sd (+-10/+-4 deg of
 pitch and roll: 15-25 sd; +-15 deg of pitch: about 10; a full tumble: below 1)."""
@@ -182,7 +187,8 @@ def analyse(
             else:
                 effect = sig[j] * intensity
             if psig is None:
-                status = ("undetermined" if effect > UNDETERMINED_EFFECT * noise[i]
+                undetermined = effect > min(UNDETERMINED_EFFECT * noise[i], UNDETERMINED_FRACTION * intensity)
+                status = ("undetermined" if undetermined
                           else "weak" if effect > WEAK_EFFECT * noise[i] else "determined")
                 prior_j = None
             else:
@@ -361,7 +367,8 @@ def advise(names: Sequence[str], w: Array, intensity: float, information: Array,
     (with the tilt that would widen the envelope when something is weak)."""
     from magcal_ros.core.array_fit import information_at
 
-    def worst(info: Array) -> float:
+    def judged(info: Array) -> tuple[int, int, float]:
+        """(undetermined, weak, worst effect in noise sd) with information ``info``."""
         if constraints is not None and len(constraints):
             _, sv, vt = np.linalg.svd(constraints)
             basis = vt[int(np.sum(sv > 1e-12 * sv[0])):].T
@@ -369,21 +376,22 @@ def advise(names: Sequence[str], w: Array, intensity: float, information: Array,
         else:
             cov = np.linalg.pinv(info, hermitian=True)
         ana = analyse(names, w, intensity, cov, noise)
-        return max(q.effect / max(ana.noise[names.index(q.sensor)], 1e-30) for q in ana.quantities)
+        worst = max(q.effect / max(ana.noise[names.index(q.sensor)], 1e-30) for q in ana.quantities)
+        return len(ana.undetermined()), len(ana.weak()), worst
 
-    now = worst(information)
-    if now <= WEAK_EFFECT:
-        return Advice("enough for a calibration: call ~/calibrate (more attitudes widen the envelope)", now)
+    now = judged(information)
+    if not now[0] and not now[1]:
+        return Advice("enough for a calibration: call ~/calibrate (more attitudes widen the envelope)", now[2])
     sigma_f = np.asarray(noise, dtype=float) / intensity
     best = None
     for words, pitch, roll in CANDIDATES:
         extra = information_at(w, tilted(directions, pitch, roll), sigma_f)
-        score = worst(information + extra)
+        score = judged(information + extra)
         if best is None or score < best[1]:
             best = (words, score)
     assert best is not None
     words, score = best
-    if now <= UNDETERMINED_EFFECT:
+    if not now[0]:
         return Advice(f"enough for a calibration valid near the attitudes flown: call ~/calibrate; to widen its "
-                      f"envelope, {words} {TILT_DEG:.0f} deg and keep turning", now)
-    return Advice(f"{words} {TILT_DEG:.0f} deg and keep turning", score)
+                      f"envelope, {words} {TILT_DEG:.0f} deg and keep turning", now[2])
+    return Advice(f"{words} {TILT_DEG:.0f} deg and keep turning", score[2])

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.scalar_fit import clipped_readings
 from magcal_ros.core.stamps import ns_to_seconds
 from magcal_ros.core.uncertainty import autocorrelation, bandwidth
 from magcal_ros.core.units import NT
@@ -168,6 +169,12 @@ class Verdict:
     """(S,) readings excluded as outliers per sensor."""
 
 
+def saturated(name: str, fraction: float) -> str:
+    """Why a sensor with ``fraction`` of its readings clipped at full scale is refused."""
+    return (f"{name} is saturated: {fraction:.0%} of its readings have an axis at its full-scale value; use a "
+            "larger range, or mount it farther from the iron that drives it there")
+
+
 def judge(
     names: tuple[str, ...],
     residuals: Array,
@@ -202,11 +209,14 @@ def judge(
     def at(index: int) -> str:
         return f"at t = {t[min(index, len(t) - 1)] - t[0]:.1f} s" if stamps_ns is not None else f"at set {index}"
 
+    clipped = [clipped_readings(raw[:, i]) for i in range(s)]
     for i, name in enumerate(names):
         n = len(weights)
         frac = verdict.excluded[i] / n
         if frac > MAX_OUTLIER_FRACTION:
-            if longest_runs(weights[:, i] == 0) > 0.5:
+            if clipped[i].sum() > 0.5 * verdict.excluded[i]:
+                verdict.cause = saturated(name, float(clipped[i].mean()))
+            elif longest_runs(weights[:, i] == 0) > 0.5:
                 step = best_step(tmi_residuals[:, i])
                 verdict.cause = (
                     f"the field was not constant during the manoeuvre: {name}'s readings change by about "
@@ -289,5 +299,7 @@ def judge(
             )
     for i, name in enumerate(names):
         if verdict.excluded[i]:
-            verdict.warnings.append(f"{int(verdict.excluded[i])} outlying readings of {name} excluded")
+            at_full_scale = int(np.sum(clipped[i] & (weights[:, i] == 0)))
+            why = f" ({at_full_scale} at its full-scale value: saturated)" if at_full_scale else ""
+            verdict.warnings.append(f"{int(verdict.excluded[i])} outlying readings of {name} excluded{why}")
     return verdict

@@ -208,15 +208,50 @@ def inliers(fit: ScalarFit, readings: ArrayLike, sigmas: float = TRIM_SIGMAS) ->
     return np.abs(res - centre) <= sigmas * max(scale, 1e-12 * fit.intensity)
 
 
+GROSS_RADIUS: float = 4.0
+"""A reading farther than this many times the median distance from the readings' median is
+gross (a saturated or corrupted sample): on any rotation the readings lie within about one
+field radius of their centre."""
+FULL_SCALE_FRACTION: float = 0.02
+"""An axis value repeated in this fraction of the readings (and at least 5) at the axis's
+extreme is the sensor's full scale: those readings are clipped."""
+
+
+def gross_readings(readings: ArrayLike) -> NDArray[np.bool_]:
+    """(N,) True for readings no rotation explains: far outside the cloud (:data:`GROSS_RADIUS`),
+    or clipped at a full-scale value (:func:`clipped_readings`). Algebraic fits weigh a reading
+    by its squared distance, so two such samples can bend a closed-form start beyond repair."""
+    r = _readings(readings)
+    dist = np.linalg.norm(r - np.median(r, axis=0), axis=1)
+    return (dist > GROSS_RADIUS * max(float(np.median(dist)), 1e-300)) | clipped_readings(r)
+
+
+def clipped_readings(readings: ArrayLike) -> NDArray[np.bool_]:
+    """(N,) True for readings with an axis at a full-scale value: the axis's largest or smallest
+    value, repeated exactly in at least :data:`FULL_SCALE_FRACTION` of the readings (and 5)."""
+    r = _readings(readings)
+    out = np.zeros(len(r), bool)
+    least = max(5, int(np.ceil(FULL_SCALE_FRACTION * len(r))))
+    for axis in range(3):
+        for extreme in (r[:, axis].max(), r[:, axis].min()):
+            at = r[:, axis] == extreme
+            if at.sum() >= least:
+                out |= at
+    return out
+
+
 def trimmed_algebraic_fit(readings: ArrayLike, intensity: float | None = None, rounds: int = 6) -> tuple[ScalarFit, NDArray[np.bool_]]:
     """The closed-form fit, refitted on its inliers until they settle: a start that spikes cannot bend.
 
-    Returns the fit and the inlier mask (True: kept). Needs at least half the readings clean.
+    Gross readings (:func:`gross_readings`) are left out from the first fit. Returns the fit
+    and the inlier mask (True: kept). Needs at least half the readings clean.
     """
     r = _readings(readings)
     f = _target(r, intensity)
-    keep = np.ones(len(r), bool)
-    fit = algebraic_fit(r, f)
+    keep = ~gross_readings(r)
+    if keep.sum() < max(10, len(r) // 2):
+        keep[:] = True
+    fit = algebraic_fit(r[keep], f)
     for _ in range(rounds):
         new = inliers(fit, r)
         if new.sum() < max(10, len(r) // 2) or np.array_equal(new, keep):

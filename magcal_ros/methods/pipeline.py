@@ -32,7 +32,7 @@ from magcal_ros.core.array_fit import (
     fit_array,
     fix_rotation_gauge,
 )
-from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration import ArrayCalibration, check_sensor
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.interference import describe_undetermined, undetermined_channels
 from magcal_ros.core.metrics import rms, tensor_rms, tmi_rms
@@ -43,7 +43,7 @@ from magcal_ros.core.observability import (
     excitation,
 )
 from magcal_ros.core.prior import DriftModel
-from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
+from magcal_ros.core.scalar_fit import clipped_readings, trimmed_algebraic_fit
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
@@ -202,6 +202,34 @@ def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
     intensity = f if f else float(np.median(norms))
     gains = intensity / np.maximum(np.median(norms, axis=0), 1e-300)
     return gains[:, None, None] * np.eye(3)[None], offsets, intensity
+
+
+def _plausible(sol: JointSolution, geometry: ArrayGeometry) -> bool:
+    """True when every sensor's solved correction is one a sensor can have (no collapsed gains)."""
+    try:
+        for name, m, o in zip(geometry.names, sol.matrices, sol.offsets):
+            check_sensor(name, m, o)
+    except InputError:
+        return False
+    return True
+
+
+def _sphere_start(r: Array, clean: Array, f: float | None) -> tuple[Array, Array, float]:
+    """A start that noisy, narrow manoeuvres cannot collapse: each sensor's best sphere through
+    its clean readings (isotropic gain, offset at the centre); the centroid where a sphere does
+    not fit."""
+    crude_m, crude_o, _ = _crude_start(r, f)
+    centres, radii = crude_o.copy(), np.linalg.norm(r - crude_o, axis=2).mean(axis=0)
+    for i in range(r.shape[1]):
+        x = r[clean, i] if clean.sum() >= 10 else r[:, i]
+        a = np.column_stack([2.0 * x, np.ones(len(x))])
+        sol, *_ = np.linalg.lstsq(a, np.sum(x * x, axis=1), rcond=None)
+        r2 = sol[3] + sol[:3] @ sol[:3]
+        if np.all(np.isfinite(sol)) and r2 > 0:
+            centres[i], radii[i] = sol[:3], np.sqrt(r2)
+    intensity = f if f else float(np.median(radii))
+    gains = intensity / np.maximum(radii, 1e-300)
+    return gains[:, None, None] * np.eye(3)[None], centres, intensity
 
 
 def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_ref: float | None,
@@ -449,6 +477,11 @@ def calibrate_array(
         raise ObservabilityError("the readings barely change (the array hardly rotated); turn it through large "
                                  "angles about at least two axes")
 
+    for i, name in enumerate(geometry.names):  # clipped beyond what outlier exclusion may take
+        clipped = float(clipped_readings(r[:, i]).mean())
+        if clipped > quality.MAX_OUTLIER_FRACTION:
+            raise CalibrationFailed(quality.saturated(name, clipped))
+
     # 2. spikes and the start
     clean_reading = np.ones((n, s), bool)
     if opts.robust:
@@ -480,6 +513,15 @@ def calibrate_array(
         sol = fit_array(r, matrices, offsets, intensity, u, None, None, weights, robust=False, iterations=0)
     # Undetermined already without the jackknife (which only widens): refuse before paying for it.
     ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False)
+    badness = (start_failed is not None or not _plausible(sol, geometry), len(ana.undetermined()))
+    if prior is None and (joint or start_failed is not None) and any(badness):
+        # A closed-form start on noisy, narrow data can land on a collapsed ellipsoid the joint
+        # fit cannot leave: try again from spheres, and keep that if it is better.
+        m2, o2, f2 = _sphere_start(r, clean, f_ref)
+        retry = fix_rotation_gauge(fit_array(r, m2, o2, f2, u, None, None, weights, robust=opts.robust))
+        ana2, cov2 = _analyse(retry, r, geometry, order, param_prior, channels, u, jackknife=False)
+        if _plausible(retry, geometry) and (False, len(ana2.undetermined())) < badness:
+            sol, ana, cov, start_failed = retry, ana2, cov2, None
     if prior is None and ana.undetermined():
         env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
         raise ObservabilityError(_refusal(ana, sol, env))
