@@ -291,6 +291,29 @@ def test_clipped_axes_are_excluded_or_refused_as_saturated(fraction: float, acce
     assert single_ratio(res.calibration, sim) < 1.2
 
 
+def test_thirty_sets_are_honestly_valid_nowhere() -> None:
+    """A 30-set tumble leaves a calibration error above the noise everywhere: said so in words (not
+    "valid within pitch +-0 deg"), with the predicted sphere ratio."""
+    sim = array(9)
+    rng = np.random.default_rng(9)
+    rec, _ = sim.run(tumble(30, 24.0, rng), rng)
+    res = calibrate_array(rec.vectors, sim.geometry, F, stamps=rec.stamps)
+    assert res.envelope.empty and res.envelope.describe().startswith("not within 1.5x the noise at any attitude")
+    assert "+-0 deg" not in res.summary() and any("more sets" in w for w in res.warnings)
+    assert fresh_ratios(res.calibration, sim, 9)[0] > 1.5  # it is indeed off
+
+
+def test_a_noisy_sensor_in_no_time_order_calibrates() -> None:
+    """3 % noise and sets in random order (a resampled log): the noise cannot be read from second
+    differences, and the fallback limit (5 % of F) lets it through at the noise."""
+    sim, _ = compass(60, 0.03 * F_COMPASS, 0.5 * F_COMPASS)
+    rng = np.random.default_rng(60)
+    for _ in range(3):
+        rec, _ = sim.run(uniform_random(1000, rng), rng)
+        res = calibrate_array(rec.vectors, sim.geometry, F_COMPASS)
+        assert single_ratio(res.calibration, sim) < 1.05
+
+
 # -- noise-aware gates ------------------------------------------------------------------------
 def test_the_gate_residual_is_per_axis_like_the_noise() -> None:
     """White residuals of 3 nT per axis read as a 3 nT residual and 3 nT of noise (not 3/sqrt(3))."""

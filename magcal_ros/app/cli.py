@@ -582,7 +582,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
                    "from a yaw circle after the hard iron moved) and keep the rest; method ml")
     p.add_argument("--max-residual", type=float, metavar="TESLA",
                    help="accept a residual (per axis) up to this, instead of the noise-aware rule (17x the "
-                   "noise the data show, or 1.7%% of F for sets in no time order)")
+                   "noise the data show, or 5%% of F for sets in no time order)")
     p.add_argument("--mounting", metavar="ROLL,PITCH,YAW",
                    help="one sensor: its mounting in the platform frame (deg, sensor to platform); without it the "
                    "calibrated vector is in the sensor's own axes made orthogonal")
@@ -808,7 +808,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for out in _outputs(args):
             for note in recover(out):
                 _note(note)
-        return int(args.func(args) or 0)
+        with np.errstate(all="ignore"):  # a fit's overflow on bad data ends in a clear error, not a numpy warning
+            return int(args.func(args) or 0)
     except MagcalError as exc:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -59,7 +59,7 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
     fig = Figure(figsize=(13, 15), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(3, 2, height_ratios=(1, 1, 1.5))
-    mode = "relative: F estimated" if result.relative else "reference F"
+    mode = "relative: F taken as" if result.relative else "reference F"
     fig.suptitle(
         f"magcal calibration, method {result.method}: {result.samples} sets, {mode} = {f / NT:.1f} nT, "
         f"coverage {result.excitation.coverage:.0%}",

@@ -271,10 +271,20 @@ class Envelope:
         """True when every attitude is inside."""
         return self.pitch_deg >= 90.0 and self.roll_deg >= 180.0
 
+    @property
+    def empty(self) -> bool:
+        """True when no attitude is within :data:`ENVELOPE_RATIO` of the noise (too few sets, or a
+        calibration error everywhere)."""
+        return self.pitch_deg <= 0 and self.roll_deg <= 0
+
     def describe(self) -> str:
-        """``valid within pitch +-P deg, roll +-R deg`` or ``valid over the whole sphere``."""
+        """``valid within pitch +-P deg, roll +-R deg``, ``valid over the whole sphere``, or for an
+        empty envelope ``not within 1.5x the noise at any attitude (about Nx over the sphere)``."""
         if self.whole_sphere:
             return "valid over the whole sphere"
+        if self.empty:
+            return (f"not within {ENVELOPE_RATIO:g}x the noise at any attitude (about {self.ratio_sphere:.1f}x "
+                    "over the sphere)")
         return f"valid within pitch +-{self.pitch_deg:.0f} deg, roll +-{self.roll_deg:.0f} deg"
 
 

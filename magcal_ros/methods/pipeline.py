@@ -122,7 +122,7 @@ class CalibrationResult:
 
     def summary(self) -> str:
         """One line: sets, TMI and gradient residuals before and after, validity, what changed."""
-        mode = "relative, F estimated" if self.relative else "F"
+        mode = "relative: no reference, F taken as" if self.relative else "F"
         size = self.calibration.geometry.size
         what = f"{size} sensors" if size > 1 else "1 sensor"
         parts = [
@@ -352,9 +352,10 @@ def _weak_warning(ana: ident.Identifiability, sol: JointSolution, env: ident.Env
     axis, _ = _manoeuvre_axis(sol.directions)
     others = " or ".join(a for a in ("x", "y", "z") if a != axis)
     fly = "pitch and roll the vehicle more" if axis == "z" else f"turn it about {others} too"
+    where = (f"{env.describe()}" if env.empty else f"{env.describe()} only, outside it the predicted TMI error "
+             f"exceeds {ident.ENVELOPE_RATIO:g}x the noise")
     return (f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''} determined only near the attitudes flown "
-            f"(the manoeuvre turned mostly about {axis}; worst {worst.describe()}): {env.describe()} only, outside "
-            f"it the predicted TMI error exceeds {ident.ENVELOPE_RATIO:g}x the noise; to widen it {fly} "
+            f"(the manoeuvre turned mostly about {axis}; worst {worst.describe()}): {where}; to widen it {fly} "
             f"(a rotation about {others})")
 
 
@@ -568,6 +569,9 @@ def calibrate_array(
     warnings = list(verdict.warnings)
     if prior is None and ana.weak():
         warnings.append(_weak_warning(ana, sol, env))
+    elif prior is None and env.empty:
+        warnings.append(f"{env.describe()}: more sets, or more attitudes, would bring the calibration error "
+                        "below the noise")
     elif prior is None and not env.whole_sphere:
         least = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
         warnings.append(f"{env.describe()} (least determined: {', '.join(least)}); outside it the predicted TMI "
