@@ -58,8 +58,10 @@ def test_one_sensor_at_the_tmi_floor_of_the_true_calibration(tmp_path: Path, tab
                               earth_field(sc.DING2024_F, 52.0, -7.0), noise=peak / np.sqrt(12), noise_kind="uniform")
         rng = np.random.default_rng(table)
         rec, _ = sim.run(uniform_random(300, rng), rng)
-        cal, out = calibrate_csv(tmp_path, rec, "--reference-field", sc.DING2024_F)
+        plot = tmp_path / f"one_{peak / NT:g}.png"
+        cal, out = calibrate_csv(tmp_path, rec, "--reference-field", sc.DING2024_F, *(["--plot", plot] if table == 1 else []))
         assert "calibrated 1 sensor" in out and "sensor axes made orthogonal" in out
+        assert table != 1 or plot.read_bytes().startswith(b"\x89PNG")  # a figure without a gradient row
         assert cal.geometry.gradient_kind == "none"
         fresh, _ = sim.run(uniform_random(4000, rng), rng)
         m_true, o_true = true_correction(sim)
@@ -91,8 +93,10 @@ def test_two_sensor_gradiometer_baseline_gradient_at_its_floor(tmp_path: Path) -
     f = float(np.linalg.norm(sim.earth))
     rng = np.random.default_rng(1)
     rec, _ = sim.run(np.concatenate([three_rotations(40), uniform_random(400, rng)]), rng)
-    cal, out = calibrate_csv(tmp_path, rec, "--reference-field", f, "--positions", "0,0,0,0.5,0,0")
+    cal, out = calibrate_csv(tmp_path, rec, "--reference-field", f, "--positions", "0,0,0,0.5,0,0",
+                             "--plot", tmp_path / "two.png")
     assert "baseline gradient RMS" in out and "nan" not in out
+    assert (tmp_path / "two.png").read_bytes().startswith(b"\x89PNG")  # dB/ds drawn
     fresh, _ = sim.run(uniform_random(4000, rng), rng)
     b = corrected(cal.matrices, cal.offsets, fresh.vectors)
     slope = (b[:, 1] - b[:, 0]) / 0.5  # uniform field: the true dB/ds is 0
@@ -111,8 +115,8 @@ def test_six_sensors_in_three_dimensions_give_the_tensor_at_its_floor(tmp_path: 
     rec, _ = sim.run(uniform_random(1500, rng), rng)
     positions = ",".join(f"{v:g}" for v in pos.reshape(-1))
     cal, out = calibrate_csv(tmp_path, rec, "--reference-field", 51500 * NT, "--positions", positions,
-                             "--gradient-method", "least_squares")
-    assert "tensor RMS" in out
+                             "--gradient-method", "least_squares", "--plot", tmp_path / "six.png")
+    assert "tensor RMS" in out and (tmp_path / "six.png").read_bytes().startswith(b"\x89PNG")
     survey = ArraySimulation(geo, sim.sensors, sim.earth,
                              dipoles=(Dipole(np.array([1.5, 0.3, 0.4]), np.array([0.0, 0.5, 1.0])),))
     fresh, truth = survey.run(uniform_random(3000, rng), rng)

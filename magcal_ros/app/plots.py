@@ -3,8 +3,9 @@
 Three rows, before (left) and after (right) the calibration:
 
 1. TMI error ``|b| - F`` per sensor (nT) against time;
-2. the six measured tensor components ``xx, xy, xz, yx, yy, yz`` (nT/m; zero in the
-   uniform field of a calibration manoeuvre);
+2. what the array measures of the gradient (nT/m; zero in the uniform field of a
+   calibration manoeuvre): the six tensor components ``xx, xy, xz, yx, yy, yz``, or for
+   sensors on a line the three components ``dB/ds`` along it; a single sensor has no row;
 3. the vectors of every sensor in 3-D (uT): raw ellipsoids, corrected on the sphere of
    radius F.
 
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.metrics import TENSOR_COMPONENTS, rms
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import ns_to_seconds
-from magcal_ros.core.tensor import gradient
+from magcal_ros.core.tensor import baseline_gradient, gradient, method_for
 from magcal_ros.core.units import NT
 from magcal_ros.io.atomic import atomic_path
 from magcal_ros.methods.pipeline import CalibrationResult
@@ -41,6 +42,27 @@ def _sphere(ax, radius: float) -> None:  # type: ignore[no-untyped-def]
                       color="0.8", linewidth=0.4)
 
 
+def _gradient_row(axes, t: NDArray[np.float64], idx: NDArray[np.int64], raw: NDArray[np.float64],  # type: ignore[no-untyped-def]
+                  corrected: NDArray[np.float64], geometry) -> None:  # type: ignore[no-untyped-def]
+    """Row 2: the tensor components, or ``dB/ds`` for sensors on a line, before and after."""
+    for ax, (vectors, label) in zip(axes, ((raw, "before (raw)"), (corrected, "after (corrected)"))):
+        if geometry.gradient_kind == "tensor":
+            method = method_for(geometry)
+            g = gradient(vectors, geometry, method)
+            comps, names, what = g[:, :2, :].reshape(len(g), 6), [f"G{c}" for c in TENSOR_COMPONENTS], \
+                f"tensor components ({method})"
+        else:
+            comps, names, what = baseline_gradient(vectors, geometry), ["dBx/ds", "dBy/ds", "dBz/ds"], \
+                "gradient along the baseline"
+        for k, name in enumerate(names):
+            ax.plot(t[idx], comps[idx, k] / NT, lw=0.7, label=f"{name}: RMS {rms(comps[:, k]) / NT:.3g}")
+        ax.set_title(f"{what}, {label}: RMS {rms(comps) / NT:.3g} nT/m")
+        ax.set_xlabel("time since first set (s)")
+        ax.set_ylabel("nT/m")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, ncols=3, loc="upper right")
+
+
 def plot_calibration(path: str | os.PathLike[str], recording: Recording, result: CalibrationResult) -> None:
     """Draw the before/after figure of ``result`` on ``recording`` into the PNG ``path``."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -51,17 +73,17 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
     raw = rec.vectors
     corrected = cal.apply(raw, rec.select_channels(cal.channels).currents if cal.channels else None)
     f = result.intensity
-    method = "difference" if cal.geometry.cross_layout() is not None else "least_squares"
-    g_before, g_after = gradient(raw, cal.geometry, method), gradient(corrected, cal.geometry, method)
+    kind = cal.geometry.gradient_kind
     idx = _thin(len(rec))
     t = ns_to_seconds(rec.stamps - rec.stamps[0])
 
-    fig = Figure(figsize=(13, 15), layout="constrained")
+    rows = 3 if kind != "none" else 2
+    fig = Figure(figsize=(13, 15 if rows == 3 else 10), layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(3, 2, height_ratios=(1, 1, 1.5))
-    mode = "relative: F taken as" if result.relative else "reference F"
+    axes = fig.subplots(rows, 2, height_ratios=(1, 1, 1.5) if rows == 3 else (1, 1.5))
+    mode = "relative: F taken as" if result.relative else "reference F ="
     fig.suptitle(
-        f"magcal calibration, method {result.method}: {result.samples} sets, {mode} = {f / NT:.1f} nT, "
+        f"magcal calibration, method {result.method}: {result.samples} sets, {mode} {f / NT:.1f} nT, "
         f"coverage {result.excitation.coverage:.0%}",
         fontsize=12,
     )
@@ -75,19 +97,11 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
         ax.set_ylabel("nT")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
-    for col, (g, label) in enumerate(((g_before, "before (raw)"), (g_after, "after (corrected)"))):
-        ax = axes[1, col]
-        six = g[:, :2, :].reshape(len(g), 6)
-        for k, comp in enumerate(TENSOR_COMPONENTS):
-            ax.plot(t[idx], six[idx, k] / NT, lw=0.7, label=f"G{comp}: RMS {rms(six[:, k]) / NT:.3g}")
-        ax.set_title(f"tensor components ({method}), {label}: RMS {rms(six) / NT:.3g} nT/m")
-        ax.set_xlabel("time since first set (s)")
-        ax.set_ylabel("nT/m")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, ncols=3, loc="upper right")
+    if kind != "none":
+        _gradient_row(axes[1], t, idx, raw, corrected, cal.geometry)
     for col, (vectors, label) in enumerate(((raw, "raw vectors"), (corrected, "corrected vectors"))):
-        spec = axes[2, col].get_subplotspec()
-        axes[2, col].remove()
+        spec = axes[rows - 1, col].get_subplotspec()
+        axes[rows - 1, col].remove()
         ax = fig.add_subplot(spec, projection="3d")
         _sphere(ax, f / 1e-6)
         for k, name in enumerate(rec.names):
