@@ -171,6 +171,11 @@ def _name_list(text: str | None) -> tuple[str, ...]:
     return tuple(n.strip() for n in (text or "").split(",") if n.strip())
 
 
+def _sensors(count: int) -> str:
+    """``1 sensor``, ``4 sensors``."""
+    return f"{count} sensor" if count == 1 else f"{count} sensors"
+
+
 def _note(text: str) -> None:
     """One note line on stderr (what was dropped, left out or cleaned up)."""
     print(f"  note: {text}", file=sys.stderr)
@@ -451,7 +456,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     truth, ypath, npath = write_simulation(args.output, spec, args.storage)
     kind = "CSV" if is_csv(args.output) else f"rosbag2 ({args.storage})"
     print(
-        f"wrote {args.output}: {kind}, {len(truth.centre)} sets x {len(spec.names)} sensors at {spec.rate:g} Hz "
+        f"wrote {args.output}: {kind}, {len(truth.centre)} sets x {_sensors(len(spec.names))} at {spec.rate:g} Hz "
         f"(schedule {spec.schedule}, F {spec.intensity / NT:.1f} nT, noise {spec.noise / NT:g} nT, "
         f"{len(spec.dipoles)} dipoles{', still' if spec.still else ''})"
     )
@@ -520,7 +525,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
         print(f"  note: {report.currents.describe()}", file=sys.stderr)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
-        f"corrected {report.input_messages} sets of {len(cal.geometry.names)} sensors -> {args.output} "
+        f"corrected {report.input_messages} sets of {_sensors(len(cal.geometry.names))} -> {args.output} "
         f"({report.storage}: /<name>/corrected, /field"
         + {"tensor": ", /gradient", "baseline": ", /baseline_gradient"}.get(cal.geometry.gradient_kind, "")
         + f"{extra})"
@@ -548,7 +553,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
         storage = args.storage or "sqlite3"
         write_corrected_bag(args.output, rec, cal, storage, args.frame_id, args.gradient_method)
         kind = storage
-    print(f"corrected {len(rec)} sets of {len(rec.names)} sensors -> {args.output} ({kind})")
+    print(f"corrected {len(rec)} sets of {_sensors(len(rec.names))} -> {args.output} ({kind})")
     return 0
 
 

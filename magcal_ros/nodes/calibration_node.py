@@ -59,7 +59,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -443,11 +443,13 @@ class CalibrationNode(Node):
                 cached = self._progress_prior = (key[0], prior, note)
             _, prior, note = cached
             reference, site = self._reference()
-            if self._analyser is None:
+            spawn = self._analyser is None
+            if spawn:
                 self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
-            job = self._analyser.submit(progress.assess, raw, geo, reference, prior, stamps,
-                                        currents if channels else None, channels,
-                                        inclination_deg=site.inclination_deg if site is not None else None)
+            with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
+                job = self._analyser.submit(progress.assess, raw, geo, reference, prior, stamps,
+                                            currents if channels else None, channels,
+                                            inclination_deg=site.inclination_deg if site is not None else None)
             result = job.result()
         except Stopping:
             return
@@ -818,6 +820,22 @@ def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> 
 
 ANALYSIS_NICENESS: int = 10
 """The analysis process yields the CPU to the nodes (and the sensors' drivers) when they need it."""
+
+
+@contextlib.contextmanager
+def _stderr_to_null() -> Iterator[None]:
+    """While a process is spawned: its stderr is the null device. A Ctrl-C to the process group
+    reaches it too, maybe while it still imports (before :func:`_quiet_worker` ignores SIGINT),
+    and its KeyboardInterrupt traceback must not land in the node's output; what it computes
+    comes back through its future. The node's own stderr is back a few milliseconds later."""
+    saved, null = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
 
 
 def _quiet_worker() -> None:
