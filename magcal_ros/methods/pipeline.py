@@ -218,7 +218,7 @@ def _sphere_start(r: Array, clean: Array, f: float | None) -> tuple[Array, Array
     """A start that noisy, narrow manoeuvres cannot collapse: each sensor's best sphere through
     its clean readings (isotropic gain, offset at the centre); the centroid where a sphere does
     not fit."""
-    crude_m, crude_o, _ = _crude_start(r, f)
+    _, crude_o, _ = _crude_start(r, f)
     centres, radii = crude_o.copy(), np.linalg.norm(r - crude_o, axis=2).mean(axis=0)
     for i in range(r.shape[1]):
         x = r[clean, i] if clean.sum() >= 10 else r[:, i]
@@ -322,14 +322,25 @@ def _manoeuvre_axis(directions: Array) -> tuple[str, float]:
     return exc.axis_name, exc.thickness
 
 
+def _named(ana: ident.Identifiability, quantities: list[ident.Quantity]) -> str:
+    """``offset z, scale z`` in the analysis' order, at most six (then ``...``)."""
+    order = [q.name for q in ana.quantities]
+    names = sorted({q.name for q in quantities}, key=order.index)
+    return ", ".join(names[:6]) + (" ..." if len(names) > 6 else "")
+
+
+def _other_axes(axis: str) -> str:
+    """``x or y`` for ``z``."""
+    return " or ".join(a for a in ("x", "y", "z") if a != axis)
+
+
 def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope) -> str:
     """Why a manoeuvre is refused, in words: what it leaves undetermined and what to fly."""
     missing = ana.undetermined()
-    names = sorted({q.name for q in missing}, key=lambda n: [q.name for q in ana.quantities].index(n))
     sensors = sorted({q.sensor for q in missing})
     who = "every sensor" if len(sensors) == len(set(q.sensor for q in ana.quantities)) else ", ".join(sensors)
     axis, flat = _manoeuvre_axis(sol.directions)
-    others = " or ".join(a for a in ("x", "y", "z") if a != axis)
+    others = _other_axes(axis)
     if flat < 0.05:
         how = f"the array was rotated about one axis only (about {axis})"
     else:
@@ -338,7 +349,7 @@ def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope
     if axis == "z":
         advice += ": pitch and roll the vehicle, not only yaw"
     envelope = "" if env.pitch_deg <= 0 else f" (as flown it would be {env.describe()})"
-    return (f"the manoeuvre does not determine {', '.join(names[:6])}{' ...' if len(names) > 6 else ''} of {who}: "
+    return (f"the manoeuvre does not determine {_named(ana, missing)} of {who}: "
             f"{how}; {advice}{envelope}; or give the previous calibration as a prior to recalibrate only what "
             "this manoeuvre determines")
 
@@ -347,14 +358,13 @@ def _weak_warning(ana: ident.Identifiability, sol: JointSolution, env: ident.Env
     """What a manoeuvre determined only near the attitudes flown, where the result holds, and what
     to fly to widen it."""
     weak = ana.weak()
-    names = sorted({q.name for q in weak}, key=lambda n: [q.name for q in ana.quantities].index(n))
     worst = max(weak, key=lambda q: q.effect)
     axis, _ = _manoeuvre_axis(sol.directions)
-    others = " or ".join(a for a in ("x", "y", "z") if a != axis)
+    others = _other_axes(axis)
     fly = "pitch and roll the vehicle more" if axis == "z" else f"turn it about {others} too"
     where = (f"{env.describe()}" if env.empty else f"{env.describe()} only, outside it the predicted TMI error "
              f"exceeds {ident.ENVELOPE_RATIO:g}x the noise")
-    return (f"{', '.join(names[:6])}{' ...' if len(names) > 6 else ''} determined only near the attitudes flown "
+    return (f"{_named(ana, weak)} determined only near the attitudes flown "
             f"(the manoeuvre turned mostly about {axis}; worst {worst.describe()}): {where}; to widen it {fly} "
             f"(a rotation about {others})")
 
