@@ -176,6 +176,16 @@ def saturated(name: str, fraction: float) -> str:
             "larger range, or mount it farther from the iron that drives it there")
 
 
+def saturation(names: tuple[str, ...], raw: Array) -> tuple[NDArray[np.bool_], str | None]:
+    """(N, S) True for readings clipped at a sensor's full scale, and the cause of a refusal when a
+    sensor has more of them than outlier exclusion may take (:data:`MAX_OUTLIER_FRACTION`)."""
+    clipped = np.stack([clipped_readings(raw[:, i]) for i in range(len(names))], axis=1)
+    for i, name in enumerate(names):
+        if clipped[:, i].mean() > MAX_OUTLIER_FRACTION:
+            return clipped, saturated(name, float(clipped[:, i].mean()))
+    return clipped, None
+
+
 def judge(
     names: tuple[str, ...],
     residuals: Array,
@@ -187,13 +197,15 @@ def judge(
     implied_gain: float | None = None,
     intensity: float | None = None,
     directions: Array | None = None,
+    clipped: NDArray[np.bool_] | None = None,
 ) -> Verdict:
     """Apply the gates to a fit.
 
     ``residuals`` (N, S, 3) T and ``weights`` (N, S) of the fit; ``tmi_residuals`` (N, S) T
     (corrected norm minus F, all readings); ``raw`` (N, S, 3) T; all in time order.
     ``implied_gain``: the sensors' mean gain when a reference intensity was given;
-    ``intensity`` F (T); ``directions`` (N, 3) unit field directions (smoothness).
+    ``intensity`` F (T); ``directions`` (N, 3) unit field directions (smoothness);
+    ``clipped`` (N, S) the readings at full scale (default: from :func:`saturation`).
     """
     s = len(names)
     verdict = Verdict(excluded=np.sum(weights == 0, axis=0).astype(float))
@@ -210,13 +222,14 @@ def judge(
     def at(index: int) -> str:
         return f"at t = {t[min(index, len(t) - 1)] - t[0]:.1f} s" if stamps_ns is not None else f"at set {index}"
 
-    clipped = [clipped_readings(raw[:, i]) for i in range(s)]
+    if clipped is None:
+        clipped = saturation(names, raw)[0]
     for i, name in enumerate(names):
         n = len(weights)
         frac = verdict.excluded[i] / n
         if frac > MAX_OUTLIER_FRACTION:
-            if clipped[i].sum() > 0.5 * verdict.excluded[i]:
-                verdict.cause = saturated(name, float(clipped[i].mean()))
+            if clipped[:, i].sum() > 0.5 * verdict.excluded[i]:
+                verdict.cause = saturated(name, float(clipped[:, i].mean()))
             elif longest_runs(weights[:, i] == 0) > 0.5:
                 step = best_step(tmi_residuals[:, i])
                 verdict.cause = (
@@ -301,7 +314,7 @@ def judge(
             )
     for i, name in enumerate(names):
         if verdict.excluded[i]:
-            at_full_scale = int(np.sum(clipped[i] & (weights[:, i] == 0)))
+            at_full_scale = int(np.sum(clipped[:, i] & (weights[:, i] == 0)))
             why = f" ({at_full_scale} at its full-scale value: saturated)" if at_full_scale else ""
             verdict.warnings.append(f"{int(verdict.excluded[i])} outlying readings of {name} excluded{why}")
     return verdict

@@ -43,7 +43,7 @@ from magcal_ros.core.observability import (
     excitation,
 )
 from magcal_ros.core.prior import DriftModel
-from magcal_ros.core.scalar_fit import clipped_readings, trimmed_algebraic_fit
+from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
@@ -488,10 +488,9 @@ def calibrate_array(
         raise ObservabilityError("the readings barely change (the array hardly rotated); turn it through large "
                                  "angles about at least two axes")
 
-    for i, name in enumerate(geometry.names):  # clipped beyond what outlier exclusion may take
-        clipped = float(clipped_readings(r[:, i]).mean())
-        if clipped > quality.MAX_OUTLIER_FRACTION:
-            raise CalibrationFailed(quality.saturated(name, clipped))
+    clipped, saturated = quality.saturation(geometry.names, r)
+    if saturated:
+        raise CalibrationFailed(saturated)
 
     # 2. spikes and the start
     clean_reading = np.ones((n, s), bool)
@@ -573,7 +572,7 @@ def calibrate_array(
         implied = float(np.mean(np.abs(np.linalg.det(sol.matrices)) ** (-1.0 / 3.0)))
     verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
                             None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
-                            implied, sol.intensity, sol.directions[order])
+                            implied, sol.intensity, sol.directions[order], clipped[order])
     if verdict.cause:
         raise CalibrationFailed(verdict.cause)
     warnings = list(verdict.warnings)
