@@ -1,24 +1,16 @@
 """Joint maximum a posteriori fit of the whole array, robust to outliers (the final stage of ``ml``).
 
-Model, set ``k`` (uniform field of intensity ``F`` and unit direction ``d_k`` in the platform
-frame), sensor ``i`` with channel currents ``u_k`` (A)::
+The model is :class:`~magcal_ros.core.forward_model.ForwardModel`: per set ``k`` a unit field
+direction ``d_k`` (platform frame), per sensor ``i`` its blocks (forward matrix and offset,
+current interference, temperature, lag). Every set gives 3 equations per sensor, so the
+sensors' relative calibration (what the tensor needs) is set by the vector agreement between
+sensors, not only by each sensor's norm.
 
-    r_ik = K_i F d_k + E_i u_k + o_i + noise_i
-
-``K_i`` (3x3) is the forward matrix (``K_i = M_i^-1``), ``o_i`` the offset (T), ``E_i``
-(3 x m, T/A) the current interference seen in the sensor's raw axes; the correction is
-``B = M_i (r - o_i) - M_i E_i u`` (the interference in the platform frame is
-``D_i = M_i E_i``). Every set gives 3 equations per sensor, so the sensors' relative
-calibration (what the tensor needs) is set by the vector agreement between sensors, not
-only by each sensor's norm.
-
-The fit works in units of ``F``: per sensor the parameter matrix ``W_i = [K_i | o_i / F |
-E_i / F]`` (3 x (4 + m)) and the features ``phi_k = [d_k, 1, u_k]``, so that the
-prediction is ``W_i phi_k`` and the Jacobian of a reading is ``I_3 (x) phi_k``. The
-per-set directions are eliminated by a Schur complement (cost linear in the number of
-sets). A Gaussian prior on every ``W_i`` (the previous calibration and a drift model, or a
-weak one around the starting point) makes the problem well posed whatever the manoeuvre;
-the data information (without the prior) is returned for the identifiability analysis.
+The fit works in units of ``F`` on one parameter vector per sensor (see the model's layout).
+The per-set directions are eliminated by a Schur complement (cost linear in the number of
+sets). A Gaussian prior on every parameter (the previous calibration and a drift model, or a
+weak one around the starting point) makes the problem well posed whatever the manoeuvre; the
+data information (without the prior) is returned for the identifiability analysis.
 
 Outliers: after each fit every reading is compared with what the *other* sensors say the
 field was (the mean of the set's other readings, so that a spike on one sensor cannot hide
@@ -36,6 +28,7 @@ import scipy.linalg
 import scipy.stats
 from numpy.typing import NDArray
 
+from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.errors import CalibrationFailed, InputError
 
 Array = NDArray[np.float64]
@@ -47,24 +40,71 @@ MAX_ROBUST_ROUNDS: int = 12
 SOFT_BOUND: float = 16.0
 """Residuals beyond sqrt(SOFT_BOUND) = 4 noise sd (per reading, squared norm over its dof)
 are down-weighted in proportion while outliers are being decided."""
+RATE_HALF_WINDOW: int = 4
+"""Sets on each side of a set in the local quadratic fit that gives the field direction's rate."""
+RATE_GAP: float = 5.0
+"""A stamp interval this many times the typical one breaks the rate estimate (a gap in the data)."""
 
 
 @dataclass(frozen=True)
 class ParameterPrior:
-    """Gaussian prior on each sensor's ``W_i = [K_i | o_i / F | E_i / F]`` (units of F).
+    """Gaussian prior on each sensor's parameter vector (units of F; layout of the model).
 
-    ``mean`` (S, 3, 4 + m); ``sigma`` (S, 3, 4 + m) the 1-sigma of each entry (inf: no prior).
+    ``mean`` and ``sigma`` (S, P), or (S, 3, q) for a model with no extra parameters; the
+    1-sigma of each entry (inf: no prior).
     """
 
     mean: Array
     sigma: Array
 
     def precision(self) -> Array:
-        """Diagonal precision, flattened per sensor as (S, 3 (4 + m))."""
+        """Diagonal precision, flattened per sensor as (S, P)."""
         s = np.asarray(self.sigma, dtype=float)
         with np.errstate(divide="ignore"):
             prec = np.where(np.isfinite(s), 1.0 / np.maximum(s, 1e-300) ** 2, 0.0)
         return prec.reshape(len(s), -1)
+
+    def flat_mean(self) -> Array:
+        """The mean as (S, P)."""
+        m = np.asarray(self.mean, dtype=float)
+        return m.reshape(len(m), -1)
+
+    def fitted_to(self, model: ForwardModel) -> "ParameterPrior":
+        """This prior on ``model``'s parameters: blocks it does not know get no prior (inf)."""
+        mean, sigma = self.flat_mean(), np.asarray(self.sigma, dtype=float).reshape(len(self.mean), -1)
+        if mean.shape[1] == model.size:
+            return ParameterPrior(mean, sigma)
+        base = ForwardModel(model.sensors, model.channels)
+        if mean.shape[1] != base.size:
+            raise InputError(f"prior has {mean.shape[1]} parameters per sensor, the model {model.size}")
+        out_mean, out_sigma = np.zeros((model.sensors, model.size)), np.full((model.sensors, model.size), np.inf)
+        wm = model.widen(mean.reshape(model.sensors, 3, base.q))
+        ws = np.concatenate([sigma.reshape(model.sensors, 3, base.q),
+                             np.full((model.sensors, 3, model.q - base.q), np.inf)], axis=2)
+        out_mean[:, : 3 * model.q] = wm.reshape(model.sensors, -1)
+        out_sigma[:, : 3 * model.q] = ws.reshape(model.sensors, -1)
+        return ParameterPrior(out_mean, out_sigma)
+
+
+@dataclass(frozen=True)
+class SetInputs:
+    """What a set carries besides the raw readings: currents, temperatures, time."""
+
+    currents: Array
+    """(N, m) A of the interference channels."""
+    temperatures: Array | None = None
+    """(N, S) temperature of each sensor minus the reference (K); None: no temperature block."""
+    times: Array | None = None
+    """(N,) s, the sets' stamps (for the lag block's field rates); None: no lag block."""
+
+    def rest_features(self, sensors: int) -> Array:
+        """(N, S, 1 + m [+ 1]): ``[1, u_k, dT_ik]`` per set and sensor."""
+        n = len(self.currents)
+        parts = [np.ones((n, sensors, 1)), np.broadcast_to(self.currents[:, None, :], (n, sensors,
+                                                                                       self.currents.shape[1]))]
+        if self.temperatures is not None:
+            parts.append(self.temperatures[:, :, None])
+        return np.concatenate(parts, axis=2)
 
 
 @dataclass(frozen=True)
@@ -86,14 +126,39 @@ class JointSolution:
     residuals: Array
     """(N, S, 3) raw-space residuals (T)."""
     information: Array
-    """(S P, S P) Fisher information of the data on the flattened ``W`` (units of F), directions
-    eliminated, noise-whitened; P = 3 (4 + m)."""
+    """(S P, S P) Fisher information of the data on the parameters (units of F), directions
+    eliminated, noise-whitened; P = ``model.size``."""
     scores: Array
     """(N, S P) per-set contributions to the reduced gradient at the solution (whitened)."""
     w: Array
-    """(S, 3, 4 + m) the fitted ``W_i`` (units of F)."""
+    """(S, 3, q) the fitted ``W_i`` (units of F): the linear part of the parameters."""
     intensity: float
     """F (T)."""
+    model: ForwardModel
+    theta: Array
+    """(S, P) every parameter (units of F where linear; ``g`` in 1/K, ``tau`` in s)."""
+    rates: Array | None = None
+    """(N, 3) rate of change of the field direction (1/s) the lag block used; None without it."""
+    fixed: Array | None = None
+    """(S, P) parameters the fit kept at their start (held, or the lag gauge); None: none."""
+
+    @property
+    def offset_tempco(self) -> Array | None:
+        """(S, 3) offset change per kelvin (T/K, raw axes), None without temperature."""
+        col = self.model.offset_tempco_column
+        return None if col is None else self.w[:, :, col] * self.intensity
+
+    @property
+    def gain_tempco(self) -> Array | None:
+        """(S, 3) gain change per kelvin of each raw axis (1/K), None without temperature."""
+        sl = self.model.gain_slice
+        return None if sl is None else self.theta[:, sl]
+
+    @property
+    def time_offsets(self) -> Array | None:
+        """(S,) s each sensor reads late (relative to the first), None without the lag block."""
+        idx = self.model.lag_index
+        return None if idx is None else self.theta[:, idx]
 
 
 def tangent_bases(u: Array) -> Array:
@@ -106,40 +171,109 @@ def tangent_bases(u: Array) -> Array:
 
 
 def features(directions: Array, currents: Array) -> Array:
-    """(N, 4 + m) ``phi_k = [d_k, 1, u_k]``."""
+    """(N, 4 + m) ``phi_k = [d_k, 1, u_k]`` (the linear features of a model without temperature or lag)."""
     return np.concatenate([directions, np.ones((len(directions), 1)), currents], axis=1)
 
 
-class _Normal:
-    """Whitened normal equations of the model at one point (directions eliminated)."""
+def direction_rates(directions: Array, times: Array) -> Array:
+    """(N, 3) rate of change (1/s) of unit field directions (N, 3) at ``times`` (N,) s.
 
-    def __init__(self, w: Array, d: Array, x: Array, u: Array, weights: Array, sigma: Array) -> None:
-        s, _, q = w.shape
-        n = len(d)
-        self.phi = features(d, u)  # (N, q)
-        self.basis = tangent_bases(d)  # (N, 3, 2)
-        self.e = _predict(w, self.phi) - x  # (N, S, 3)
-        ws = weights / sigma[None, :] ** 2  # (N, S) whitening weights
-        self.ws = ws
+    A local quadratic fit over :data:`RATE_HALF_WINDOW` sets on each side (in time order), never
+    across a gap of more than :data:`RATE_GAP` typical intervals; perpendicular to the direction.
+    Sets with fewer than three neighbours in reach get rate 0.
+    """
+    d = np.asarray(directions, dtype=float)
+    t = np.asarray(times, dtype=float)
+    n = len(d)
+    out = np.zeros_like(d)
+    if n < 3:
+        return out
+    order = np.argsort(t, kind="stable")
+    ts, ds = t[order], d[order]
+    dt = np.diff(ts)
+    positive = dt[dt > 0]
+    if not len(positive):
+        return out
+    typical = float(np.median(positive))
+    segment = np.concatenate([[0], np.cumsum((dt > RATE_GAP * typical) | (dt <= 0))])
+    h = RATE_HALF_WINDOW
+    idx = np.arange(n)[:, None] + np.arange(-h, h + 1)[None, :]
+    inside = (idx >= 0) & (idx < n)
+    idx = np.clip(idx, 0, n - 1)
+    valid = inside & (segment[idx] == segment[:, None])
+    x = np.where(valid, (ts[idx] - ts[:, None]) / typical, 0.0)
+    wgt = valid.astype(float)
+    powers = np.stack([np.sum(wgt * x**p, axis=1) for p in range(5)], axis=1)  # (N, 5)
+    normal = np.stack([powers[:, i : i + 3] for i in range(3)], axis=1)  # (N, 3, 3) Hankel
+    rhs = np.stack([np.einsum("nw,nwc->nc", wgt * x**p, ds[idx]) for p in range(3)], axis=1)  # (N, 3, 3)
+    enough = valid.sum(axis=1) >= 3
+    det = np.linalg.det(normal)
+    enough &= np.abs(det) > 1e-9 * np.maximum(powers[:, 0] ** 3, 1e-300)
+    coef = np.zeros((n, 3, 3))
+    if np.any(enough):
+        coef[enough] = np.linalg.solve(normal[enough], rhs[enough])
+    slope = coef[:, 1, :] / typical
+    slope -= np.sum(slope * ds, axis=1, keepdims=True) * ds
+    out[order] = np.where(enough[:, None], slope, 0.0)
+    return out
+
+
+class _Eval:
+    """The model at one point: prediction, residuals, Jacobians and the whitened normal equations
+    (directions eliminated by their 2 x 2 blocks)."""
+
+    def __init__(self, model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
+                 weights: Array, sigma: Array) -> None:
+        n, s, _ = x.shape
+        p, q = model.size, model.q
+        w, g, tau = model.split(theta)
         k = w[:, :, :3]
-        self.m = np.matmul(k[None, :, :, :], self.basis[:, None, :, :])  # (N, S, 3, 2) d pred / d delta
-        # Block diagonal A_i = I_3 (x) sum_k ws phi phi^T, and the gradient sum_k ws e phi^T
-        self.a_blocks = np.stack([(self.phi * ws[:, i : i + 1]).T @ self.phi for i in range(s)])  # (S, q, q)
-        we = ws[:, :, None] * self.e  # (N, S, 3)
-        self.g_w = np.stack([we[:, i].T @ self.phi for i in range(s)])  # (S, 3, q)
-        # Cross terms B_k[(s, a, q), c] = ws_ks phi_kq m_ksac
-        wm = ws[:, :, None, None] * self.m  # (N, S, 3, 2)
-        self.b = (wm[:, :, :, None, :] * self.phi[:, None, None, :, None]).reshape(n, s * 3 * q, 2)
-        flat_m = self.m.reshape(n, s * 3, 2)
-        self.c = np.matmul(wm.reshape(n, s * 3, 2).transpose(0, 2, 1), flat_m)  # (N, 2, 2)
-        self.g_d = np.sum(wm * self.e[:, :, :, None], axis=(1, 2))  # (N, 2)
-        self.cost = float(np.sum(we * self.e))
-        self.shape = (s, q)
+        psi = inputs.rest_features(s)  # (N, S, q - 3)
+        self.basis = tangent_bases(d)  # (N, 3, 2)
+        # Direction each sensor saw (lag), and its derivatives.
+        if tau is not None and rates is not None:
+            lagged = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
+            norm = np.linalg.norm(lagged, axis=2, keepdims=True)
+            dl = lagged / norm
+            dnorm = (-np.sum(d * rates, axis=1)[:, None] + tau[None, :] * np.sum(rates * rates, axis=1)[:, None])
+            d_tau = -rates[:, None, :] / norm - dl * (dnorm[:, :, None] / norm)  # d dl / d tau (N, S, 3)
+            # d dl / d d (tangent) ~ (I - dl dl^T) / |lagged|
+            proj = self.basis[:, None, :, :] - dl[:, :, :, None] * np.einsum("nsa,nac->nsc", dl, self.basis)[:, :, None, :]
+            dir_jac = proj / norm[:, :, :, None]  # (N, S, 3, 2)
+        else:
+            dl = np.broadcast_to(d[:, None, :], (n, s, 3))
+            d_tau = None
+            dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
+        kd = np.einsum("sab,nsb->nsa", k, dl)
+        gain = 1.0 + inputs.temperatures[:, :, None] * g[None, :, :] if g is not None and inputs.temperatures is not None \
+            else np.ones((1, 1, 1))
+        self.pred = gain * kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], psi)
+        self.e = self.pred - x
+        jac = np.zeros((n, s, 3, p))
+        for a in range(3):
+            jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * dl if gain.shape[0] > 1 else dl
+            jac[:, :, a, a * q + 3 : a * q + q] = psi
+        if model.gain_slice is not None and inputs.temperatures is not None:
+            for a in range(3):
+                jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a]
+        if model.lag_index is not None and d_tau is not None:
+            jac[:, :, :, model.lag_index] = gain * np.einsum("sab,nsb->nsa", k, d_tau)
+        self.jac = jac
+        self.m = gain[..., None] * np.einsum("sab,nsbc->nsac", k, dir_jac)  # (N, S, 3, 2) d pred / d direction
+        ws = weights / sigma[None, :] ** 2
+        self.ws = ws
+        wj = jac * ws[:, :, None, None]
+        self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])  # (S, P, P)
+        self.g_theta = np.einsum("nsap,nsa->sp", wj, self.e)  # (S, P)
+        self.b = np.einsum("nsap,nsac->nspc", wj, self.m).reshape(n, s * p, 2)
+        wm = ws[:, :, None, None] * self.m
+        self.c = np.einsum("nsab,nsac->nbc", wm, self.m)  # (N, 2, 2)
+        self.g_d = np.einsum("nsab,nsa->nb", wm, self.e)  # (N, 2)
+        self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
+        self.shape = (s, p)
 
     def a_matrix(self) -> Array:
-        s, q = self.shape
-        blocks = [np.kron(np.eye(3), self.a_blocks[i]) for i in range(s)]
-        return scipy.linalg.block_diag(*blocks)
+        return scipy.linalg.block_diag(*self.a_blocks)
 
     def scores(self) -> Array:
         """(N, S P) each set's contribution to the reduced gradient (directions eliminated, whitened).
@@ -147,9 +281,8 @@ class _Normal:
         For white noise ``sum_k s_k s_k^T`` estimates :meth:`information`; with time-correlated
         noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
         """
-        s, q = self.shape
-        we = self.ws[:, :, None] * self.e
-        g = (we[:, :, :, None] * self.phi[:, None, None, :]).reshape(len(self.e), s * 3 * q)
+        s, p = self.shape
+        g = np.einsum("nsap,nsa->nsp", self.jac * self.ws[:, :, None, None], self.e).reshape(len(self.e), s * p)
         corr = np.matmul(self.b, np.matmul(_inv2(self.c), self.g_d[:, :, None]))[:, :, 0]
         return g - corr
 
@@ -160,12 +293,6 @@ class _Normal:
         flat_b = self.b.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         return self.a_matrix() - flat_bc @ flat_b.T
-
-
-def _predict(w: Array, phi: Array) -> Array:
-    """``W_i phi_k`` for every set and sensor: (N, S, 3)."""
-    s, _, q = w.shape
-    return (phi @ w.reshape(s * 3, q).T).reshape(len(phi), s, 3)
 
 
 def _inv2(c: Array) -> Array:
@@ -181,11 +308,25 @@ def _inv2(c: Array) -> Array:
     return inv
 
 
-def _directions(w: Array, x: Array, u: Array, weights: Array) -> Array:
+def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs,
+                         rates: Array | None) -> Array:
+    """(N, S, 3) each reading inverted through its sensor's model (units of F), brought back to the
+    set's instant (lag removed to first order): what each sensor says the set's field was."""
+    s = x.shape[1]
+    w, g, tau = model.split(theta)
+    rest = x - np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
+    if g is not None and inputs.temperatures is not None:
+        rest = rest / (1.0 + inputs.temperatures[:, :, None] * g[None, :, :])
+    b = np.einsum("sab,nsb->nsa", np.linalg.inv(w[:, :, :3]), rest)
+    if tau is not None and rates is not None:
+        b = b + tau[None, :, None] * rates[:, None, :] * np.linalg.norm(b, axis=2, keepdims=True)
+    return b
+
+
+def _directions(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
+                weights: Array) -> Array:
     """Field direction per set from the current corrections (weighted mean of the sensors)."""
-    k = w[:, :, :3]
-    rest = x - np.einsum("saq,nq->nsa", w[:, :, 3:], np.concatenate([np.ones((len(x), 1)), u], axis=1))
-    b = np.einsum("sab,nsb->nsa", np.linalg.inv(k), rest)
+    b = corrected_directions(model, theta, x, inputs, rates)
     wsum = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
     mean = np.einsum("ns,nsa->na", weights, b) / wsum
     norm = np.linalg.norm(mean, axis=1, keepdims=True)
@@ -197,74 +338,98 @@ def _directions(w: Array, x: Array, u: Array, weights: Array) -> Array:
     return out
 
 
-def _cost(w: Array, d: Array, x: Array, u: Array, weights: Array, sigma: Array) -> float:
-    """The whitened data cost of ``W`` with directions ``d`` (no prior)."""
-    e = _predict(w, features(d, u)) - x
+def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, rates: Array | None) -> Array:
+    """(N, S, 3) predicted readings (units of F)."""
+    w, g, tau = model.split(theta)
+    s = w.shape[0]
+    if tau is not None and rates is not None:
+        dl = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
+        dl /= np.linalg.norm(dl, axis=2, keepdims=True)
+    else:
+        dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
+    kd = np.einsum("sab,nsb->nsa", w[:, :, :3], dl)
+    if g is not None and inputs.temperatures is not None:
+        kd = kd * (1.0 + inputs.temperatures[:, :, None] * g[None, :, :])
+    return kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
+
+
+def _cost(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
+          weights: Array, sigma: Array) -> float:
+    """The whitened data cost of ``theta`` with directions ``d`` (no prior)."""
+    e = _prediction(model, theta, d, inputs, rates) - x
     return float(np.sum((weights / sigma[None, :] ** 2)[:, :, None] * e * e))
 
 
 def _solve_lm(
-    w: Array, x: Array, u: Array, weights: Array, sigma: Array, prior: ParameterPrior,
-    iterations: int, tolerance: float,
+    model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
+    sigma: Array, prior: ParameterPrior, iterations: int, tolerance: float, fixed: NDArray[np.bool_],
 ) -> tuple[Array, Array, int]:
-    """Levenberg-Marquardt on the MAP cost with fixed weights and noise; returns (W, directions, steps).
+    """Levenberg-Marquardt on the MAP cost with fixed weights, noise and rates; returns (theta, directions, steps).
 
     The directions are eliminated exactly (Schur complement, computed once per iteration) and
-    the damping acts on the reduced system, so a rejected step costs one small solve.
+    the damping acts on the reduced system, so a rejected step costs one small solve. Parameters
+    marked ``fixed`` (S, P) keep their values.
     """
-    s, _, q = w.shape
+    s, p = theta.shape
+    free = ~fixed.reshape(-1)
     prec = prior.precision().reshape(-1)
-    mean = prior.mean.reshape(-1)
-    d = _directions(w, x, u, weights)
+    mean = prior.flat_mean().reshape(-1)
+    d = _directions(model, theta, x, inputs, rates, weights)
     lam = 1e-4
     steps = 0
 
-    def prior_cost(wv: Array) -> float:
-        diff = wv.reshape(-1) - mean
+    def prior_cost(tv: Array) -> float:
+        diff = tv.reshape(-1) - mean
         return float(np.sum(prec * diff * diff))
 
-    cur = _Normal(w, d, x, u, weights, sigma)
-    cost = cur.cost + prior_cost(w)
+    def invertible(tv: Array) -> bool:
+        return bool(np.all(np.isfinite(tv)) and np.all(np.abs(np.linalg.det(model.split(tv)[0][:, :, :3])) > 1e-12))
+
+    cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    cost = cur.cost + prior_cost(theta)
     done = False
     for steps in range(1, iterations + 1):
         c_inv = _inv2(cur.c)
         bc = np.matmul(cur.b, c_inv)
         flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
-        schur = cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T
-        rhs = cur.g_w.reshape(-1) + prec * (w.reshape(-1) - mean) - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2))
+        schur = (cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T)[np.ix_(free, free)]
+        rhs = (cur.g_theta.reshape(-1) + prec * (theta.reshape(-1) - mean)
+               - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2)))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
         diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
         improved = False
         while lam < 1e10:
+            step = np.zeros(s * p)
             try:
-                step = -scipy.linalg.solve(schur + lam * diag, rhs, assume_a="sym")
+                step[free] = -scipy.linalg.solve(schur + lam * diag, rhs, assume_a="sym")
             except (np.linalg.LinAlgError, ValueError):
                 lam *= 10
                 continue
             dd = -np.matmul(c_inv, (cur.g_d + cur.b.transpose(0, 2, 1) @ step)[:, :, None])[:, :, 0]
-            w_new = w + step.reshape(s, 3, q)
+            t_new = theta + step.reshape(s, p)
             d_new = d + np.matmul(cur.basis, dd[:, :, None])[:, :, 0]
             d_new /= np.linalg.norm(d_new, axis=1, keepdims=True)
-            if not np.all(np.isfinite(w_new)) or np.any(np.abs(np.linalg.det(w_new[:, :, :3])) < 1e-12):
+            if not invertible(t_new):
                 lam *= 10
                 continue
-            new_cost = _cost(w_new, d_new, x, u, weights, sigma) + prior_cost(w_new)
+            new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma) + prior_cost(t_new)
             if new_cost <= cost:
                 lam = max(lam / 10, 1e-12)
                 done = cost - new_cost <= tolerance * max(cost, 1e-300)
-                w, d, cost = w_new, d_new, new_cost
-                cur = _Normal(w, d, x, u, weights, sigma)
+                theta, d, cost = t_new, d_new, new_cost
+                cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
                 improved = True
                 break
             lam *= 10
         if not improved or done:
             break
-    return w, d, steps
+    return theta, d, steps
 
 
-def _outliers(w: Array, x: Array, u: Array, weights: Array) -> Array:
+def _outliers(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
+              weights: Array) -> Array:
     """(N, S) True for readings that disagree with the other sensors of their set or with F.
 
     Each reading's corrected vector is compared with the mean of the set's other used
@@ -272,9 +437,7 @@ def _outliers(w: Array, x: Array, u: Array, weights: Array) -> Array:
     the chi-square bound of its sensor's robust scale flags it.
     """
     n, s, _ = x.shape
-    k = w[:, :, :3]
-    rest = x - np.einsum("saq,nq->nsa", w[:, :, 3:], np.concatenate([np.ones((n, 1)), u], axis=1))
-    b = np.einsum("sab,nsb->nsa", np.linalg.inv(k), rest)
+    b = corrected_directions(model, theta, x, inputs, rates)
     flags = np.zeros((n, s), bool)
     tests = [((np.linalg.norm(b, axis=2) - 1.0) ** 2, 1.0)]
     if s >= 3:
@@ -313,6 +476,23 @@ def _efficient_sigma(e: Array, weights: Array, dof: float) -> Array:
     return np.sqrt(np.sum(weights * sq, axis=0) / (used * dof))
 
 
+def weak_prior(theta: Array) -> ParameterPrior:
+    """The default prior around a start: wide enough to let the data decide everything they
+    determine, finite so that undetermined directions stay put (gains of order 1, offsets of
+    order F, gain per kelvin of order 1/K, lags of order 1 s)."""
+    t = np.asarray(theta, dtype=float)
+    return ParameterPrior(t.copy(), np.ones_like(t))
+
+
+def fixed_parameters(model: ForwardModel, held: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+    """(S, P) parameters the fit keeps at their start: ``held`` ones, and the reference (first)
+    sensor's lag, the gauge of a common lag (every lag is relative to that sensor's)."""
+    fixed = np.zeros((model.sensors, model.size), bool) if held is None else np.asarray(held, bool).copy()
+    if model.lag_index is not None:
+        fixed[0, model.lag_index] = True
+    return fixed
+
+
 def fit_array(
     raw: Array,
     matrices: Array,
@@ -325,73 +505,114 @@ def fit_array(
     robust: bool = True,
     iterations: int = 50,
     tolerance: float = 1e-10,
+    *,
+    temperatures: Array | None = None,
+    times: Array | None = None,
+    start: Array | None = None,
+    held: NDArray[np.bool_] | None = None,
 ) -> JointSolution:
     """Joint MAP fit of every sensor from raw sets ``raw`` (N, S, 3) T, starting at
     ``matrices`` (S, 3, 3) / ``offsets`` (S, 3) T / ``interference`` (S, 3, m) T/A.
 
-    ``currents`` (N, m) A; ``prior`` on ``W`` in units of F (default: a weak prior around
-    the start that only keeps undetermined directions finite); ``weights`` (N, S) 0/1 to
-    exclude readings from the start; ``robust`` re-decides outliers until they settle.
+    ``currents`` (N, m) A; ``temperatures`` (N, S) K about the reference: fit the temperature
+    block; ``times`` (N,) s: fit the lag block (two or more sensors; the sets must follow a
+    continuous motion); ``start`` (S, P): a full start of every parameter (overrides the
+    matrices, offsets and interference); ``held`` (S, P): parameters kept at their start (see
+    :func:`fixed_parameters`); ``prior`` on the parameters in units of F (default: a weak prior
+    around the start that only keeps undetermined directions finite; parameters it does not
+    cover get the weak prior); ``weights`` (N, S) 0/1 to exclude readings from the start;
+    ``robust`` re-decides outliers until they settle.
     """
     r = np.asarray(raw, dtype=float)
     n, s, _ = r.shape
     f = float(intensity)
     u = np.zeros((n, 0)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
-    m = u.shape[1]
-    q = 4 + m
     if not (np.isfinite(f) and f > 0):
         raise InputError(f"intensity must be a positive number of T, got {intensity}")
-    k0 = np.linalg.inv(np.asarray(matrices, dtype=float))
-    e_raw = np.zeros((s, 3, m)) if interference is None else np.einsum("sab,sbc->sac", k0, interference)
-    w = np.concatenate([k0, (np.asarray(offsets, dtype=float) / f)[:, :, None], e_raw / f], axis=2)
+    temps = None if temperatures is None else np.asarray(temperatures, dtype=float).reshape(n, s)
+    t = None if times is None or s < 2 else np.asarray(times, dtype=float).reshape(n)
+    model = ForwardModel(s, u.shape[1], temps is not None, t is not None)
+    inputs = SetInputs(u, temps, t)
+    if start is not None:
+        theta = np.asarray(start, dtype=float).reshape(s, model.size).copy()
+    else:
+        k0 = np.linalg.inv(np.asarray(matrices, dtype=float))
+        e_raw = np.zeros((s, 3, model.channels)) if interference is None else np.einsum("sab,sbc->sac", k0, interference)
+        w = np.concatenate([k0, (np.asarray(offsets, dtype=float) / f)[:, :, None], e_raw / f], axis=2)
+        theta = model.join(model.widen(w))
     x = r / f
     weights = np.ones((n, s)) if weights is None else np.asarray(weights, dtype=float).copy()
+    weak = weak_prior(theta)
     if prior is None:
-        sigma_start = np.full((s, 3, q), 1.0)  # weak: gains of order 1, offsets of order F
-        prior = ParameterPrior(w.copy(), sigma_start)
+        prior = weak
+    else:  # parameters the given prior does not cover: the weak prior
+        given = prior.fitted_to(model)
+        sig = np.asarray(given.sigma, dtype=float).reshape(s, -1)
+        open_ = ~np.isfinite(sig)
+        prior = ParameterPrior(np.where(open_, weak.mean, given.flat_mean()), np.where(open_, weak.sigma, sig))
+    fixed = fixed_parameters(model, held)
+    if model.lag_index is not None:
+        theta[0, model.lag_index] = 0.0
     dof = 3.0 - 2.0 / s if s > 0 else 1.0
-    pred = _predict(w, features(_directions(w, x, u, weights), u))
+
+    def rates_of(th: Array) -> Array | None:
+        return None if t is None else direction_rates(_directions(model, th, x, inputs, None, weights), t)
+
+    rates = rates_of(theta)
+    pred = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights), inputs, rates)
     sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
-        w, d, _ = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
-        e = _predict(w, features(d, u)) - x
+        theta, d, _ = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance, fixed)
+        if t is not None:
+            rates = direction_rates(d, t)
+        e = _prediction(model, theta, d, inputs, rates) - x
         sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
         if not robust:
             break
         # Hard exclusion of outliers, and a soft down-weighting of large residuals so that a
         # spike not yet excluded cannot bend the fit (weights 1 for clean data).
-        q = np.sum(e * e, axis=2)
-        soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(q, 1e-300))
-        new_weights = soft * ~_outliers(w, x, u, weights > 0.5)
+        qq = np.sum(e * e, axis=2)
+        soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(qq, 1e-300))
+        new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5)
         if np.max(np.abs(new_weights - weights)) < 1e-3:
             break
         weights = new_weights
     else:
-        w, d, _ = _solve_lm(w, x, u, weights, sigma, prior, iterations, tolerance)
-    if not np.all(np.isfinite(w)):
+        theta, d, _ = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance, fixed)
+    if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
     # A reading the soft weighting has all but removed (beyond sqrt(2 SOFT_BOUND) noise sd: a
     # spike, a frozen sensor) is excluded, as the outlier tests already treat it: counted as an
     # outlier, and kept out of the residuals the quality gates judge.
     weights = np.where(weights < 0.5, 0.0, weights)
-    e = _predict(w, features(d, u)) - x
+    e = _prediction(model, theta, d, inputs, rates) - x
     sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
-    final = _Normal(w, d, x, u, weights, sigma)
+    final = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
     info, scores = final.information(), final.scores()
-    k = w[:, :, :3]
-    mats = np.linalg.inv(k)
+    return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
+
+
+def _solution(model: ForwardModel, theta: Array, d: Array, weights: Array, sigma: Array, residuals: Array,
+              info: Array, scores: Array, f: float, rates: Array | None, fixed: Array | None) -> JointSolution:
+    w = model.split(theta)[0]
+    mats = np.linalg.inv(w[:, :, :3])
+    m = model.channels
     return JointSolution(
         matrices=mats,
         offsets=w[:, :, 3] * f,
-        interference=np.einsum("sab,sbc->sac", mats, w[:, :, 4:] * f),
+        interference=np.einsum("sab,sbc->sac", mats, w[:, :, 4 : 4 + m] * f),
         directions=d,
         weights=weights,
-        sigma=sigma * f,
-        residuals=e * f,
+        sigma=sigma,
+        residuals=residuals,
         information=info,
         scores=scores,
-        w=w,
+        w=w.copy(),
         intensity=f,
+        model=model,
+        theta=np.asarray(theta, dtype=float).copy(),
+        rates=rates,
+        fixed=fixed,
     )
 
 
@@ -401,38 +622,43 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
     k = solution.w[:, :, :3]
     upper, qmat = scipy.linalg.rq(k.mean(axis=0))
     qmat = np.sign(np.diag(upper))[:, None] * qmat
-    k_new = np.einsum("sij,kj->sik", k, qmat)  # K_i Q^T
-    tinv = np.linalg.inv(_rotation_map(qmat, solution.w.shape))
-    w = solution.w.copy()
-    w[:, :, :3] = k_new
-    mats = np.linalg.inv(k_new)
-    return JointSolution(
-        matrices=mats,
-        offsets=solution.offsets,
-        interference=np.einsum("sab,sbc->sac", mats, w[:, :, 4:] * solution.intensity),
-        directions=solution.directions @ qmat.T,
-        weights=solution.weights,
-        sigma=solution.sigma,
-        residuals=solution.residuals,
-        information=tinv.T @ solution.information @ tinv,
-        scores=solution.scores @ tinv,
-        w=w,
-        intensity=solution.intensity,
-    )
+    model = solution.model
+    theta = solution.theta.copy()
+    w = theta[:, : 3 * model.q].reshape(model.sensors, 3, model.q)
+    w[:, :, :3] = np.einsum("sij,kj->sik", k, qmat)  # K_i Q^T
+    theta[:, : 3 * model.q] = w.reshape(model.sensors, -1)
+    tinv = np.linalg.inv(rotation_map(qmat, model))
+    rotated = _solution(model, theta, solution.directions @ qmat.T, solution.weights, solution.sigma,
+                        solution.residuals, tinv.T @ solution.information @ tinv, solution.scores @ tinv,
+                        solution.intensity, None if solution.rates is None else solution.rates @ qmat.T,
+                        solution.fixed)
+    return rotated
 
 
-def _rotation_map(qmat: Array, shape: tuple[int, ...]) -> Array:
-    """The linear map of the flattened ``W`` under ``K_i -> K_i Q^T`` (new = T old)."""
-    s, _, q = shape
-    t = np.eye(s * 3 * q).reshape(s, 3, q, s * 3 * q)
-    t[:, :, :3, :] = np.einsum("saqp,kq->sakp", t[:, :, :3, :], qmat)
-    return t.reshape(s * 3 * q, s * 3 * q)
+def rotation_map(qmat: Array, model: ForwardModel) -> Array:
+    """The linear map of the flattened parameters under ``K_i -> K_i Q^T`` (new = T old)."""
+    s, p = model.sensors, model.size
+    t = np.eye(s * p).reshape(s, p, s * p)
+    kidx = model.matrix_indices().reshape(3, 3)  # kidx[a, b] = index of K[a, b]
+    for a in range(3):
+        block = t[:, kidx[a], :].copy()  # (S, 3, sP): rows K[a, :]
+        t[:, kidx[a], :] = np.einsum("sqp,kq->skp", block, qmat)
+    return t.reshape(s * p, s * p)
 
 
-def information_at(w: Array, directions: Array, sigma: Array) -> Array:
+def information_at(w: Array, directions: Array, sigma: Array, model: ForwardModel | None = None) -> Array:
     """The information (S P, S P) that sets with unit field ``directions`` (N, 3) would add to
-    the fit ``w`` (units of F), every reading used, noise ``sigma`` (S,) in units of F, no currents."""
+    the fit ``w`` (units of F), every reading used, noise ``sigma`` (S,) in units of F, no
+    currents, at the reference temperature and standing still (so no information on the
+    temperature and lag blocks)."""
     n = len(directions)
-    u = np.zeros((n, w.shape[2] - 4))
-    x = _predict(w, features(directions, u))
-    return _Normal(w, directions, x, u, np.ones((n, w.shape[0])), sigma).information()
+    s = w.shape[0]
+    if model is None:
+        model = ForwardModel(s, w.shape[2] - 4)
+    inputs = SetInputs(np.zeros((n, model.channels)), np.zeros((n, s)) if model.temperature else None,
+                       np.arange(n, dtype=float) if model.lag else None)
+    theta = model.join(w)
+    rates = np.zeros((n, 3)) if model.lag else None
+    x = _prediction(model, theta, directions, inputs, rates)
+    return _Eval(model, theta, directions, x, inputs, rates, np.ones((n, s)), sigma).information()
+

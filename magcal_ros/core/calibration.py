@@ -85,6 +85,14 @@ class ArrayCalibration:
     """Names of the current channels whose interference is subtracted (may be empty)."""
     interference: Array | None = None
     """(S, 3, m) interference gains (T/A, platform frame), one column per channel."""
+    time_offsets: Array | None = None
+    """(S,) s each sensor reads late: its reading stamped ``t`` is the field at ``t - offset``."""
+    temperature_reference: float | None = None
+    """deg C about which the temperature terms are linear (None: no temperature terms)."""
+    offset_tempco: Array | None = None
+    """(S, 3) offset change per kelvin (T/K, raw axes)."""
+    matrix_tempco: Array | None = None
+    """(S, 3, 3) correction matrix change per kelvin (1/K)."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -112,6 +120,27 @@ class ArrayCalibration:
                 raise InputError(f"covariances must be {s} positive semi-definite 3x3 matrices (T^2), "
                                  "or all NaN for a sensor whose covariance is unknown")
             object.__setattr__(self, "covariances", c)
+        if self.time_offsets is not None:
+            t = np.asarray(self.time_offsets, dtype=float).reshape(-1)
+            if t.shape != (s,) or not np.all(np.isfinite(t)):
+                raise InputError(f"time_offsets must be {s} finite numbers (s), got {t}")
+            object.__setattr__(self, "time_offsets", t)
+        if self.temperature_reference is not None:
+            ref = float(self.temperature_reference)
+            oc = np.zeros((s, 3)) if self.offset_tempco is None else np.asarray(self.offset_tempco, dtype=float)
+            mc = np.zeros((s, 3, 3)) if self.matrix_tempco is None else np.asarray(self.matrix_tempco, dtype=float)
+            if not np.isfinite(ref) or oc.shape != (s, 3) or mc.shape != (s, 3, 3) or not (
+                    np.all(np.isfinite(oc)) and np.all(np.isfinite(mc))):
+                raise InputError("temperature terms need a finite reference (deg C), offset_tempco (S, 3) T/K and "
+                                 "matrix_tempco (S, 3, 3) 1/K")
+            object.__setattr__(self, "temperature_reference", ref)
+            object.__setattr__(self, "offset_tempco", oc)
+            object.__setattr__(self, "matrix_tempco", mc)
+
+    @property
+    def has_temperature(self) -> bool:
+        """True when the correction depends on the sensors' temperature."""
+        return self.temperature_reference is not None
 
     @classmethod
     def identity(cls, geometry: ArrayGeometry) -> "ArrayCalibration":
@@ -119,14 +148,23 @@ class ArrayCalibration:
         s = geometry.size
         return cls(geometry, np.tile(np.eye(3), (s, 1, 1)), np.zeros((s, 3)), {"method": "identity"})
 
-    def apply(self, raw: ArrayLike, currents: ArrayLike | None = None) -> Array:
+    def apply(self, raw: ArrayLike, currents: ArrayLike | None = None, temperatures: ArrayLike | None = None) -> Array:
         """Corrected vectors (N, S, 3) in T, platform frame, from raw (N, S, 3) in T.
 
         ``currents`` (N, m) in A, one column per :attr:`channels`: their interference is
-        subtracted. Required when the calibration has channels.
+        subtracted. Required when the calibration has channels. ``temperatures`` (N, S) deg C
+        (required with temperature terms): ``(matrix + dT matrix_tempco) (raw - offset - dT
+        offset_tempco)`` with ``dT`` the temperature minus the reference.
         """
         r = np.asarray(raw, dtype=float)
-        b = np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
+        if self.has_temperature:
+            if temperatures is None:
+                raise InputError("this calibration has temperature terms: give the sensors' temperatures")
+            dt = np.asarray(temperatures, dtype=float).reshape(len(r), -1) - self.temperature_reference
+            mats = self.matrices[None] + dt[:, :, None, None] * self.matrix_tempco[None]  # type: ignore[index]
+            b = np.einsum("nsij,nsj->nsi", mats, r - self.offsets - dt[:, :, None] * self.offset_tempco[None])  # type: ignore[index]
+        else:
+            b = np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
         if self.channels:
             if currents is None:
                 raise InputError(f"this calibration subtracts current interference: give the currents of "
@@ -168,6 +206,13 @@ class ArrayCalibration:
                 params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
             if self.channels:
                 params[name]["interference"] = [float(x) for x in self.interference[i].reshape(-1)]  # type: ignore[index]
+            if self.time_offsets is not None:
+                params[name]["time_offset"] = float(self.time_offsets[i])
+            if self.has_temperature:
+                params[name]["offset_per_kelvin"] = [float(x) for x in self.offset_tempco[i]]  # type: ignore[index]
+                params[name]["matrix_per_kelvin"] = [float(x) for x in self.matrix_tempco[i].reshape(-1)]  # type: ignore[index]
+        if self.has_temperature:
+            params["temperature_reference"] = float(self.temperature_reference)  # type: ignore[arg-type]
         return params
 
     @classmethod
@@ -220,6 +265,15 @@ class ArrayCalibration:
             except (TypeError, ValueError):
                 raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
                                  "interference") from None
+        lags = [float(params.get(n, {}).get("time_offset", 0.0) or 0.0) if isinstance(params.get(n), dict) else 0.0
+                for n in names]
+        t_ref = params.get("temperature_reference")
+        oc, mc = [], []
+        if t_ref is not None:
+            for name in names:
+                block = params.get(name) if isinstance(params.get(name), dict) else {}
+                oc.append(np.asarray(block.get("offset_per_kelvin", [0.0] * 3), dtype=float).reshape(3))
+                mc.append(np.asarray(block.get("matrix_per_kelvin", [0.0] * 9), dtype=float).reshape(3, 3))
         given = [not np.isnan(c).all() for c in covs]
         if any(given) and not all(g or n in uncorrected for g, n in zip(given, names)):
             raise InputError("calibration gives a covariance for some sensors but not all")
@@ -227,4 +281,6 @@ class ArrayCalibration:
             covs = []
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
-                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None)
+                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None,
+                   np.array(lags) if any(lags) else None, None if t_ref is None else float(t_ref),
+                   np.stack(oc) if oc else None, np.stack(mc) if mc else None)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.sensor_model import SensorErrors
 from magcal_ros.core.units import NT
 
@@ -57,14 +58,15 @@ class Quantity:
     name: str
     """e.g. ``offset z``, ``scale x``, ``non-orthogonality x-z``, ``misalignment about y``."""
     unit: str
-    """``nT``, ``ppm``, ``deg`` or ``nT/A`` (value and sigma are in this unit)."""
+    """``nT``, ``ppm``, ``deg``, ``nT/A``, ``nT/K``, ``ppm/K`` or ``ms`` (value and sigma are in this unit)."""
     value: float
     sigma: float
     effect: float
     """1-sigma effect on the field (T)."""
     status: str
     """``determined``, ``weak`` (determined near the attitudes flown only), ``undetermined``,
-    ``updated`` or ``kept`` (the last two with a prior)."""
+    ``updated`` or ``kept`` (the last two with a prior), or ``held`` (a temperature or lag
+    quantity the data did not determine, held at zero)."""
     prior_sigma: float | None = None
 
     def describe(self) -> str:
@@ -76,43 +78,78 @@ class Quantity:
         return f"{self.sensor} {self.name} {self.value:.4g} +- {sigma} {self.unit}"
 
 
-def _phys(w_row: Array, f: float, m: int) -> Array:
-    """Physical vector of one sensor's ``W`` (3, 4 + m): offsets (T), scales, angles (rad),
-    misalignment (rad), interference D (T/A, platform frame, row-major)."""
+def _phys(theta_i: Array, f: float, model: ForwardModel) -> Array:
+    """Physical vector of one sensor's parameters (:func:`quantity_names` order): offsets (T),
+    scales, angles (rad), misalignment (rad), interference D (T/A, platform frame, row-major),
+    then offset per kelvin (T/K, raw axes), gain per kelvin (1/K), time offset (s)."""
+    w_row = theta_i[: 3 * model.q].reshape(3, model.q)
     k = w_row[:, :3] * np.sign(np.linalg.det(w_row[:, :3]) or 1.0)  # K and -K (with -d) predict the same
     e = SensorErrors.from_forward(k, w_row[:, 3] * f)
-    d = np.linalg.inv(k) @ (w_row[:, 4:] * f)
-    return np.concatenate([e.offset, e.scale, e.angles, e.misalignment, d.reshape(-1)])
+    d = np.linalg.inv(k) @ (w_row[:, 4 : 4 + model.channels] * f)
+    parts = [e.offset, e.scale, e.angles, e.misalignment, d.reshape(-1)]
+    if model.temperature:
+        parts += [w_row[:, model.offset_tempco_column] * f, theta_i[model.gain_slice]]
+    if model.lag:
+        parts.append(theta_i[model.lag_index : model.lag_index + 1])
+    return np.concatenate(parts)
 
 
-def physical_jacobian(w: Array, f: float) -> tuple[Array, Array]:
-    """Physical values (S, Q) and d phys / d W (S, Q, 3 (4 + m)) by central differences."""
-    s, _, q = w.shape
-    m = q - 4
-    values = np.stack([_phys(w[i], f, m) for i in range(s)])
-    jac = np.empty((s, values.shape[1], 3 * q))
+def physical_jacobian(theta: Array, f: float, model: ForwardModel) -> tuple[Array, Array]:
+    """Physical values (S, Q) and d phys / d theta (S, Q, P) by central differences."""
+    s, p = model.sensors, model.size
+    t = np.asarray(theta, dtype=float).reshape(s, p)
+    values = np.stack([_phys(t[i], f, model) for i in range(s)])
+    jac = np.empty((s, values.shape[1], p))
     for i in range(s):
-        for j in range(3 * q):
-            h = 1e-6 * max(1.0, abs(w[i].reshape(-1)[j]))
-            plus, minus = w[i].copy().reshape(-1), w[i].copy().reshape(-1)
+        for j in range(p):
+            h = 1e-6 * max(1.0, abs(t[i, j])) if j < 3 * model.q else 1e-6 * max(1e-3, abs(t[i, j]))
+            plus, minus = t[i].copy(), t[i].copy()
             plus[j] += h
             minus[j] -= h
-            jac[i, :, j] = (_phys(plus.reshape(3, q), f, m) - _phys(minus.reshape(3, q), f, m)) / (2 * h)
+            jac[i, :, j] = (_phys(plus, f, model) - _phys(minus, f, model)) / (2 * h)
     return values, jac
 
 
-def quantity_names(channels: Sequence[str], with_mounting: bool) -> list[tuple[str, str]]:
+def quantity_names(channels: Sequence[str], with_mounting: bool,
+                   model: ForwardModel | None = None) -> list[tuple[str, str]]:
     """``(name, unit)`` of each physical quantity, in :func:`physical_jacobian` order."""
     out = [(f"offset {a}", "nT") for a in AXES] + [(f"scale {a}", "ppm") for a in AXES]
     out += [(f"non-orthogonality {p}", "deg") for p in NONORTHOGONALITY]
     out += [(f"misalignment about {a}", "deg") for a in AXES] if with_mounting else [("", "")] * 3
     out += [(f"interference {c} {a}", "nT/A") for a in AXES for c in channels]
+    if model is not None and model.temperature:
+        out += [(f"offset tempco {a}", "nT/K") for a in AXES] + [(f"gain tempco {a}", "ppm/K") for a in AXES]
+    if model is not None and model.lag:
+        out.append(("time offset", "ms"))
     return out
 
 
+def held_parameter(name: str, model: ForwardModel) -> int | None:
+    """The parameter index a quantity of a holdable block stands for (None for other quantities)."""
+    if name.startswith("offset tempco ") and model.offset_tempco_column is not None:
+        return model.w_index(AXES.index(name[-1]), model.offset_tempco_column)
+    if name.startswith("gain tempco ") and model.gain_slice is not None:
+        return model.gain_slice.start + AXES.index(name[-1])
+    if name == "time offset" and model.lag_index is not None:
+        return model.lag_index
+    return None
+
+
 def _to_unit(values: Array, unit: str) -> Array:
-    scale = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.pi, "nT/A": 1.0 / NT}[unit]
+    scale = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.pi, "nT/A": 1.0 / NT, "nT/K": 1.0 / NT,
+             "ppm/K": 1e6, "ms": 1e3}[unit]
     return values * scale
+
+
+@dataclass(frozen=True)
+class EffectScales:
+    """What turns a quantity's 1-sigma into its effect on the field: the RMS current of each
+    channel (A), the RMS temperature excursion of each sensor from the reference (K), and the
+    RMS rate of change of the field direction (1/s)."""
+
+    current_rms: Array | None = None
+    temperature_rms: Array | None = None
+    rate_rms: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -142,6 +179,10 @@ class Identifiability:
         """Quantities the data updated (with a prior)."""
         return [q for q in self.quantities if q.status == "updated"]
 
+    def held(self) -> list[Quantity]:
+        """Temperature and lag quantities held at zero because the data did not determine them."""
+        return [q for q in self.quantities if q.status == "held"]
+
     def by_name(self, sensor: str, name: str) -> Quantity:
         """The quantity ``name`` of ``sensor``."""
         return next(q for q in self.quantities if q.sensor == sensor and q.name == name)
@@ -149,26 +190,39 @@ class Identifiability:
 
 def analyse(
     names: Sequence[str],
-    w: Array,
+    theta: Array,
     intensity: float,
     cov: Array,
     noise: Array,
     prior_cov: Array | None = None,
     channels: Sequence[str] = (),
     current_rms: Array | None = None,
+    *,
+    model: ForwardModel | None = None,
+    scales: EffectScales | None = None,
+    held: NDArray[np.bool_] | None = None,
 ) -> Identifiability:
-    """Physical quantities of every sensor from the fitted ``W`` (S, 3, 4 + m) and its covariance.
+    """Physical quantities of every sensor from the fitted parameters and their covariance.
 
-    ``prior_cov`` (S P, S P) marks the quantities as updated/kept; without it they are
-    determined, weak or undetermined by their effect against ``noise`` (S,) T.
+    ``theta`` (S, P) of ``model`` (or ``W`` (S, 3, 4 + m) of the plain model when ``model`` is
+    None); ``prior_cov`` (S P, S P) marks the quantities as updated/kept; without it they are
+    determined, weak or undetermined by their effect against ``noise`` (S,) T. ``held`` (S, P)
+    marks parameters of the temperature and lag blocks the caller held at zero: their
+    quantities are ``held``.
     """
-    s, _, q = w.shape
-    m = q - 4
-    values, jac = physical_jacobian(w, intensity)
+    t = np.asarray(theta, dtype=float)
+    s = t.shape[0]
+    if model is None:
+        model = ForwardModel(s, t.shape[2] - 4 if t.ndim == 3 else 0)
+    t = t.reshape(s, model.size)
+    sc = scales or EffectScales(current_rms)
+    m = model.channels
+    values, jac = physical_jacobian(t, intensity, model)
     with_mounting = s > 1 or prior_cov is not None
-    labels = quantity_names(channels, with_mounting)
-    rms = np.ones(m) if current_rms is None else np.asarray(current_rms, dtype=float)
-    p = 3 * q
+    labels = quantity_names(channels, with_mounting, model)
+    rms = np.ones(m) if sc.current_rms is None else np.asarray(sc.current_rms, dtype=float)
+    temp_rms = np.ones(s) if sc.temperature_rms is None else np.asarray(sc.temperature_rms, dtype=float)
+    p = model.size
     out: list[Quantity] = []
     for i, sensor in enumerate(names):
         block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
@@ -180,17 +234,16 @@ def analyse(
         for j, (label, unit) in enumerate(labels):
             if not label:
                 continue
-            if unit == "nT":
-                effect = sig[j]
-            elif unit == "nT/A":
-                effect = sig[j] * rms[(j - 12) % m] if m else sig[j]
-            else:
-                effect = sig[j] * intensity
-            if psig is None:
+            current = rms[(j - 12) % m] if unit == "nT/A" and m else 1.0
+            effect = _effect(sig[j], unit, current, temp_rms[i], sc.rate_rms, intensity)
+            index = held_parameter(label, model)
+            prior_j = None
+            if held is not None and index is not None and held[i, index]:
+                status = "held"
+            elif psig is None:
                 undetermined = effect > min(UNDETERMINED_EFFECT * noise[i], UNDETERMINED_FRACTION * intensity)
                 status = ("undetermined" if undetermined
                           else "weak" if effect > WEAK_EFFECT * noise[i] else "determined")
-                prior_j = None
             else:
                 prior_j = float(_to_unit(np.array([psig[j]]), unit)[0])
                 status = "kept" if sig[j] > KEPT_FRACTION * psig[j] else "updated"
@@ -199,6 +252,25 @@ def analyse(
                 float(_to_unit(np.array([sig[j]]), unit)[0]), float(effect), status, prior_j,
             ))
     return Identifiability(out, np.asarray(noise, dtype=float), prior_cov is not None, cov)
+
+
+def _effect(sigma: float, unit: str, current_rms: float, temperature_rms: float, rate_rms: float,
+            intensity: float) -> float:
+    """1-sigma effect on the field (T) of a quantity with 1-sigma ``sigma`` (SI units): an offset
+    as it is, an interference gain times the channel's RMS current (A), a coefficient per kelvin
+    times the RMS temperature excursion (K), a lag times the RMS turn rate of the field, a scale or
+    angle times F."""
+    if unit == "nT":
+        return sigma
+    if unit == "nT/A":
+        return sigma * current_rms
+    if unit == "nT/K":
+        return sigma * temperature_rms
+    if unit == "ppm/K":
+        return sigma * temperature_rms * intensity
+    if unit == "ms":
+        return sigma * rate_rms * intensity
+    return sigma * intensity
 
 
 # -- predicted TMI error ------------------------------------------------------------------
@@ -210,7 +282,7 @@ def predicted_tmi_variance(w: Array, cov: Array, directions: Array) -> Array:
     ``-(d^T M) (x) [d, 1]`` applied to the sensor's ``dW``: a quadratic form per direction.
     """
     s, _, q = w.shape
-    p = 3 * q
+    p = cov.shape[0] // s  # parameters per sensor: W first, then any non-linear ones
     mats = np.linalg.inv(w[:, :, :3])
     phi = np.concatenate([directions, np.ones((len(directions), 1))], axis=1)  # (A, 4)
     keep = (np.arange(3)[:, None] * q + np.arange(4)[None, :]).reshape(-1)  # K and o entries
@@ -371,11 +443,24 @@ def tilted(directions: Array, pitch_deg: float, roll_deg: float) -> Array:
 
 
 def advise(names: Sequence[str], w: Array, intensity: float, information: Array, directions: Array,
-           noise: Array, constraints: Array | None = None) -> Advice:
+           noise: Array, constraints: Array | None = None, model: ForwardModel | None = None) -> Advice:
     """The candidate tilt (:data:`CANDIDATES`, flown through the same yaw turns as so far) that
     best determines what is still undetermined or weak; "enough" when nothing is undetermined
-    (with the tilt that would widen the envelope when something is weak)."""
+    (with the tilt that would widen the envelope when something is weak).
+
+    Only the attitude-dependent blocks (sensor, interference) are judged: temperature and lag are
+    determined by temperature span and turn rate, which no tilt changes (``information`` and
+    ``constraints`` of a ``model`` with those blocks are restricted to the others).
+    """
     from magcal_ros.core.array_fit import information_at
+
+    if model is not None and model.extras + int(model.temperature) > 0:
+        base = ForwardModel(model.sensors, model.channels)
+        keep = np.array([i * model.size + model.w_index(a, c)
+                         for i in range(model.sensors) for a in range(3) for c in range(base.q)])
+        information = information[np.ix_(keep, keep)]
+        constraints = None if constraints is None else constraints[:, keep]
+        w = w[:, :, : base.q]
 
     def judged(info: Array) -> tuple[int, int, float]:
         """(undetermined, weak, worst effect in noise sd) with information ``info``."""

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core.array_fit import ParameterPrior
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError
@@ -39,10 +40,16 @@ class DriftModel:
     (fluxgate scale drifts by tens of ppm; the mounting does not move unless struck)."""
     interference: float = 20 * NT
     """Per interference gain (T/A), when the previous calibration has one for the channel."""
+    offset_tempco: float = 1 * NT
+    """Per offset-per-kelvin axis (T/K): a fluxgate's offset moves by a fraction of a nT per kelvin."""
+    gain_tempco: float = 50e-6
+    """Per gain-per-kelvin axis (1/K): tens of ppm per kelvin."""
+    time_offset: float = 5e-3
+    """Per sensor lag (s): a driver or filter change moves it by milliseconds."""
 
     def check(self) -> None:
         """Raise :class:`InputError` for a non-positive or non-finite sigma."""
-        for name in ("offset", "gain", "interference"):
+        for name in ("offset", "gain", "interference", "offset_tempco", "gain_tempco", "time_offset"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"drift {name} must be a positive number, got {v}")
@@ -53,10 +60,13 @@ class DriftModel:
         geometry: ArrayGeometry,
         intensity: float,
         channels: Sequence[str] = (),
+        model: ForwardModel | None = None,
     ) -> ParameterPrior:
-        """The prior on ``W`` (units of F) centred on ``previous``, for sensors ``geometry.names``.
+        """The prior on the parameters of ``model`` (units of F) centred on ``previous``, for
+        sensors ``geometry.names`` (default model: sensor and interference blocks).
 
-        Interference channels the previous calibration does not know get no prior (a wide one).
+        Interference channels the previous calibration does not know get no prior (a wide one);
+        temperature and lag terms it does not have are centred on zero with this drift.
         """
         self.check()
         missing = [n for n in geometry.names if n not in previous.geometry.names]
@@ -77,4 +87,19 @@ class DriftModel:
         sigma = np.concatenate([
             np.full((len(idx), 3, 3), self.gain), np.full((len(idx), 3, 1), self.offset / intensity), sig_e,
         ], axis=2)
-        return ParameterPrior(mean, sigma)
+        model = model or ForwardModel(len(idx), m)
+        g_mean = tau_mean = None
+        if model.temperature:
+            has = previous.has_temperature
+            c = previous.offset_tempco[idx] if has else np.zeros((len(idx), 3))  # type: ignore[index]
+            mean = np.concatenate([mean, (c / intensity)[:, :, None]], axis=2)
+            sigma = np.concatenate([sigma, np.full((len(idx), 3, 1), self.offset_tempco / intensity)], axis=2)
+            # matrix_tempco = -M diag(g) to first order: g = diag(-K matrix_tempco)
+            g_mean = (-np.einsum("sab,sbc->sac", k, previous.matrix_tempco[idx]).diagonal(axis1=1, axis2=2)  # type: ignore[index]
+                      if has else np.zeros((len(idx), 3)))
+        if model.lag:
+            tau_mean = previous.time_offsets[idx] if previous.time_offsets is not None else np.zeros(len(idx))
+        flat_mean = model.join(mean, g_mean, tau_mean)
+        flat_sigma = model.join(sigma, np.full((len(idx), 3), self.gain_tempco) if model.temperature else None,
+                                np.full(len(idx), self.time_offset) if model.lag else None)
+        return ParameterPrior(flat_mean, flat_sigma)

@@ -109,12 +109,17 @@ def covariance(
     return Covariance(cov, lags if lags > 0 else 0, inflation)
 
 
-def centre_gauge_constraints(w: Array) -> Array:
-    """(3, S P) linearised constraints "mean(K_i) is upper triangular" (the reported frame)."""
+def centre_gauge_constraints(w: Array, size: int | None = None) -> Array:
+    """(3, S P) linearised constraints "mean(K_i) is upper triangular" (the reported frame).
+
+    ``w`` (S, 3, q) the linear parameters; ``size`` the parameters per sensor P when more follow
+    ``W`` (the temperature and lag blocks), default ``3 q``.
+    """
     s, _, q = w.shape
+    p = 3 * q if size is None else size
     rows = []
     for a, b in ((1, 0), (2, 0), (2, 1)):
-        c = np.zeros((s, 3, q))
-        c[:, a, b] = 1.0 / s
+        c = np.zeros((s, p))
+        c[:, a * q + b] = 1.0 / s
         rows.append(c.reshape(-1))
     return np.array(rows)

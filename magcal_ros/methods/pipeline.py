@@ -33,6 +33,7 @@ from magcal_ros.core.array_fit import (
     fix_rotation_gauge,
 )
 from magcal_ros.core.calibration import ArrayCalibration, check_sensor
+from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.interference import describe_undetermined, undetermined_channels
 from magcal_ros.core.metrics import rms, tensor_rms, tmi_rms
@@ -46,7 +47,7 @@ from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
-from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S, NT, check_tesla
 from magcal_ros.errors import (
     CalibrationFailed,
     InputError,
@@ -195,6 +196,12 @@ def _start(spec: Any, r: Array, clean: Array, f_ref: float | None, opts: SolveOp
     return np.stack([f.matrix for f in fits]), np.stack([f.offset for f in fits]), intensity
 
 
+def _start_directions(r: Array, matrices: Array, offsets: Array) -> Array:
+    """(N, 3) unit field direction of each set from a start: the mean of the sensors' corrections."""
+    b = np.einsum("sij,nsj->nsi", matrices, r - offsets).mean(axis=1)
+    return b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
+
+
 def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
     """A start that always exists: unit gains, offsets at each sensor's centroid."""
     offsets = r.mean(axis=0)
@@ -253,8 +260,90 @@ def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_r
 
 
 def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
-              opts: SolveOptions) -> ParameterPrior | None:
-    return None if prior is None else opts.drift.prior(prior, geometry, f, channels)
+              opts: SolveOptions, blocks: "BlockInputs | None" = None) -> ParameterPrior | None:
+    model = None if blocks is None else blocks.model(geometry.size, len(channels))
+    return None if prior is None else opts.drift.prior(prior, geometry, f, channels, model)
+
+
+MIN_TEMPERATURE_SPAN: float = 1.0
+"""Sensor temperatures spanning less than this (K) determine no temperature coefficient: the
+temperature block is left out (and the summary says why)."""
+MAX_LAG_STEP: float = 0.05
+"""The lag block needs a continuous motion: the field direction may change by at most this
+(rad, median) between consecutive sets."""
+HOLD_ROUNDS: int = 3
+"""Refits at most, each holding at zero the temperature and lag quantities still undetermined."""
+
+
+@dataclass(frozen=True)
+class BlockInputs:
+    """What the temperature and lag blocks of the forward model need, per set."""
+
+    temperatures: Array | None = None
+    """(N, S) sensor temperature minus :attr:`reference` (K); None: no temperature block."""
+    reference: float | None = None
+    """Reference temperature (deg C)."""
+    times: Array | None = None
+    """(N,) s from the first set; None: no lag block."""
+    held: NDArray[np.bool_] | None = None
+    """(S, P) parameters held at zero (undetermined temperature or lag quantities)."""
+    notes: tuple[str, ...] = ()
+    """Why a block was left out, for the summary."""
+
+    def model(self, sensors: int, channels: int) -> ForwardModel:
+        """The forward model these inputs switch on."""
+        return ForwardModel(sensors, channels, self.temperatures is not None, self.times is not None and sensors > 1)
+
+    def fit_options(self, keep: Any = slice(None)) -> dict[str, Any]:
+        """Keyword arguments of :func:`~magcal_ros.core.array_fit.fit_array` for the sets ``keep``."""
+        return {"temperatures": None if self.temperatures is None else self.temperatures[keep],
+                "times": None if self.times is None else self.times[keep], "held": self.held}
+
+
+def block_inputs(temperatures: ArrayLike | None, stamps: ArrayLike | None, directions: Array, sensors: int,
+                 order: NDArray[np.int64]) -> BlockInputs:
+    """Which optional blocks the data can feed: temperatures (N, S) deg C spanning at least
+    :data:`MIN_TEMPERATURE_SPAN`; stamps (N,) ns of sets that follow a continuous motion
+    (``directions`` (N, 3) from the start, two or more sensors)."""
+    n = len(directions)
+    notes: list[str] = []
+    dtemp = reference = None
+    if temperatures is not None:
+        t = np.asarray(temperatures, dtype=float)
+        if t.ndim == 1:
+            t = np.repeat(t[:, None], sensors, axis=1)
+        if t.shape != (n, sensors) or not np.all(np.isfinite(t)):
+            raise InputError(f"temperatures must be finite, one per set and sensor ({n}, {sensors}) deg C, "
+                             f"got shape {t.shape}")
+        span = float(t.max() - t.min())
+        if span < MIN_TEMPERATURE_SPAN:
+            notes.append(f"temperature span {span:.1f} K: too small to determine temperature coefficients "
+                         f"(needs {MIN_TEMPERATURE_SPAN:g} K); none fitted")
+        else:
+            reference = float(np.round(np.median(t), 1))
+            dtemp = t - reference
+    times = None
+    if stamps is not None and sensors > 1 and n >= 10:
+        d = directions[order]
+        step = float(np.median(np.arccos(np.clip(np.sum(d[1:] * d[:-1], axis=1), -1.0, 1.0))))
+        if quality.in_time_order(d) and step < MAX_LAG_STEP:
+            st = np.asarray(stamps).astype(np.int64)
+            times = (st - st.min()).astype(float) / NS_PER_S
+    return BlockInputs(dtemp, reference, times, None, tuple(notes))
+
+
+def _holdable_undetermined(ana: ident.Identifiability, model: ForwardModel, names: tuple[str, ...],
+                           held: NDArray[np.bool_] | None) -> NDArray[np.bool_] | None:
+    """(S, P) the held parameters plus those of temperature and lag quantities now undetermined
+    (None when nothing new is to be held)."""
+    out = np.zeros((model.sensors, model.size), bool) if held is None else held.copy()
+    new = False
+    for q in ana.undetermined():
+        index = ident.held_parameter(q.name, model)
+        if index is not None and not out[names.index(q.sensor), index]:
+            out[names.index(q.sensor), index] = True
+            new = True
+    return out if new else None
 
 
 JACKKNIFE_BLOCKS: int = 8
@@ -264,7 +353,7 @@ JACKKNIFE_MIN_SETS: int = 400
 
 
 def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64], currents: Array,
-                         prior: ParameterPrior | None, cov: Array) -> float:
+                         prior: ParameterPrior | None, cov: Array, blocks: BlockInputs) -> float:
     """How much wider a delete-one-block jackknife says the parameters scatter than ``cov`` (>= 1).
 
     Real recordings change slowly (temperature, motion, coverage from one minute to the
@@ -273,17 +362,15 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
     determine only.
     """
     n = len(order)
-    blocks = np.array_split(order, JACKKNIFE_BLOCKS)
     est = []
-    for block in blocks:
+    for block in np.array_split(order, JACKKNIFE_BLOCKS):
         keep = np.ones(n, bool)
         keep[block] = False
-        part = fit_array(raw[keep], sol.matrices, sol.offsets, sol.intensity, currents[keep],
-                         sol.interference if currents.shape[1] else None, prior, sol.weights[keep],
-                         robust=False, iterations=15)
+        part = fit_array(raw[keep], sol.matrices, sol.offsets, sol.intensity, currents[keep], None, prior,
+                         sol.weights[keep], robust=False, iterations=15, start=sol.theta, **blocks.fit_options(keep))
         if prior is None:
             part = fix_rotation_gauge(part)
-        est.append(part.w.reshape(-1))
+        est.append(part.theta.reshape(-1))
     est = np.array(est)
     var_jack = (len(est) - 1) / len(est) * np.sum((est - est.mean(axis=0)) ** 2, axis=0)
     var_model = np.diag(cov)
@@ -298,21 +385,32 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
 
 def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDArray[np.int64],
              prior: ParameterPrior | None, channels: tuple[str, ...], currents: Array,
-             jackknife: bool = True) -> tuple[ident.Identifiability, Any]:
+             jackknife: bool = True, blocks: BlockInputs | None = None) -> tuple[ident.Identifiability, Any]:
     """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution.
 
     ``jackknife``: for a recording in time order, widen the covariance by the block jackknife.
+    Parameters the fit kept fixed (held at zero, the lag gauge) get no variance.
     """
+    blocks = blocks or BlockInputs()
+    model = sol.model
     series = sol.residuals[order].reshape(len(order), -1)
-    prec = None if prior is None else prior.precision().reshape(-1)
-    gauge = None if prior is not None else centre_gauge_constraints(sol.w)
-    cov = covariance(sol.information, sol.scores[order], series, prec, gauge)
+    prec = None if prior is None else prior.fitted_to(model).precision().reshape(-1)
+    rows = [] if prior is not None else [centre_gauge_constraints(sol.w, model.size)]
+    if sol.fixed is not None and sol.fixed.any():
+        rows.append(np.eye(model.sensors * model.size)[sol.fixed.reshape(-1)])
+    constraints = np.concatenate(rows) if rows else None
+    cov = covariance(sol.information, sol.scores[order], series, prec, constraints)
     if jackknife and len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
-        factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix)
+        factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix, blocks)
         cov = replace(cov, matrix=cov.matrix * factor, inflation=cov.inflation * factor)
-    prior_cov = None if prior is None else np.diag(np.where(prec > 0, 1.0 / np.maximum(prec, 1e-300), 1e30))
-    rms_u = np.sqrt(np.mean(currents**2, axis=0)) if currents.size else None
-    ana = ident.analyse(geometry.names, sol.w, sol.intensity, cov.matrix, sol.sigma, prior_cov, channels, rms_u)
+    prior_cov = None if prec is None else np.diag(np.where(prec > 0, 1.0 / np.maximum(prec, 1e-300), 1e30))
+    scales = ident.EffectScales(
+        np.sqrt(np.mean(currents**2, axis=0)) if currents.size else None,
+        None if blocks.temperatures is None else np.sqrt(np.mean(blocks.temperatures**2, axis=0)),
+        0.0 if sol.rates is None else float(np.sqrt(np.mean(np.sum(sol.rates**2, axis=1)))),
+    )
+    ana = ident.analyse(geometry.names, sol.theta, sol.intensity, cov.matrix, sol.sigma, prior_cov, channels,
+                        model=model, scales=scales, held=blocks.held)
     return ana, cov
 
 
@@ -389,14 +487,15 @@ def _undetermined_channels(ana: ident.Identifiability, directions: Array, u: Arr
 
 def _without_channels(unsolved: list[int], raw: ArrayLike, geometry: ArrayGeometry, reference_field: float | None,
                       method: str, options: SolveOptions | None, prior: ArrayCalibration | None, u: Array,
-                      channels: tuple[str, ...], stamps: ArrayLike | None) -> CalibrationResult:
+                      channels: tuple[str, ...], stamps: ArrayLike | None,
+                      temperatures: ArrayLike | None = None) -> CalibrationResult:
     """The calibration without the ``unsolved`` channels, with a warning naming them."""
     mask = np.isin(np.arange(len(channels)), unsolved)
     note = f"interference not solved (undetermined): {describe_undetermined(channels, u, mask)}"
     keep = [j for j in range(len(channels)) if not mask[j]]
     try:
         result = calibrate_array(raw, geometry, reference_field, method, options, prior, u[:, keep],
-                                 tuple(channels[j] for j in keep), stamps)
+                                 tuple(channels[j] for j in keep), stamps, temperatures)
     except MagcalError as exc:
         raise type(exc)(f"{note}; without them: {exc}") from None
     result.warnings.insert(0, note)
@@ -413,17 +512,18 @@ def _inclination(opts: SolveOptions, directions: Array) -> float:
 
 
 def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
-    """(S, 3, 3) covariance of each corrected vector: noise plus calibration error over the manoeuvre."""
+    """(S, 3, 3) covariance of each corrected vector: noise plus calibration error over the manoeuvre
+    (from the sensor block's parameters; the others are small beside them)."""
     s, _, q = sol.w.shape
-    p = 3 * q
+    p = sol.model.size
     mats = np.linalg.inv(sol.w[:, :, :3])
     d = sol.directions
     phi = np.concatenate([d, np.ones((len(d), 1)), np.zeros((len(d), q - 4))], axis=1)
     out = np.empty((s, 3, 3))
     for i in range(s):
-        # db = -M dW phi F  ->  J (3, p) per direction
-        jac = -np.einsum("ab,nq->nabq", mats[i], phi).reshape(len(d), 3, p) * sol.intensity
-        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p]
+        # db = -M dW phi F  ->  J (3, 3 q) per direction
+        jac = -np.einsum("ab,nq->nabq", mats[i], phi).reshape(len(d), 3, 3 * q) * sol.intensity
+        block = cov[i * p : i * p + 3 * q, i * p : i * p + 3 * q]
         cal = np.einsum("nap,pk,nbk->ab", jac, block, jac) / len(d)
         out[i] = sol.sigma[i] ** 2 * np.eye(3) + 0.5 * (cal + cal.T)
     return out
@@ -439,13 +539,17 @@ def calibrate_array(
     currents: ArrayLike | None = None,
     channels: tuple[str, ...] = (),
     stamps: ArrayLike | None = None,
+    temperatures: ArrayLike | None = None,
 ) -> CalibrationResult:
     """Solve the array calibration from raw sets (N, S, 3) in T of a uniform, constant field.
 
     ``reference_field``: total intensity F in T (None or 0: relative, or the prior's).
     ``prior``: the previous calibration; undetermined quantities are kept at it (partial
     recalibration, method ``ml``). ``currents`` (N, m) A of ``channels``: their interference
-    is estimated too. ``stamps`` (N,) int ns put the sets in time order (default: as given).
+    is estimated too. ``stamps`` (N,) int ns put the sets in time order (default: as given);
+    when the sets follow a continuous motion, each sensor's lag relative to the first is
+    estimated too. ``temperatures`` (N, S) or (N,) deg C: offsets and gains linear in each
+    sensor's temperature are estimated (when the temperatures span enough).
     Raises :class:`ObservabilityError` when the manoeuvre cannot determine the calibration
     (naming what is missing and what to fly), :class:`InputError` for bad input and
     :class:`CalibrationFailed` when the result fails a quality gate (naming the cause).
@@ -514,31 +618,48 @@ def calibrate_array(
             start_failed = exc_start
             matrices, offsets, intensity = _crude_start(r, f_ref)
     weights = clean_reading.astype(float)
-    param_prior = _prior_of(prior, geometry, intensity, channels, opts)
+    blocks = BlockInputs()
     if joint or start_failed is not None:
-        sol = fit_array(r, matrices, offsets, intensity, u, start_interference, param_prior, weights, robust=opts.robust)
-        if prior is None:
-            sol = fix_rotation_gauge(sol)
+        blocks = block_inputs(temperatures, stamps, _start_directions(r, matrices, offsets), s, order)
+    elif temperatures is not None:
+        raise InputError(f"temperature terms need method 'ml', not {method!r}")
+    param_prior = _prior_of(prior, geometry, intensity, channels, opts, blocks)
+
+    def solve(m0: Array, o0: Array, f0: float, interference0: Array | None, start: Array | None = None) -> JointSolution:
+        fitted = fit_array(r, m0, o0, f0, u, interference0, param_prior, weights, robust=opts.robust, start=start,
+                           **blocks.fit_options())
+        return fix_rotation_gauge(fitted) if prior is None else fitted
+
+    if joint or start_failed is not None:
+        sol = solve(matrices, offsets, intensity, start_interference)
     else:  # the method's own solution, evaluated (its frame is the method's)
         sol = fit_array(r, matrices, offsets, intensity, u, None, None, weights, robust=False, iterations=0)
     # Undetermined already without the jackknife (which only widens): refuse before paying for it.
-    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False)
+    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
+    for _ in range(HOLD_ROUNDS):  # temperature and lag quantities the data do not determine: held at zero
+        held = _holdable_undetermined(ana, sol.model, geometry.names, blocks.held)
+        if held is None:
+            break
+        blocks = replace(blocks, held=held)
+        sol = solve(sol.matrices, sol.offsets, sol.intensity, None, start=np.where(held, 0.0, sol.theta))
+        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
     badness = (start_failed is not None or not _plausible(sol, geometry), len(ana.undetermined()))
     if prior is None and (joint or start_failed is not None) and any(badness):
         # A closed-form start on noisy, narrow data can land on a collapsed ellipsoid the joint
         # fit cannot leave: try again from spheres, and keep that if it is better.
         m2, o2, f2 = _sphere_start(r, clean, f_ref)
-        retry = fix_rotation_gauge(fit_array(r, m2, o2, f2, u, None, None, weights, robust=opts.robust))
-        ana2, cov2 = _analyse(retry, r, geometry, order, param_prior, channels, u, jackknife=False)
+        retry = solve(m2, o2, f2, None)
+        ana2, cov2 = _analyse(retry, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
         if _plausible(retry, geometry) and (False, len(ana2.undetermined())) < badness:
             sol, ana, cov, start_failed = retry, ana2, cov2, None
     if prior is None and ana.undetermined():
         env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
         raise ObservabilityError(_refusal(ana, sol, env))
-    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u)
+    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks)
     unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
     if unsolved:
-        return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps)
+        return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
+                                 temperatures)
     env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
     if prior is None and ana.undetermined():
         raise ObservabilityError(_refusal(ana, sol, env))
@@ -558,14 +679,19 @@ def calibrate_array(
     vector_cov = _vector_covariances(sol, cov.matrix)
     if mounting is not None:
         vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
+    temps = None if blocks.temperatures is None else blocks.temperatures + blocks.reference
     try:
         cal = ArrayCalibration(
             geometry, matrices_out, sol.offsets, {}, vector_cov,
-            channels, sol.interference if channels else None,
+            channels, sol.interference if channels else None, sol.time_offsets,
+            blocks.reference if sol.model.temperature else None, sol.offset_tempco,
+            None if sol.gain_tempco is None else -matrices_out * sol.gain_tempco[:, None, :],
         )
     except InputError as exc_cal:
         raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
-    corrected = cal.apply(r, u if channels else None)
+    corrected = cal.apply(r, u if channels else None, temps)
+    if sol.time_offsets is not None and sol.rates is not None:  # every sensor brought to the set's instant
+        corrected = corrected + sol.intensity * sol.time_offsets[None, :, None] * sol.rates[:, None, :]
     tmi_res = np.linalg.norm(corrected, axis=2) - sol.intensity
     implied = None  # the mean sensor gain a given reference implies (None: relative or prior)
     if f_ref is not None and prior is None:
