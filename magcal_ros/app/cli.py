@@ -22,7 +22,15 @@ from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
+from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
+    DEFAULT_SYNC_TOLERANCE,
+    SYNC_MODES,
+    SyncStats,
+    max_gap_ns,
+    tolerance_ns,
+)
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
@@ -69,8 +77,10 @@ EPILOG_CALIBRATE = """examples:
       --currents /thruster1/battery,/thruster2/battery     # still vehicle, thrusters stepped
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
-topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
-stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+topics (grouped into sets by --sync-mode: stamps that coincide within --sync-tolerance, or
+the sensors interpolated at the first sensor's sample instants when they are sampled apart
+or stamped on receipt), or a CSV file with header stamp,mag1.x,mag1.y,mag1.z,mag2.x,...
+(seconds, Tesla, one set per row).
 """ + UNITS_NOTE + """
 
 arrays: one sensor needs no positions (no gradient); four default to the 0.4 m cross; any
@@ -156,6 +166,10 @@ CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
+Sets are formed by --sync-mode (auto: from the stamps). A calibration with <name>.time_offset
+(s; the sensor's reading stamped t is the field at t - time_offset) shifts that sensor's
+stamps and interpolates it to the first sensor's sample instants (bag or CSV input); every
+output of a set is then stamped with the set's instant.
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
 must exist, and each needs its block in the calibration file unless listed in --uncorrected.
 A calibration with interference_channels subtracts their interference: give the currents
@@ -251,10 +265,29 @@ def add_window_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--end", type=_stamp, metavar="SECONDS", help="ignore sets stamped after this time (s, header stamp)")
 
 
+def _max_gap(text: str) -> float:
+    """An argparse type: the largest gap (s) interpolation bridges, 0 <= g < 60 (0: automatic)."""
+    try:
+        max_gap_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return float(text)
+
+
 def add_sync_options(p: argparse.ArgumentParser) -> None:
     """Bag synchronisation options."""
+    p.add_argument("--sync-mode", choices=list(SYNC_MODES), default=DEFAULT_SYNC_MODE,
+                   help="how sets are formed from the sensors' messages (docs/synchronisation.md): exact (stamps "
+                   "that coincide within --sync-tolerance: sensors sampled together and stamped alike), "
+                   "interpolate (at each sample of the first sensor, the others interpolated between their "
+                   "samples; sensors sampled apart or stamped on receipt), auto (chosen from the first stamps; "
+                   f"default {DEFAULT_SYNC_MODE})")
     p.add_argument("--sync-tolerance", type=_tolerance, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
-                   help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+                   help=f"exact matching: largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+    p.add_argument("--max-gap", type=_max_gap, default=DEFAULT_MAX_GAP, metavar="SECONDS",
+                   help="interpolation: a set whose neighbouring samples of a sensor are further apart is dropped "
+                   "and counted (default 0: 3.5 sample periods of that sensor, i.e. two lost samples in a row "
+                   "are bridged)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
 
@@ -355,7 +388,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap,
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
@@ -517,6 +550,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
             calibration_name=args.calibration,
             currents=_current_topics(args), current_tolerance=args.current_tolerance,
+            sync_mode=args.sync_mode, max_gap=args.max_gap,
         )
     for note in report.notes:
         _note(note)
@@ -534,10 +568,12 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
 
 def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool) -> int:
+    from magcal_ros.app.correct import time_offsets_of
+
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, cal.geometry.names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap, time_offsets_of(cal),
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -69,11 +69,13 @@ from magcal_ros.core.sync_rules import (
     tolerance_ns,
 )
 from magcal_ros.core.units import NS_PER_S
+from magcal_ros.errors import InputError
 
 __all__ = [
     "DEFAULT_LAG", "DEFAULT_MAX_GAP", "DEFAULT_SYNC_MODE", "DEFAULT_SYNC_TOLERANCE", "DROP_FIELDS", "MAX_GAP_PERIODS",
     "PERIOD_WINDOW", "RESTART_JUMP", "SYNC_MODES", "SetBatch", "SetSynchronizer", "StreamSynchronizer", "SyncStats",
-    "SyncedSet", "choose_mode", "max_gap_ns", "synchronise_streams", "time_offset_ns", "tolerance_ns",
+    "SyncedSet", "choose_mode", "max_gap_ns", "stream_synchronizer", "synchronise_streams", "time_offset_ns",
+    "tolerance_ns",
 ]
 
 SyncMode = Literal["auto", "exact", "interpolate"]
@@ -459,9 +461,6 @@ def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence
         matched += max(d) - min(d) <= window
         for k, x in enumerate(d):
             offsets_by[k].append(x)
-    rates = [f"{NS_PER_S / p:.4g} Hz" for p in periods]
-    if len(set(rates)) > 1:
-        return "interpolate", f"the sensors sample at different rates ({', '.join(rates)})"
     if present < 4:
         return "interpolate", f"the stamps of {', '.join(names)} do not coincide within half a period"
     if matched < EXACT_FRACTION * present:
@@ -679,6 +678,37 @@ class StreamSynchronizer:
             self.engine, self.reason = None, ""
 
 
+def stream_synchronizer(
+    names: Sequence[str],
+    tolerance: float = DEFAULT_SYNC_TOLERANCE,
+    mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    time_offsets: Mapping[str, float] | None = None,
+    **bounds: Any,
+) -> StreamSynchronizer:
+    """A :class:`StreamSynchronizer` for sensors ``names`` from user settings in seconds:
+    ``tolerance`` (exact window), ``mode`` (``auto`` | ``exact`` | ``interpolate``), ``max_gap``
+    (0: automatic) and ``time_offsets`` by sensor name (missing: 0). ``bounds``: ``lag_ns``,
+    ``max_pending``, ``restart_ns``, ``reject_zero``. :class:`InputError` naming a bad value, a
+    sensor that is not one of ``names``, or time offsets with mode ``exact``."""
+    try:
+        tol = tolerance_ns(tolerance)
+        gap = max_gap_ns(max_gap)
+        check_mode(mode)
+        offsets = dict(time_offsets or {})
+        strangers = sorted(set(offsets) - set(names))
+        if strangers:
+            raise ValueError(f"time offset for {', '.join(strangers)}, not a sensor here ({', '.join(names)})")
+        shifts = [time_offset_ns(offsets.get(n, 0.0), f"{n}.time_offset") for n in names]
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if mode == "exact" and any(shifts):
+        lagging = ", ".join(f"{n} {t / 1e6:g} ms" for n, t in zip(names, shifts) if t)
+        raise InputError(f"time offsets ({lagging}) need sync mode interpolate or auto: exact matching pairs "
+                         "stamps as they are")
+    return StreamSynchronizer(len(names), tol, mode, gap, shifts, names=names, **bounds)
+
+
 def _batch_of(sets: list[SyncedSet], sensors: int) -> SetBatch:
     if not sets:
         return empty_batch(sensors)
@@ -709,10 +739,13 @@ def synchronise_streams(
 
     Returns the sets (interpolation: every member at the set's instant, the first sensor's
     sample instant), the counters and the mode used. Offline, so nothing is given up for lag.
+    ``receipts``: per sensor, when each message arrived (bag times; None: unknown).
+    :class:`InputError` for a bad setting.
     """
-    offsets = [time_offset_ns(t) for t in (time_offsets or [0.0] * len(streams))]
-    sync = StreamSynchronizer(len(streams), tolerance_ns(tolerance), mode, max_gap_ns(max_gap), offsets,
-                              lag_ns=2**62, max_pending=2**62, reject_zero=reject_zero, names=names)
+    names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(len(streams))]
+    offsets = dict(zip(names, time_offsets)) if time_offsets is not None else None
+    sync = stream_synchronizer(names, tolerance, mode, max_gap, offsets, lag_ns=2**62, max_pending=2**62,
+                               reject_zero=reject_zero)
     for k, (stamps, vectors) in enumerate(streams):
         sync.add_batch(k, stamps, vectors, None if receipts is None else receipts[k])
     batch = sync.pop(final=True)
