@@ -136,6 +136,16 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
   magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
+sensor streams (rosbag2 only): each sensor samples on its own clock and is stamped on receipt;
+the schedule's attitudes at --rate become a continuous turn. Four 100 Hz sensors 2.5 ms apart
+with 0.5 ms of receipt jitter, turning at 0.2 rad/s about y (2 pi 100 / 0.2 = 3142 steps):
+  magcal simulate streams_bag --schedule single-axis --axis y --count 3142 --rate 100 \
+      --phases 0,0.0025,0.005,0.0075 --receipt-jitter 0.0005
+  ... --lags 0,0,0.005,0          # mag3 reads 5 ms late (its time_offset in the truth YAML)
+  ... --restart 15,60,mag3        # mag3's driver restarts 15 s in, its stamps 60 s behind
+  ... --glitch mag2,10,2 --clock-ppm 0,50,-50,20 --loss 0.02
+The truth NPZ then holds per sensor stamps_<name>, instants_<name> (true sample instants,
+ns), receipts_<name> (bag times) and field_<name> (N, 3) T.
 schedules: single-axis (one turn about --axis, --count steps), li2018 (Li et al. 2018: 12^3
 grid of 30 deg steps, 1728 sets), coaxial2022 (the 2022 coaxial array calibration paper: x
 every 60 deg, y every 90, z every 60, 144 sets), three-axes (a turn about each axis,
@@ -486,6 +496,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         from magcal_ros.io.bag_writer import check_bag_output
 
         check_bag_output(args.output)
+    streams = _stream_spec(args, spec.names)
+    if streams is not None:
+        return _simulate_streams(args, spec, streams)
     truth, ypath, npath = write_simulation(args.output, spec, args.storage)
     kind = "CSV" if is_csv(args.output) else f"rosbag2 ({args.storage})"
     print(
@@ -497,6 +510,72 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"  {len(spec.thrusters)} thrusters ({spec.thruster_current} A): currents on "
               + (", ".join(topics.current_topic(c) for c in spec.channels) + " (BatteryState)" if not is_csv(args.output)
                  else ", ".join(f"current.{c}" for c in spec.channels)))
+    print(f"  truth {ypath} and {npath}")
+    return 0
+
+
+STREAM_OPTIONS: tuple[str, ...] = ("sensor_rate", "phases", "receipt_delay", "receipt_jitter", "jitter_kind",
+                                   "clock_ppm", "loss", "lags", "glitch", "restart")
+
+
+def _per_sensor(text: str | None, option: str, count: int) -> float | tuple[float, ...]:
+    """``N`` or ``N,N,...`` (one per sensor) of a stream option; 0 when not given."""
+    if text is None:
+        return 0.0
+    try:
+        values = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"{option} must be a number or {count} numbers separated by commas, got {text!r}") from None
+    if len(values) not in (1, count) or not np.all(np.isfinite(values)):
+        raise InputError(f"{option} must be a number or {count} finite numbers separated by commas, got {text!r}")
+    return values[0] if len(values) == 1 else values
+
+
+def _stream_spec(args: argparse.Namespace, names: tuple[str, ...]) -> Any:
+    """The sensor-stream settings of ``magcal simulate``, or None when none is given."""
+    if all(getattr(args, o) is None for o in STREAM_OPTIONS):
+        return None
+    from magcal_ros.sim.streams import StreamSpec
+
+    glitches = []
+    for text in args.glitch or []:
+        parts = [v.strip() for v in text.split(",")]
+        if len(parts) != 3 or parts[0] not in names:
+            raise InputError(f"--glitch must be NAME,TIME,SHIFT with NAME one of {', '.join(names)}, got {text!r}")
+        time_, shift = _numbers(",".join(parts[1:]), 2, "--glitch TIME,SHIFT")
+        glitches.append((names.index(parts[0]), time_, shift))
+    restarts = []
+    for text in args.restart or []:
+        parts = [v.strip() for v in text.split(",")]
+        which = parts[2:]
+        if len(parts) < 2 or any(n not in names for n in which):
+            raise InputError(f"--restart must be TIME,JUMP[,NAME...] with names among {', '.join(names)}, got {text!r}")
+        time_, jump = _numbers(",".join(parts[:2]), 2, "--restart TIME,JUMP")
+        restarts.append((time_, jump, tuple(names.index(n) for n in which)))
+    rate = _per_sensor(args.sensor_rate, "--sensor-rate", len(names)) if args.sensor_rate else args.rate
+    spec = StreamSpec(
+        rate=rate, phases=_per_sensor(args.phases, "--phases", len(names)),
+        delay=_per_sensor(args.receipt_delay, "--receipt-delay", len(names)),
+        jitter=args.receipt_jitter or 0.0, jitter_kind=args.jitter_kind or "gaussian",
+        clock_ppm=_per_sensor(args.clock_ppm, "--clock-ppm", len(names)), loss=args.loss or 0.0,
+        lags=_per_sensor(args.lags, "--lags", len(names)), glitches=tuple(glitches), restarts=tuple(restarts),
+    )
+    if not (0.0 <= spec.loss < 1.0) or not (np.isfinite(spec.jitter) and spec.jitter >= 0):
+        raise InputError("--loss must be in [0, 1) and --receipt-jitter a standard deviation >= 0 (s)")
+    return spec
+
+
+def _simulate_streams(args: argparse.Namespace, spec: Any, streams: Any) -> int:
+    """``magcal simulate`` with sensor-stream options: the bag of per-sensor streams and its truth."""
+    from magcal_ros.io.truth_file import write_stream_simulation
+
+    rec, ypath, npath = write_stream_simulation(args.output, spec, streams, args.storage)
+    counts = ", ".join(f"{s.name} {len(s)}" for s in rec.streams)
+    print(f"wrote {args.output}: rosbag2 ({args.storage}), per-sensor streams over {spec.count / spec.rate:g} s "
+          f"(schedule {spec.schedule} as a continuous turn): {counts} messages")
+    lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(rec.names, rec.calibration.time_offsets) if t]
+    if lags:
+        print(f"  lags (true time_offset in the truth YAML): {', '.join(lags)}")
     print(f"  truth {ypath} and {npath}")
     return 0
 
@@ -710,6 +789,24 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--noise-kind", default=d.noise_kind, choices=["gaussian", "uniform"], help="noise distribution")
     g.add_argument("--noise-domain", default=d.noise_domain, choices=["raw", "sensor"],
                    help="add noise to the reading (raw) or before scale and non-orthogonality (sensor, Li et al. (2018))")
+    g = p.add_argument_group(
+        "sensor streams (rosbag2 output; any of these simulates each sensor on its own clock, stamped on receipt: "
+        "the schedule's attitudes at --rate become a continuous turn; N or N,N,... per sensor)")
+    g.add_argument("--sensor-rate", metavar="HZ[,HZ...]", help="sample rate of each sensor (default --rate)")
+    g.add_argument("--phases", metavar="S[,S...]",
+                   help="first sample instant of each sensor after the start, s (e.g. 0,0.0025,0.005,0.0075)")
+    g.add_argument("--receipt-delay", metavar="S[,S...]", help="mean delay of each sensor's stamps after its sample (s)")
+    g.add_argument("--receipt-jitter", type=float, metavar="S", help="standard deviation of the stamps' jitter (s)")
+    g.add_argument("--jitter-kind", choices=["gaussian", "uniform"], help="distribution of the jitter (default gaussian)")
+    g.add_argument("--clock-ppm", metavar="PPM[,PPM...]", help="each sensor's clock error (ppm; positive samples slower)")
+    g.add_argument("--loss", type=float, metavar="FRACTION", help="fraction of messages lost at random")
+    g.add_argument("--lags", metavar="S[,S...]",
+                   help="each sensor's reading lags its sample instant by this (s): its true time_offset (truth YAML)")
+    g.add_argument("--glitch", action="append", metavar="NAME,TIME,SHIFT",
+                   help="the message of NAME nearest TIME (s after the start) stamped SHIFT s off; repeatable")
+    g.add_argument("--restart", action="append", metavar="TIME,JUMP[,NAME...]",
+                   help="from TIME (s after the start) the stamps of NAME... (default every sensor) are JUMP s behind "
+                   "(a driver restarted), bag time moving on; repeatable")
     g = p.add_argument_group("output")
     g.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default sqlite3)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed of errors, attitudes and noise (default 0)")
@@ -767,7 +864,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position")
+NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position", "--phases", "--clock-ppm",
+                                           "--lags", "--receipt-delay")
 """Options whose comma-separated numbers may start with a minus sign."""
 
 

@@ -139,7 +139,7 @@ class SampleClock:
 
     __slots__ = ("memory", "pause_ns", "_lam", "lost", "gaps", "dropped", "_learn", "_held", "ready", "regular",
                  "_t0", "_n0", "_n", "_a", "_b", "_s0", "_s1", "_s2", "_y1", "_y2", "_var", "_bad", "_last",
-                 "_raw_count")
+                 "_raw_count", "_hint", "_shift")
 
     def __init__(self, memory: int = MEMORY, pause_ns: int = PAUSE) -> None:
         if memory < 2:
@@ -160,6 +160,9 @@ class SampleClock:
         """True while the line is in use (after learning)."""
         self.regular = True
         self._raw_count = 0
+        self._hint: tuple[int, float] | None = None
+        self._shift = 0
+        """Added to every stamp of this run (a restart placed on the old grid)."""
         self._reset_fit()
 
     def _reset_fit(self) -> None:
@@ -197,6 +200,7 @@ class SampleClock:
         out: Released = []
         pause = stamp - self._last > self.pause_ns
         self._last = stamp
+        stamp += self._shift
         if not self.ready:
             if pause and self._learn:
                 out += self._flush_learning()
@@ -230,9 +234,16 @@ class SampleClock:
         return out
 
     def restart(self) -> Released:
-        """A new run starts (the sensor restarted): release what is held, then learn afresh."""
+        """A new run starts (the sensor's driver restarted): release what is held, then learn afresh.
+
+        The sensor itself is taken to have kept sampling: where the new run's line falls within a
+        quarter period of the old one's grid (the old line carried on), it is moved onto it, so the
+        new run's instants keep the old run's precision rather than that of the stamps that placed it."""
+        hint = (self.instant(self._n), self._b) if self.ready else None
         out = self.finish()
         self._relearn()
+        self._hint = hint
+        self._shift = 0
         self._last = -(2**62)
         return out
 
@@ -302,6 +313,16 @@ class SampleClock:
             s2 += w * i * i
             y1 += w * v
             y2 += w * i * v
+        if self._hint is not None:  # a restart: onto the old grid if it is within a quarter period
+            before, old = self._hint
+            first = t0 + int(round(a))
+            shift = int(round(before + round((first - before) / old) * old - first))
+            if abs(shift) <= 0.25 * b:  # every stamp of this run moves with it
+                self._shift = shift
+                a += shift
+                y1 += shift * s0
+                y2 += shift * s1
+            self._hint = None
         self._s0, self._s1, self._s2, self._y1, self._y2 = s0, s1, s2, y1, y2
         self._a, self._b = a, b
         self._var = sigma * sigma

@@ -368,7 +368,7 @@ class CorrectionNode(Node):
                                                                              Parameter.Type.INTEGER):
                 return SetParametersResult(successful=False,
                                            reason=f"{p.name} must be a number of seconds, got {p.type_.name.lower()}")
-            if known and (p.name == "positions" or p.name.endswith(ARRAY_SUFFIXES)):
+            if known and (p.name == "positions" or p.name.rpartition(".")[2] in ARRAY_SUFFIXES):
                 why = common.check_number_array(p)
                 if why:
                     return SetParametersResult(successful=False, reason=why)
