@@ -186,6 +186,11 @@ class SampleClock:
         return self._var ** 0.5 if self.ready else None
 
     @property
+    def shift(self) -> int:
+        """What this run adds to its stamps (ns): a restart's placement corrected onto the old grid."""
+        return self._shift
+
+    @property
     def pending(self) -> int:
         """Samples held (learning or ambiguous)."""
         return len(self._learn) + (self._held is not None)
@@ -265,14 +270,17 @@ class SampleClock:
         self._reset_fit()
 
     def _flush_learning(self) -> Released:
-        """Too few stamps to learn a clock: release them at their stamps."""
+        """A run ended before its clock was learnt: release its samples (fitted when there are a few;
+        no losses counted from so few stamps) and learn the next run afresh."""
         if len(self._learn) > 3:
-            return self._bootstrap()
-        out: Released = [(p, s) for s, p in self._learn]
-        self._learn = []
+            out = self._bootstrap(final=True)
+        else:
+            out = [(p, s) for s, p in self._learn]
+            self._learn = []
+        self._relearn()
         return out
 
-    def _bootstrap(self) -> Released:
+    def _bootstrap(self, final: bool = False) -> Released:
         """Fit the learning stamps (module docstring, 1.); release them with their fitted instants."""
         stamps = [s for s, _ in self._learn]
         t0 = stamps[0]
@@ -296,8 +304,11 @@ class SampleClock:
         released = self._learn
         self._learn = []
         if b <= 0 or sigma > IRREGULAR * b:
-            self.regular = False  # not a fixed-rate sensor: stamps as they are
+            if not final:
+                self.regular = False  # not a fixed-rate sensor: stamps as they are
             return [(p, s) for s, p in released]
+        if final:
+            return [(p, t0 + int(round(a + b * i))) for (_, p), i in zip(released, index)]
         for i in range(1, len(index)):
             step = index[i] - index[i - 1]
             if step > 1:

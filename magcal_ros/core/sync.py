@@ -84,7 +84,9 @@ DEFAULT_SYNC_MODE: str = "auto"
 DEFAULT_MAX_GAP: float = 0.0
 """Default ``max_gap`` (s): 0 means :data:`MAX_GAP_PERIODS` sample periods of the interpolated sensor."""
 DECIDE_AFTER: int = 32
-"""Stamps of every sensor mode ``auto`` looks at before choosing."""
+"""Stamps of every sensor mode ``auto`` looks at before choosing ..."""
+DECIDE_EARLY: tuple[int, int] = (8, NS_PER_S)
+"""... or at least 8 stamps of every sensor spanning 1 s (slow sensors)."""
 EXACT_FRACTION: float = 0.9
 """Mode ``auto`` matches exactly when the exact window holds at least this fraction of the sets
 (:func:`choose_mode`)."""
@@ -480,8 +482,9 @@ class StreamSynchronizer:
     the interpolated sensor). ``time_offsets_ns`` (per sensor): a sample stamped ``t`` is the
     field at ``t - offset``; non-zero offsets need interpolation. ``names`` only name sensors
     in :attr:`reason`. In mode ``auto`` the first :data:`DECIDE_AFTER` messages of every
-    sensor are held (counted in :attr:`pending`) until the mode is chosen; the same messages
-    then go through the chosen rule, so the sets do not depend on when that happened.
+    sensor (or 8 spanning a second, for slow sensors) are held (counted in :attr:`pending`)
+    until the mode is chosen; the same messages then go through the chosen rule, so the sets
+    do not depend on when that happened.
     """
 
     def __init__(
@@ -608,7 +611,11 @@ class StreamSynchronizer:
         counts = [len(h) + sum(len(b[0]) for b in hb) for h, hb in zip(self._held, self._held_batches)]
         if max(counts) >= 8 * DECIDE_AFTER:  # a sensor stays silent: choose with what there is
             return True
-        return min(counts) >= DECIDE_AFTER and min(len(c) for c in self._candidates()) >= DECIDE_AFTER
+        if min(counts) < DECIDE_EARLY[0]:
+            return False
+        candidates = self._candidates()
+        return all(len(c) >= DECIDE_AFTER or (len(c) >= DECIDE_EARLY[0] and c[-1] - c[0] >= DECIDE_EARLY[1])
+                   for c in candidates)
 
     def _decide(self) -> None:
         mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns)

@@ -201,8 +201,9 @@ class InterpolatingSynchronizer(AcceptanceRule):
             return
         q.append(tau)
         self._vals[index].append(value)
-        if index == 0:
-            self._out.append(stamp + (instant - common) - self.offsets[0])
+        if index == 0:  # in the reference's own clock, whatever placed it on the common time line
+            clock = self.streams[0].clock
+            self._out.append(stamp + (instant - common - clock.shift) - self.offsets[0])  # type: ignore[union-attr]
         else:
             self._used[index].append(False)
 

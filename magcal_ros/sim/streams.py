@@ -197,3 +197,21 @@ def simulate_streams(
     shifted = Slerp(times + start, Rotation.from_matrix(rot))
     return StreamRecording(tuple(streams), calibration, shifted)
 
+
+
+PHASED: tuple[float, ...] = (0.0, 0.0025, 0.005, 0.0075)
+"""Four 100 Hz sensors sampled 2.5 ms apart."""
+PATTERNS: dict[str, tuple[StreamSpec, float]] = {
+    "synchronous": (StreamSpec(), 0.2),
+    "phased + 0.5 ms jitter": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005), 0.2),
+    "synchronous + 1.5 ms jitter": (StreamSpec(delay=0.001, jitter=0.0015), 0.2),
+    "clock drift 50 ppm": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005, clock_ppm=(0.0, 50.0, -50.0, 20.0)), 0.2),
+    "2 % loss": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005, loss=0.02), 0.2),
+    "glitch 2 s early + late": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005,
+                                           glitches=((1, 10.0, -2.0), (2, 16.0, 2.0))), 0.2),
+    "restart of all": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005, restarts=((15.0, 60.0, ()),)), 0.2),
+    "restart of one": (StreamSpec(phases=PHASED, delay=0.001, jitter=0.0005, restarts=((15.0, 60.0, (2,)),)), 0.2),
+    "5 ms lag at 1 rad/s": (StreamSpec(lags=(0.0, 0.0, 0.005, 0.0)), 1.0),
+}
+"""The stamp patterns of real arrays (spec, turn rate rad/s): 100 Hz sensors, 0.5 ms of receipt jitter
+where there is jitter, turning about y in the default field (0.2 rad/s: ~10,000 nT/s)."""
