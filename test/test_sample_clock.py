@@ -122,3 +122,14 @@ def test_after_a_restart_the_sensor_keeps_its_old_grid() -> None:
         got.update(dict(clock.offer(int(stamps[i]) + 1_300_000, i)))  # the placement's error
     err = np.array([got[i] for i in range(1100, 1990)]) - truth[1100:1990]
     assert abs(np.mean(err)) < 0.15 * MS
+
+
+def test_a_run_that_ends_while_learning_counts_no_losses() -> None:
+    """A few irregular stamps (probe sets 0.2 s apart), a pause, then a 50 Hz stream: the short run is
+    released as it is and nothing is counted lost."""
+    rng = np.random.default_rng(5)
+    probes = 10**12 + np.cumsum(200 * MS + rng.integers(0, 20 * MS, 9))
+    stream_ = probes[-1] + 10**9 + np.arange(220, dtype=np.int64) * 20 * MS
+    got, clock = clocked(np.concatenate([probes, stream_]), SampleClock(pause_ns=500 * MS))
+    assert clock.lost == 0 and clock.gaps == 0 and len(got) == 229
+    assert clock.period_ns == pytest.approx(20 * MS, rel=1e-9)
