@@ -196,3 +196,13 @@ def test_a_stream_bag_reads_back_to_the_same_sets(tmp_path: Path, storage: str) 
     np.testing.assert_array_equal(got.stamps, expected.set_stamps)
     np.testing.assert_array_equal(got.vectors, expected.vectors)
     assert stats.glitch == 1 and stats.restarts == 1 and len(got) >= 0.98 * len(rec.streams[0])
+
+
+def test_a_faster_sensor_is_resampled_and_its_extra_samples_are_not_drops() -> None:
+    """mag2 at 400 Hz, the others at 100 Hz (2.5 ms apart): every reference instant makes a set, the
+    samples of mag2 between two sets count as used (not dropped), the tensor stays at the floor."""
+    rec = record(StreamSpec(rate=(100.0, 400.0, 100.0, 100.0), phases=PHASED, jitter=0.0002), duration=10.0)
+    batch, stats, mode = offline(rec)
+    assert mode == "interpolate" and len(batch) >= 0.99 * len(rec.streams[0])
+    assert stats.unmatched <= 12 and stats.used + stats.dropped() == offered(rec)
+    assert tensor_rms(rec, batch.vectors) < 1.3
