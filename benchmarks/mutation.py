@@ -211,6 +211,9 @@ MODULES: tuple[str, ...] = (
     "magcal_ros/core/alignment.py",
     "magcal_ros/core/tensor.py",
     "magcal_ros/core/sync.py",
+    "magcal_ros/core/sync_rules.py",
+    "magcal_ros/core/sync_interpolate.py",
+    "magcal_ros/core/sample_clock.py",
     "magcal_ros/io/cdr.py",
     "magcal_ros/core/rotation.py",
 )
@@ -227,7 +230,10 @@ SUBSETS: dict[str, list[str]] = {
                                      "test/test_papers.py::test_coaxial2022_axis_angle", *_FIT],
     "magcal_ros/core/tensor.py": ["test/test_tensor_geometry.py", "test/test_core.py",
                                   "test/test_methods.py::test_pipeline_methods"],
-    "magcal_ros/core/sync.py": ["test/test_sync.py", "test/test_bagio.py"],
+    "magcal_ros/core/sync.py": ["test/test_sync.py", "test/test_bagio.py", "test/test_streams.py"],
+    "magcal_ros/core/sync_rules.py": ["test/test_sync.py", "test/test_streams.py"],
+    "magcal_ros/core/sync_interpolate.py": ["test/test_streams.py"],
+    "magcal_ros/core/sample_clock.py": ["test/test_sample_clock.py", "test/test_streams.py", "test/test_health.py"],
     "magcal_ros/io/cdr.py": ["test/test_bagio.py", "test/test_node_helpers.py"],
     "magcal_ros/core/rotation.py": ["test/test_papers.py::test_li2018_table3_misalignment", *_FIT],
 }

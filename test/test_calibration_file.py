@@ -11,6 +11,7 @@ from rcl_interfaces.msg import ParameterType
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 
 # Values whose repr has no decimal point (5e-08): YAML 1.1 reads "5e-08" as a string.
@@ -120,3 +121,27 @@ def test_an_unwritable_destination_changes_nothing(tmp_path: Path) -> None:
     with pytest.raises(NotADirectoryError):
         calfile.write(blocker / "calibration.yaml", _calibration())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_time_offsets_round_trip_and_an_old_file_reads_as_zeros(tmp_path: Path) -> None:
+    """<name>.time_offset (s) is written when a sensor has one, read back exactly, and absent means 0:
+    a file without any reads and writes as before."""
+    plain = _calibration()
+    text = calfile.dumps(plain)
+    assert "time_offset" not in text
+    assert np.array_equal(calfile.loads(text).time_offsets, np.zeros(4))
+    lagging = ArrayCalibration(plain.geometry, plain.matrices, plain.offsets, plain.metadata, plain.covariances,
+                               time_offsets=[0.0, 0.0, 0.005, -0.00025])
+    path = _write(tmp_path, lagging)
+    doc = yaml.safe_load(path.read_text())["/magcal_correction"]["ros__parameters"]
+    assert doc["mag3"]["time_offset"] == 0.005 and doc["mag1"]["time_offset"] == 0.0
+    assert calfile.read(path).time_offsets.tolist() == [0.0, 0.0, 0.005, -0.00025]
+
+
+@pytest.mark.parametrize("bad", ["0.7", "abc", "[0.1, 0.2]", ".nan"])
+def test_an_unusable_time_offset_is_refused_by_name(bad: str) -> None:
+    text = calfile.dumps(_calibration()).replace("      offset: [4.000000000000001e-08", f"      time_offset: {bad}\n"
+                                                 "      offset: [4.000000000000001e-08")
+    assert "time_offset" in text
+    with pytest.raises(InputError, match="mag3.time_offset"):
+        calfile.loads(text)

@@ -22,7 +22,15 @@ from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
+from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
+    DEFAULT_SYNC_TOLERANCE,
+    SYNC_MODES,
+    SyncStats,
+    max_gap_ns,
+    tolerance_ns,
+)
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
@@ -69,8 +77,10 @@ EPILOG_CALIBRATE = """examples:
       --currents /thruster1/battery,/thruster2/battery     # still vehicle, thrusters stepped
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
-topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
-stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+topics (grouped into sets by --sync-mode: stamps that coincide within --sync-tolerance, or
+the sensors interpolated at the first sensor's sample instants when they are sampled apart
+or stamped on receipt), or a CSV file with header stamp,mag1.x,mag1.y,mag1.z,mag2.x,...
+(seconds, Tesla, one set per row).
 """ + UNITS_NOTE + """
 
 arrays: one sensor needs no positions (no gradient); four default to the 0.4 m cross; any
@@ -126,6 +136,16 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
   magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
+sensor streams (rosbag2 only): each sensor samples on its own clock and is stamped on receipt;
+the schedule's attitudes at --rate become a continuous turn. Four 100 Hz sensors 2.5 ms apart
+with 0.5 ms of receipt jitter, turning at 0.2 rad/s about y (2 pi 100 / 0.2 = 3142 steps):
+  magcal simulate streams_bag --schedule single-axis --axis y --count 3142 --rate 100 \
+      --phases 0,0.0025,0.005,0.0075 --receipt-jitter 0.0005
+  ... --lags 0,0,0.005,0          # mag3 reads 5 ms late (its time_offset in the truth YAML)
+  ... --restart 15,60,mag3        # mag3's driver restarts 15 s in, its stamps 60 s behind
+  ... --glitch mag2,10,2 --clock-ppm 0,50,-50,20 --loss 0.02
+The truth NPZ then holds per sensor stamps_<name>, instants_<name> (true sample instants,
+ns), receipts_<name> (bag times) and field_<name> (N, 3) T.
 schedules: single-axis (one turn about --axis, --count steps), li2018 (Li et al. 2018: 12^3
 grid of 30 deg steps, 1728 sets), coaxial2022 (the 2022 coaxial array calibration paper: x
 every 60 deg, y every 90, z every 60, 144 sets), three-axes (a turn about each axis,
@@ -156,6 +176,10 @@ CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
+Sets are formed by --sync-mode (auto: from the stamps). A calibration with <name>.time_offset
+(s; the sensor's reading stamped t is the field at t - time_offset) shifts that sensor's
+stamps and interpolates it to the first sensor's sample instants (bag or CSV input); every
+output of a set is then stamped with the set's instant.
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
 must exist, and each needs its block in the calibration file unless listed in --uncorrected.
 A calibration with interference_channels subtracts their interference: give the currents
@@ -251,10 +275,29 @@ def add_window_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--end", type=_stamp, metavar="SECONDS", help="ignore sets stamped after this time (s, header stamp)")
 
 
+def _max_gap(text: str) -> float:
+    """An argparse type: the largest gap (s) interpolation bridges, 0 <= g < 60 (0: automatic)."""
+    try:
+        max_gap_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return float(text)
+
+
 def add_sync_options(p: argparse.ArgumentParser) -> None:
     """Bag synchronisation options."""
+    p.add_argument("--sync-mode", choices=list(SYNC_MODES), default=DEFAULT_SYNC_MODE,
+                   help="how sets are formed from the sensors' messages (docs/synchronisation.md): exact (stamps "
+                   "that coincide within --sync-tolerance: sensors sampled together and stamped alike), "
+                   "interpolate (at each sample of the first sensor, the others interpolated between their "
+                   "samples; sensors sampled apart or stamped on receipt), auto (chosen from the first stamps; "
+                   f"default {DEFAULT_SYNC_MODE})")
     p.add_argument("--sync-tolerance", type=_tolerance, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
-                   help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+                   help=f"exact matching: largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+    p.add_argument("--max-gap", type=_max_gap, default=DEFAULT_MAX_GAP, metavar="SECONDS",
+                   help="interpolation: a set whose neighbouring samples of a sensor are further apart is dropped "
+                   "and counted (default 0: 3.5 sample periods of that sensor, i.e. two lost samples in a row "
+                   "are bridged)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
 
@@ -355,7 +398,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap,
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
@@ -453,6 +496,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         from magcal_ros.io.bag_writer import check_bag_output
 
         check_bag_output(args.output)
+    streams = _stream_spec(args, spec.names)
+    if streams is not None:
+        return _simulate_streams(args, spec, streams)
     truth, ypath, npath = write_simulation(args.output, spec, args.storage)
     kind = "CSV" if is_csv(args.output) else f"rosbag2 ({args.storage})"
     print(
@@ -464,6 +510,72 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"  {len(spec.thrusters)} thrusters ({spec.thruster_current} A): currents on "
               + (", ".join(topics.current_topic(c) for c in spec.channels) + " (BatteryState)" if not is_csv(args.output)
                  else ", ".join(f"current.{c}" for c in spec.channels)))
+    print(f"  truth {ypath} and {npath}")
+    return 0
+
+
+STREAM_OPTIONS: tuple[str, ...] = ("sensor_rate", "phases", "receipt_delay", "receipt_jitter", "jitter_kind",
+                                   "clock_ppm", "loss", "lags", "glitch", "restart")
+
+
+def _per_sensor(text: str | None, option: str, count: int) -> float | tuple[float, ...]:
+    """``N`` or ``N,N,...`` (one per sensor) of a stream option; 0 when not given."""
+    if text is None:
+        return 0.0
+    try:
+        values = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"{option} must be a number or {count} numbers separated by commas, got {text!r}") from None
+    if len(values) not in (1, count) or not np.all(np.isfinite(values)):
+        raise InputError(f"{option} must be a number or {count} finite numbers separated by commas, got {text!r}")
+    return values[0] if len(values) == 1 else values
+
+
+def _stream_spec(args: argparse.Namespace, names: tuple[str, ...]) -> Any:
+    """The sensor-stream settings of ``magcal simulate``, or None when none is given."""
+    if all(getattr(args, o) is None for o in STREAM_OPTIONS):
+        return None
+    from magcal_ros.sim.streams import StreamSpec
+
+    glitches = []
+    for text in args.glitch or []:
+        parts = [v.strip() for v in text.split(",")]
+        if len(parts) != 3 or parts[0] not in names:
+            raise InputError(f"--glitch must be NAME,TIME,SHIFT with NAME one of {', '.join(names)}, got {text!r}")
+        time_, shift = _numbers(",".join(parts[1:]), 2, "--glitch TIME,SHIFT")
+        glitches.append((names.index(parts[0]), time_, shift))
+    restarts = []
+    for text in args.restart or []:
+        parts = [v.strip() for v in text.split(",")]
+        which = parts[2:]
+        if len(parts) < 2 or any(n not in names for n in which):
+            raise InputError(f"--restart must be TIME,JUMP[,NAME...] with names among {', '.join(names)}, got {text!r}")
+        time_, jump = _numbers(",".join(parts[:2]), 2, "--restart TIME,JUMP")
+        restarts.append((time_, jump, tuple(names.index(n) for n in which)))
+    rate = _per_sensor(args.sensor_rate, "--sensor-rate", len(names)) if args.sensor_rate else args.rate
+    spec = StreamSpec(
+        rate=rate, phases=_per_sensor(args.phases, "--phases", len(names)),
+        delay=_per_sensor(args.receipt_delay, "--receipt-delay", len(names)),
+        jitter=args.receipt_jitter or 0.0, jitter_kind=args.jitter_kind or "gaussian",
+        clock_ppm=_per_sensor(args.clock_ppm, "--clock-ppm", len(names)), loss=args.loss or 0.0,
+        lags=_per_sensor(args.lags, "--lags", len(names)), glitches=tuple(glitches), restarts=tuple(restarts),
+    )
+    if not (0.0 <= spec.loss < 1.0) or not (np.isfinite(spec.jitter) and spec.jitter >= 0):
+        raise InputError("--loss must be in [0, 1) and --receipt-jitter a standard deviation >= 0 (s)")
+    return spec
+
+
+def _simulate_streams(args: argparse.Namespace, spec: Any, streams: Any) -> int:
+    """``magcal simulate`` with sensor-stream options: the bag of per-sensor streams and its truth."""
+    from magcal_ros.io.truth_file import write_stream_simulation
+
+    rec, ypath, npath = write_stream_simulation(args.output, spec, streams, args.storage)
+    counts = ", ".join(f"{s.name} {len(s)}" for s in rec.streams)
+    print(f"wrote {args.output}: rosbag2 ({args.storage}), per-sensor streams over {spec.count / spec.rate:g} s "
+          f"(schedule {spec.schedule} as a continuous turn): {counts} messages")
+    lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(rec.names, rec.calibration.time_offsets) if t]
+    if lags:
+        print(f"  lags (true time_offset in the truth YAML): {', '.join(lags)}")
     print(f"  truth {ypath} and {npath}")
     return 0
 
@@ -517,6 +629,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
             calibration_name=args.calibration,
             currents=_current_topics(args), current_tolerance=args.current_tolerance,
+            sync_mode=args.sync_mode, max_gap=args.max_gap,
         )
     for note in report.notes:
         _note(note)
@@ -534,10 +647,12 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
 
 def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool) -> int:
+    from magcal_ros.app.correct import time_offsets_of
+
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, cal.geometry.names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap, time_offsets_of(cal),
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
@@ -674,6 +789,24 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--noise-kind", default=d.noise_kind, choices=["gaussian", "uniform"], help="noise distribution")
     g.add_argument("--noise-domain", default=d.noise_domain, choices=["raw", "sensor"],
                    help="add noise to the reading (raw) or before scale and non-orthogonality (sensor, Li et al. (2018))")
+    g = p.add_argument_group(
+        "sensor streams (rosbag2 output; any of these simulates each sensor on its own clock, stamped on receipt: "
+        "the schedule's attitudes at --rate become a continuous turn; N or N,N,... per sensor)")
+    g.add_argument("--sensor-rate", metavar="HZ[,HZ...]", help="sample rate of each sensor (default --rate)")
+    g.add_argument("--phases", metavar="S[,S...]",
+                   help="first sample instant of each sensor after the start, s (e.g. 0,0.0025,0.005,0.0075)")
+    g.add_argument("--receipt-delay", metavar="S[,S...]", help="mean delay of each sensor's stamps after its sample (s)")
+    g.add_argument("--receipt-jitter", type=float, metavar="S", help="standard deviation of the stamps' jitter (s)")
+    g.add_argument("--jitter-kind", choices=["gaussian", "uniform"], help="distribution of the jitter (default gaussian)")
+    g.add_argument("--clock-ppm", metavar="PPM[,PPM...]", help="each sensor's clock error (ppm; positive samples slower)")
+    g.add_argument("--loss", type=float, metavar="FRACTION", help="fraction of messages lost at random")
+    g.add_argument("--lags", metavar="S[,S...]",
+                   help="each sensor's reading lags its sample instant by this (s): its true time_offset (truth YAML)")
+    g.add_argument("--glitch", action="append", metavar="NAME,TIME,SHIFT",
+                   help="the message of NAME nearest TIME (s after the start) stamped SHIFT s off; repeatable")
+    g.add_argument("--restart", action="append", metavar="TIME,JUMP[,NAME...]",
+                   help="from TIME (s after the start) the stamps of NAME... (default every sensor) are JUMP s behind "
+                   "(a driver restarted), bag time moving on; repeatable")
     g = p.add_argument_group("output")
     g.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default sqlite3)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed of errors, attitudes and noise (default 0)")
@@ -731,7 +864,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position")
+NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position", "--phases", "--clock-ppm",
+                                           "--lags", "--receipt-delay")
 """Options whose comma-separated numbers may start with a minus sign."""
 
 

@@ -31,7 +31,7 @@ from magcal_ros.core.interference import (
     tolerance_of,
 )
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
 from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
@@ -108,6 +108,11 @@ def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: 
     elif kind == "baseline":
         parts.append((sink.add_topic(topics.absolute(topics.BASELINE_GRADIENT), VECTOR3_STAMPED), vt.template))
     return CorrectionOutput(sink.layout(parts), mf, gt, vt, len(names), kind)
+
+
+def time_offsets_of(calibration: ArrayCalibration) -> dict[str, float]:
+    """The calibration's non-zero time offsets (s) by sensor name (empty when there are none)."""
+    return {n: float(t) for n, t in zip(calibration.geometry.names, calibration.time_offsets) if t}  # type: ignore[arg-type]
 
 
 def check_sensors(
@@ -209,6 +214,8 @@ def correct_bag(
     calibration_name: str = "the calibration",
     currents: Sequence[str] = (),
     current_tolerance: float = DEFAULT_CURRENT_TOLERANCE,
+    sync_mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -223,7 +230,11 @@ def correct_bag(
     ``calibration_name`` names the calibration in messages) and the readings must be in
     Tesla. ``currents``: the topics of the calibration's interference channels, each set's current the
     latest value at most ``current_tolerance`` s older than the set (sets without one are
-    dropped and counted). Streaming and atomic: nothing is left at ``out_path`` on failure.
+    dropped and counted). Sets are formed by ``sync_mode`` (``auto``, ``exact`` within
+    ``tolerance`` s, ``interpolate`` never across more than ``max_gap`` s) with the
+    calibration's time offsets: a sensor whose ``time_offset`` is not zero is shifted and
+    interpolated to the reference sensor's instants, and every output of a set is stamped
+    with the set's instant. Streaming and atomic: nothing is left at ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
@@ -266,7 +277,8 @@ def correct_bag(
                 sink.write_messages([(copy_map[c.id], t, d) for c, t, d in items if c.id in copy_map])
                 copied[0] += len(items)
 
-            sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress)
+            sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress,
+                             sync_mode=sync_mode, max_gap=max_gap, time_offsets=time_offsets_of(calibration))
             n_in = 0
             checked = False
             for batch in sets:

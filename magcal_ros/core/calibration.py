@@ -2,7 +2,10 @@
 
 This is the object the solver returns, the calibration file stores and the correction
 node applies. Matrices map raw sensor axes (T) into the platform frame (T); ``u`` are the
-currents (A) of the interference channels, when the calibration has any.
+currents (A) of the interference channels, when the calibration has any. ``time_offsets``
+(s) say when each sensor's readings were taken: a reading stamped ``t`` is the field at
+``t - time_offset`` (positive: the sensor reads late); they are applied where sets are
+formed (:mod:`magcal_ros.core.sync`), not by :meth:`ArrayCalibration.apply`.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.sync_rules import MAX_TIME_OFFSET
 from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient
 from magcal_ros.errors import InputError
 
@@ -85,6 +89,9 @@ class ArrayCalibration:
     """Names of the current channels whose interference is subtracted (may be empty)."""
     interference: Array | None = None
     """(S, 3, m) interference gains (T/A, platform frame), one column per channel."""
+    time_offsets: Array | None = None
+    """(S,) s: sensor ``i``'s reading stamped ``t`` is the field at ``t - time_offsets[i]`` (reads
+    late when positive). None: zeros."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -103,6 +110,11 @@ class ArrayCalibration:
             raise InputError(f"interference must be {s} finite 3 x {len(channels)} matrices (T/A), got shape {d.shape}")
         object.__setattr__(self, "channels", channels)
         object.__setattr__(self, "interference", d)
+        lag = np.zeros(s) if self.time_offsets is None else np.asarray(self.time_offsets, dtype=float).reshape(-1)
+        if lag.shape != (s,) or not np.all(np.isfinite(lag)) or np.any(np.abs(lag) > MAX_TIME_OFFSET):
+            raise InputError(f"time_offsets must be {s} finite numbers of seconds within +-{MAX_TIME_OFFSET:g} s, "
+                             f"got {lag.tolist()}")
+        object.__setattr__(self, "time_offsets", lag)
         if self.covariances is not None:
             c = np.asarray(self.covariances, dtype=float)
             known = np.all(np.isfinite(c.reshape(len(c), -1)), axis=1) if c.ndim == 3 else np.zeros(0, bool)
@@ -168,6 +180,8 @@ class ArrayCalibration:
                 params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
             if self.channels:
                 params[name]["interference"] = [float(x) for x in self.interference[i].reshape(-1)]  # type: ignore[index]
+            if np.any(self.time_offsets):  # type: ignore[arg-type]
+                params[name]["time_offset"] = float(self.time_offsets[i])  # type: ignore[index]
         return params
 
     @classmethod
@@ -191,7 +205,7 @@ class ArrayCalibration:
         channels = params.get("interference_channels") or []
         if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
             raise InputError("interference_channels must be a list of channel names")
-        mats, offs, covs, infs = [], [], [], []
+        mats, offs, covs, infs, lags = [], [], [], [], []
         for name in names:
             block = params.get(name)
             if block is None or block == {}:
@@ -211,6 +225,10 @@ class ArrayCalibration:
                 offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
                 covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3) if "covariance" in block
                             else np.full((3, 3), np.nan))
+                lag = block.get("time_offset", 0.0)
+                if isinstance(lag, bool) or not isinstance(lag, (int, float)):
+                    raise InputError(f"{name}.time_offset must be a number of seconds, got {lag!r}")
+                lags.append(float(lag))
                 if channels:
                     gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
                     if gains.size != 3 * len(channels):
@@ -226,5 +244,9 @@ class ArrayCalibration:
         if not any(given):
             covs = []
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
+        for name, lag in zip(names, lags):
+            if not np.isfinite(lag) or abs(lag) > MAX_TIME_OFFSET:
+                raise InputError(f"{name}.time_offset {lag} s is not a lag (finite, within +-{MAX_TIME_OFFSET:g} s)")
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
-                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None)
+                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None,
+                   np.asarray(lags, dtype=float))

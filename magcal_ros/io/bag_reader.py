@@ -28,11 +28,13 @@ from magcal_ros.core.interference import CurrentSamples
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
     DEFAULT_SYNC_TOLERANCE,
     SetBatch,
-    SetSynchronizer,
+    StreamSynchronizer,
     SyncStats,
-    tolerance_ns,
+    stream_synchronizer,
 )
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
@@ -279,10 +281,12 @@ class _Pending:
     """Raw messages of one chunk, per sensor."""
 
     messages: list[list[bytes]]
+    times: list[list[int]]
+    """Bag time (ns) of each message: when the recorder received it."""
 
     @classmethod
     def empty(cls, sensors: int) -> "_Pending":
-        return cls([[] for _ in range(sensors)])
+        return cls([[] for _ in range(sensors)], [[] for _ in range(sensors)])
 
 
 class SetReader:
@@ -290,7 +294,10 @@ class SetReader:
 
     Iterating yields :class:`~magcal_ros.core.sync.SetBatch` in stamp order; ``stats`` counts
     sets and dropped messages. Messages of ``extra`` connections are handed to
-    ``on_extra`` as ``(connection, bag time ns, bytes)`` in bag time order.
+    ``on_extra`` as ``(connection, bag time ns, bytes)`` in bag time order. ``sync_mode``,
+    ``max_gap`` (s) and ``time_offsets`` (s per sensor name) as
+    :func:`~magcal_ros.core.sync.stream_synchronizer` takes them; bag times are each
+    message's receipt (they place a sensor that restarted alone).
     """
 
     def __init__(
@@ -304,6 +311,9 @@ class SetReader:
         on_extra: Callable[[list[tuple["Connection", int, bytes]]], None] | None = None,
         progress: Progress | None = None,
         chunk: int = CHUNK_MESSAGES,
+        sync_mode: str = DEFAULT_SYNC_MODE,
+        max_gap: float = DEFAULT_MAX_GAP,
+        time_offsets: dict[str, float] | None = None,
     ) -> None:
         self.reader = reader
         self.path = str(path)
@@ -315,7 +325,8 @@ class SetReader:
         for c in self.extra:
             self.index.setdefault(c.id, -1)
         self.names = [topic_names.sensor_of_raw(conns[0].topic) or conns[0].topic for conns in connections]
-        self.sync = SetSynchronizer(len(connections), tolerance_ns(tolerance), max_pending=4 * chunk)
+        self.sync: StreamSynchronizer = stream_synchronizer(self.names, tolerance, sync_mode, max_gap, time_offsets,
+                                                            max_pending=4 * chunk)
         self.nonfinite = nonfinite
         self.on_extra = on_extra
         self.progress = progress
@@ -372,6 +383,7 @@ class SetReader:
             k = index[cid]
             if k >= 0:
                 pending.messages[k].append(data)
+                pending.times[k].append(bagtime)
             if copy_ids and cid in copy_ids:
                 extras.append((wanted[cid], bagtime, data))
             n += 1
@@ -384,9 +396,10 @@ class SetReader:
 
     def _decode(self, pending: _Pending) -> None:
         for k, msgs in enumerate(pending.messages):
-            self._queue(k, *decode_magnetic_fields(msgs, self.path))
+            self._queue(k, *decode_magnetic_fields(msgs, self.path), np.asarray(pending.times[k], dtype=np.int64))
 
-    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
+    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+               receipts: NDArray[np.int64]) -> None:
         """Hand one sensor's decoded messages (in its order) to the synchronizer."""
         if self.nonfinite == "error":
             bad = ~np.all(np.isfinite(vectors), axis=1)
@@ -396,7 +409,7 @@ class SetReader:
                     f"(first stamped {format_seconds(int(stamps[np.argmax(bad)]))} s); "
                     "pass --drop-nonfinite to skip them"
                 )
-        self.sync.add_batch(k, stamps, vectors)
+        self.sync.add_batch(k, stamps, vectors, receipts)
 
     def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:
         """Queue messages chunk by chunk through the mcap message indexes."""
@@ -420,7 +433,7 @@ class SetReader:
                         vectors = np.empty((len(batch.times), 3))
                         for rows, where in zip(batch.rows, batch.order):
                             stamps[where], vectors[where] = decode_magnetic_field_rows(rows, self.path)
-                        self._queue(k, stamps, vectors)
+                        self._queue(k, stamps, vectors, batch.times)
                     if gid in copy_ids:
                         conn = self.wanted[gid]
                         times = batch.times.tolist()
@@ -547,17 +560,23 @@ def read_bag_sets(
     tolerance: float = DEFAULT_SYNC_TOLERANCE,
     nonfinite: NonFinite = "drop",
     progress: Progress | None = None,
+    sync_mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    time_offsets: dict[str, float] | None = None,
 ) -> tuple[Recording, SyncStats]:
     """Synchronized raw sets of a bag and the synchronisation counters.
 
     ``names``: sensors (topics ``/<name>/raw``; default all ``*/raw`` MagneticField
     topics, sorted); ``topics``: explicit topic per sensor instead. ``tolerance`` (s):
-    largest header stamp difference within a set. Stamps of the recording are the sets'
-    header stamps in integer nanoseconds; vectors are in Tesla, sensor axes.
+    largest header stamp difference within a set (exact matching); ``sync_mode``,
+    ``max_gap`` (s) and ``time_offsets`` (s by sensor name) as
+    :func:`~magcal_ros.core.sync.stream_synchronizer` takes them. Stamps of the recording
+    are the sets' stamps in integer nanoseconds; vectors are in Tesla, sensor axes.
     """
     with open_bag(path) as reader:
         names_t, conns = resolve_sensor_topics(reader, path, names, topics)
-        sets = SetReader(reader, path, conns, tolerance, nonfinite, progress=progress)
+        sets = SetReader(reader, path, conns, tolerance, nonfinite, progress=progress, sync_mode=sync_mode,
+                         max_gap=max_gap, time_offsets=time_offsets)
         stamps: list[NDArray[np.int64]] = []
         vectors: list[NDArray[np.float64]] = []
         for batch in sets:

@@ -367,3 +367,36 @@ def write_recording_bag(
                     for t, row in zip(ts.tolist(), recording.currents[a : a + SETS_PER_WRITE].tolist())  # type: ignore[index]
                     for conn, i in zip(currents, row)
                 ])
+
+
+def write_stream_bag(
+    path: str | os.PathLike[str],
+    names: Sequence[str],
+    stamps: Sequence[NDArray[np.int64]],
+    vectors: Sequence[NDArray[np.float64]],
+    bag_times: Sequence[NDArray[np.int64]],
+    storage: Storage = "sqlite3",
+) -> None:
+    """Write per-sensor streams as a rosbag2 directory: topic ``/<name>/raw`` per sensor, one
+    ``sensor_msgs/msg/MagneticField`` per sample (header stamp ``stamps[k]`` ns, field
+    ``vectors[k]`` (n_k, 3) T, ``frame_id`` the sensor name) at bag time ``bag_times[k]`` ns: each
+    sensor's messages in its own order, all of them in bag time order (as a recorder receives
+    them; stamps may jump or go back, bag time does not). Atomic like
+    :func:`write_recording_bag`."""
+    check_storage(storage)
+    if not (len(names) == len(stamps) == len(vectors) == len(bag_times)):
+        raise InputError("need stamps, vectors and bag times for every sensor")
+    check_bag_output(path)
+    with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:
+        conns = [sink.add_topic(topics.absolute(topics.raw(n)), MAGNETIC_FIELD) for n in names]
+        encoded, events = [], []
+        for k, name in enumerate(names):
+            s = np.asarray(stamps[k], dtype=np.int64)
+            t = np.asarray(bag_times[k], dtype=np.int64)
+            if len(t) != len(s) or np.any(np.diff(t) < 0):
+                raise InputError(f"{name}: bag times must be one per message and never go back")
+            encoded.append(magnetic_field_template(name).encode(s, np.asarray(vectors[k], dtype=float).reshape(-1, 3)))
+            events += [(bt, k, i) for i, bt in enumerate(t.tolist())]
+        events.sort()
+        for a in range(0, len(events), 8 * SETS_PER_WRITE):
+            sink.write_messages([(conns[k], bt, bytes(encoded[k][i])) for bt, k, i in events[a : a + 8 * SETS_PER_WRITE]])

@@ -17,7 +17,14 @@ from magcal_ros.core.interference import (
     tolerance_of,
 )
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats
+from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
+    DEFAULT_SYNC_TOLERANCE,
+    SyncStats,
+    stream_synchronizer,
+    synchronise_streams,
+)
 from magcal_ros.errors import InputError
 from magcal_ros.io.csv_recording import read_csv, read_csv_names
 
@@ -58,18 +65,29 @@ def open_recording(
     tolerance: float | None = None,
     nonfinite: Literal["drop", "error"] = "drop",
     progress: Callable[[int], None] | None = None,
+    sync_mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    time_offsets: dict[str, float] | None = None,
 ) -> tuple[Recording, SyncStats]:
     """Synchronized raw sets from ``path``, restricted to sensors ``names`` and a stamp window.
 
-    CSV rows are sets already; bag topics ``/<name>/raw`` are synchronised by header stamp
-    within ``tolerance`` seconds (default :data:`~magcal_ros.core.sync.DEFAULT_SYNC_TOLERANCE`).
-    Both go through the same acceptance rule: repeated, out-of-order and (bags) zero
-    stamps are dropped and counted; NaN readings are dropped (``nonfinite="drop"``) or
-    refused (``"error"``). Also returns those counts.
+    CSV rows are sets already; bag topics ``/<name>/raw`` are synchronised by the rule of
+    :mod:`magcal_ros.core.sync` (``sync_mode``: ``auto``, ``exact`` within ``tolerance``
+    seconds (default :data:`~magcal_ros.core.sync.DEFAULT_SYNC_TOLERANCE`) or
+    ``interpolate`` never across more than ``max_gap`` s, 0 automatic). Both go through the
+    same acceptance rule: repeated, out-of-order and (bags) zero stamps are dropped and
+    counted; NaN readings are dropped (``nonfinite="drop"``) or refused (``"error"``). Also
+    returns those counts.
+
+    ``time_offsets`` (s by sensor name): a sensor's reading stamped ``t`` is the field at
+    ``t - offset``; its stamps are shifted and its readings interpolated to the reference
+    sensor's instants (a CSV's columns as much as a bag's topics). The stamp window applies
+    to the sets' stamps.
     """
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p} does not exist")
+    tol = DEFAULT_SYNC_TOLERANCE if tolerance is None else tolerance
     if is_csv(p):
         if p.is_dir():
             raise InputError(f"{p} is a directory, not a CSV file")
@@ -79,17 +97,41 @@ def open_recording(
             raise (exc if str(p) in str(exc) else InputError(f"{p}: {exc}")) from None
         if names:
             rec = rec.select(tuple(names))
+        stream_synchronizer(rec.names, tol, sync_mode, max_gap, time_offsets)  # the settings, checked
+        if time_offsets and any(time_offsets.values()):
+            rec, stats = _shifted_rows(p, rec, stats, max_gap, time_offsets)
     else:
         from magcal_ros.io.bag_reader import read_bag_sets
 
         if p.is_file() and p.suffix not in (".db3", ".mcap"):
             raise InputError(f"{p}: not a recording: give a rosbag2 directory or a .csv file")
-        tol = DEFAULT_SYNC_TOLERANCE if tolerance is None else tolerance
-        rec, stats = read_bag_sets(p, names, tolerance=tol, nonfinite=nonfinite, progress=progress)
+        rec, stats = read_bag_sets(p, names, tolerance=tol, nonfinite=nonfinite, progress=progress,
+                                   sync_mode=sync_mode, max_gap=max_gap, time_offsets=time_offsets)
     rec = rec.window(start_ns, end_ns)
     if len(rec) == 0:
         raise InputError(f"{p}: no synchronized sets in the selected time window")
     return rec, stats
+
+
+def _shifted_rows(path: Path, rec: Recording, stats: SyncStats, max_gap: float,
+                  time_offsets: dict[str, float]) -> tuple[Recording, SyncStats]:
+    """A CSV's rows with each sensor's column shifted by its time offset, resampled at the first
+    sensor's instants; each set keeps the currents of the row nearest it."""
+    streams = [(rec.stamps, rec.vectors[:, k]) for k in range(len(rec.names))]
+    batch, moved, _ = synchronise_streams(streams, [time_offsets.get(n, 0.0) for n in rec.names], "interpolate",
+                                          max_gap, names=rec.names, reject_zero=False)
+    if len(batch) == 0:
+        raise InputError(f"{path}: no sets left after shifting by the time offsets ({moved.describe()})")
+    merged = SyncStats(**{k: v for k, v in stats.as_dict().items()})
+    merged.sets = moved.sets
+    for name in ("unmatched", "gap", "glitch"):
+        setattr(merged, name, getattr(merged, name) + getattr(moved, name))
+    currents = None
+    if rec.channels:
+        at = np.clip(np.searchsorted(rec.stamps, batch.set_stamps), 1, len(rec) - 1)
+        nearer = np.where(batch.set_stamps - rec.stamps[at - 1] <= rec.stamps[at] - batch.set_stamps, at - 1, at)
+        currents = rec.currents[nearer]  # type: ignore[index]
+    return Recording(rec.names, batch.set_stamps, batch.vectors, rec.channels, currents), merged
 
 
 def with_bag_currents(

@@ -15,6 +15,10 @@ Files for an output ``OUT`` (a rosbag2 directory, or a CSV file when it ends in 
   ``gradient`` (N, 3, 3) T/m at the centre (``G[i, j] = dB_j/dx_i``), ``attitudes``
   (N, 3, 3) platform to world, ``names`` (S,), ``positions`` (S, 3) m, ``earth`` (3,) T
   world NED, ``currents`` (N, m) A and ``channels`` (m,) of the thrusters.
+
+Sensor streams (:func:`write_stream_simulation`): the bag holds each sensor's messages at
+their own sample instants, stamped on receipt; the truth YAML's calibration carries each
+sensor's lag as ``time_offset``, the NPZ per-sensor arrays instead of per-set ones.
 """
 
 from __future__ import annotations
@@ -27,14 +31,17 @@ from typing import Any
 import numpy as np
 import yaml
 
+from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.metrics import tensor_floor
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io.atomic import atomic_path
-from magcal_ros.io.bag_writer import check_storage, write_recording_bag
+from magcal_ros.errors import InputError
+from magcal_ros.io.bag_writer import check_storage, write_recording_bag, write_stream_bag
 from magcal_ros.io.csv_recording import write_csv
 from magcal_ros.io.recordings import is_csv
 from magcal_ros.sim.simulator import ArraySimulation, Truth
-from magcal_ros.sim.spec import SimulationSpec, run
+from magcal_ros.sim.spec import SimulationSpec, build, run
+from magcal_ros.sim.streams import StreamRecording, StreamSpec, simulate_streams
 
 SIMULATION_NODE = "magcal_simulation"
 
@@ -45,14 +52,13 @@ def truth_paths(out: str | os.PathLike[str]) -> tuple[Path, Path]:
     return Path(base + ".truth.yaml"), Path(base + ".truth.npz")
 
 
-def truth_yaml(spec: SimulationSpec, truth: Truth, sim: ArraySimulation) -> str:
-    """The calibration file of the true calibration plus the simulation parameters."""
-    cal = truth.calibration
+def simulation_parameters(spec: SimulationSpec, sim: ArraySimulation, sets: int) -> dict[str, Any]:
+    """The ``magcal_simulation`` block: every simulation parameter and each sensor's true errors."""
     params: dict[str, Any] = {k: v for k, v in asdict(spec).items()
                               if k not in ("dipoles", "names", "position", "thrusters")}
     params.update(
         {
-            "sets": int(len(truth.centre)),
+            "sets": int(sets),
             "names": list(spec.names),
             "position": [float(v) for v in spec.position],
             "dipole_count": len(spec.dipoles),
@@ -74,10 +80,19 @@ def truth_yaml(spec: SimulationSpec, truth: Truth, sim: ArraySimulation) -> str:
             "hard_iron": [float(v) for v in s.hard_iron],
             "soft_iron": [float(v) for v in s.soft_iron.reshape(-1)],
         }
+    return params
+
+
+def _yaml(cal: ArrayCalibration, params: dict[str, Any]) -> str:
     text = calfile.dumps(cal)
     text += "# Simulation parameters (SI units, spreads as 1-sigma, angles in degrees unless _rad):\n"
     text += yaml.safe_dump({SIMULATION_NODE: {"ros__parameters": params}}, sort_keys=False, default_flow_style=None, width=1000)
     return text
+
+
+def truth_yaml(spec: SimulationSpec, truth: Truth, sim: ArraySimulation) -> str:
+    """The calibration file of the true calibration plus the simulation parameters."""
+    return _yaml(truth.calibration, simulation_parameters(spec, sim, len(truth.centre)))
 
 
 def write_simulation(out: str | os.PathLike[str], spec: SimulationSpec, storage: str = "sqlite3") -> tuple[Truth, Path, Path]:
@@ -100,6 +115,59 @@ def write_simulation(out: str | os.PathLike[str], spec: SimulationSpec, storage:
         else:
             write_recording_bag(t_out, rec, storage)  # type: ignore[arg-type]
     return truth, ypath, npath
+
+
+def stream_parameters(streams: StreamSpec, names: tuple[str, ...]) -> dict[str, Any]:
+    """The stream settings as ROS-safe values (per-sensor lists, glitches and restarts as text)."""
+    size = len(names)
+    out: dict[str, Any] = {
+        "sensor_rate": streams.per_sensor(streams.rate, size, "rate").tolist(),
+        "phases": streams.per_sensor(streams.phases, size, "phases").tolist(),
+        "receipt_delay": streams.per_sensor(streams.delay, size, "delay").tolist(),
+        "receipt_jitter": float(streams.jitter), "jitter_kind": streams.jitter_kind,
+        "clock_ppm": streams.per_sensor(streams.clock_ppm, size, "clock_ppm").tolist(),
+        "loss": float(streams.loss), "lags": streams.per_sensor(streams.lags, size, "lags").tolist(),
+    }
+    if streams.glitches:
+        out["glitches"] = [f"{names[k]},{t:g},{shift:g}" for k, t, shift in streams.glitches]
+    if streams.restarts:
+        out["restarts"] = [",".join([f"{t:g}", f"{jump:g}", *(names[k] for k in which)])
+                           for t, jump, which in streams.restarts]
+    return out
+
+
+def write_stream_simulation(out: str | os.PathLike[str], spec: SimulationSpec, streams: StreamSpec,
+                            storage: str = "sqlite3") -> tuple[StreamRecording, Path, Path]:
+    """Simulate per-sensor streams (:mod:`magcal_ros.sim.streams`: the schedule's attitudes at ``spec.rate``
+    as a continuous turn, each sensor sampling and stamped as ``streams`` says) and write the bag and both
+    truth files atomically. The truth YAML's calibration carries each sensor's lag as its
+    ``time_offset``; the NPZ holds per sensor ``stamps_<name>``, ``instants_<name>`` (true sample
+    instants, ns), ``receipts_<name>`` (bag times, ns) and ``field_<name>`` (n, 3) T platform frame,
+    plus ``names``, ``positions`` and ``earth``."""
+    if is_csv(out):
+        raise InputError("sensor stream options write a rosbag2 directory (CSV rows are sets, one stamp each)")
+    if spec.thrusters:
+        raise InputError("sensor stream options do not simulate thrusters: leave out --thruster")
+    check_storage(storage)
+    sim, rot = build(spec)
+    lags = streams.per_sensor(streams.lags, sim.geometry.size, "lags")
+    duration = (len(rot) - 1) / spec.rate - max(0.0, -float(lags.min()))
+    rec = simulate_streams(sim, rot, spec.rate, streams, duration, np.random.default_rng([spec.seed, 2]),
+                           start=spec.start_time)
+    ypath, npath = truth_paths(out)
+    params = simulation_parameters(spec, sim, len(rec.streams[0]))
+    params.update(stream_parameters(streams, rec.names))
+    arrays: dict[str, Any] = {"names": np.array(rec.names), "positions": sim.geometry.positions, "earth": sim.earth}
+    for s in rec.streams:
+        arrays.update({f"stamps_{s.name}": s.stamps, f"instants_{s.name}": s.instants,
+                       f"receipts_{s.name}": s.receipts, f"field_{s.name}": s.field})
+    with atomic_path(out) as t_out, atomic_path(ypath) as t_yaml, atomic_path(npath) as t_npz:
+        with open(t_npz, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        t_yaml.write_text(_yaml(rec.calibration, params))
+        write_stream_bag(t_out, rec.names, [s.stamps for s in rec.streams], [s.vectors for s in rec.streams],
+                         [s.receipts for s in rec.streams], storage)  # type: ignore[arg-type]
+    return rec, ypath, npath
 
 
 def load_truth(out: str | os.PathLike[str]) -> dict[str, Any]:

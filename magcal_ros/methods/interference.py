@@ -96,7 +96,7 @@ def calibrate_interference(
                         "are all the currents given?")
     solved = [j for j in range(len(channels)) if not est.undetermined[j]]
     cal = ArrayCalibration(held.geometry, held.matrices, held.offsets, {}, held.covariances,
-                           tuple(channels[j] for j in solved), est.gains[:, :, solved])
+                           tuple(channels[j] for j in solved), est.gains[:, :, solved], held.time_offsets)
     result = InterferenceResult(cal, est, channels, len(r), warnings)
     object.__setattr__(cal, "metadata", _provenance(held.metadata, result))
     return result

@@ -83,7 +83,6 @@ from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.observability import excitation
-from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
@@ -104,8 +103,8 @@ DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
 WHAT_TO_DO = "call ~/start, turn the array through large angles about at least two axes, then call ~/calibrate"
 PRIORS: tuple[str, ...] = ("running", "none")
 """The ``prior`` settings besides a file path."""
-RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance",
-                                       *common.INTERFERENCE_PARAMETERS})
+RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance", "sync_mode",
+                                       "max_gap", *common.INTERFERENCE_PARAMETERS})
 """Parameters whose change drops the collected sets and subscribes afresh."""
 
 
@@ -239,9 +238,10 @@ class CalibrationNode(Node):
         )
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
-            d("largest spread (s) of header stamps within one set; capped at half the sample period",
-              constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
+            d("exact matching: largest spread (s) of header stamps within one set; capped at half the sample "
+              "period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
+        common.declare_sync(self)
         common.declare_currents(self)
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
         self.declare_parameter(
@@ -286,6 +286,7 @@ class CalibrationNode(Node):
         if int(self._value("max_samples", updates)) < 20:
             raise InputError("max_samples must be at least 20")
         common.tolerance_ns(self._number("sync_tolerance", updates))
+        common.sync_settings({n: self._value(n, updates) for n in ("sync_mode", "max_gap")})
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
         if not str(self._value("correction_node", updates)).strip("/"):
@@ -350,7 +351,9 @@ class CalibrationNode(Node):
     def _connect(self, geo: ArrayGeometry) -> None:
         inputs = common.current_inputs({n: self._value(n, {}) for n in common.INTERFERENCE_PARAMETERS})
         self._inputs = inputs
-        self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value))
+        mode, gap = common.sync_settings({n: self._value(n, {}) for n in ("sync_mode", "max_gap")})
+        self._sync = common.synchronizer(geo.names, common.tolerance_ns(self.get_parameter("sync_tolerance").value),
+                                         mode, gap)
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
         self._generation += 1
@@ -364,6 +367,7 @@ class CalibrationNode(Node):
         self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
                                              inputs.tolerance_ns)
         clock = common.clock_reader(self)
+        self._receipt_clock = clock
         self._subs += common.subscribe_currents(self, inputs, self._currents, self._raw_qos, lambda: clock())
 
     def _disconnect(self) -> None:
@@ -378,15 +382,15 @@ class CalibrationNode(Node):
             stamp = common.stamp_ns(st)
             with self._lock:
                 self._health.seen(index, stamp)
-                synced = self._sync.add(index, stamp, f.x, f.y, f.z)
-                if synced is None or not self._collecting:
-                    return
-                currents: list[float] = []
-                if self._inputs.channels:
-                    currents, fresh = self._currents.at(synced.stamp)
-                    if not self._current_health.count(fresh):
-                        return  # a set without a fresh current of every channel is not collected
-                self._buffer.add(synced.stamp, synced.values, currents)
+                for synced in self._sync.add(index, stamp, f.x, f.y, f.z, self._receipt_clock()):
+                    if not self._collecting:
+                        continue
+                    currents: list[float] = []
+                    if self._inputs.channels:
+                        currents, fresh = self._currents.at(synced.stamp)
+                        if not self._current_health.count(fresh):
+                            continue  # a set without a fresh current of every channel is not collected
+                    self._buffer.add(synced.stamp, synced.values, currents)
 
         return callback
 
@@ -658,6 +662,7 @@ class CalibrationNode(Node):
         params.update(_channel_parameters(inputs, cal.channels))  # no channels: the node's earlier ones must go too
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
+            params[name].setdefault("time_offset", 0.0)  # and any time offset
         keep = int(self.get_parameter("backups").value)
         staged = calfile.replace(path, cal, self._target_name(), keep) if path else contextlib.nullcontext()
         try:

@@ -180,6 +180,51 @@ def tolerance_ns(seconds_value: Any) -> int:
     return sync.tolerance_ns(t)
 
 
+SYNC_MODE_DOC = (
+    "how raw messages become sets: exact (header stamps that coincide within sync_tolerance: sensors sampled "
+    "together and stamped alike), interpolate (at each sample instant of the first sensor, the others "
+    "interpolated between their samples: sensors sampled apart or stamped on receipt), auto (chosen from the "
+    "first stamps of every sensor)"
+)
+MAX_GAP_DOC = (
+    "interpolation: a set whose neighbouring samples of a sensor are further apart (s) is dropped and counted "
+    "(gap); 0 = 3.5 sample periods of that sensor (two lost samples in a row are bridged)"
+)
+MAX_GAP_RANGE: tuple[float, float] = (0.0, 60.0)
+
+
+def declare_sync(node: Any) -> None:
+    """Declare ``sync_mode`` and ``max_gap``, shared by both nodes (``sync_tolerance`` is declared beside)."""
+    node.declare_parameter("sync_mode", sync.DEFAULT_SYNC_MODE,
+                           describe(SYNC_MODE_DOC, constraints=" | ".join(sync.SYNC_MODES)))
+    node.declare_parameter("max_gap", sync.DEFAULT_MAX_GAP,
+                           describe(MAX_GAP_DOC, constraints="0 <= t < 60", numbers=True, floats=MAX_GAP_RANGE))
+
+
+def sync_settings(values: dict[str, Any]) -> tuple[str, int]:
+    """``sync_mode`` and ``max_gap`` (ns) from parameter values; :class:`InputError` naming a bad one."""
+    mode = values.get("sync_mode", sync.DEFAULT_SYNC_MODE)
+    if mode not in sync.SYNC_MODES:
+        raise InputError(f"sync_mode must be one of {', '.join(sync.SYNC_MODES)}, got {mode!r}")
+    gap = values.get("max_gap", sync.DEFAULT_MAX_GAP)
+    if isinstance(gap, bool) or not isinstance(gap, (int, float)):
+        raise InputError(f"max_gap must be a number of seconds, got {gap!r}")
+    try:
+        return str(mode), sync.max_gap_ns(gap)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def synchronizer(names: Sequence[str], tolerance: int, mode: str, max_gap: int,
+                 time_offsets: Sequence[float] | None = None,
+                 stats: sync.SyncStats | None = None) -> sync.StreamSynchronizer:
+    """The set synchroniser of a node: ``tolerance`` and ``max_gap`` in ns, ``time_offsets`` in s per
+    sensor (None: zeros); ``stats`` to keep counting into (a reconfiguration)."""
+    offsets = {n: float(t) for n, t in zip(names, time_offsets if time_offsets is not None else []) if t}
+    return sync.stream_synchronizer(list(names), tolerance / NS_PER_S, mode, max_gap / NS_PER_S, offsets,
+                                    stats=stats)
+
+
 def default_positions(count: int) -> list[float] | None:
     """The positions a node assumes for ``count`` sensors: the default cross for 4, the origin for
     1, none otherwise (they must be given)."""
@@ -381,7 +426,7 @@ def flatten_parameters(params: dict[str, Any], prefix: str = "") -> dict[str, An
     return out
 
 
-DROP_COUNTERS: tuple[str, ...] = tuple(k for k in sync.SyncStats().as_dict() if k != "sets")
+DROP_COUNTERS: tuple[str, ...] = (*sync.DROP_FIELDS, "restarts")
 LOG_PERIOD: float = 5.0
 """Shortest interval (s) between two drop reports in the log."""
 

@@ -1,8 +1,9 @@
 """Live correction node: raw sensor vectors in, corrected vectors, centre field and gradient out.
 
 Subscribes ``<name>/raw`` (sensor_msgs/MagneticField, T) for every name in
-``sensor_names``, groups the messages into synchronized sets by header stamp and, per
-set, publishes ``<name>/corrected`` (``matrix @ (raw - offset) - interference @ u``,
+``sensor_names``, groups the messages into sets (:mod:`magcal_ros.core.sync`, ``sync_mode``:
+stamps that coincide, or every sensor interpolated at the first sensor's sample instants,
+with each sensor's ``<name>.time_offset``) and, per set, publishes ``<name>/corrected`` (``matrix @ (raw - offset) - interference @ u``,
 platform frame, with ``<name>.covariance``), ``field`` (centre field, T, covariance of the
 mean) and the gradient the positions determine:
 
@@ -39,8 +40,9 @@ status on ``/diagnostics`` (DiagnosticArray): level, message (what is wrong, nam
 sensors) and values: per sensor ``received``, ``lost`` (estimated from gaps in its stamp
 sequence: lost before reaching the node), ``gaps``, ``period_ms``; the synchroniser's
 counters (``sets``, ``unmatched``, ``nonfinite``, ``duplicate``, ``out_of_order``,
-``zero_stamp``, ``malformed``, ``restarts``), ``published``, ``withheld`` (sets not
-published for want of a calibration), ``pending``, ``sync_window_ms`` and, when sets were
+``zero_stamp``, ``malformed``, ``restarts``, ``glitch``, ``gap``, ``used``), ``published``,
+``withheld`` (sets not published for want of a calibration), ``pending``, ``sync_mode``,
+``sync_window_ms`` and, when sets were
 published, ``age_ms_p50/p99/max``: node clock at publication minus the set's stamp (a
 latency when the sensors stamp with the same clock; simulated time with use_sim_time).
 
@@ -70,7 +72,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.interference import LatestCurrents
-from magcal_ros.core.sync import SetSynchronizer, SyncedSet
+from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
@@ -81,10 +83,12 @@ from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
-    "sensor_names", "positions", "frame_id", "sync_tolerance", "gradient_method", "uncorrected_sensors",
-    *common.INTERFERENCE_PARAMETERS,
+    "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
+    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS,
 )
-SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
+SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset")
+ARRAY_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
+"""Per-sensor parameters that are lists of numbers (``time_offset`` is one number)."""
 GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
     "tensor": (topics.GRADIENT, topics.GRADIENT_STAMPED), "baseline": (topics.BASELINE_GRADIENT,), "none": (),
 }
@@ -108,6 +112,12 @@ class CorrectionState:
     """Covariance of the centre field (the mean of the sensors): sum / S^2, or unknown."""
     currents: common.CurrentInputs = common.CurrentInputs()
     """The interference channels' current topics (the calibration's ``channels``)."""
+    sync_mode: str = sync.DEFAULT_SYNC_MODE
+    max_gap_ns: int = 0
+
+    def sync_settings(self) -> tuple[Any, ...]:
+        """What the set synchroniser is built from (a change rebuilds it)."""
+        return (self.names, self.sync_mode, self.max_gap_ns, tuple(self.calibration.time_offsets.tolist()))  # type: ignore[union-attr]
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -149,7 +159,8 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     ``given``: names of the parameters set from outside (params file, ``-p``, updates);
     None means every per-sensor value counts as given. Raises :class:`InputError`
     naming what is wrong: sensor names or positions, a matrix, offset or covariance, the
-    gradient method, the tolerance, the frame or ``uncorrected_sensors``.
+    gradient method, the tolerance, ``sync_mode``, ``max_gap``, a ``time_offset``, the frame or
+    ``uncorrected_sensors``.
     """
     names = values.get("sensor_names")
     if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
@@ -168,6 +179,7 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         params[name] = {
             "matrix": values.get(f"{name}.matrix") or common.IDENTITY,
             "offset": values.get(f"{name}.offset") or common.ZEROS,
+            "time_offset": values.get(f"{name}.time_offset") or 0.0,
         }
         if currents.channels:
             gains = values.get(f"{name}.interference")
@@ -190,8 +202,21 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     frame = values.get("frame_id")
     if not isinstance(frame, str) or not frame.strip():
         raise InputError("frame_id must be a non-empty string")
-    return CorrectionState(cal, method, frame, common.tolerance_ns(values.get("sync_tolerance")), missing,
-                           covariances, field_covariance, currents)
+    tolerance = common.tolerance_ns(values.get("sync_tolerance"))
+    mode, gap = common.sync_settings(values)
+    if mode == "exact" and np.any(cal.time_offsets):  # type: ignore[arg-type]
+        lagging = ", ".join(f"{n}.time_offset" for n, t in zip(geo.names, cal.time_offsets) if t)  # type: ignore[arg-type]
+        verb = "needs" if lagging.count(",") == 0 else "need"
+        raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
+    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, mode, gap)
+
+
+def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
+    """How the sets are formed, in words (for the log)."""
+    if synchronizer.mode == "interpolate":
+        return (f"{synchronizer.names[0]}'s sample instants, the other sensors interpolated (sync_mode "
+                f"{synchronizer.requested}: {synchronizer.reason})")
+    return f"exact matching of the header stamps (sync_mode {synchronizer.requested}: {synchronizer.reason})"
 
 
 def _gradient_message() -> Float64MultiArray:
@@ -247,8 +272,8 @@ class CorrectionNode(Node):
         self.create_timer(max(period, 0.05), self._report)
         self.get_logger().info(
             f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
-            f"{self.get_namespace()}, frame {self._state.frame_id}, sync tolerance "
-            f"{self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
+            f"{self.get_namespace()}, frame {self._state.frame_id}, sync_mode {self._state.sync_mode}, sync "
+            f"tolerance {self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
         )
         self._warn_missing(self._state)
         self._warn_unmatched_files(argv)
@@ -281,6 +306,13 @@ class CorrectionNode(Node):
                   "channel of interference_channels; B = matrix (raw - offset) - interference @ u",
                   constraints="finite; needed for every sensor when interference_channels is set", numbers=True),
             )
+            self.declare_parameter(
+                f"{name}.time_offset", 0.0,
+                d(f"lag of {name} (s): its reading stamped t is the field at t - time_offset (positive: it reads "
+                  "late); its stamps are shifted and it is interpolated to the sets' instants (sync_mode "
+                  "interpolate or auto)", constraints=f"finite, |t| <= {sync.MAX_TIME_OFFSET:g}", numbers=True,
+                  floats=(-sync.MAX_TIME_OFFSET, sync.MAX_TIME_OFFSET)),
+            )
         self.declare_parameter(
             "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
             d("sensors used without a calibration on purpose (raw readings); any other sensor without "
@@ -290,9 +322,10 @@ class CorrectionNode(Node):
         self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID, d("frame of all outputs (platform frame)"))
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
-            d("largest spread (s) of header stamps within one synchronized set; capped at half the sample "
-              "period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
+            d("exact matching: largest spread (s) of header stamps within one synchronized set; capped at half "
+              "the sample period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
+        common.declare_sync(self)
         self.declare_parameter(
             "gradient_method", "difference",
             d("tensor formula: difference (planar cross) or least_squares (any geometry with 3 or more sensors "
@@ -328,9 +361,14 @@ class CorrectionNode(Node):
                 return SetParametersResult(
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
-                    f"<name>.offset, <name>.covariance and <name>.interference for a name in sensor_names",
+                    f"<name>.offset, <name>.covariance, <name>.interference and <name>.time_offset for a name "
+                    "in sensor_names",
                 )
-            if known and (p.name == "positions" or p.name.endswith(SENSOR_SUFFIXES)):
+            if known and p.name.endswith(".time_offset") and p.type_ not in (Parameter.Type.DOUBLE,
+                                                                             Parameter.Type.INTEGER):
+                return SetParametersResult(successful=False,
+                                           reason=f"{p.name} must be a number of seconds, got {p.type_.name.lower()}")
+            if known and (p.name == "positions" or p.name.rpartition(".")[2] in ARRAY_SUFFIXES):
                 why = common.check_number_array(p)
                 if why:
                     return SetParametersResult(successful=False, reason=why)
@@ -363,6 +401,8 @@ class CorrectionNode(Node):
             self._state = new
             if new.tolerance_ns != old.tolerance_ns:
                 self._sync.tolerance_ns = new.tolerance_ns
+            if new.sync_settings() != old.sync_settings():
+                self._resync(new)
         if new.gradient_kind != old.gradient_kind:
             self._gradient_outputs(new.gradient_kind)
         if new.currents.sources() != old.currents.sources():
@@ -392,6 +432,9 @@ class CorrectionNode(Node):
         parts = [f"calibrated sensors: {', '.join(calibrated)}" if calibrated else "no calibration loaded"]
         if raw:
             parts.append(f"uncorrected on purpose: {', '.join(raw)}")
+        lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(names, state.calibration.time_offsets) if t]  # type: ignore[arg-type]
+        if lags:
+            parts.append("time offsets " + ", ".join(lags))
         if state.currents.channels:
             parts.append("subtracting current interference of " + ", ".join(
                 f"{c} ({t}, {k.rsplit('/', 1)[-1]})" for c, t, k in state.currents.sources()))
@@ -421,8 +464,23 @@ class CorrectionNode(Node):
             )
 
     # -- topics ---------------------------------------------------------------------
+    def _synchronizer(self, state: CorrectionState, stats: sync.SyncStats | None = None) -> StreamSynchronizer:
+        return common.synchronizer(state.names, state.tolerance_ns, state.sync_mode, state.max_gap_ns,
+                                   state.calibration.time_offsets.tolist(), stats)  # type: ignore[union-attr]
+
+    def _resync(self, state: CorrectionState) -> None:
+        """A new synchroniser for changed sync settings or time offsets (what was queued is dropped, counted)."""
+        old = self._sync
+        old.reset()
+        self._sync = self._synchronizer(state, old.stats)
+        self._sync.set_pause(self._limits.silent_after_ns)
+        self._health.sync = self._sync
+        self._sync_reason = ""
+        self.get_logger().info("set synchroniser restarted for the new sync settings or time offsets")
+
     def _connect(self, state: CorrectionState) -> None:
-        self._sync = SetSynchronizer(len(state.names), state.tolerance_ns)
+        self._sync = self._synchronizer(state)
+        self._sync_reason = ""
         self._health = ArrayHealth(state.names, self._sync, self._limits, common.now_ns(self))
         self._drops.reset()
         self._corrected_pubs = [
@@ -463,18 +521,17 @@ class CorrectionNode(Node):
                                                        lambda: self._now())
 
     def _raw_callback(self, index: int) -> Any:
-        add, decode, seen = self._sync.add, decode_magnetic_field, self._health.seen
+        decode, publish = decode_magnetic_field, self._publish
 
         def callback(data: bytes) -> None:
             try:
-                sample = decode(data)
+                stamp, x, y, z = decode(data)
             except (InputError, struct.error):
                 self._sync.stats.malformed += 1
                 return
-            seen(index, sample[0])
-            synced = add(index, *sample)
-            if synced is not None:
-                self._publish(synced)
+            self._health.seen(index, stamp)
+            for synced in self._sync.add(index, stamp, x, y, z, self._now()):
+                publish(synced)
 
         return callback
 
@@ -548,6 +605,9 @@ class CorrectionNode(Node):
 
     def _report(self) -> None:
         """Publish ~/status and /diagnostics; log (throttled) what was dropped."""
+        if self._sync.reason and self._sync.reason != self._sync_reason:
+            self._sync_reason = self._sync.reason
+            self.get_logger().info(f"sets: {sync_mode_line(self._sync)}")
         counters = self._counters()
         self._drops.update(counters, f"{counters['published']} sets published in total")
         now = common.now_ns(self)

@@ -140,6 +140,19 @@ class ArraySimulation:
                 n[k] = rho * n[k - 1] + scale * n[k]
         return n
 
+    def readings(self, index: int, field: ArrayLike, rng: np.random.Generator) -> Array:
+        """Raw readings (n, 3) T of sensor ``index`` seeing the platform-frame ``field`` (n, 3) T (its
+        errors, hull iron and noise; noise drawn from ``rng``)."""
+        s = self.sensors[index]
+        seen = np.asarray(field, dtype=float).reshape(-1, 3)
+        z = np.einsum("ij,nj->ni", s.rotation.T, np.einsum("ij,nj->ni", np.eye(3) + s.soft_iron, seen) + s.hard_iron)
+        if self.noise_domain == "sensor":
+            z = z + self._noise(z.shape, rng)
+        raw = z @ s.triangular.T + s.offset
+        if self.noise_domain == "raw":
+            raw = raw + self._noise(z.shape, rng)
+        return raw
+
     def platform_field(self, attitudes: ArrayLike) -> tuple[Array, Array, Array]:
         """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient."""
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
@@ -180,14 +193,8 @@ class ArraySimulation:
         b, c, g = self.platform_field(rot)
         seen = b + np.einsum("sac,nc->nsa", self.interference(), u)  # the platform's own field added
         raw = np.empty_like(b)
-        for i, s in enumerate(self.sensors):
-            ca = s.triangular
-            z = np.einsum("ij,nj->ni", s.rotation.T, np.einsum("ij,nj->ni", np.eye(3) + s.soft_iron, seen[:, i]) + s.hard_iron)
-            if self.noise_domain == "sensor":
-                z = z + self._noise(z.shape, gen)
-            raw[:, i] = z @ ca.T + s.offset
-            if self.noise_domain == "raw":
-                raw[:, i] += self._noise(z.shape, gen)
+        for i in range(len(self.sensors)):
+            raw[:, i] = self.readings(i, seen[:, i], gen)
         stamps = seconds_to_ns(start) + np.rint(np.arange(len(rot)) * (NS_PER_S / rate)).astype(np.int64)
         rec = Recording(self.geometry.names, stamps, raw, self.channels, u)
         return rec, Truth(b, c, g, rot, self.true_calibration(), u)
