@@ -4,8 +4,10 @@ Input: for each sensor, its messages in the order that sensor produced them (a t
 order in a bag, or on the wire), each a header stamp (integer ns) and a vector (T).
 
 1. **Per-sensor acceptance.** A message is dropped and counted when its stamp is 0 (never
-   stamped), not newer than the sensor's previous stamp (``duplicate`` or
-   ``out_of_order``), or its vector is NaN or infinite (``nonfinite``; its stamp still
+   stamped) or negative (``zero_stamp``, ``negative_stamp``), not newer than the sensor's
+   previous stamp (``duplicate`` or ``out_of_order``), or its vector is NaN or infinite
+   (``nonfinite``) or beyond any magnetometer's reading in the Earth's field
+   (``out_of_range``; both by :mod:`magcal_ros.core.acceptance`, and the stamp still
    counts as the sensor's previous one). A stamp more than ``restart_ns`` behind the
    sensor's previous one means a source restarted: every queued message is dropped and
    all sensors start afresh (``restarts``).
@@ -39,6 +41,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from magcal_ros.core import acceptance
 from magcal_ros.core.units import NS_PER_S
 
 DEFAULT_SYNC_TOLERANCE: float = 1e-3
@@ -75,10 +78,18 @@ class SyncStats:
     """Messages that could not be decoded (live nodes only; a bag refuses them)."""
     restarts: int = 0
     """Stamps jumped back by more than a second: the source restarted, queues were reset."""
+    negative_stamp: int = 0
+    """Messages with a negative header stamp (before 1970: a clock or driver fault)."""
+    out_of_range: int = 0
+    """Messages with a finite reading beyond :data:`~magcal_ros.core.units.MAX_READING` (T)."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
-        return self.unmatched + self.nonfinite + self.duplicate + self.out_of_order + self.zero_stamp + self.malformed
+        return sum(v for k, v in self.as_dict().items() if k not in ("sets", "restarts"))
+
+    def count(self, fault: str, n: int = 1) -> None:
+        """Add ``n`` messages to the counter ``fault`` (a name of :mod:`magcal_ros.core.acceptance`)."""
+        setattr(self, fault, getattr(self, fault) + n)
 
     def as_dict(self) -> dict[str, int]:
         """Counters by name."""
@@ -101,6 +112,8 @@ _PHRASES = {
     "zero_stamp": "zero (unset) stamps dropped",
     "malformed": "undecodable messages dropped",
     "restarts": "source restarts (stamps jumped back)",
+    "negative_stamp": "negative (before 1970) stamps dropped",
+    "out_of_range": "readings beyond any magnetometer's range dropped",
 }
 
 
@@ -162,8 +175,12 @@ class SetSynchronizer:
         max_pending: int = 10_000,
         restart_ns: int = int(RESTART_JUMP * NS_PER_S),
         reject_zero: bool = True,
+        max_reading: float = math.inf,
     ) -> None:
-        """``reject_zero``: drop stamp 0 as unstamped (header stamps; a CSV's relative clock may start at 0)."""
+        """``reject_zero``: drop stamps 0 and negative as unstamped or faulty (header stamps; a CSV's
+        relative clock may start at 0). ``max_reading``: largest magnitude of a reading (T) accepted;
+        real sensor data pass :data:`~magcal_ros.core.units.MAX_READING` (counted ``out_of_range``
+        beyond), synthetic streams may carry any finite value."""
         if sensors < 1:
             raise ValueError("need at least one sensor")
         if tolerance_ns < 0:
@@ -174,6 +191,7 @@ class SetSynchronizer:
         self.max_pending = int(max_pending)
         self.restart_ns = int(restart_ns)
         self.reject_zero = reject_zero
+        self.max_reading = float(max_reading)
         self.stats = SyncStats()
         self.min_period_ns: int | None = None
         """Shortest sample period estimate seen (ns), None before two stamps of a sensor."""
@@ -232,8 +250,8 @@ class SetSynchronizer:
     def add(self, index: int, stamp_ns: int, x: float, y: float, z: float) -> SyncedSet | None:
         """Offer one message of sensor ``index``; return the set it completes, if any."""
         st = self.stats
-        if stamp_ns == 0 and self.reject_zero:
-            st.zero_stamp += 1
+        if stamp_ns <= 0 and self.reject_zero:
+            st.count(acceptance.stamp_fault(stamp_ns))  # type: ignore[arg-type]
             return None
         last = self._last[index]
         if stamp_ns <= last:
@@ -251,8 +269,9 @@ class SetSynchronizer:
         self._last[index] = stamp_ns
         if stamp_ns > self._newest:
             self._newest = stamp_ns
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            st.nonfinite += 1
+        fault = acceptance.reading_fault(x, y, z, self.max_reading)
+        if fault is not None:
+            st.count(fault)
             return None
         self._stamps[index].append(stamp_ns)
         self._caps[index].append(cap)
@@ -279,10 +298,13 @@ class SetSynchronizer:
     def _accept_batch(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64]) -> tuple[Any, Any]:
         """Accept messages up to the first restart; returns what is left after it."""
         st = self.stats
-        zero = (s == 0) & self.reject_zero
-        st.zero_stamp += int(zero.sum())
-        if zero.any():
-            s, v = s[~zero], v[~zero]
+        if self.reject_zero:
+            faults = acceptance.stamp_faults(s)
+            for name, mask in faults.items():
+                st.count(name, int(mask.sum()))
+            bad = np.logical_or.reduce(list(faults.values()))
+            if bad.any():
+                s, v = s[~bad], v[~bad]
         if not len(s):
             return s, v
         prev = np.maximum.accumulate(np.concatenate([[self._last[index]], s[:-1]]))
@@ -300,8 +322,10 @@ class SetSynchronizer:
             caps = self._batch_caps(index, s)
             self._last[index] = int(s[-1])
             self._newest = max(self._newest, int(s[-1]))
-            finite = np.all(np.isfinite(v), axis=1)
-            st.nonfinite += int(np.count_nonzero(~finite))
+            faults = acceptance.reading_faults(v, self.max_reading)
+            for name, mask in faults.items():
+                st.count(name, int(mask.sum()))
+            finite = ~np.logical_or.reduce(list(faults.values()))  # accepted readings
             self._stamps[index].extend(s[finite].tolist())
             self._caps[index].extend(caps[finite].tolist())
             self._arrays[index] = np.concatenate([self._arrays[index], v[finite]])

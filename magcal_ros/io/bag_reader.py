@@ -34,6 +34,7 @@ from magcal_ros.core.sync import (
     SyncStats,
     tolerance_ns,
 )
+from magcal_ros.core.units import MAX_READING
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
@@ -315,7 +316,8 @@ class SetReader:
         for c in self.extra:
             self.index.setdefault(c.id, -1)
         self.names = [topic_names.sensor_of_raw(conns[0].topic) or conns[0].topic for conns in connections]
-        self.sync = SetSynchronizer(len(connections), tolerance_ns(tolerance), max_pending=4 * chunk)
+        self.sync = SetSynchronizer(len(connections), tolerance_ns(tolerance), max_pending=4 * chunk,
+                                     max_reading=MAX_READING)
         self.nonfinite = nonfinite
         self.on_extra = on_extra
         self.progress = progress

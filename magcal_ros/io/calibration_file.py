@@ -193,6 +193,8 @@ def loads(text: str, node_name: str = CORRECTION_NODE, uncorrected: Sequence[str
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputError(f"calibration file is not valid YAML: {str(exc).splitlines()[0]}") from None
+    except RecursionError:
+        raise InputError("calibration file is nested too deeply to be a calibration (not a ROS parameters file)") from None
     blocks = _node_blocks(doc)
     params = blocks.get(node_name)
     if params is None:

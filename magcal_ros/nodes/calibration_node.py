@@ -84,6 +84,7 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.observability import excitation
 from magcal_ros.core.sync import SetSynchronizer
+from magcal_ros.core.units import MAX_READING
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
@@ -107,6 +108,9 @@ PRIORS: tuple[str, ...] = ("running", "none")
 RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance",
                                        *common.INTERFERENCE_PARAMETERS})
 """Parameters whose change drops the collected sets and subscribes afresh."""
+BAD_SAMPLES: tuple[str, ...] = ("nonfinite", "out_of_range", "out_of_order", "duplicate", "zero_stamp",
+                                "negative_stamp")
+"""The synchronizer counters ``~/progress`` sums as ``bad_samples``: messages refused for what they hold."""
 
 
 class CallFailed(Exception):
@@ -288,8 +292,10 @@ class CalibrationNode(Node):
         common.tolerance_ns(self._number("sync_tolerance", updates))
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
-        if not str(self._value("correction_node", updates)).strip("/"):
+        target = str(self._value("correction_node", updates)).strip()
+        if not target.strip("/"):
             raise InputError("correction_node must name a node")
+        common.check_node_name("correction_node", target)
         common.current_inputs({n: self._value(n, updates) for n in common.INTERFERENCE_PARAMETERS})
         return geo
 
@@ -350,7 +356,8 @@ class CalibrationNode(Node):
     def _connect(self, geo: ArrayGeometry) -> None:
         inputs = common.current_inputs({n: self._value(n, {}) for n in common.INTERFERENCE_PARAMETERS})
         self._inputs = inputs
-        self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value))
+        self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value),
+                                     max_reading=MAX_READING)
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
         self._generation += 1
@@ -498,7 +505,7 @@ class CalibrationNode(Node):
             "ready": str(problem is None and len(raw) > 0).lower(),
             "problem": problem or "",
             "unmatched": str(stats["unmatched"]),
-            "bad_samples": str(stats["nonfinite"] + stats["out_of_order"] + stats["duplicate"] + stats["zero_stamp"]),
+            "bad_samples": str(sum(stats[k] for k in BAD_SAMPLES)),
             "assessed": str(assessed.samples if assessed is not None else 0),
             "envelope": _envelope_text(assessed),
             "envelope_pitch_deg": f"{assessed.envelope.pitch_deg:g}" if assessed and assessed.envelope else "",

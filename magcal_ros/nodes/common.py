@@ -193,6 +193,23 @@ def declare_geometry(node: Any) -> list[str]:
     return list(names)
 
 
+def check_node_name(parameter: str, name: str) -> None:
+    """:class:`InputError` unless ``name`` is a valid ROS node name, optionally with a namespace
+    (``magcal_correction``, ``array1/magcal_correction``, ``/array1/magcal_correction``)."""
+    from rclpy.exceptions import InvalidNamespaceException, InvalidNodeNameException
+    from rclpy.validate_namespace import validate_namespace
+    from rclpy.validate_node_name import validate_node_name
+
+    namespace, _, base = name.rpartition("/")
+    try:
+        validate_node_name(base)
+        if namespace:
+            validate_namespace("/" + namespace.lstrip("/"))
+    except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+        reason = str(exc).strip().splitlines()[0].rstrip(": ")
+        raise InputError(f"{parameter} {name!r} is not a valid ROS node name ({reason})") from None
+
+
 def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGeometry:
     """The array geometry from parameter values (:class:`InputError` if inconsistent).
 
@@ -473,7 +490,7 @@ def unmatched_calibrations(files: Sequence[str], fully_qualified_name: str) -> l
         try:
             with open(path, encoding="utf-8") as fh:
                 doc = yaml.safe_load(fh)
-        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
             continue  # rcl already refused or read it; nothing to compare
         for key, params in _node_blocks(doc):
             if _has_sensor_calibration(params) and not key_matches(key, fully_qualified_name):

@@ -71,6 +71,7 @@ from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.sync import SetSynchronizer, SyncedSet
+from magcal_ros.core.units import MAX_READING
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
@@ -422,7 +423,7 @@ class CorrectionNode(Node):
 
     # -- topics ---------------------------------------------------------------------
     def _connect(self, state: CorrectionState) -> None:
-        self._sync = SetSynchronizer(len(state.names), state.tolerance_ns)
+        self._sync = SetSynchronizer(len(state.names), state.tolerance_ns, max_reading=MAX_READING)
         self._health = ArrayHealth(state.names, self._sync, self._limits, common.now_ns(self))
         self._drops.reset()
         self._corrected_pubs = [

@@ -24,13 +24,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer
+from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer, SyncStats
 from magcal_ros.core.units import NS_PER_S
 
 OK, WARN, ERROR = 0, 1, 2
 """Levels, as diagnostic_msgs/DiagnosticStatus numbers them."""
 GAP_FACTOR_2: int = 3
 """A stamp interval above GAP_FACTOR_2 / 2 = 1.5 sample periods is a gap."""
+
+DROPPED: tuple[str, ...] = tuple(k for k in SyncStats().as_dict() if k not in ("sets", "restarts"))
+"""The synchronizer counters of messages dropped (every reason)."""
 
 
 @dataclass(frozen=True)
@@ -158,8 +161,7 @@ class ArrayHealth:
         if late:
             problems.append((WARN, "late: " + ", ".join(late)))
         lost = sum(self.lost)
-        dropped = sum(counters.get(k, 0) for k in ("unmatched", "nonfinite", "duplicate", "out_of_order",
-                                                    "zero_stamp", "malformed"))
+        dropped = sum(counters.get(k, 0) for k in DROPPED)
         offered = sum(self.received) + lost
         window_offered = offered - self._window["offered"]
         window_dropped = dropped + lost - self._window["dropped"]
