@@ -149,6 +149,8 @@ class CalibrationNode(Node):
         """(generation, prior, what it is) the progress analysis uses for that collection."""
         self._analyser: ProcessPoolExecutor | None = None
         """The process the progress analyses run in (started with the first one)."""
+        self._changed: set[str] = set()
+        """Parameters the update being applied changes."""
         self._declare_parameters()
         self._limits = common.declare_health(self)
         try:
@@ -170,6 +172,7 @@ class CalibrationNode(Node):
         self._target_clients: dict[str, tuple[Any, Any]] = {}
         self._service_clients()
         self._drops = common.DropReporter(self.get_logger())
+        self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
@@ -193,8 +196,8 @@ class CalibrationNode(Node):
               "(methods ml and paired only), or from site", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
               floats=(0.0, 1e-3)),
         )
-        self.declare_parameter(
-            "site", None,
+        common.declare_list(
+            self, "site", Parameter.Type.DOUBLE_ARRAY,
             d("where the manoeuvre is flown, for the reference intensity from the World Magnetic Model: [lat_deg, "
               "lon_deg] or [lat_deg, lon_deg, alt_m] (north and east positive, altitude above sea level, negative "
               "under water); not set or [] = not used. Excludes reference_field > 0",
@@ -262,6 +265,11 @@ class CalibrationNode(Node):
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
+
+    def _numeric(self, name: str) -> bool:
+        """Whether parameter ``name`` holds numbers."""
+        return name in ("positions", "site") or (self.has_parameter(name) and self.get_parameter(name).type_ in (
+            Parameter.Type.DOUBLE, Parameter.Type.INTEGER, *common.NUMBER_ARRAYS))
 
     def _value(self, name: str, updates: dict[str, Any]) -> Any:
         return updates[name] if name in updates else self.get_parameter_or(name).value  # unset: None
@@ -334,10 +342,11 @@ class CalibrationNode(Node):
             self._validate({p.name: p.value for p in params})
         except (InputError, TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        self._changed = {p.name for p in params if self.get_parameter_or(p.name).value != p.value}
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
-        names = {p.name for p in params}
+        names = {p.name for p in params} & self._changed  # a value set again as it was changes nothing
         if "correction_node" in names:
             self._service_clients()
         if names & RECONNECT:
