@@ -7,7 +7,11 @@ Commands run as subprocesses, as a user would (``magcal`` of :mod:`test_offline`
 from __future__ import annotations
 
 import math
+import os
 import re
+import stat
+import struct
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -151,3 +155,82 @@ def test_sync_stats_keep_one_vocabulary() -> None:
     stats = SyncStats(**{k: 1 for k in SyncStats().as_dict()})
     assert stats.dropped() == len(stats.as_dict()) - 2
     assert "negative_stamp" in SyncStats().as_dict() and "out_of_range" in SyncStats().as_dict()
+
+
+def _mcap_chunks(path: Path) -> list[tuple[int, bytes]]:
+    """(uncompressed_crc, uncompressed records) of every Chunk record of an MCAP file, read by hand
+    from the format (magic, then records: opcode u8, length u64, body; Chunk = 0x06, uncompressed)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89MCAP0\r\n"
+    chunks, at = [], 8
+    while at < len(data) - 8:
+        op, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        body = data[at + 9 : at + 9 + length]
+        if op == 0x06:
+            crc = struct.unpack_from("<I", body, 24)[0]
+            n = struct.unpack_from("<I", body, 28)[0]
+            assert body[32 : 32 + n] == b""  # not compressed
+            size = struct.unpack_from("<Q", body, 32 + n)[0]
+            chunks.append((crc, body[40 + n : 40 + n + size]))
+        at += 9 + length
+    return chunks
+
+
+def test_mcap_chunks_carry_their_crc(rec: dict[str, Any]) -> None:
+    bag = rec["dir"] / "crc_bag"
+    ok(magcal("simulate", bag, "--storage", "mcap", "--count", 200, "--seed", 2, "-q"))
+    out = rec["dir"] / "crc_corrected"
+    cal = rec["dir"] / "crc.yaml"
+    ok(magcal("calibrate", bag, "-o", cal, "--reference-field", F, "-q"))
+    ok(magcal("correct", bag, "-c", cal, "-o", out, "--storage", "mcap"))
+    for folder in (bag, out):
+        chunks = [c for f in sorted(folder.glob("*.mcap")) for c in _mcap_chunks(f)]
+        assert chunks and all(crc == zlib.crc32(records) and crc != 0 for crc, records in chunks)
+
+
+def test_an_output_inside_the_input_bag_is_refused(rec: dict[str, Any]) -> None:
+    bag = rec["dir"] / "in_bag"
+    ok(magcal("simulate", bag, "--count", 100, "--seed", 2, "-q"))
+    before = sorted(p.name for p in bag.iterdir())
+    line = one_line_error(magcal("calibrate", bag, "-o", bag / "x.db3", "--reference-field", F))
+    assert "inside the input bag" in line
+    cal = rec["dir"] / "in.yaml"
+    ok(magcal("calibrate", bag, "-o", cal, "--reference-field", F, "-q"))
+    assert "inside the input bag" in one_line_error(magcal("correct", bag, "-c", cal, "-o", bag / "sub" / "out.csv"))
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
+def test_writing_through_a_symlink_updates_its_target_and_keeps_the_mode(rec: dict[str, Any], tmp_path: Path) -> None:
+    real = tmp_path / "store" / "cal.yaml"
+    real.parent.mkdir()
+    link = tmp_path / "link.yaml"
+    link.symlink_to(real)
+    ok(magcal("calibrate", rec["csv"], "-o", link, "--reference-field", F, "-q"))
+    assert link.is_symlink() and real.is_file()
+    os.chmod(real, 0o600)
+    first = real.read_text()
+    ok(magcal("calibrate", rec["csv"], "-o", link, "--reference-field", 5.0e-5, "-q"))
+    assert link.is_symlink() and real.read_text() != first
+    assert stat.S_IMODE(real.stat().st_mode) == 0o600
+    backups = calfile.backups(real)
+    assert len(backups) == 1 and backups[0].read_text() == first
+    assert stat.S_IMODE(backups[0].stat().st_mode) == 0o600
+    out = tmp_path / "c.csv"
+    out.write_text("old\n")
+    os.chmod(out, 0o640)
+    ok(magcal("correct", rec["csv"], "-c", link, "-o", out))
+    assert stat.S_IMODE(out.stat().st_mode) == 0o640 and out.read_text().startswith("stamp,")
+
+
+def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
+    """--positions -0.2,... (the cross listed from -x) is a value, not an option."""
+    cal = rec["dir"] / "neg.yaml"
+    cross = "0.2,0,0,0,0.2,0,-0.2,0,0,0,-0.2,0"
+    ok(magcal("calibrate", rec["csv"], "-o", cal, "--reference-field", F, "-q", "--positions", cross))
+    assert calfile.read(cal).geometry.positions.reshape(-1).tolist() == [float(v) for v in cross.split(",")]
+    mirrored = "-0.2,0,0,0,-0.2,0,0.2,0,0,0,0.2,0"
+    proc = magcal("calibrate", rec["csv"], "-o", rec["dir"] / "neg2.yaml", "--reference-field", F, "-q",
+                  "--positions", mirrored, "--gradient-method", "least_squares")
+    assert "expected one argument" not in proc.stderr, proc.stderr
+    ok(proc)
+    assert calfile.read(rec["dir"] / "neg2.yaml").geometry.positions[0].tolist() == [-0.2, 0.0, 0.0]

@@ -28,6 +28,7 @@ import errno
 import math
 import os
 import re
+import stat
 from collections.abc import Iterator, Sequence
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -38,7 +39,7 @@ import yaml
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.errors import InputError
-from magcal_ros.io.atomic import atomic_path
+from magcal_ros.io.atomic import atomic_path, write_target
 
 CORRECTION_NODE: str = "magcal_correction"
 PROVENANCE_NODE: str = "magcal_provenance"
@@ -176,7 +177,7 @@ def replace(
     file is as before. On success only the ``keep`` newest backups are kept. OSError if
     the file cannot be written (then nothing changed).
     """
-    target = Path(path)
+    target = write_target(path)  # through a symbolic link: its target is the calibration file
     text = dumps(calibration, node_name)
     for folder in (target.parent, *target.parent.parents):
         if folder.exists():
@@ -184,9 +185,10 @@ def replace(
                 raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
             break
     previous = target.read_bytes() if target.is_file() else None
+    mode = stat.S_IMODE(target.stat().st_mode) if previous is not None else None
     backup = _backup_path(target) if previous is not None and keep > 0 else None
     if backup is not None:
-        with atomic_path(backup) as tmp:
+        with atomic_path(backup, mode=mode) as tmp:  # a backup is as private as the file
             tmp.write_bytes(previous)  # type: ignore[arg-type]
     try:
         with atomic_path(target) as tmp:
