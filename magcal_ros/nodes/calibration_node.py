@@ -340,7 +340,7 @@ class CalibrationNode(Node):
                 return SetParametersResult(successful=False, reason=why)
         try:
             self._validate({p.name: p.value for p in params})
-        except (InputError, TypeError, ValueError) as exc:
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             return SetParametersResult(successful=False, reason=str(exc))
         self._changed = {p.name for p in params if self.get_parameter_or(p.name).value != p.value}
         return SetParametersResult(successful=True)

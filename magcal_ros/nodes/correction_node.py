@@ -159,7 +159,7 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         raise InputError("sensor_names must be a list of strings")
     geo = common.geometry(names, values.get("positions"))
     uncorrected = values.get("uncorrected_sensors") or []
-    if not all(isinstance(n, str) for n in uncorrected):
+    if not isinstance(uncorrected, (list, tuple)) or not all(isinstance(n, str) for n in uncorrected):
         raise InputError("uncorrected_sensors must be a list of sensor names")
     strangers = sorted(set(uncorrected) - set(geo.names))
     if strangers:
@@ -370,10 +370,11 @@ class CorrectionNode(Node):
         try:
             self._pending = build_state(values, self._given | changed)
             self._pending_names = changed  # a value set again as it was (ros2 param load of a dump) gives nothing
-        except InputError as exc:
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             self._pending = None
-            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {exc}")
-            return SetParametersResult(successful=False, reason=str(exc))
+            reason = str(exc) if isinstance(exc, InputError) else f"invalid value ({exc})"
+            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {reason}")
+            return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
