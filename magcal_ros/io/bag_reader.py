@@ -34,7 +34,7 @@ from magcal_ros.core.sync import (
     SyncStats,
     tolerance_ns,
 )
-from magcal_ros.core.units import MAX_READING
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
@@ -325,6 +325,7 @@ class SetReader:
         self.connections = [c for conns in connections for c in conns]
         self.wanted = {c.id: c for c in self.connections + self.extra}
         self._extras: list[tuple[Connection, int, bytes]] = []
+        self._units_checked = [False] * len(connections)
 
     @property
     def stats(self) -> SyncStats:
@@ -398,6 +399,11 @@ class SetReader:
                     f"(first stamped {format_seconds(int(stamps[np.argmax(bad)]))} s); "
                     "pass --drop-nonfinite to skip them"
                 )
+        if not self._units_checked[k]:  # a bag in nT is a units error, not readings out of range
+            finite = vectors[np.all(np.isfinite(vectors), axis=1)]
+            if len(finite):
+                check_tesla(finite[:, None, :], [self.names[k]], self.path)
+                self._units_checked[k] = True
         self.sync.add_batch(k, stamps, vectors)
 
     def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:

@@ -34,7 +34,7 @@ from magcal_ros.core.geometry import check_names
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
-from magcal_ros.core.units import MAX_READING
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path
 
@@ -171,6 +171,7 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
         if nonfinite == "error" and not np.all(np.isfinite(data[i - 2])):
             raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
     vectors = data[:, : 3 * len(names)].reshape(len(data), len(names), 3)
+    check_tesla(vectors, names, str(path))  # a file in nT is a units error, not readings out of range
     currents = data[:, 3 * len(names) :]
     # Each sensor's messages carry their row number (scaled into the accepted range of a
     # reading), so the sets the rule keeps name their rows (and so their currents); a faulty
