@@ -271,9 +271,12 @@ def test_joint_path_drops_undetermined_channels_and_warns(manoeuvre) -> None:
 
     lockstep = np.column_stack([rec.currents[:, 0], rec.currents[:, 0]])
     data = sim.run(truth.attitudes, 3, currents=lockstep)[0]
-    result = calibrate_array(data.vectors, sim.geometry, F, currents=lockstep, channels=CHANNELS)
-    assert result.calibration.channels == ()
-    assert "thruster1/battery, thruster2/battery varied in lockstep" in result.warnings[0]
+    # Without the channels the thrusters' varying field makes the field over the array far from
+    # uniform (hundreds of nT/m): refused, naming both causes (it used to be accepted, corrupted).
+    with pytest.raises(CalibrationFailed) as err:
+        calibrate_array(data.vectors, sim.geometry, F, currents=lockstep, channels=CHANNELS)
+    assert "thruster1/battery, thruster2/battery varied in lockstep" in str(err.value)
+    assert "the field is not uniform where you calibrate" in str(err.value) and "currents near the array" in str(err.value)
 
 
 # -- through the command line: bags with BatteryState and Float64 channels, CSV ----------------

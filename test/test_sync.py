@@ -335,3 +335,23 @@ def test_a_zero_tolerance_pairs_equal_stamps_only() -> None:
         tolerance_ns(1.0)
     sync = SetSynchronizer(2, 0)
     assert feed(sync, [(0, 10 * MS, 1.0), (1, 10 * MS, 1.0), (0, 20 * MS, 1.0), (1, 20 * MS + 1, 1.0)]) == [(10 * MS, 10 * MS)]
+
+
+def test_bad_stamps_in_a_row_never_take_a_sensor_off_the_common_timeline() -> None:
+    """Two identical far-future stamps, or a far-future stamp then a stamp back in line, are
+    glitches or a placement back in line with the other sensors: every later set still forms
+    (a far-ahead stamp accepted as is would wait forever for partners; a restart placed after it
+    would put the sensor seconds off the others)."""
+    from magcal_ros.core.sync import stream_synchronizer
+
+    sync = stream_synchronizer(["a", "b"], mode="exact")
+    t0, period = 1_700_000_000 * 10**9, 20_000_000
+    far = (2**31 - 1) * 10**9
+    sets = 0
+    for k in range(400):
+        t = t0 + k * period
+        for index in range(2):
+            stamp = far if (index == 0 and k in (100, 101)) else t
+            sets += len(sync.engine.add_all(index, stamp, 1e-5, 2e-5, 3e-5, t + 1_000_000))
+    assert sets >= 396  # the two bad stamps cost their own sets, nothing more
+    assert sync.stats.glitch + sync.stats.duplicate >= 1 and sync.stats.sets == sets

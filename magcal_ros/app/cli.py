@@ -864,17 +864,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position", "--phases", "--clock-ppm",
-                                           "--lags", "--receipt-delay")
-"""Options whose comma-separated numbers may start with a minus sign."""
+def _value_options(parser: argparse.ArgumentParser) -> frozenset[str]:
+    """The option strings (of every subcommand) that take a value."""
+    found: set[str] = set()
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        for action in p._actions:  # noqa: SLF001 - argparse keeps its actions here
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                stack.extend(action.choices.values())
+            elif action.option_strings and action.nargs != 0:
+                found.update(action.option_strings)
+    return frozenset(found)
 
 
-def _attach_negative_site(argv: Sequence[str]) -> list[str]:
-    """``--site -33.9,151.2`` as ``--site=-33.9,151.2`` (and the other :data:`NEGATIVE_VALUE_OPTIONS`):
-    argparse takes a leading '-' for an option."""
+def _attach_negative_values(argv: Sequence[str], options: frozenset[str]) -> list[str]:
+    """``--positions -0.25,0,0,...`` as ``--positions=-0.25,0,0,...`` for every option that takes a
+    value (numbers, or lists of them, may start with a minus sign): argparse takes a leading '-'
+    followed by anything but a plain number for an option."""
     out: list[str] = []
     for arg in argv:
-        if out and out[-1] in NEGATIVE_VALUE_OPTIONS and re.match(r"-\.?\d", arg):
+        if out and out[-1] in options and re.match(r"-\.?\d", arg):
             out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)
@@ -912,10 +922,14 @@ def _check_paths(args: argparse.Namespace) -> None:
     """Refuse an output that is one of the command's inputs, or two outputs at one path."""
     inputs = [p for p in (getattr(args, "input", None), getattr(args, "calibration", None)) if p]
     seen: dict[Path, str] = {Path(p).resolve(): p for p in inputs}
+    folders = [(Path(p).resolve(), p) for p in inputs if Path(p).is_dir()]  # a bag is a directory
     for out in _outputs(args):
         where = Path(out).resolve()
         if where in seen and seen[where] in inputs:
             raise InputError(f"output {out} would overwrite the input {seen[where]}: write to another path")
+        inside = next((p for folder, p in folders if folder in where.parents), None)
+        if inside is not None:
+            raise InputError(f"output {out} is inside the input bag {inside}: write outside it")
         if where in seen:
             raise InputError(f"outputs {seen[where]} and {out} are the same file: give different paths")
         seen[where] = out
@@ -938,7 +952,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     line says so, and the exit code is 128 + the signal number (130, 143, 129).
     """
     parser = build_parser()
-    args = parser.parse_args(_attach_negative_site(sys.argv[1:] if argv is None else argv))
+    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv, _value_options(parser)))
     previous: dict[signal.Signals, Any] = {}
     try:
         if threading.current_thread() is threading.main_thread():

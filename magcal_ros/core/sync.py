@@ -48,6 +48,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from magcal_ros.core import acceptance
+from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_interpolate import MAX_GAP_PERIODS, InterpolatingSynchronizer
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
@@ -142,9 +144,12 @@ class SetSynchronizer(AcceptanceRule):
         stats: SyncStats | None = None,
         clocked: bool = True,
         pause_ns: int | None = None,
+        max_reading: float = math.inf,
     ) -> None:
-        """``reject_zero``: drop stamp 0 as unstamped (header stamps; a CSV's relative clock may start at 0)."""
+        """``reject_zero``: drop stamps 0 and negative as unstamped or faulty (header stamps; a CSV's
+        relative clock may start at 0). ``max_reading``: largest reading magnitude accepted (T)."""
         super().__init__(sensors, stats, restart_ns, reject_zero, clocked, pause_ns)
+        self.max_reading = float(max_reading)
         if tolerance_ns < 0:
             raise ValueError("tolerance must be >= 0")
         self.tolerance_ns = int(tolerance_ns)
@@ -185,8 +190,7 @@ class SetSynchronizer(AcceptanceRule):
                 receipt_ns: int | None = None) -> list[SyncedSet]:
         """Offer one message of sensor ``index`` (``receipt_ns``: when it arrived, for restarts);
         the sets it completes (a held suspect released with it may complete one more)."""
-        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
-        accepted = self.accept(index, stamp_ns, (x, y, z), finite, receipt_ns)
+        accepted = self.accept(index, stamp_ns, (x, y, z), self.fault(x, y, z), receipt_ns)
         if not accepted:
             return []
         self._queue(index, accepted)
@@ -238,7 +242,7 @@ class SetSynchronizer(AcceptanceRule):
         """True when no message of ``s`` is a suspect (the vectorised path then equals the scalar one)."""
         st = self.streams[index]
         if self.reject_zero:
-            s = s[s != 0]
+            s = s[s > 0]
         if not len(s):
             return True
         prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
@@ -263,11 +267,13 @@ class SetSynchronizer(AcceptanceRule):
         """Vectorised acceptance of a batch without suspects (same outcome as :meth:`accept`)."""
         stats, st = self.stats, self.streams[index]
         if self.reject_zero:
-            zero = s == 0
-            stats.zero_stamp += int(zero.sum())
-            if zero.any():
-                s, v = s[~zero], v[~zero]
-                r = None if r is None else r[~zero]
+            faults = acceptance.stamp_faults(s)
+            for name, mask in faults.items():
+                stats.count(name, int(mask.sum()))
+            bad = np.logical_or.reduce(list(faults.values()))
+            if bad.any():
+                s, v = s[~bad], v[~bad]
+                r = None if r is None else r[~bad]
         if not len(s):
             return
         prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
@@ -284,8 +290,10 @@ class SetSynchronizer(AcceptanceRule):
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
         self.newest = max(self.newest, st.lastc)
-        finite = np.all(np.isfinite(v), axis=1)
-        stats.nonfinite += int(np.count_nonzero(~finite))
+        faults = acceptance.reading_faults(v, self.max_reading)
+        for name, mask in faults.items():
+            stats.count(name, int(mask.sum()))
+        finite = ~np.logical_or.reduce(list(faults.values()))  # usable readings
         kept = s[finite]
         self._raws[index].extend(kept.tolist())
         self._stamps[index].extend((kept + st.base).tolist() if st.base else kept.tolist())
@@ -295,11 +303,11 @@ class SetSynchronizer(AcceptanceRule):
     def _batch_scalar(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
                       r: NDArray[np.int64] | None) -> None:
         """Message-by-message acceptance (suspects in the batch)."""
-        finite = np.all(np.isfinite(v), axis=1).tolist()
+        faults = reading_fault_list(v, self.max_reading)
         receipts = [None] * len(s) if r is None else r.tolist()
         out: list[tuple[int, int, Any, int, bool]] = []
         for i, t in enumerate(s.tolist()):
-            out += self.accept(index, t, v[i], finite[i], receipts[i])
+            out += self.accept(index, t, v[i], faults[i], receipts[i])
         self._queue_rows(index, out)
 
     def _queue_rows(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
@@ -500,9 +508,11 @@ class StreamSynchronizer:
         reject_zero: bool = True,
         names: Sequence[str] | None = None,
         stats: SyncStats | None = None,
+        max_reading: float = math.inf,
     ) -> None:
         if sensors < 1:
             raise ValueError("need at least one sensor")
+        self.max_reading = float(max_reading)
         offsets = [int(t) for t in (time_offsets_ns or [0] * sensors)]
         if len(offsets) != sensors:
             raise ValueError(f"{len(offsets)} time offsets for {sensors} sensors")
@@ -590,15 +600,16 @@ class StreamSynchronizer:
             self.engine = InterpolatingSynchronizer(self.size, self.max_gap_ns, self.time_offsets_ns, self.lag_ns,
                                                     self.max_pending, self.restart_ns, self.reject_zero, self.stats,
                                                     pause_ns=self.pause_ns)
+        self.engine.max_reading = self.max_reading
         self.reason = reason
 
     # -- choosing ---------------------------------------------------------------------
     def _candidates(self) -> list[list[int]]:
         out = []
         for k in range(self.size):
-            stamps = [m[0] for m in self._held[k] if math.isfinite(m[1] + m[2] + m[3])]
+            stamps = [m[0] for m in self._held[k] if acceptance.reading_fault(*m[1:4], self.max_reading) is None]
             for s, v, _ in self._held_batches[k]:
-                ok = np.all(np.isfinite(v), axis=1)
+                ok = ~np.logical_or.reduce(list(acceptance.reading_faults(v, self.max_reading).values()))
                 stamps += s[ok].tolist()
                 if len(stamps) > 4 * DECIDE_AFTER:
                     break
@@ -696,7 +707,7 @@ def stream_synchronizer(
     """A :class:`StreamSynchronizer` for sensors ``names`` from user settings in seconds:
     ``tolerance`` (exact window), ``mode`` (``auto`` | ``exact`` | ``interpolate``), ``max_gap``
     (0: automatic) and ``time_offsets`` by sensor name (missing: 0). ``bounds``: ``lag_ns``,
-    ``max_pending``, ``restart_ns``, ``reject_zero``. :class:`InputError` naming a bad value, a
+    ``max_pending``, ``restart_ns``, ``reject_zero``, ``max_reading`` (T). :class:`InputError` naming a bad value, a
     sensor that is not one of ``names``, or time offsets with mode ``exact``."""
     try:
         tol = tolerance_ns(tolerance)
@@ -739,6 +750,7 @@ def synchronise_streams(
     receipts: Sequence[NDArray[np.int64] | None] | None = None,
     names: Sequence[str] | None = None,
     reject_zero: bool = True,
+    max_reading: float = math.inf,
 ) -> tuple[SetBatch, SyncStats, str]:
     """Sets from per-sensor streams: ``streams[k] = (stamps (n_k,) ns, vectors (n_k, 3) T)`` in each
     sensor's order, ``time_offsets`` (s) per sensor (a sample stamped ``t`` is the field at
@@ -746,13 +758,13 @@ def synchronise_streams(
 
     Returns the sets (interpolation: every member at the set's instant, the first sensor's
     sample instant), the counters and the mode used. Offline, so nothing is given up for lag.
-    ``receipts``: per sensor, when each message arrived (bag times; None: unknown).
-    :class:`InputError` for a bad setting.
+    ``receipts``: per sensor, when each message arrived (bag times; None: unknown); readings
+    beyond ``max_reading`` (T) are dropped (``out_of_range``). :class:`InputError` for a bad setting.
     """
     names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(len(streams))]
     offsets = dict(zip(names, time_offsets)) if time_offsets is not None else None
     sync = stream_synchronizer(names, tolerance, mode, max_gap, offsets, lag_ns=2**62, max_pending=2**62,
-                               reject_zero=reject_zero)
+                               reject_zero=reject_zero, max_reading=max_reading)
     for k, (stamps, vectors) in enumerate(streams):
         sync.add_batch(k, stamps, vectors, None if receipts is None else receipts[k])
     batch = sync.pop(final=True)

@@ -25,13 +25,13 @@ limit apart (a sensor faster than the reference), ``unmatched`` otherwise.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
     RESTART_JUMP,
@@ -130,8 +130,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
     def add_all(self, index: int, stamp_ns: int, x: float, y: float, z: float,
                 receipt_ns: int | None = None) -> list[SyncedSet]:
         """Offer one message of sensor ``index``; the sets it completes, in order."""
-        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
-        accepted = self.accept(index, stamp_ns, (x, y, z), finite, receipt_ns)
+        accepted = self.accept(index, stamp_ns, (x, y, z), self.fault(x, y, z), receipt_ns)
         if not accepted:
             return []
         self._clock_in(index, accepted)
@@ -148,13 +147,13 @@ class InterpolatingSynchronizer(AcceptanceRule):
         """Queue messages of sensor ``index`` in its order; :meth:`pop` releases the sets."""
         s = np.asarray(stamps, dtype=np.int64).reshape(-1).tolist()
         v = np.asarray(vectors, dtype=float).reshape(-1, 3)
-        finite = np.all(np.isfinite(v), axis=1).tolist()
+        faults = reading_fault_list(v, self.max_reading)
         rows = v.tolist()
         r = [None] * len(s) if receipts is None else np.asarray(receipts, dtype=np.int64).reshape(-1).tolist()
         accept, clock_in = self.accept, self._clock_in
         for i, t in enumerate(s):
             row = rows[i]
-            accepted = accept(index, t, (row[0], row[1], row[2]), finite[i], r[i])
+            accepted = accept(index, t, (row[0], row[1], row[2]), faults[i], r[i])
             if accepted:
                 clock_in(index, accepted)
 

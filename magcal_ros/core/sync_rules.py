@@ -9,14 +9,17 @@ rule (:mod:`magcal_ros.core.sync`):
   (``out_of_order``);
 - a *suspect* stamp is held until the sensor's next messages decide it. One more than
   ``restart_ns`` older than the previous stamp is a *restart* when the next stamp follows
-  it (within ``restart_ns``), a single bad stamp otherwise (dropped, ``glitch``). One
+  it (within ``restart_ns``), a single bad stamp otherwise (dropped, ``glitch``); one more than
+  ``restart_ns`` ahead likewise (a restart forward, or a glitch). One
   further ahead than :data:`SUSPECT_PERIODS` sample periods (the median of the sensor's
   last :data:`PERIOD_WINDOW` intervals, once it has that many) is kept once a stamp at
   or after it arrives (the sensor resumed after a silence or lost samples), and is a
   glitch when the sequence goes on below it. At the end of a stream a suspect ahead is
   kept, one behind is a glitch;
-- a NaN or infinite reading: dropped (``nonfinite``), its stamp still counts as the
-  sensor's previous one.
+- a negative stamp (before 1970: a clock or driver fault): dropped (``negative_stamp``);
+- a NaN or infinite reading (``nonfinite``) or one beyond any magnetometer's range
+  (``out_of_range``, :mod:`magcal_ros.core.acceptance`): dropped, its stamp still counts as
+  the sensor's previous one.
 
 A restart starts a new segment of that sensor only. Its stamps are placed on the common
 timeline of the sets: when another sensor's stamps made the same jump (within half of
@@ -36,6 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core import acceptance
 from magcal_ros.core.sample_clock import SampleClock
 from magcal_ros.core.units import NS_PER_S
 
@@ -92,10 +96,18 @@ class SyncStats:
     (interpolation)."""
     used: int = 0
     """Messages that went into sets (interpolation: also samples resampled between two sets)."""
+    negative_stamp: int = 0
+    """Messages with a negative header stamp (before 1970: a clock or driver fault)."""
+    out_of_range: int = 0
+    """Messages with a finite reading beyond :data:`~magcal_ros.core.units.MAX_READING` (T)."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
         return sum(getattr(self, name) for name in DROP_FIELDS)
+
+    def count(self, fault: str, n: int = 1) -> None:
+        """Add ``n`` messages to the counter ``fault`` (a name of :mod:`magcal_ros.core.acceptance`)."""
+        setattr(self, fault, getattr(self, fault) + n)
 
     def as_dict(self) -> dict[str, int]:
         """Counters by name."""
@@ -111,7 +123,7 @@ class SyncStats:
 
 
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap")
+                                "glitch", "gap", "negative_stamp", "out_of_range")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -123,6 +135,8 @@ _PHRASES = {
     "restarts": "source restarts (stamps jumped back)",
     "glitch": "messages with a stamp far off their sensor's sequence dropped",
     "gap": "sets dropped for a gap longer than max_gap in another sensor's samples",
+    "negative_stamp": "negative (before 1970) stamps dropped",
+    "out_of_range": "readings beyond any magnetometer's range dropped",
 }
 
 
@@ -186,7 +200,8 @@ class SensorStream:
     """Acceptance state of one sensor: its previous stamp, short period, a held suspect, its
     placement on the common timeline (``base``: common = stamp + base) and its sample clock."""
 
-    __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "placed_at")
+    __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "placed_at",
+                 "before")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -199,10 +214,13 @@ class SensorStream:
         self.period: int | None = None
         """Median of the last :data:`PERIOD_WINDOW` intervals (ns), None before the first."""
         self.held: tuple[int, Any, bool, int | None, bool] | None = None
-        """A suspect: (stamp, payload, finite, receipt, behind)."""
+        """A suspect: (stamp, payload, reading fault or None, receipt, behind)."""
         self.clock = clock
         self.placed_at: int | None = None
         """Common time of this sensor's latest restart placement (None: never restarted)."""
+        self.before: tuple[int, int] | None = None
+        """(last stamp, base) of the segment before the latest restart, while the stamps may still
+        return to it (two bad stamps in a row look like a restart until the old sequence goes on)."""
 
     def suspect_period(self) -> int | None:
         """The period the suspect rule uses: the short median once the window is full."""
@@ -225,6 +243,8 @@ class SensorStream:
             period = self.suspect_period()
             if period is not None and SUSPECT_PERIODS[1] * (stamp - last) > SUSPECT_PERIODS[0] * period:
                 return AHEAD
+            if period is None and stamp - last > restart_ns:  # before a period is known: a jump as far as a restart's
+                return AHEAD
         return OK
 
     def record(self, interval: int) -> int:
@@ -239,15 +259,20 @@ class SensorStream:
 
 Accepted = list[tuple[int, int, Any, int, bool]]
 """Messages accepted by one call: (stamp, common stamp, payload, window cap, starts a new segment),
-in order; the payload is None for a non-finite reading (counted, but its stamp still counts)."""
+in order; the payload is None for a faulty reading (counted, but its stamp still counts)."""
 
 
 class AcceptanceRule:
     """Per-sensor acceptance and restart placement for ``sensors`` sensors (module docstring).
 
     ``clocked``: each sensor keeps a :class:`~magcal_ros.core.sample_clock.SampleClock`
-    (its period, losses; the interpolating synchroniser's sample instants).
+    (its period, losses; the interpolating synchroniser's sample instants). :attr:`max_reading`
+    (T) is the largest reading magnitude accepted: real sensor data pass
+    :data:`~magcal_ros.core.units.MAX_READING` (``out_of_range`` beyond); synthetic streams may
+    carry any finite value (the default).
     """
+
+    max_reading: float = math.inf
 
     def __init__(self, sensors: int, stats: SyncStats | None, restart_ns: int, reject_zero: bool,
                  clocked: bool, pause_ns: int | None = None) -> None:
@@ -284,10 +309,15 @@ class AcceptanceRule:
         """Suspect messages held."""
         return sum(s.held is not None for s in self.streams)
 
-    def accept(self, index: int, stamp: int, payload: Any, finite: bool, receipt: int | None) -> Accepted:
-        """Offer one message of sensor ``index``; the messages it lets through (a held suspect first)."""
-        if stamp == 0 and self.reject_zero:
-            self.stats.zero_stamp += 1
+    def fault(self, x: float, y: float, z: float) -> str | None:
+        """The fault of a reading (T) under this rule's :attr:`max_reading`, None when usable."""
+        return acceptance.reading_fault(x, y, z, self.max_reading)
+
+    def accept(self, index: int, stamp: int, payload: Any, fault: str | None, receipt: int | None) -> Accepted:
+        """Offer one message of sensor ``index`` (``fault``: its reading's, see :meth:`fault`); the
+        messages it lets through (a held suspect first)."""
+        if stamp <= 0 and self.reject_zero:
+            self.stats.count(acceptance.stamp_fault(stamp) or "zero_stamp")
             return []
         s = self.streams[index]
         out: Accepted = []
@@ -300,6 +330,13 @@ class AcceptanceRule:
                     self._take(index, before, held[1], held[2], held[3], True, out)
                 else:
                     self.stats.glitch += 1
+            elif before - s.last > self.restart_ns:  # far ahead: a restart (forward) if the next stamp goes on from it
+                if before < stamp <= before + self.restart_ns:
+                    s.held = None
+                    self._take(index, before, held[1], held[2], held[3], True, out)
+                elif stamp > s.last:  # the sequence went on below it: a single bad stamp
+                    s.held = None
+                    self.stats.glitch += 1
             elif stamp >= before:  # ahead: kept once a later stamp confirms it
                 s.held = None
                 self._take(index, before, held[1], held[2], held[3], False, out)
@@ -308,7 +345,7 @@ class AcceptanceRule:
                 self.stats.glitch += 1
         verdict = s.classify(stamp, self.restart_ns)
         if verdict == OK:
-            self._take(index, stamp, payload, finite, receipt, False, out)
+            self._take(index, stamp, payload, fault, receipt, False, out)
         elif verdict == DUPLICATE:
             self.stats.duplicate += 1
         elif verdict == OUT_OF_ORDER:
@@ -316,7 +353,7 @@ class AcceptanceRule:
         else:
             if s.held is not None:
                 self.stats.glitch += 1
-            s.held = (stamp, payload, finite, receipt, verdict == BEHIND)
+            s.held = (stamp, payload, fault, receipt, verdict == BEHIND)
         return out
 
     def release_held(self, index: int) -> Accepted:
@@ -325,17 +362,25 @@ class AcceptanceRule:
         held, s.held = s.held, None
         out: Accepted = []
         if held is not None:
-            if held[4]:
+            if held[4] or held[0] - s.last > self.restart_ns:  # behind, or unconfirmed far ahead
                 self.stats.glitch += 1
             else:
                 self._take(index, held[0], held[1], held[2], held[3], False, out)
         return out
 
-    def _take(self, index: int, stamp: int, payload: Any, finite: bool, receipt: int | None, restart: bool,
+    def _take(self, index: int, stamp: int, payload: Any, fault: str | None, receipt: int | None, restart: bool,
               out: Accepted) -> None:
         s = self.streams[index]
         if restart:
+            s.before = (s.last, s.base)
             self._place(index, stamp, receipt)
+            s.intervals, s.period = [], None
+            cap = NO_CAP
+        elif s.before is not None and 0 < stamp - s.before[0] <= self.restart_ns and stamp > s.last:
+            # The old sequence goes on: what looked like a restart was a few bad stamps. Back to
+            # the old placement (the messages in between stay where they were put).
+            s.base = s.before[1]
+            s.before = None
             s.intervals, s.period = [], None
             cap = NO_CAP
         else:
@@ -345,8 +390,8 @@ class AcceptanceRule:
         s.last_receipt = receipt
         if c > self.newest:
             self.newest = c
-        if not finite:
-            self.stats.nonfinite += 1
+        if fault is not None:
+            self.stats.count(fault)
             payload = None
         out.append((stamp, c, payload, cap, restart))
 
@@ -363,6 +408,11 @@ class AcceptanceRule:
                 s.base = other.base
                 break
         else:
+            for j, other in enumerate(self.streams):  # back in line with another sensor's latest stamps
+                if j != index and other.lastc != NEVER and abs(stamp + other.base - other.lastc) <= self.restart_ns // 2:
+                    s.base = other.base
+                    s.placed_at = stamp + s.base
+                    return
             if period:
                 steps = max(1, int(round((estimate - s.lastc) / period)))
                 estimate = s.lastc + int(round(steps * period))

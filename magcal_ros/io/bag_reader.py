@@ -36,6 +36,7 @@ from magcal_ros.core.sync import (
     SyncStats,
     stream_synchronizer,
 )
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
@@ -326,7 +327,7 @@ class SetReader:
             self.index.setdefault(c.id, -1)
         self.names = [topic_names.sensor_of_raw(conns[0].topic) or conns[0].topic for conns in connections]
         self.sync: StreamSynchronizer = stream_synchronizer(self.names, tolerance, sync_mode, max_gap, time_offsets,
-                                                            max_pending=4 * chunk)
+                                                            max_pending=4 * chunk, max_reading=MAX_READING)
         self.nonfinite = nonfinite
         self.on_extra = on_extra
         self.progress = progress
@@ -334,6 +335,7 @@ class SetReader:
         self.connections = [c for conns in connections for c in conns]
         self.wanted = {c.id: c for c in self.connections + self.extra}
         self._extras: list[tuple[Connection, int, bytes]] = []
+        self._units_checked = [False] * len(connections)
 
     @property
     def stats(self) -> SyncStats:
@@ -409,6 +411,11 @@ class SetReader:
                     f"(first stamped {format_seconds(int(stamps[np.argmax(bad)]))} s); "
                     "pass --drop-nonfinite to skip them"
                 )
+        if not self._units_checked[k]:  # a bag in nT is a units error, not readings out of range
+            finite = vectors[np.all(np.isfinite(vectors), axis=1)]
+            if len(finite):
+                check_tesla(finite[:, None, :], [self.names[k]], self.path)
+                self._units_checked[k] = True
         self.sync.add_batch(k, stamps, vectors, receipts)
 
     def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:

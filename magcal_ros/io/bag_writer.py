@@ -14,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import struct
+import zlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,6 +115,31 @@ def _output_errors(method: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+MCAP_CHUNK_CRC_AT: int = 1 + 8 + 8 + 8 + 8
+"""Offset of a Chunk record's ``uncompressed_crc`` from the record's opcode: opcode (1), record
+length (8), message start time (8), message end time (8), uncompressed size (8)."""
+
+
+def _write_chunk_crcs(storage: Any) -> None:
+    """Make rosbags' MCAP storage writer fill in each chunk's CRC-32 of its uncompressed records
+    (it writes 0, "not computed", so a reader cannot detect a corrupted chunk): the chunk is
+    closed by rosbags, then its CRC field is written in place."""
+    close = getattr(storage, "close_chunk", None)
+    if close is None or not hasattr(storage, "chunk") or not hasattr(storage, "bio"):
+        return
+
+    def close_chunk() -> None:
+        crc = zlib.crc32(storage.chunk.bio.getbuffer())
+        start = storage.bio.tell()
+        close()
+        end = storage.bio.tell()
+        storage.bio.seek(start + MCAP_CHUNK_CRC_AT)
+        storage.bio.write(struct.pack("<I", crc))
+        storage.bio.seek(end)
+
+    storage.close_chunk = close_chunk
+
+
 class BagSink:
     """A rosbags ``Writer`` plus batch insertion for the sqlite3 and mcap storages."""
 
@@ -124,6 +151,8 @@ class BagSink:
         self.writer = writer
         self.storage = storage
         self._fast = self._detect_fast()
+        if storage == "mcap":
+            _write_chunk_crcs(writer.storage)
         self._sqlite_order: bool | None = None
         if self._fast == "sqlite3":
             # The bag is written in a temporary directory, fsynced and renamed when complete:

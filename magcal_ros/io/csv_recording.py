@@ -29,9 +29,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import CorrectedSets
+from magcal_ros.core.acceptance import reading_faults
+from magcal_ros.core.geometry import check_names
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path
 
@@ -81,6 +84,7 @@ def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
         if sensor_cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
             raise InputError(f"CSV columns {sensor_cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
         names.append(stem)
+    check_names(names)
     channels = tuple(c[len(CURRENT_PREFIX):] for c in current_cols)
     bad = [c for c in current_cols if not c.startswith(CURRENT_PREFIX) or not c[len(CURRENT_PREFIX):]]
     if bad:
@@ -108,12 +112,21 @@ def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
 
 
 def _rows(text: str) -> list[list[str]]:
-    return [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    """Non-blank rows; LF, CRLF and CR-only (classic Mac) line endings alike."""
+    text = text.replace("\r\n", "\n").replace("\r", "\n")
+    try:
+        return [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    except csv.Error as exc:
+        raise InputError(f"not a readable CSV file ({exc})") from None
 
 
 def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
     """Sensor names of a CSV recording, from its header alone."""
-    rows = _rows(_read_text(path, header_only=True))
+    text = _read_text(path, header_only=True)
+    try:
+        rows = _rows(text)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     try:
@@ -128,10 +141,17 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
     Ragged rows, text values or an empty file are :class:`InputError`; NaN or infinite
     values are refused (``nonfinite="error"``) or their rows dropped (``"drop"``).
     """
-    rows = _rows(_read_text(path))
+    text = _read_text(path)
+    try:
+        rows = _rows(text)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
-    names, channels = parse_header(rows[0])
+    try:
+        names, channels = parse_header(rows[0])
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     width = 1 + 3 * len(names) + len(channels)
     if len(rows) == 1:
         raise InputError(f"{path} has a header but no data rows")
@@ -142,25 +162,33 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
             raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
         try:
             stamps[i - 2] = parse_seconds(row[0])
+        except InputError as exc:
+            raise InputError(f"{path} line {i}: stamp: {exc}") from None
+        try:
             data[i - 2] = [float(c) for c in row[1:]]
-        except (ValueError, InputError):
+        except ValueError:
             raise InputError(f"{path} line {i}: non-numeric value") from None
         if nonfinite == "error" and not np.all(np.isfinite(data[i - 2])):
             raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
     vectors = data[:, : 3 * len(names)].reshape(len(data), len(names), 3)
+    check_tesla(vectors, names, str(path))  # a file in nT is a units error, not readings out of range
     currents = data[:, 3 * len(names) :]
-    # Each sensor's messages carry their row number, so the sets the rule keeps name their
-    # rows (and so their currents); a row with a non-finite current is a non-finite row.
-    row = np.arange(len(data), dtype=float)
+    # Each sensor's messages carry their row number (scaled into the accepted range of a
+    # reading), so the sets the rule keeps name their rows (and so their currents); a faulty
+    # reading goes in as it is, to be dropped and counted by the rule; a row with a
+    # non-finite current is a non-finite row.
+    scale = MAX_READING / 2 / max(len(data), 1)
+    row = np.arange(len(data), dtype=float) * scale
     row_ok = np.all(np.isfinite(currents), axis=1)
-    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False)
+    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False, max_reading=MAX_READING)
     for k in range(len(names)):
-        ok = row_ok & np.all(np.isfinite(vectors[:, k]), axis=1)
-        sync.add_batch(k, stamps, np.where(ok, row, np.nan)[:, None].repeat(3, axis=1))
+        faulty = np.logical_or.reduce(list(reading_faults(vectors[:, k]).values()))
+        tags = np.where(row_ok[:, None], np.stack([row, np.zeros_like(row), np.zeros_like(row)], axis=1), np.nan)
+        sync.add_batch(k, stamps, np.where(faulty[:, None], vectors[:, k], tags))
     sets = sync.pop(final=True)
     if len(sets) == 0:
         raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
-    rows_kept = sets.vectors[:, 0, 0].astype(np.int64)
+    rows_kept = np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64)
     return Recording(names, sets.set_stamps, vectors[rows_kept], channels, currents[rows_kept]), sync.stats
 
 

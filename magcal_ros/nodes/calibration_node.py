@@ -106,6 +106,9 @@ PRIORS: tuple[str, ...] = ("running", "none")
 RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance", "sync_mode",
                                        "max_gap", *common.INTERFERENCE_PARAMETERS})
 """Parameters whose change drops the collected sets and subscribes afresh."""
+BAD_SAMPLES: tuple[str, ...] = ("nonfinite", "out_of_range", "out_of_order", "duplicate", "zero_stamp",
+                                "negative_stamp")
+"""The synchronizer counters ``~/progress`` sums as ``bad_samples``: messages refused for what they hold."""
 
 
 class CallFailed(Exception):
@@ -144,6 +147,8 @@ class CalibrationNode(Node):
         """(generation, prior, what it is) the progress analysis uses for that collection."""
         self._analyser: ProcessPoolExecutor | None = None
         """The process the progress analyses run in (started with the first one)."""
+        self._changed: set[str] = set()
+        """Parameters the update being applied changes."""
         self._declare_parameters()
         self._limits = common.declare_health(self)
         try:
@@ -165,6 +170,7 @@ class CalibrationNode(Node):
         self._target_clients: dict[str, tuple[Any, Any]] = {}
         self._service_clients()
         self._drops = common.DropReporter(self.get_logger())
+        self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
@@ -188,8 +194,8 @@ class CalibrationNode(Node):
               "(methods ml and paired only), or from site", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
               floats=(0.0, 1e-3)),
         )
-        self.declare_parameter(
-            "site", None,
+        common.declare_list(
+            self, "site", Parameter.Type.DOUBLE_ARRAY,
             d("where the manoeuvre is flown, for the reference intensity from the World Magnetic Model: [lat_deg, "
               "lon_deg] or [lat_deg, lon_deg, alt_m] (north and east positive, altitude above sea level, negative "
               "under water); not set or [] = not used. Excludes reference_field > 0",
@@ -259,6 +265,11 @@ class CalibrationNode(Node):
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
 
+    def _numeric(self, name: str) -> bool:
+        """Whether parameter ``name`` holds numbers."""
+        return name in ("positions", "site") or (self.has_parameter(name) and self.get_parameter(name).type_ in (
+            Parameter.Type.DOUBLE, Parameter.Type.INTEGER, *common.NUMBER_ARRAYS))
+
     def _value(self, name: str, updates: dict[str, Any]) -> Any:
         return updates[name] if name in updates else self.get_parameter_or(name).value  # unset: None
 
@@ -289,8 +300,10 @@ class CalibrationNode(Node):
         common.sync_settings({n: self._value(n, updates) for n in ("sync_mode", "max_gap")})
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
-        if not str(self._value("correction_node", updates)).strip("/"):
+        target = str(self._value("correction_node", updates)).strip()
+        if not target.strip("/"):
             raise InputError("correction_node must name a node")
+        common.check_node_name("correction_node", target)
         common.current_inputs({n: self._value(n, updates) for n in common.INTERFERENCE_PARAMETERS})
         return geo
 
@@ -327,12 +340,13 @@ class CalibrationNode(Node):
                 return SetParametersResult(successful=False, reason=why)
         try:
             self._validate({p.name: p.value for p in params})
-        except (InputError, TypeError, ValueError) as exc:
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             return SetParametersResult(successful=False, reason=str(exc))
+        self._changed = {p.name for p in params if self.get_parameter_or(p.name).value != p.value}
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
-        names = {p.name for p in params}
+        names = {p.name for p in params} & self._changed  # a value set again as it was changes nothing
         if "correction_node" in names:
             self._service_clients()
         if names & RECONNECT:
@@ -502,7 +516,7 @@ class CalibrationNode(Node):
             "ready": str(problem is None and len(raw) > 0).lower(),
             "problem": problem or "",
             "unmatched": str(stats["unmatched"]),
-            "bad_samples": str(stats["nonfinite"] + stats["out_of_order"] + stats["duplicate"] + stats["zero_stamp"]),
+            "bad_samples": str(sum(stats[k] for k in BAD_SAMPLES)),
             "assessed": str(assessed.samples if assessed is not None else 0),
             "envelope": _envelope_text(assessed),
             "envelope_pitch_deg": f"{assessed.envelope.pitch_deg:g}" if assessed and assessed.envelope else "",

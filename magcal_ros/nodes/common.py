@@ -24,7 +24,7 @@ from magcal_ros.core.interference import (
     LatestCurrents,
     tolerance_of,
 )
-from magcal_ros.core.units import NS_PER_S
+from magcal_ros.core.units import MAX_READING, NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes.entry import quiet_signals
 from magcal_ros.nodes.health import Assessment, HealthLimits
@@ -137,11 +137,66 @@ def clock_reader(node: Any) -> Callable[[], int]:
 NUMBER_ARRAYS = (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY)
 
 
+def is_empty_list(param: Parameter) -> bool:
+    """An empty list of any element type: how ``[]`` comes from a params file or ``ros2 param load``
+    (which give it no element type, or booleans)."""
+    return param.type_.name.endswith("_ARRAY") and len(param.value) == 0
+
+
 def check_number_array(param: Parameter) -> str | None:
-    """Why ``param`` is not a list of numbers, or None if it is."""
-    if param.type_ not in NUMBER_ARRAYS:
+    """Why ``param`` is not a list of numbers (an empty list of any type counts), or None if it is."""
+    if param.type_ not in NUMBER_ARRAYS and not is_empty_list(param):
         return f"{param.name} must be a list of numbers, got {param.type_.name.lower()}"
     return None
+
+
+def declare_list(node: Any, name: str, kind: Parameter.Type, descriptor: ParameterDescriptor) -> Any:
+    """Declare a list parameter whose "none" is the empty list, so that it always has a value
+    (``ros2 param get`` and ``dump`` fail on a parameter without one). Dynamically typed: an empty
+    list comes back from a params file without an element type (rcl) or as booleans (``ros2 param
+    load``); the node reads an empty list of any type as none."""
+    descriptor.dynamic_typing = True
+    node.declare_parameter(name, None, descriptor)
+    if node.get_parameter(name).type_ == Parameter.Type.NOT_SET:
+        node.set_parameters([Parameter(name, kind, [])])  # before the nodes add their set callbacks
+    return node.get_parameter(name).value
+
+
+def number_text(text: str) -> float | list[float] | None:
+    """A number or list of numbers that ``ros2 param load`` passed on as text, or None.
+
+    rclpy re-reads each value of a params file with YAML 1.1, to which ``5e-08`` (no decimal
+    point) is a string: ``[5e-08, 1.0]`` arrives as the string ``"[5e-08, 1.0]"``, and
+    ``[5e-08, 1e-07]`` as a list of strings."""
+    body = text.strip()
+    try:
+        if body.startswith("[") and body.endswith("]"):
+            inner = body[1:-1].strip()
+            return [float(t) for t in inner.split(",")] if inner else []
+        return float(body)
+    except ValueError:
+        return None
+
+
+def numbers_from_text(numeric: Callable[[str], bool]) -> Callable[[list[Parameter]], list[Parameter]]:
+    """A pre-set parameters callback: a string value of a parameter that holds numbers (``numeric(name)``)
+    that reads as numbers is turned into them (see :func:`number_text`); everything else passes as it is."""
+    def convert(params: list[Parameter]) -> list[Parameter]:
+        out = []
+        for p in params:
+            value = None
+            if p.type_ == Parameter.Type.STRING and numeric(p.name):
+                value = number_text(p.value)
+            elif p.type_ == Parameter.Type.STRING_ARRAY and p.value and numeric(p.name):
+                value = number_text("[" + ",".join(p.value) + "]")
+            if isinstance(value, list):
+                p = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, value)
+            elif value is not None:
+                p = Parameter(p.name, Parameter.Type.DOUBLE, value)
+            out.append(p)
+        return out
+
+    return convert
 
 
 def raw_qos(reliability: str, depth: int) -> QoSProfile:
@@ -219,10 +274,11 @@ def synchronizer(names: Sequence[str], tolerance: int, mode: str, max_gap: int,
                  time_offsets: Sequence[float] | None = None,
                  stats: sync.SyncStats | None = None) -> sync.StreamSynchronizer:
     """The set synchroniser of a node: ``tolerance`` and ``max_gap`` in ns, ``time_offsets`` in s per
-    sensor (None: zeros); ``stats`` to keep counting into (a reconfiguration)."""
+    sensor (None: zeros); ``stats`` to keep counting into (a reconfiguration). Live readings beyond
+    :data:`~magcal_ros.core.units.MAX_READING` are dropped and counted (``out_of_range``)."""
     offsets = {n: float(t) for n, t in zip(names, time_offsets if time_offsets is not None else []) if t}
     return sync.stream_synchronizer(list(names), tolerance / NS_PER_S, mode, max_gap / NS_PER_S, offsets,
-                                    stats=stats)
+                                    stats=stats, max_reading=MAX_READING)
 
 
 def default_positions(count: int) -> list[float] | None:
@@ -236,6 +292,23 @@ def declare_geometry(node: Any) -> list[str]:
     names = node.declare_parameter("sensor_names", DEFAULT_SENSOR_NAMES, describe(SENSOR_NAMES_DOC)).value
     node.declare_parameter("positions", default_positions(len(names)), describe(POSITIONS_DOC, numbers=True))
     return list(names)
+
+
+def check_node_name(parameter: str, name: str) -> None:
+    """:class:`InputError` unless ``name`` is a valid ROS node name, optionally with a namespace
+    (``magcal_correction``, ``array1/magcal_correction``, ``/array1/magcal_correction``)."""
+    from rclpy.exceptions import InvalidNamespaceException, InvalidNodeNameException
+    from rclpy.validate_namespace import validate_namespace
+    from rclpy.validate_node_name import validate_node_name
+
+    namespace, _, base = name.rpartition("/")
+    try:
+        validate_node_name(base)
+        if namespace:
+            validate_namespace("/" + namespace.lstrip("/"))
+    except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+        reason = str(exc).strip().splitlines()[0].rstrip(": ")
+        raise InputError(f"{parameter} {name!r} is not a valid ROS node name ({reason})") from None
 
 
 def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGeometry:
@@ -327,15 +400,16 @@ INTERFERENCE_PARAMETERS: tuple[str, ...] = (
 def declare_currents(node: Any) -> None:
     """Declare the interference channel parameters both nodes share (no channels by default)."""
     d = describe
-    node.declare_parameter(
-        "interference_channels", Parameter.Type.STRING_ARRAY,
+    strings = Parameter.Type.STRING_ARRAY
+    declare_list(
+        node, "interference_channels", strings,
         d("current channels whose interference is subtracted (correction node) or estimated (calibration node), "
-          "e.g. [thruster1/battery]; none = no current interference"))
-    node.declare_parameter(
-        "interference_topics", Parameter.Type.STRING_ARRAY,
-        d("topic of each channel's current, in interference_channels order; default: the channel name (relative)"))
-    node.declare_parameter(
-        "interference_types", Parameter.Type.STRING_ARRAY,
+          "e.g. [thruster1/battery]; [] = no current interference"))
+    declare_list(
+        node, "interference_topics", strings,
+        d("topic of each channel's current, in interference_channels order; [] = the channel names (relative)"))
+    declare_list(
+        node, "interference_types", strings,
         d(f"message type of each channel's topic: {BATTERY_STATE} (current, A, header stamp, or receipt time when "
           f"it is zero; default) or "
           f"{FLOAT64} (data, A, stamped on receipt)", constraints=" | ".join(CURRENT_TYPES)))
@@ -518,7 +592,7 @@ def unmatched_calibrations(files: Sequence[str], fully_qualified_name: str) -> l
         try:
             with open(path, encoding="utf-8") as fh:
                 doc = yaml.safe_load(fh)
-        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
             continue  # rcl already refused or read it; nothing to compare
         for key, params in _node_blocks(doc):
             if _has_sensor_calibration(params) and not key_matches(key, fully_qualified_name):

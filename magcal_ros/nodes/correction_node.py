@@ -89,6 +89,8 @@ CORE_PARAMETERS: tuple[str, ...] = (
 SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset")
 ARRAY_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
 """Per-sensor parameters that are lists of numbers (``time_offset`` is one number)."""
+NUMERIC_PARAMETERS: frozenset[str] = frozenset({"positions", "sync_tolerance", "current_tolerance", "max_gap"})
+"""Parameters that hold numbers besides the per-sensor ones (text that reads as numbers is taken as them)."""
 GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
     "tensor": (topics.GRADIENT, topics.GRADIENT_STAMPED), "baseline": (topics.BASELINE_GRADIENT,), "none": (),
 }
@@ -167,7 +169,7 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         raise InputError("sensor_names must be a list of strings")
     geo = common.geometry(names, values.get("positions"))
     uncorrected = values.get("uncorrected_sensors") or []
-    if not all(isinstance(n, str) for n in uncorrected):
+    if not isinstance(uncorrected, (list, tuple)) or not all(isinstance(n, str) for n in uncorrected):
         raise InputError("uncorrected_sensors must be a list of sensor names")
     strangers = sorted(set(uncorrected) - set(geo.names))
     if strangers:
@@ -182,7 +184,7 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
             "time_offset": values.get(f"{name}.time_offset") or 0.0,
         }
         if currents.channels:
-            gains = values.get(f"{name}.interference")
+            gains = values.get(f"{name}.interference") or None  # [] is none
             if gains is None and name not in uncorrected:
                 raise InputError(f"interference_channels is set ({', '.join(currents.channels)}) but {name}.interference "
                                  f"is not: give 3 x {len(currents.channels)} numbers (row-major, T/A) for every sensor")
@@ -219,6 +221,21 @@ def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
     return f"exact matching of the header stamps (sync_mode {synchronizer.requested}: {synchronizer.reason})"
 
 
+def _differs(old: Any, new: Any) -> bool:
+    """Whether a parameter value changes (lists compared element by element, any number type)."""
+    if isinstance(old, (list, tuple)) and isinstance(new, (list, tuple)):
+        return list(old) != list(new)
+    return bool(old != new)
+
+
+def _as_default(name: str, value: Any) -> bool:
+    """Whether a per-sensor ``matrix`` or ``offset`` given at start-up is the default (identity, zero): as
+    a dump of a node with that sensor not calibrated holds it, so it does not calibrate the sensor."""
+    suffix = name.rpartition(".")[2]
+    default = {"matrix": common.IDENTITY, "offset": common.ZEROS}.get(suffix)
+    return default is not None and isinstance(value, (list, tuple)) and not _differs(default, value)
+
+
 def _gradient_message() -> Float64MultiArray:
     """A gradient message with the contract's 3x3 row-major layout (dims row, col)."""
     msg = Float64MultiArray()
@@ -237,7 +254,7 @@ class CorrectionNode(Node):
     def __init__(self, node_name: str = NODE_NAME, argv: Sequence[str] = (), **kwargs: Any) -> None:
         super().__init__(node_name, allow_undeclared_parameters=True, **kwargs)
         self._declare_parameters()
-        self._given: set[str] = set(self._parameter_overrides)
+        self._given: set[str] = {n for n, p in self._parameter_overrides.items() if not _as_default(n, p.value)}
         self._state = build_state(self._current_values(), self._given)
         self._pending: CorrectionState | None = None
         self._pending_names: set[str] = set()
@@ -266,6 +283,7 @@ class CorrectionNode(Node):
         self._connect(self._state)
         self._gradient_outputs(self._state.gradient_kind)
         self._connect_currents(self._state.currents)
+        self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
@@ -300,10 +318,10 @@ class CorrectionNode(Node):
                   "published in its magnetic_field_covariance; -1.0 first = unknown",
                   constraints="symmetric positive semi-definite, or -1.0 first", numbers=True),
             )
-            self.declare_parameter(
-                f"{name}.interference", None,
+            common.declare_list(
+                self, f"{name}.interference", Parameter.Type.DOUBLE_ARRAY,
                 d(f"current interference of {name}: 3 x m numbers row-major (T/A, platform frame), one column per "
-                  "channel of interference_channels; B = matrix (raw - offset) - interference @ u",
+                  "channel of interference_channels; B = matrix (raw - offset) - interference @ u; [] = none",
                   constraints="finite; needed for every sensor when interference_channels is set", numbers=True),
             )
             self.declare_parameter(
@@ -313,10 +331,10 @@ class CorrectionNode(Node):
                   "interpolate or auto)", constraints=f"finite, |t| <= {sync.MAX_TIME_OFFSET:g}", numbers=True,
                   floats=(-sync.MAX_TIME_OFFSET, sync.MAX_TIME_OFFSET)),
             )
-        self.declare_parameter(
-            "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
+        common.declare_list(
+            self, "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
             d("sensors used without a calibration on purpose (raw readings); any other sensor without "
-              "matrix and offset stops field and gradient output"),
+              "matrix and offset stops field and gradient output; [] = none"),
         )
         common.declare_currents(self)
         self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID, d("frame of all outputs (platform frame)"))
@@ -341,6 +359,13 @@ class CorrectionNode(Node):
         names = self.list_parameters([], 0).names
         return {n: self.get_parameter_or(n).value for n in names}  # unset parameters: None
 
+    def _numeric(self, name: str) -> bool:
+        """Whether parameter ``name`` holds numbers (a known one, or a per-sensor calibration value)."""
+        if name in NUMERIC_PARAMETERS or name.endswith(tuple(f".{s}" for s in SENSOR_SUFFIXES)):
+            return True
+        return self.has_parameter(name) and self.get_parameter(name).type_ in (
+            Parameter.Type.DOUBLE, Parameter.Type.INTEGER, *common.NUMBER_ARRAYS)
+
     def _known(self, name: str, names: Sequence[str]) -> bool:
         if name in CORE_PARAMETERS:
             return True
@@ -362,7 +387,8 @@ class CorrectionNode(Node):
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
                     f"<name>.offset, <name>.covariance, <name>.interference and <name>.time_offset for a name "
-                    "in sensor_names",
+                    f"in sensor_names (ros2 param load also offers a calibration file's magcal_provenance block, "
+                    f"which is not for this node: ignored)",
                 )
             if known and p.name.endswith(".time_offset") and p.type_ not in (Parameter.Type.DOUBLE,
                                                                              Parameter.Type.INTEGER):
@@ -375,13 +401,16 @@ class CorrectionNode(Node):
         if not any(self._known(n, new_names) for n in updates):
             self._pending = None
             return SetParametersResult(successful=True)
+        before = self._current_values()
+        changed = {n for n, v in updates.items() if n not in before or _differs(before[n], v)}
         try:
-            self._pending = build_state(values, self._given | set(updates))
-            self._pending_names = set(updates)
-        except InputError as exc:
+            self._pending = build_state(values, self._given | changed)
+            self._pending_names = changed  # a value set again as it was (ros2 param load of a dump) gives nothing
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             self._pending = None
-            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {exc}")
-            return SetParametersResult(successful=False, reason=str(exc))
+            reason = str(exc) if isinstance(exc, InputError) else f"invalid value ({exc})"
+            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {reason}")
+            return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:

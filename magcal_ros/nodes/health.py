@@ -33,6 +33,7 @@ OK, WARN, ERROR = 0, 1, 2
 """Levels, as diagnostic_msgs/DiagnosticStatus numbers them."""
 
 
+
 @dataclass(frozen=True)
 class HealthLimits:
     """When the array counts as unhealthy (ns, fraction)."""
