@@ -45,7 +45,8 @@ class ImuSamples:
         if np.any(np.abs(norm - 1.0) > QUATERNION_TOLERANCE):
             bad = int(np.flatnonzero(~unknown)[np.argmax(np.abs(norm - 1.0))])
             raise InputError(f"IMU orientation of set {bad} is not a unit quaternion (norm {float(np.linalg.norm(q[bad])):.6g})")
-        q[~unknown] /= norm[:, None]
+        rows = np.flatnonzero(~unknown)[np.abs(norm - 1.0) > 1e-12]  # a unit quaternion stays bit for bit
+        q[rows] /= np.linalg.norm(q[rows], axis=1, keepdims=True)
         w[~np.all(np.isfinite(w), axis=1)] = np.nan
         object.__setattr__(self, "orientation", q)
         object.__setattr__(self, "angular_velocity", w)
