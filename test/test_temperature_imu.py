@@ -286,6 +286,7 @@ def _shuffle_columns(path: Path, order: list[str]) -> None:
 
 def test_csv_round_trip_with_temperature_and_imu_columns_in_any_order(tmp_path: Path) -> None:
     rec, truth, _ = run(thermal_imu_spec(count=30))
+    rec = rec.with_temperatures(rec.temperatures + np.array([0.0, 0.5, 1.0, 1.5]))  # each sensor its own
     path = tmp_path / "rec.csv"
     write_csv(path, rec)
     header = path.read_text().splitlines()[0].split(",")
