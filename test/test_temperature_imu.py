@@ -607,3 +607,25 @@ def test_collected_sets_carry_temperatures_and_imu_once_heard() -> None:
     plain.add(1, vec)
     rec, notes = collected_recording(("a", "b"), (), *plain.collected())
     assert rec.temperatures is None and rec.imu is None and notes == []
+
+
+def test_a_still_run_keeps_the_held_temperature_terms_and_frame() -> None:
+    """Thrusters stepped on a still vehicle while the sensors warm from 5 to 25 C: with the held calibration's
+    temperature terms the gains are the truth's, and the result keeps those terms and the output frame."""
+    from dataclasses import replace
+
+    from magcal_ros.methods.interference import calibrate_interference
+
+    rec, truth, sim = run(thermal_imu_spec(schedule="random", still=True, count=480, noise=1e-9,
+                                          temperature_ramp=(5.0, 25.0), temperatures=(),
+                                          thruster_current="steps:0,5,10,20", step_sets=30))
+    held = replace(truth.calibration, channels=(), interference=None)
+    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held, rec.temperatures)
+    cal = result.calibration
+    err = np.linalg.norm(cal.interference - sim.interference(), axis=1) / np.linalg.norm(sim.interference(), axis=1)
+    assert np.all(err < 0.01), err
+    assert cal.temperature_reference == held.temperature_reference and cal.frame_id == "imu_link"
+    np.testing.assert_array_equal(cal.matrix_tempco, held.matrix_tempco)
+    np.testing.assert_array_equal(cal.output_rotation, held.output_rotation)
+    with pytest.raises(InputError, match="give the temperatures"):
+        calibrate_interference(rec.vectors, rec.currents, rec.channels, held)

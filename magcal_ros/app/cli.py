@@ -521,7 +521,7 @@ def _calibrate_interference(args: argparse.Namespace, rec: Recording) -> int:
                          "columns (CSV)")
     held = _read_calibration(args.interference_only)
     rec = rec.select(held.geometry.names)
-    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held)
+    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held, rec.temperatures)
     calfile.write(args.output, result.calibration)
     print(result.summary())
     for c in result.solved:
