@@ -37,6 +37,7 @@ from magcal_ros.core.interference import (
 from magcal_ros.core.matching import match_latest
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.tensor import gradient
 from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, TemperatureStats
 from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
@@ -141,7 +142,7 @@ def check_sensors(
     if not extra:
         return []
     try:
-        calibration.field_and_gradient(np.zeros((1, len(names), 3)), gradient_method)
+        gradient(np.zeros((1, len(names), 3)), calibration.geometry, gradient_method)
     except InputError:
         raise InputError(
             f"{recording} has sensors {have} but {calibration_file} covers only {', '.join(names)}: "
