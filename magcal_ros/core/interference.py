@@ -20,7 +20,7 @@ be told apart (:func:`undetermined_channels`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -160,8 +160,10 @@ class InterferenceEstimate:
     """(m,) channels not solved (see :func:`undetermined_channels`)."""
 
 
-def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration) -> InterferenceEstimate:
-    """Interference gains from a still run: raw sets (N, S, 3) T, channel currents (N, m) A.
+def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration,
+                          temperatures: ArrayLike | None = None) -> InterferenceEstimate:
+    """Interference gains from a still run: raw sets (N, S, 3) T, channel currents (N, m) A (and the
+    sensors' temperatures (N, S) deg C when the calibration has temperature terms).
 
     The vehicle does not move, so with the calibration's matrices and offsets held the
     corrected field of sensor ``i`` is ``M_i (r_ik - o_i) = B_i + D_i u_k`` plus noise: one
@@ -184,7 +186,8 @@ def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: Arra
     x = np.concatenate([np.ones((n, 1)), u[:, solved]], axis=1)
     if n < x.shape[1] + 2:
         raise InputError(f"{n} sets cannot determine {len(solved)} channels: record more sets")
-    b = np.einsum("sij,nsj->nsi", calibration.matrices, r - calibration.offsets).reshape(n, 3 * s)
+    held = replace(calibration, channels=(), interference=None)  # its own interference is not applied
+    b = held.apply_array(r, temperatures=temperatures).reshape(n, 3 * s)
     coef, *_ = np.linalg.lstsq(x, b, rcond=None)  # (1 + k, 3 S)
     e = b - x @ coef
     var = np.sum(e * e, axis=0) / (n - x.shape[1])  # (3 S,) per sensor and axis

@@ -9,10 +9,14 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "ArraySimulation": "magcal_ros.sim.simulator",
+        "AttitudePath": "magcal_ros.sim.attitudes",
+        "ImuModel": "magcal_ros.sim.imu",
         "SimulationSpec": "magcal_ros.sim.spec",
         "Thruster": "magcal_ros.sim.simulator",
         "Truth": "magcal_ros.sim.simulator",
         "random_sensor_errors": "magcal_ros.sim.simulator",
         "run": "magcal_ros.sim.spec",
+        "simulate_imu": "magcal_ros.sim.imu",
+        "temperature_profile": "magcal_ros.sim.temperature",
     },
 )
