@@ -231,7 +231,7 @@ class ArrayCalibration:
         if self.has_temperature_terms:
             dt = self._temperature_delta(temperatures, len(r))
             m = self.matrices + dt[:, :, None, None] * self.matrix_tempco
-            b = np.einsum("nsij,nsj->nsi", m, r - self.offsets - dt[:, :, None] * self.offset_tempco)
+            b = (m @ (r - self.offsets - dt[:, :, None] * self.offset_tempco)[..., None])[..., 0]
         else:
             b = np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
         if self.channels:
@@ -255,7 +255,7 @@ class ArrayCalibration:
         if self.rotated:
             rot = self.output_rotation
             b = self.to_output_frame(b)
-            tensor = None if tensor is None else np.einsum("ij,njk,lk->nil", rot, tensor, rot)
+            tensor = None if tensor is None else rot @ tensor @ rot.T
             baseline = None if baseline is None else self.to_output_frame(baseline)
         return CorrectedSets(b, centre_field(b), tensor, baseline)
 
@@ -267,7 +267,7 @@ class ArrayCalibration:
         b = self.apply_array(raw, currents, temperatures)
         g = gradient(b, self.geometry, method)
         if self.rotated:
-            g = np.einsum("ij,njk,lk->nil", self.output_rotation, g, self.output_rotation)
+            g = self.output_rotation @ g @ self.output_rotation.T  # type: ignore[union-attr]
             b = self.to_output_frame(b)
         return b, centre_field(b), g
 
