@@ -147,11 +147,13 @@ class RosRun:
         return proc
 
     def driver(self, names: Sequence[str], namespace: str = "", kind: str = "tensor",
-               currents: Sequence[tuple[str, str]] = ()) -> ArrayDriver:
-        """A driver node on this domain (publishing and listening in ``namespace``; ``kind`` and
-        ``currents`` as :class:`ArrayDriver` takes them)."""
+               currents: Sequence[tuple[str, str]] = (), temperatures: bool = False,
+               imu_topic: str | None = None) -> ArrayDriver:
+        """A driver node on this domain (publishing and listening in ``namespace``; ``kind``,
+        ``currents``, ``temperatures`` and ``imu_topic`` as :class:`ArrayDriver` takes them)."""
         d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}",
-                        namespace=namespace, kind=kind, currents=currents)
+                        namespace=namespace, kind=kind, currents=currents, temperatures=temperatures,
+                        imu_topic=imu_topic)
         self.drivers.append(d)
         return d
 

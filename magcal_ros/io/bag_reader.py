@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.imu import ImuStream, ned_to_enu
 from magcal_ros.core.interference import CurrentSamples
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
@@ -36,16 +37,21 @@ from magcal_ros.core.sync import (
     SyncStats,
     stream_synchronizer,
 )
+from magcal_ros.core.temperature import TemperatureSamples, check_temperatures
 from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
 from magcal_ros.io.cdr import (
     CURRENT_TYPES,
+    IMU,
     MAGNETIC_FIELD,
+    TEMPERATURE,
     decode_current,
+    decode_imu,
     decode_magnetic_field_rows,
     decode_magnetic_fields,
+    decode_temperature,
 )
 
 if TYPE_CHECKING:
@@ -532,16 +538,7 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
     wanted = [topic_names.absolute(t) for t in topics]
     if len(set(wanted)) != len(wanted) or not all(t.strip("/") for t in wanted):
         raise InputError(f"current topics must be named once each, got {', '.join(topics)}")
-    conns: list[Connection] = []
-    for t in wanted:
-        found = [c for c in reader.connections if c.topic == t]
-        if not found:
-            have = ", ".join(sorted({c.topic for c in reader.connections if c.msgtype in CURRENT_TYPES})) or "none"
-            raise InputError(f"{path}: no current topic {t} (BatteryState/Float64 topics: {have})")
-        wrong = [c.msgtype for c in found if c.msgtype not in CURRENT_TYPES]
-        if wrong:
-            raise InputError(f"{path}: topic {t} has type {wrong[0]}, expected {' or '.join(CURRENT_TYPES)} (A)")
-        conns += found
+    conns = typed_connections(reader, path, wanted, CURRENT_TYPES, "current", "A")
     index = {c.id: wanted.index(c.topic) for c in conns}
     types = {c.id: c.msgtype for c in conns}
     stamps: list[list[int]] = [[] for _ in wanted]
@@ -555,6 +552,97 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
         values[index[cid]].append(current)
     return [CurrentSamples(topic_names.current_channel(t), np.array(st, np.int64), np.array(v, float))
             for t, st, v in zip(wanted, stamps, values)]
+
+
+def typed_connections(reader: "Reader", path: str | os.PathLike[str], wanted: Sequence[str], types: Sequence[str],
+                      what: str, unit: str) -> list["Connection"]:
+    """The connections of the absolute topics ``wanted``, each of one of ``types``; :class:`InputError`
+    naming a missing topic (and the topics of those types there are) or a topic of another type."""
+    conns: list[Connection] = []
+    for t in wanted:
+        found = [c for c in reader.connections if c.topic == t]
+        if not found:
+            have = ", ".join(sorted({c.topic for c in reader.connections if c.msgtype in types})) or "none"
+            kinds = "/".join(k.rsplit("/", 1)[-1] for k in types)
+            raise InputError(f"{path}: no {what} topic {t} ({kinds} topics: {have})")
+        wrong = [c.msgtype for c in found if c.msgtype not in types]
+        if wrong:
+            raise InputError(f"{path}: topic {t} has type {wrong[0]}, expected {' or '.join(types)} ({unit})")
+        conns += found
+    return conns
+
+
+def temperature_topics(reader: "Reader", names: Sequence[str]) -> list[str] | None:
+    """``/<name>/temperature`` of every sensor when the bag has them all as ``sensor_msgs/msg/Temperature``;
+    None when it has none of them; :class:`InputError` naming the missing ones when it has some."""
+    wanted = [topic_names.absolute(topic_names.temperature(n)) for n in names]
+    have = {c.topic for c in reader.connections if c.msgtype == TEMPERATURE}
+    found = [t for t in wanted if t in have]
+    if not found:
+        return None
+    missing = [t for t in wanted if t not in have]
+    if missing:
+        raise InputError(f"the bag has {', '.join(found)} but not {', '.join(missing)} (sensor_msgs/msg/Temperature): "
+                         "every sensor needs its temperature; name the topics with --temperature-topics")
+    return wanted
+
+
+def read_temperature_samples(reader: "Reader", path: str | os.PathLike[str], names: Sequence[str],
+                             topics: Sequence[str]) -> list[TemperatureSamples]:
+    """Every temperature (deg C) of each sensor of ``names`` from its topic in ``topics`` (one per
+    sensor, or one topic for all), ``sensor_msgs/msg/Temperature`` at its header stamp (the bag time when
+    that is zero). A separate pass over these low-rate topics. :class:`InputError` naming a missing or
+    mistyped topic, a message that does not decode, or temperatures that are not deg C."""
+    wanted = [topic_names.absolute(t) for t in topics]
+    if len(wanted) == 1 and len(names) > 1:
+        wanted = wanted * len(names)
+    if len(wanted) != len(names):
+        raise InputError(f"{len(wanted)} temperature topics for {len(names)} sensors ({', '.join(names)}): give one "
+                         "per sensor, or one for all")
+    unique = list(dict.fromkeys(wanted))
+    conns = typed_connections(reader, path, unique, (TEMPERATURE,), "temperature", "deg C")
+    index = {c.id: unique.index(c.topic) for c in conns}
+    stamps: list[list[int]] = [[] for _ in unique]
+    values: list[list[float]] = [[] for _ in unique]
+    for cid, bag_time, data in message_rows(reader, conns):
+        try:
+            stamp, celsius = decode_temperature(data, bag_time)
+        except InputError as exc:
+            raise InputError(f"{path}: {unique[index[cid]]}: {exc}") from None
+        stamps[index[cid]].append(stamp)
+        values[index[cid]].append(celsius)
+    for t, v in zip(unique, values):
+        check_temperatures(np.array(v), f"{path}: {t}")
+    return [TemperatureSamples(n, np.array(stamps[unique.index(t)], np.int64), np.array(values[unique.index(t)]))
+            for n, t in zip(names, wanted)]
+
+
+def read_imu_stream(reader: "Reader", path: str | os.PathLike[str], topic: str, frame: str = "enu") -> ImuStream:
+    """Every sample of the ``sensor_msgs/msg/Imu`` topic ``topic``: header stamp (the bag time when zero),
+    orientation (none where orientation_covariance[0] is -1; ``frame="ned"``: an orientation to NED,
+    turned into ENU) and angular velocity (none where its covariance[0] is -1). :class:`InputError` naming a
+    missing or mistyped topic or a message that does not decode."""
+    wanted = topic_names.absolute(topic)
+    conns = typed_connections(reader, path, [wanted], (IMU,), "IMU", "orientation, rad/s")
+    stamps: list[int] = []
+    q: list[tuple[float, ...]] = []
+    w: list[tuple[float, ...]] = []
+    frame_id = ""
+    for _, bag_time, data in message_rows(reader, conns):
+        try:
+            stamp, quat, rate, frame_id = decode_imu(data, bag_time)
+        except InputError as exc:
+            raise InputError(f"{path}: {wanted}: {exc}") from None
+        stamps.append(stamp)
+        q.append(quat)
+        w.append(rate)
+    orientation = np.array(q, dtype=float).reshape(-1, 4)
+    if frame == "ned":
+        orientation = ned_to_enu(orientation)
+    try:
+        return ImuStream(np.array(stamps, np.int64), orientation, np.array(w, dtype=float).reshape(-1, 3), frame_id)
+    except InputError as exc:
+        raise InputError(f"{path}: {wanted}: {exc}") from None
 
 
 # --------------------------------------------------------------------------- reading

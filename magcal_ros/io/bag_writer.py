@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.imu import ImuStream
 from magcal_ros.core.recording import Recording
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics
@@ -31,9 +32,13 @@ from magcal_ros.io.atomic import atomic_path, public_path, write_failure
 from magcal_ros.io.bag_reader import first_line
 from magcal_ros.io.cdr import (
     BATTERY_STATE,
+    IMU,
     MAGNETIC_FIELD,
+    TEMPERATURE,
     battery_state_message,
+    imu_message,
     magnetic_field_template,
+    temperature_message,
     typestore,
 )
 
@@ -362,6 +367,8 @@ def write_recording_bag(
     recording: Recording,
     storage: Storage = "sqlite3",
     frame_ids: Sequence[str] | None = None,
+    imu_stream: ImuStream | None = None,
+    imu_topic: str = "/imu",
 ) -> None:
     """Write ``recording`` as a rosbag2 directory with topics ``/<name>/raw``.
 
@@ -369,8 +376,11 @@ def write_recording_bag(
     stamp, ``frame_id`` = the sensor name (or ``frame_ids``), field in T, covariance zero;
     bag time = the stamp. The recording's current channels become one
     ``sensor_msgs/msg/BatteryState`` topic each (``/<channel>``, ``current`` in A, header
-    stamp and bag time = the set's stamp). Atomic: written to a temporary directory,
-    renamed at the end.
+    stamp and bag time = the set's stamp); its temperatures one ``sensor_msgs/msg/Temperature``
+    topic per sensor (``/<name>/temperature``, deg C, at the set's stamp); its IMU the
+    ``sensor_msgs/msg/Imu`` topic ``imu_topic`` at the set's stamp, or every sample of
+    ``imu_stream`` at its own stamps (an IMU at its own rate). Atomic: written to a temporary
+    directory, renamed at the end.
     """
     check_storage(storage)
     names = recording.names
@@ -383,6 +393,7 @@ def write_recording_bag(
     with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:
         conns = [sink.add_topic(topics.absolute(topics.raw(n)), MAGNETIC_FIELD) for n in names]
         currents = [sink.add_topic(topics.current_topic(c), BATTERY_STATE) for c in recording.channels]
+        _write_side_topics(sink, recording, imu_stream, imu_topic)
         layout = sink.layout([(c, t.template) for c, t in zip(conns, templates)])
         for a in range(0, len(recording), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
@@ -429,3 +440,24 @@ def write_stream_bag(
         events.sort()
         for a in range(0, len(events), 8 * SETS_PER_WRITE):
             sink.write_messages([(conns[k], bt, bytes(encoded[k][i])) for bt, k, i in events[a : a + 8 * SETS_PER_WRITE]])
+
+
+def _write_side_topics(sink: BagSink, recording: Recording, imu_stream: ImuStream | None, imu_topic: str) -> None:
+    """The recording's temperatures (``/<name>/temperature``) and IMU (``imu_topic``, or ``imu_stream``)."""
+    store = typestore()
+    if recording.temperatures is not None:
+        conns = [sink.add_topic(topics.absolute(topics.temperature(n)), TEMPERATURE) for n in recording.names]
+        sink.write_messages([
+            (conn, t, bytes(store.serialize_cdr(temperature_message(t, celsius, name), TEMPERATURE)))
+            for t, row in zip(recording.stamps.tolist(), recording.temperatures.tolist())
+            for conn, name, celsius in zip(conns, recording.names, row)
+        ])
+    if imu_stream is None and recording.imu is not None:
+        imu = recording.imu
+        imu_stream = ImuStream(recording.stamps, imu.orientation, imu.angular_velocity, imu.frame_id)
+    if imu_stream is not None:
+        conn = sink.add_topic(topics.absolute(imu_topic), IMU)
+        sink.write_messages([
+            (conn, t, bytes(store.serialize_cdr(imu_message(t, q, w, imu_stream.frame_id), IMU)))
+            for t, q, w in zip(imu_stream.stamps.tolist(), imu_stream.orientation, imu_stream.angular_velocity)
+        ])

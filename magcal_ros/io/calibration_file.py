@@ -123,6 +123,7 @@ def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> st
     if meta:
         doc[PROVENANCE_NODE] = {"ros__parameters": meta}
     header = "# magcal_ros calibration: B = matrix (raw - offset); Tesla, platform frame.\n"
+    header = _temperature_and_frame_header(calibration) or header
     header += "# Load with: correction_node --ros-args --params-file <this file>\n"
     text = header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=1000, allow_unicode=True)
     _check_readable(text, node_name, calibration)
@@ -140,6 +141,20 @@ def _check_readable(text: str, node_name: str, calibration: ArrayCalibration) ->
             np.allclose(back.matrices, calibration.matrices, rtol=1e-15, atol=0)
             and np.allclose(back.offsets, calibration.offsets, rtol=1e-15, atol=0)):
         raise InputError("the calibration cannot be written: it would not read back as it is")
+
+
+def _temperature_and_frame_header(calibration: ArrayCalibration) -> str:
+    """The formula line of a calibration with temperature terms or an output frame ('' otherwise)."""
+    if not (calibration.has_temperature_terms or calibration.rotated or calibration.frame_id):
+        return ""
+    formula = "matrix (raw - offset)"
+    if calibration.has_temperature_terms:
+        formula = ("(matrix + dT matrix_per_kelvin) (raw - offset - dT offset_per_kelvin), "
+                   "dT = T - temperature_reference (deg C)")
+    frame = "platform frame"
+    if calibration.rotated or calibration.frame_id:
+        frame = f"output frame {calibration.frame_id or '(frame_id)'}: output_rotation @ B"
+    return f"# magcal_ros calibration: B = {formula}; Tesla, {frame}.\n"
 
 
 def backups(path: str | os.PathLike[str]) -> list[Path]:

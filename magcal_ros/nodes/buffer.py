@@ -16,13 +16,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.observability import SPHERE_CELLS, sphere_cells
+from magcal_ros.core.recording import ImuSamples, Recording
 
 CELLS: int = SPHERE_CELLS
 
 
 class SetBuffer:
-    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns) and the currents (A) of
-    ``channels`` interference channels at each set."""
+    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns), the currents (A) of
+    ``channels`` interference channels, the sensors' temperatures (deg C) and the IMU (orientation
+    x, y, z, w to ENU and angular velocity rad/s) at each set; NaN where a set has none."""
 
     def __init__(self, capacity: int, sensors: int, seed: int | None = 0, channels: int = 0) -> None:
         if capacity < 1:
@@ -31,6 +33,8 @@ class SetBuffer:
         self.sensors = sensors
         self._raw = np.empty((capacity, sensors, 3))
         self._currents = np.zeros((capacity, channels))
+        self._temperatures = np.full((capacity, sensors), np.nan)
+        self._imu = np.full((capacity, 7), np.nan)
         self._stamps = np.zeros(capacity, dtype=np.int64)
         self._cells = np.zeros(capacity, dtype=np.int64)
         self._counts = np.zeros(CELLS, dtype=np.int64)
@@ -49,8 +53,10 @@ class SetBuffer:
         self._counts[:] = 0
         self.offered = 0
 
-    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
-        """Store one set (S raw vectors, T; the channels' currents, A), replacing a crowded one when full."""
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = (),
+            temperatures: Sequence[float] | None = None, imu: Sequence[float] | None = None) -> None:
+        """Store one set (S raw vectors, T; the channels' currents, A; the sensors' temperatures, deg C; the IMU's
+        orientation and angular velocity, 7 numbers), replacing a crowded one when full."""
         raw = np.asarray(values, dtype=float)
         cell = int(np.argmax(self._dirs @ raw.sum(axis=0)))
         self.offered += 1
@@ -66,6 +72,8 @@ class SetBuffer:
             self._counts[target] -= 1
         self._raw[slot] = raw
         self._currents[slot] = currents
+        self._temperatures[slot] = np.nan if temperatures is None else temperatures
+        self._imu[slot] = np.nan if imu is None else imu
         self._stamps[slot] = stamp_ns
         self._cells[slot] = cell
         self._counts[cell] += 1
@@ -80,7 +88,40 @@ class SetBuffer:
         order = np.argsort(self._stamps[: self._size], kind="stable")
         return self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy()
 
+    def collected(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                                 NDArray[np.float64]]:
+        """Copies, in stamp order, of the stamps (N,) ns, raw sets (N, S, 3) T, currents (N, m) A, temperatures
+        (N, S) deg C and IMU (N, 7): orientation x, y, z, w and angular velocity rad/s (NaN: none at that set)."""
+        order = np.argsort(self._stamps[: self._size], kind="stable")
+        return (self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy(),
+                self._temperatures[order].copy(), self._imu[order].copy())
+
     @property
     def cells_visited(self) -> int:
         """Number of sphere cells holding at least one set."""
         return int(np.count_nonzero(self._counts))
+
+
+def collected_recording(names: Sequence[str], channels: Sequence[str], stamps: NDArray[np.int64],
+                        raw: NDArray[np.float64], currents: NDArray[np.float64], temperatures: NDArray[np.float64],
+                        imu: NDArray[np.float64], imu_frame_id: str = "") -> tuple[Recording, list[str]]:
+    """The collected sets (see :meth:`SetBuffer.collected`) as a :class:`Recording`, and notes for users.
+
+    The temperatures and the IMU come with the sets when any set has them: then sets collected
+    without them (before the first temperature or IMU sample arrived) are left out, and a note
+    says how many; when no set has them, the recording has none.
+    """
+    rec = Recording(tuple(names), stamps, raw, tuple(channels), currents)
+    notes = []
+    have_t = np.all(np.isfinite(temperatures), axis=1)
+    if np.any(have_t):
+        if not np.all(have_t):
+            notes.append(f"{int(np.sum(~have_t))} sets collected before every sensor's temperature arrived left out")
+        rec = rec.take(have_t).with_temperatures(temperatures[have_t])
+        imu = imu[have_t]
+    have_imu = np.any(np.isfinite(imu), axis=1)
+    if np.any(have_imu):
+        if not np.all(have_imu):
+            notes.append(f"{int(np.sum(~have_imu))} sets collected before the IMU arrived left out")
+        rec = rec.take(have_imu).with_imu(ImuSamples(imu[have_imu, :4], imu[have_imu, 4:], imu_frame_id))
+    return rec, notes

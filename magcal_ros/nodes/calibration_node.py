@@ -59,6 +59,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -81,7 +82,10 @@ from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_field
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.interference import LatestCurrents
+from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, LatestImu
+from magcal_ros.core.interference import LatestCurrents, tolerance_of
+from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.recording import Recording
 from magcal_ros.core.observability import excitation
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
@@ -95,8 +99,8 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 from magcal_ros.nodes import common
-from magcal_ros.nodes.buffer import SetBuffer
-from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
+from magcal_ros.nodes.buffer import SetBuffer, collected_recording
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
 NODE_NAME = "magcal_calibration"
 DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
@@ -104,7 +108,8 @@ WHAT_TO_DO = "call ~/start, turn the array through large angles about at least t
 PRIORS: tuple[str, ...] = ("running", "none")
 """The ``prior`` settings besides a file path."""
 RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance", "sync_mode",
-                                       "max_gap", *common.INTERFERENCE_PARAMETERS})
+                                       "max_gap", *common.INTERFERENCE_PARAMETERS, "temperature_tolerance",
+                                       "imu_topic", "imu_tolerance"})
 """Parameters whose change drops the collected sets and subscribes afresh."""
 BAD_SAMPLES: tuple[str, ...] = ("nonfinite", "out_of_range", "out_of_order", "duplicate", "zero_stamp",
                                 "negative_stamp")
@@ -249,6 +254,15 @@ class CalibrationNode(Node):
         )
         common.declare_sync(self)
         common.declare_currents(self)
+        common.declare_temperature_tolerance(self)
+        self.declare_parameter(
+            "imu_topic", topics.IMU,
+            d("the vehicle's IMU (sensor_msgs/Imu: orientation IMU frame -> world ENU, angular velocity rad/s), "
+              "collected with every set once heard, interpolated to the set's instant, so that the fit can use it"))
+        self.declare_parameter(
+            "imu_tolerance", DEFAULT_IMU_TOLERANCE,
+            d("a set needs an IMU sample stamped at most this (s) before it, and waits at most this long for the "
+              "sample after it to interpolate between them", numbers=True, floats=(0.0, 60.0)))
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
         self.declare_parameter(
             "service_timeout", 5.0, d("how long (s) to wait for the correction node's services", numbers=True,
@@ -305,7 +319,24 @@ class CalibrationNode(Node):
             raise InputError("correction_node must name a node")
         common.check_node_name("correction_node", target)
         common.current_inputs({n: self._value(n, updates) for n in common.INTERFERENCE_PARAMETERS})
+        common.temperature_tolerance_ns(self._value("temperature_tolerance", updates))
+        self._imu_topic(updates)
+        tolerance = self._value("imu_tolerance", updates)
+        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
+            raise InputError(f"imu_tolerance must be a positive number of seconds, got {tolerance!r}")
         return geo
+
+    def _imu_topic(self, updates: dict[str, Any]) -> str:
+        """The IMU topic; :class:`InputError` for a name that is not a topic."""
+        from rclpy.exceptions import InvalidTopicNameException
+        from rclpy.validate_topic_name import validate_topic_name
+
+        topic = str(self._value("imu_topic", updates) or "").strip()
+        try:
+            validate_topic_name(topic)
+        except InvalidTopicNameException as exc:
+            raise InputError(f"imu_topic: {str(exc).splitlines()[0]}: {topic!r}") from None
+        return topic
 
     def _site(self, updates: dict[str, Any]) -> SiteField | None:
         """The model's field at ``site`` on ``date`` (None when site is not set); :class:`InputError` with the
@@ -383,6 +414,50 @@ class CalibrationNode(Node):
         clock = common.clock_reader(self)
         self._receipt_clock = clock
         self._subs += common.subscribe_currents(self, inputs, self._currents, self._raw_qos, lambda: clock())
+        self._connect_temperature_and_imu(geo, clock)
+
+    def _connect_temperature_and_imu(self, geo: ArrayGeometry, clock: Any) -> None:
+        """Subscribe ``<name>/temperature`` and the IMU; their values are collected with the sets once heard."""
+        from sensor_msgs.msg import Imu
+
+        temp_tol = common.temperature_tolerance_ns(self.get_parameter("temperature_tolerance").value)
+        self._temperatures = LatestValues(geo.size, temp_tol)
+        self._temperature_health = TemperatureHealth(
+            geo.names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in geo.names), temp_tol)
+        self._subs += common.subscribe_temperatures(self, geo.names, self._temperatures, self._raw_qos,
+                                                    lambda: clock())
+        topic = self._imu_topic({})
+        imu_tol = tolerance_of(float(self.get_parameter("imu_tolerance").value), "IMU")
+        self._imu = LatestImu(imu_tol)
+        self._imu_health = ImuHealth(("imu",), (self.resolve_topic_name(topic),), imu_tol)
+        self._pending: deque[tuple[int, Any, list[float], list[float] | None]] = deque()
+        """Sets waiting for the IMU's next sample: (stamp, raw values, currents, temperatures)."""
+        self._newest_set = 0
+        unknown = -1.0
+
+        def on_imu(msg: Any) -> None:
+            o, w = msg.orientation, msg.angular_velocity
+            q = [o.x, o.y, o.z, o.w]
+            if msg.orientation_covariance[0] == unknown or not any(q):
+                q = [float("nan")] * 4
+            rate = [w.x, w.y, w.z]
+            if msg.angular_velocity_covariance[0] == unknown:
+                rate = [float("nan")] * 3
+            with self._lock:
+                self._imu.add(common.stamp_ns(msg.header.stamp) or clock(), q, rate, msg.header.frame_id)
+                self._flush_pending(force=False)
+
+        self._subs.append(self.create_subscription(Imu, topic, on_imu, self._raw_qos))
+
+    def _flush_pending(self, force: bool) -> None:
+        """Collect the sets waiting for the IMU whose sample after them arrived or that waited long enough
+        (all of them with ``force``); a set without an IMU sample near it is not collected. Lock held."""
+        imu, pending = self._imu, self._pending
+        while pending and (force or imu.ready(pending[0][0], self._newest_set)):
+            stamp, values, currents, temperatures = pending.popleft()
+            q, w, fresh = imu.at(stamp)
+            if self._imu_health.count([fresh]):
+                self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
 
     def _disconnect(self) -> None:
         for s in self._subs:
@@ -404,13 +479,24 @@ class CalibrationNode(Node):
                         currents, fresh = self._currents.at(synced.stamp)
                         if not self._current_health.count(fresh):
                             continue  # a set without a fresh current of every channel is not collected
-                    self._buffer.add(synced.stamp, synced.values, currents)
+                    temperatures = None
+                    if any(self._temperatures.received):  # once heard, every set needs them
+                        temperatures, fresh = self._temperatures.at(synced.stamp)
+                        if not self._temperature_health.count(fresh):
+                            continue
+                    self._newest_set = max(self._newest_set, synced.stamp)
+                    if self._imu.received:  # wait for the IMU's sample after the set
+                        self._pending.append((synced.stamp, synced.values, currents, temperatures))
+                        self._flush_pending(force=False)
+                    else:
+                        self._buffer.add(synced.stamp, synced.values, currents, temperatures)
 
         return callback
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             self._buffer.clear()
+            self._pending.clear()
             self._collecting = True
             self._generation += 1
         response.success = True
@@ -425,6 +511,7 @@ class CalibrationNode(Node):
         with self._lock:
             dropped = len(self._buffer)
             self._buffer.clear()
+            self._pending.clear()
             self._collecting = False
             self._generation += 1
         response.success = True
@@ -485,6 +572,7 @@ class CalibrationNode(Node):
     def _publish_progress(self) -> None:
         now = common.now_ns(self)
         with self._lock:
+            self._flush_pending(force=False)
             _, raw = self._buffer.snapshot()
             collecting, offered, capacity = self._collecting, self._buffer.offered, self._buffer.capacity
             stats = self._sync.stats.as_dict()
@@ -493,8 +581,15 @@ class CalibrationNode(Node):
             store = self._currents
             stale, current_values = self._current_health.assess(
                 store.received, [store.latest(j) for j in range(store.channels)], "not collected")
+            temps = self._temperatures
+            stale_t, temperature_values = self._temperature_health.assess(
+                temps.received, [temps.latest(j) for j in range(temps.channels)], "not collected")
+            stale_i, imu_values = self._imu_health.assess([self._imu.received], [None], "not collected")
+            stale = "; ".join(x for x in (stale, stale_t, stale_i) if x) or None
             health = self._health.assess(now, stats, "complete sets", stale)
             health.values.update(current_values)
+            health.values.update(temperature_values)
+            health.values.update(imu_values)
             latest = self._assessment if self._assessment and self._assessment[0] == self._generation else None
         self._drops.update(stats, f"{stats['sets']} complete sets")
         for line in health.notices:
@@ -596,10 +691,17 @@ class CalibrationNode(Node):
         if self._stopping.is_set():
             raise Stopping()
 
-    def _fingerprint(self, raw: np.ndarray, currents: np.ndarray, geo: ArrayGeometry, settings: tuple[Any, ...]) -> str:
-        """Identifies a calibration: the collected sets and currents, geometry, settings and where it goes."""
+    def _fingerprint(self, raw: np.ndarray, currents: np.ndarray, geo: ArrayGeometry, settings: tuple[Any, ...],
+                     collected: Recording | None = None) -> str:
+        """Identifies a calibration: the collected sets, currents, temperatures and IMU, geometry, settings and
+        where it goes."""
         h = hashlib.sha256(np.ascontiguousarray(raw).tobytes())
         h.update(np.ascontiguousarray(currents).tobytes())
+        if collected is not None and collected.temperatures is not None:
+            h.update(np.ascontiguousarray(collected.temperatures).tobytes())
+        if collected is not None and collected.imu is not None:
+            h.update(np.ascontiguousarray(collected.imu.orientation).tobytes())
+            h.update(np.ascontiguousarray(collected.imu.angular_velocity).tobytes())
         where = (self._target_name(), self._calibration_path())
         h.update(repr((geo.names, geo.positions.tolist(), settings, where)).encode())
         return h.hexdigest()
@@ -627,10 +729,18 @@ class CalibrationNode(Node):
         prior = calfile.read(path, self._target_name().lstrip("/"))
         return prior, f"the calibration file {path}"
 
+    def _collected(self) -> tuple[Recording, list[str]]:
+        """The collected sets with their currents, temperatures and IMU (lock held)."""
+        self._flush_pending(force=True)
+        stamps, raw, currents, temperatures, imu = self._buffer.collected()
+        return collected_recording(self._geometry.names, self._inputs.channels, stamps, raw, currents, temperatures,
+                                   imu, self._imu.frame_id)
+
     def _calibrate(self) -> tuple[bool, str]:
         with self._lock:
-            stamps, raw, currents = self._buffer.snapshot_all()
+            collected, collect_notes = self._collected()
             geo, inputs = self._geometry, self._inputs
+        stamps, raw, currents = collected.stamps, collected.vectors, collected.currents
         channels = inputs.channels
         if len(raw) == 0:
             return self._fail("no synchronized sets collected" + ("" if self._collecting else " (not collecting)")
@@ -643,7 +753,7 @@ class CalibrationNode(Node):
         residual = float(self.get_parameter("max_residual").value) or None
         setting = str(self.get_parameter("prior").value).strip()
         settings = (method, reference, residual, setting, channels)
-        fingerprint = self._fingerprint(raw, currents, geo, settings)
+        fingerprint = self._fingerprint(raw, currents, geo, settings, collected)
         if self._last_solved is not None and self._last_solved[0] == fingerprint:
             message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
                        f"so nothing was solved, applied or written again; call ~/start to collect new sets "
@@ -677,6 +787,7 @@ class CalibrationNode(Node):
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
             params[name].setdefault("time_offset", 0.0)  # and any time offset
+        params.update(_neutral_terms(params, cal.geometry.names))  # nor temperature terms or a rotation
         keep = int(self.get_parameter("backups").value)
         staged = calfile.replace(path, cal, self._target_name(), keep) if path else contextlib.nullcontext()
         try:
@@ -703,12 +814,13 @@ class CalibrationNode(Node):
         with self._lock:
             self._collecting = False
             self._generation += 1
-        message = self._success_message(result, path, prior_note, site)
+        message = self._success_message(result, path, prior_note, site, collect_notes)
         self._last_solved = (fingerprint, message)
         self.get_logger().info(message)
         return True, message
 
-    def _success_message(self, result: CalibrationResult, path: str, prior_note: str, site: SiteField | None) -> str:
+    def _success_message(self, result: CalibrationResult, path: str, prior_note: str, site: SiteField | None,
+                         notes: Sequence[str] = ()) -> str:
         where = f"applied to {self._target_name()}" + (f", written {path}" if path else ", no file written")
         parts = [result.summary()]
         if not int(result.outliers.sum()):
@@ -720,7 +832,7 @@ class CalibrationNode(Node):
         if result.calibration.channels:
             parts.append(f"interference of {', '.join(result.calibration.channels)} solved")
         parts.extend(w for w in result.warnings if not w.startswith(result.envelope.describe()))  # said already
-        return "; ".join(parts + [where])
+        return "; ".join(parts + list(notes) + [where])
 
     def _fail(self, message: str) -> tuple[bool, str]:
         self.get_logger().warn(message)
@@ -776,8 +888,10 @@ class CalibrationNode(Node):
     @staticmethod
     def _wanted(names: Sequence[str]) -> list[str]:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
-        per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference")]
-        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3]] + per_sensor
+        per_sensor = [f"{n}.{s}" for n in names
+                      for s in ("matrix", "offset", "covariance", "interference", *common.TEMPERATURE_SUFFIXES)]
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], *common.CALIBRATION_FRAME_PARAMETERS,
+                "frame_id"] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
         """ParameterValue messages of the correction node's parameters ``names`` that are set.
@@ -803,6 +917,10 @@ class CalibrationNode(Node):
         for name in common.INTERFERENCE_PARAMETERS[:3]:  # none before: none again on restore
             if name not in found:
                 out.append(common.parameter_message(name, []))
+        neutral = _neutral_terms({}, names)  # no temperature terms or rotation before: none again
+        for name, value in common.flatten_parameters(neutral).items():
+            if name not in found:
+                out.append(common.parameter_message(name, value))
         return out
 
     def _target_values(self, names: Sequence[str]) -> dict[str, Any]:
@@ -827,6 +945,20 @@ def _unset(param: Parameter) -> bool:
     if param.type_ == Parameter.Type.NOT_SET:
         return True
     return param.type_.name.endswith("_ARRAY") and len(param.value) == 0
+
+
+def _neutral_terms(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any]:
+    """Zero temperature terms and an identity output rotation where ``params`` (nested) has none: pushed with a
+    calibration, so terms of an earlier one never outlive it on the correction node."""
+    out: dict[str, Any] = {}
+    for name in names:
+        block = dict(params.get(name) or {})
+        block.setdefault("offset_per_kelvin", [0.0] * 3)
+        block.setdefault("matrix_per_kelvin", [0.0] * 9)
+        out[name] = block
+    if "output_rotation" not in params:
+        out["output_rotation"] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    return out
 
 
 def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:

@@ -24,6 +24,8 @@ from magcal_ros.core.interference import (
     LatestCurrents,
     tolerance_of,
 )
+from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 from magcal_ros.core.units import MAX_READING, NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes.entry import quiet_signals
@@ -442,6 +444,48 @@ def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, 
     return subs
 
 
+# -- the sensors' temperatures and the output frame (both nodes) -----------------------------------
+TEMPERATURE = "sensor_msgs/msg/Temperature"
+TEMPERATURE_SUFFIXES: tuple[str, ...] = ("offset_per_kelvin", "matrix_per_kelvin")
+"""Per-sensor temperature terms of a calibration (``<name>.offset_per_kelvin``: 3 T/K, ``<name>.matrix_per_kelvin``:
+9 1/K row-major)."""
+CALIBRATION_FRAME_PARAMETERS: tuple[str, ...] = ("temperature_reference", "output_rotation")
+"""Array-wide calibration parameters of the temperature terms and the output frame."""
+
+
+def declare_temperature_tolerance(node: Any) -> None:
+    """Declare ``temperature_tolerance`` (s): how old a sensor's latest temperature may be at a set."""
+    node.declare_parameter(
+        "temperature_tolerance", DEFAULT_TEMPERATURE_TOLERANCE,
+        describe("a sensor's latest temperature (<name>/temperature) stamped more than this (s) before a set is "
+                 "stale: the set is not used (temperatures change slowly; their sensors publish at 0.1-10 Hz)",
+                 numbers=True, floats=(0.0, 3600.0)))
+
+
+def temperature_tolerance_ns(value: Any) -> int:
+    """``temperature_tolerance`` (s) as ns; :class:`InputError` unless a positive number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise InputError(f"temperature_tolerance must be a positive number of seconds, got {value!r}")
+    return tolerance_of(float(value), "temperature")
+
+
+def subscribe_temperatures(node: Any, names: Sequence[str], store: LatestValues, qos: QoSProfile,
+                           clock: Callable[[], int]) -> list[Any]:
+    """Subscribe ``<name>/temperature`` (sensor_msgs/Temperature, deg C) of every sensor, feeding ``store``
+    (stream ``i`` = sensor ``i``) at the header stamp, or at ``clock()`` ns on receipt when that is zero."""
+    from sensor_msgs.msg import Temperature
+
+    from magcal_ros.io import topics
+
+    subs = []
+    for i, name in enumerate(names):
+        def on_temperature(msg: Any, i: int = i) -> None:
+            store.add(i, stamp_ns(msg.header.stamp) or clock(), float(msg.temperature))
+
+        subs.append(node.create_subscription(Temperature, topics.temperature(name), on_temperature, qos))
+    return subs
+
+
 def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tuple[Any, str]:
     """The calibration a correction node runs for ``geometry``'s sensors, from its parameter values
     (Python values by dotted name, unset ones absent), or ``(None, why not)``.
@@ -469,6 +513,14 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
         params[n] = {"matrix": list(values[f"{n}.matrix"]), "offset": list(values[f"{n}.offset"])}
         if channels and f"{n}.interference" in values:
             params[n]["interference"] = list(values[f"{n}.interference"])
+        for suffix in TEMPERATURE_SUFFIXES:  # temperature terms and output frame, when it runs them
+            if f"{n}.{suffix}" in values:
+                params[n][suffix] = list(values[f"{n}.{suffix}"])
+    for key in CALIBRATION_FRAME_PARAMETERS:
+        if key in values:
+            params[key] = values[key]
+    if "output_rotation" in values and "frame_id" in values:  # the frame the running calibration outputs in
+        params["frame_id"] = values["frame_id"]
     try:
         return ArrayCalibration.from_parameters(params), ""
     except InputError as exc:

@@ -30,6 +30,15 @@ BatteryState or Float64), keeps the values of the last seconds and subtracts
 a current of every channel is not published (counted per channel as ``stale_current``,
 a WARN on ``/diagnostics`` naming the channel), never corrected with a stale current.
 
+Temperature: a calibration with temperature terms (``temperature_reference``,
+``<name>.offset_per_kelvin``, ``<name>.matrix_per_kelvin``) makes the node subscribe every
+``<name>/temperature`` (sensor_msgs/Temperature, deg C) and correct each set with each
+sensor's latest temperature stamped at most ``temperature_tolerance`` before it; a set
+without one is withheld like a set without a current (``<name>.stale_temperature``). Without
+temperature terms nothing is subscribed and no set waits for a temperature. An
+``output_rotation`` turns every output into the calibration's frame (``frame_id``, e.g. the
+IMU's).
+
 A sensor whose matrix and offset were never given (params file, ``-p`` or a parameter
 update) is not calibrated: the node warns, naming it, and publishes neither ``field`` nor
 the tensor (nor that sensor's corrected vector) until it is, unless the sensor is listed
@@ -72,6 +81,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.interference import LatestCurrents
+from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
@@ -79,17 +89,20 @@ from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
 from magcal_ros.nodes import common
-from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
     "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
-    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS,
+    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
+    "temperature_tolerance",
 )
-SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset")
-ARRAY_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
+SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset",
+                                    *common.TEMPERATURE_SUFFIXES)
+ARRAY_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", *common.TEMPERATURE_SUFFIXES)
 """Per-sensor parameters that are lists of numbers (``time_offset`` is one number)."""
-NUMERIC_PARAMETERS: frozenset[str] = frozenset({"positions", "sync_tolerance", "current_tolerance", "max_gap"})
+NUMERIC_PARAMETERS: frozenset[str] = frozenset({"positions", "sync_tolerance", "current_tolerance", "max_gap",
+                                                "temperature_reference", "output_rotation", "temperature_tolerance"})
 """Parameters that hold numbers besides the per-sensor ones (text that reads as numbers is taken as them)."""
 GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
     "tensor": (topics.GRADIENT, topics.GRADIENT_STAMPED), "baseline": (topics.BASELINE_GRADIENT,), "none": (),
@@ -116,10 +129,17 @@ class CorrectionState:
     """The interference channels' current topics (the calibration's ``channels``)."""
     sync_mode: str = sync.DEFAULT_SYNC_MODE
     max_gap_ns: int = 0
+    temperature_tolerance_ns: int = 0
+    """Largest age of a sensor's temperature at a set (used when the calibration has temperature terms)."""
 
     def sync_settings(self) -> tuple[Any, ...]:
         """What the set synchroniser is built from (a change rebuilds it)."""
         return (self.names, self.sync_mode, self.max_gap_ns, tuple(self.calibration.time_offsets.tolist()))  # type: ignore[union-attr]
+
+    @property
+    def temperatures(self) -> bool:
+        """True when every set needs the sensors' temperatures (the calibration has temperature terms)."""
+        return self.calibration.has_temperature_terms
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -190,6 +210,12 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
                                  f"is not: give 3 x {len(currents.channels)} numbers (row-major, T/A) for every sensor")
             if gains is not None:
                 params[name]["interference"] = list(gains)
+        for suffix in common.TEMPERATURE_SUFFIXES:
+            if values.get(f"{name}.{suffix}") is not None:
+                params[name][suffix] = list(values[f"{name}.{suffix}"])
+    for key in common.CALIBRATION_FRAME_PARAMETERS:
+        params[key] = values.get(key)
+    temperature_tolerance = common.temperature_tolerance_ns(values.get("temperature_tolerance"))
     cal = ArrayCalibration.from_parameters(params)
     missing = tuple(
         n for n in geo.names
@@ -210,7 +236,8 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         lagging = ", ".join(f"{n}.time_offset" for n, t in zip(geo.names, cal.time_offsets) if t)  # type: ignore[arg-type]
         verb = "needs" if lagging.count(",") == 0 else "need"
         raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
-    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, mode, gap)
+    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, mode, gap,
+                           temperature_tolerance)
 
 
 def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
@@ -263,6 +290,7 @@ class CorrectionNode(Node):
         self._corrected_msgs: list[MagneticField] = []
         self._gradient_pubs: dict[str, Any] = {}
         self._current_subs: list[Any] = []
+        self._temperature_subs: list[Any] = []
         self._msg_state: CorrectionState | None = None
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
@@ -284,6 +312,7 @@ class CorrectionNode(Node):
         self._gradient_outputs(self._state.gradient_kind)
         self._connect_currents(self._state.currents)
         self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
+        self._connect_temperatures(self._state)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
@@ -331,13 +360,41 @@ class CorrectionNode(Node):
                   "interpolate or auto)", constraints=f"finite, |t| <= {sync.MAX_TIME_OFFSET:g}", numbers=True,
                   floats=(-sync.MAX_TIME_OFFSET, sync.MAX_TIME_OFFSET)),
             )
+            common.declare_list(
+                self, f"{name}.offset_per_kelvin", Parameter.Type.DOUBLE_ARRAY,
+                d(f"offset temperature coefficient of {name}, 3 numbers (T/K, sensor axes): the offset at temperature T "
+                  "is offset + (T - temperature_reference) offset_per_kelvin; [] = 0",
+                  constraints="finite, |value| <= 1e-6 T/K", numbers=True),
+            )
+            common.declare_list(
+                self, f"{name}.matrix_per_kelvin", Parameter.Type.DOUBLE_ARRAY,
+                d(f"matrix temperature coefficient of {name}, 9 numbers row-major (1/K): the matrix at temperature T is "
+                  "matrix + (T - temperature_reference) matrix_per_kelvin; [] = 0",
+                  constraints="finite, |value| <= 1e-2 per K", numbers=True),
+            )
+        common.declare_list(
+            self, "temperature_reference", Parameter.Type.DOUBLE_ARRAY,
+            d("temperature (deg C) at which matrix and offset hold; with non-zero <name>.offset_per_kelvin or "
+              "<name>.matrix_per_kelvin the node subscribes <name>/temperature (sensor_msgs/Temperature) and corrects "
+              "every set for each sensor's temperature; [] = no temperature terms",
+              constraints="-60 .. 150 deg C, or [] for none", numbers=True),
+        )
+        common.declare_temperature_tolerance(self)
+        common.declare_list(
+            self, "output_rotation", Parameter.Type.DOUBLE_ARRAY,
+            d("rotation from the array frame to the output frame (frame_id; e.g. the IMU's), 9 numbers row-major: "
+              "vectors and field R v, tensor R G R^T, baseline gradient R g; [] = identity",
+              constraints="a rotation matrix (orthonormal, determinant +1), or []", numbers=True),
+        )
         common.declare_list(
             self, "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
             d("sensors used without a calibration on purpose (raw readings); any other sensor without "
               "matrix and offset stops field and gradient output; [] = none"),
         )
         common.declare_currents(self)
-        self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID, d("frame of all outputs (platform frame)"))
+        self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID,
+                               d("frame of all outputs: the platform (array) frame, or the frame output_rotation "
+                                 "turns them into (a calibration file made with an IMU sets it to the IMU's)"))
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
             d("exact matching: largest spread (s) of header stamps within one synchronized set; capped at half "
@@ -386,15 +443,16 @@ class CorrectionNode(Node):
                 return SetParametersResult(
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
-                    f"<name>.offset, <name>.covariance, <name>.interference and <name>.time_offset for a name "
-                    f"in sensor_names (ros2 param load also offers a calibration file's magcal_provenance block, "
-                    f"which is not for this node: ignored)",
+                    f"<name>.offset, <name>.covariance, <name>.interference, <name>.time_offset, "
+                    f"<name>.offset_per_kelvin and <name>.matrix_per_kelvin for a name in sensor_names (ros2 param "
+                    f"load also offers a calibration file's magcal_provenance block, which is not for this node: "
+                    f"ignored)",
                 )
             if known and p.name.endswith(".time_offset") and p.type_ not in (Parameter.Type.DOUBLE,
                                                                              Parameter.Type.INTEGER):
                 return SetParametersResult(successful=False,
                                            reason=f"{p.name} must be a number of seconds, got {p.type_.name.lower()}")
-            if known and (p.name == "positions" or p.name.rpartition(".")[2] in ARRAY_SUFFIXES):
+            if known and (p.name in ("positions", "output_rotation") or p.name.rpartition(".")[2] in ARRAY_SUFFIXES):
                 why = common.check_number_array(p)
                 if why:
                     return SetParametersResult(successful=False, reason=why)
@@ -439,6 +497,9 @@ class CorrectionNode(Node):
         elif new.currents.tolerance_ns != old.currents.tolerance_ns:
             self._currents.tolerance_ns = new.currents.tolerance_ns
             self._current_health.tolerance_ns = new.currents.tolerance_ns
+        if (new.names, new.temperatures, new.temperature_tolerance_ns) != \
+                (old.names, old.temperatures, old.temperature_tolerance_ns):
+            self._connect_temperatures(new)
         self.get_logger().info(
             f"parameters updated ({', '.join(p.name for p in params)}): {self._describe(new)}"
             + (f"; now publishing {self._outputs_text(new)}" if new.gradient_kind != old.gradient_kind else "")
@@ -467,6 +528,12 @@ class CorrectionNode(Node):
         if state.currents.channels:
             parts.append("subtracting current interference of " + ", ".join(
                 f"{c} ({t}, {k.rsplit('/', 1)[-1]})" for c, t, k in state.currents.sources()))
+        cal = state.calibration
+        if state.temperatures:
+            parts.append(f"correcting for temperature about {cal.temperature_reference:g} deg C "
+                         f"(<name>/temperature within {state.temperature_tolerance_ns / 1e9:g} s)")
+        if cal.rotated:
+            parts.append(f"outputs turned by output_rotation into {state.frame_id}")
         return "; ".join(parts)
 
     def _warn_missing(self, state: CorrectionState) -> None:
@@ -549,6 +616,18 @@ class CorrectionNode(Node):
         self._current_subs = common.subscribe_currents(self, inputs, self._currents, self._raw_qos,
                                                        lambda: self._now())
 
+    def _connect_temperatures(self, state: CorrectionState) -> None:
+        """Subscribe every ``<name>/temperature`` afresh when the calibration has temperature terms (else none)."""
+        for s in self._temperature_subs:
+            self.destroy_subscription(s)
+        names = state.names if state.temperatures else ()
+        self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns,
+                                          keep_ns=max(2 * state.temperature_tolerance_ns, 2 * 10**9))
+        self._temperature_health = TemperatureHealth(
+            names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in names), state.temperature_tolerance_ns)
+        self._temperature_subs = common.subscribe_temperatures(self, names, self._temperatures, self._raw_qos,
+                                                               lambda: self._now())
+
     def _raw_callback(self, index: int) -> Any:
         decode, publish = decode_magnetic_field, self._publish
 
@@ -576,15 +655,21 @@ class CorrectionNode(Node):
         state = self._state
         if state is not self._msg_state:
             self._apply_covariances(state)
-        currents = None
+        currents = temperatures = None
+        stale = False
         if state.currents.channels:
             values, fresh = self._currents.at(synced.stamp)
-            if not self._current_health.count(fresh):
-                self._withheld += 1  # never corrected with a stale current
-                return
+            stale = not self._current_health.count(fresh)
             currents = np.array([values])
+        if state.temperatures:
+            celsius, fresh = self._temperatures.at(synced.stamp)
+            stale = not self._temperature_health.count(fresh) or stale
+            temperatures = np.array([celsius])
+        if stale:
+            self._withheld += 1  # never corrected with a stale current or temperature
+            return
         raw = np.array(synced.values, dtype=float).reshape(1, -1, 3)
-        out = state.calibration.outputs(raw, state.gradient_method, currents)
+        out = state.calibration.outputs(raw, state.gradient_method, currents, temperatures)
         frame = state.frame_id
         missing = state.missing
         for name, msg, pub, stamp, v in zip(state.names, self._corrected_msgs, self._corrected_pubs, synced.stamps,
@@ -648,8 +733,14 @@ class CorrectionNode(Node):
             store.received, [store.latest(j) for j in range(store.channels)], "withheld")
         if stale:
             extras.append(stale)
+        temps = self._temperatures
+        stale, temperature_values = self._temperature_health.assess(
+            temps.received, [temps.latest(j) for j in range(temps.channels)], "withheld")
+        if stale:
+            extras.append(stale)
         assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)
         assessment.values.update(current_values)
+        assessment.values.update(temperature_values)
         for line in assessment.notices:
             self.get_logger().warn(line)
         ages, self._ages = self._ages, []

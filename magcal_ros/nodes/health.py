@@ -173,20 +173,32 @@ class ArrayHealth:
         return Assessment(level, message, values, [line] if line else [])
 
 
-class CurrentHealth:
-    """Sets met without a fresh current, per interference channel (see
-    :class:`~magcal_ros.core.interference.LatestCurrents`): counted, shown as
-    ``<channel>.stale_current`` and a WARN naming the channel in the period it happens."""
+def _duration(ns: int) -> str:
+    """``500 ms`` below a second, ``10 s`` from a second on."""
+    return f"{_ms(ns)} ms" if ns < NS_PER_S else f"{ns / NS_PER_S:.3g} s"
 
-    def __init__(self, channels: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
-        self.channels = channels
+
+class StreamHealth:
+    """Sets met without a fresh value of a side stream (a current channel, a sensor's temperature, the
+    IMU; see :mod:`magcal_ros.core.matching`): counted per stream, shown as ``<name>.stale_<noun>``
+    and a WARN naming the stream and its topic in the period it happens."""
+
+    NOUN = "value"
+    """What the stream carries, in keys and messages."""
+    UNIT = ""
+    """Suffix of the key of the newest value (``<name>.<noun>_<unit>``); empty: no such key."""
+    STALE_KEY = "{name}.stale_{noun}"
+    RECEIVED_KEY = "{name}.{noun}_received"
+
+    def __init__(self, names: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
+        self.channels = names
         self.topics = topics
         self.tolerance_ns = tolerance_ns
-        self.stale = [0] * len(channels)
-        self._reported = [0] * len(channels)
+        self.stale = [0] * len(names)
+        self._reported = [0] * len(names)
 
     def count(self, fresh: list[bool]) -> bool:
-        """Count one set (``fresh`` per channel); True when every channel is fresh."""
+        """Count one set (``fresh`` per stream); True when every stream is fresh."""
         ok = True
         for j, f in enumerate(fresh):
             if not f:
@@ -195,16 +207,18 @@ class CurrentHealth:
         return ok
 
     def assess(self, received: list[int], latest: list[float | None], what: str) -> tuple[str | None, dict[str, str]]:
-        """(WARN text naming the channels that were stale since the last call, or None; values).
+        """(WARN text naming the streams that were stale since the last call, or None; values).
 
-        ``received``: values received per channel; ``latest``: newest value (A) or None;
+        ``received``: values received per stream; ``latest``: newest value or None;
         ``what``: what happened to such sets (``withheld``, ``not collected``)."""
         values: dict[str, str] = {}
         late = []
+        noun = self.NOUN
         for j, name in enumerate(self.channels):
-            values[f"{name}.stale_current"] = str(self.stale[j])
-            values[f"{name}.current_received"] = str(received[j])
-            values[f"{name}.current_A"] = "" if latest[j] is None else f"{latest[j]:.6g}"
+            values[self.STALE_KEY.format(name=name, noun=noun)] = str(self.stale[j])
+            values[self.RECEIVED_KEY.format(name=name, noun=noun)] = str(received[j])
+            if self.UNIT:
+                values[f"{name}.{noun}_{self.UNIT}"] = "" if latest[j] is None else f"{latest[j]:.6g}"
             new = self.stale[j] - self._reported[j]
             if new:
                 never = " (none received yet)" if not received[j] else ""
@@ -212,5 +226,32 @@ class CurrentHealth:
         self._reported = list(self.stale)
         if not late:
             return None, values
-        return (f"stale current (no value within {_ms(self.tolerance_ns)} ms before the set), sets {what}: "
+        return (f"stale {noun} (no value within {_duration(self.tolerance_ns)} before the set), sets {what}: "
                 + ", ".join(late)), values
+
+
+class CurrentHealth(StreamHealth):
+    """Sets met without a fresh current, per interference channel (see
+    :class:`~magcal_ros.core.interference.LatestCurrents`): counted, shown as
+    ``<channel>.stale_current`` (``current_received``, ``current_A``) and a WARN naming the channel
+    in the period it happens."""
+
+    NOUN = "current"
+    UNIT = "A"
+
+
+class TemperatureHealth(StreamHealth):
+    """Sets met without a fresh temperature, per sensor: ``<name>.stale_temperature``
+    (``temperature_received``, ``temperature_C``) and a WARN naming the sensor and its topic."""
+
+    NOUN = "temperature"
+    UNIT = "C"
+
+
+class ImuHealth(StreamHealth):
+    """Sets met without an IMU sample (the stream named ``imu``): ``imu.stale``, ``imu.received`` and a WARN
+    naming the topic."""
+
+    NOUN = "IMU"
+    STALE_KEY = "{name}.stale"
+    RECEIVED_KEY = "{name}.received"

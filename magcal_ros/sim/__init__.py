@@ -10,6 +10,8 @@ __all__, __getattr__ = lazy_exports(
     __name__,
     {
         "ArraySimulation": "magcal_ros.sim.simulator",
+        "AttitudePath": "magcal_ros.sim.attitudes",
+        "ImuModel": "magcal_ros.sim.imu",
         "SimulationSpec": "magcal_ros.sim.spec",
         "StreamSpec": "magcal_ros.sim.streams",
         "Thruster": "magcal_ros.sim.simulator",
@@ -17,5 +19,7 @@ __all__, __getattr__ = lazy_exports(
         "random_sensor_errors": "magcal_ros.sim.simulator",
         "run": "magcal_ros.sim.spec",
         "simulate_streams": "magcal_ros.sim.streams",
+        "simulate_imu": "magcal_ros.sim.imu",
+        "temperature_profile": "magcal_ros.sim.temperature",
     },
 )
