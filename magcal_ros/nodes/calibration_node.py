@@ -757,8 +757,8 @@ class CalibrationNode(Node):
     @staticmethod
     def _wanted(names: Sequence[str]) -> list[str]:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
-        per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference")]
-        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3]] + per_sensor
+        per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference", "noise")]
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], "calibration_intensity"] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
         """ParameterValue messages of the correction node's parameters ``names`` that are set.

@@ -140,11 +140,15 @@ class ArraySimulation:
                 n[k] = rho * n[k - 1] + scale * n[k]
         return n
 
-    def platform_field(self, attitudes: ArrayLike) -> tuple[Array, Array, Array]:
-        """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient."""
+    def platform_field(self, attitudes: ArrayLike, track: ArrayLike | None = None) -> tuple[Array, Array, Array]:
+        """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient.
+
+        ``track`` (N, 3) m, world frame: the platform's position at each set (a vehicle passing
+        the dipoles); default :attr:`position` throughout."""
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
-        world_pos = self.position + np.einsum("nij,sj->nsi", rot, self.geometry.positions)
-        centre_pos = self.position + rot @ self.geometry.centre
+        where = self.position if track is None else np.asarray(track, dtype=float).reshape(len(rot), 1, 3)
+        world_pos = where + np.einsum("nij,sj->nsi", rot, self.geometry.positions)
+        centre_pos = (where[:, 0] if track is not None else where) + rot @ self.geometry.centre
         b_world = np.broadcast_to(self.earth, world_pos.shape).copy()
         c_world = np.broadcast_to(self.earth, centre_pos.shape).copy()
         g_world = np.zeros((len(rot), 3, 3))
@@ -164,12 +168,14 @@ class ArraySimulation:
         rate: float = 10.0,
         start: float = 0.0,
         currents: ArrayLike | None = None,
+        track: ArrayLike | None = None,
     ) -> tuple[Recording, Truth]:
         """Raw recording and truth for the given attitudes, ``rate`` sets per second from ``start`` (s).
 
         Stamps are integer nanoseconds (``start`` rounded to the nanosecond, then ``k / rate``).
         ``currents`` (N, m) A of the thrusters at each set (default: all off); the recording
-        carries them as its channels.
+        carries them as its channels. ``track`` (N, 3) m: the platform's world position at each
+        set (see :meth:`platform_field`).
         """
         gen = np.random.default_rng(rng)
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
@@ -177,7 +183,7 @@ class ArraySimulation:
         u = np.zeros((len(rot), m)) if currents is None else np.asarray(currents, dtype=float)
         if u.shape != (len(rot), m) or not np.all(np.isfinite(u)):
             raise InputError(f"need finite currents (A) of shape ({len(rot)}, {m}), got {u.shape}")
-        b, c, g = self.platform_field(rot)
+        b, c, g = self.platform_field(rot, track)
         seen = b + np.einsum("sac,nc->nsa", self.interference(), u)  # the platform's own field added
         raw = np.empty_like(b)
         for i, s in enumerate(self.sensors):
