@@ -70,6 +70,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.tensor import least_squares_operator
 from magcal_ros.core.units import NS_PER_S, NT
 
@@ -429,6 +430,7 @@ class CalibrationHealth:
                 "error_factor": f"{th.error_factor:g}", "false_alarm": f"{th.false_alarm:g}"}
         span_s = (b.index[-1] - b.index[0] + 1) * self._block_ns / NS_PER_S if len(b) else 0.0
         base["window_s"] = f"{span_s:.0f}"
+        base["newest_stamp"] = format_seconds(self._last_stamp) if self._last_stamp else ""
         if len(b) < MIN_BLOCKS:
             need = MIN_BLOCKS * self._block_ns / NS_PER_S
             return DriftReport(OK, f"collecting: {span_s:.0f} s of sets, {need:.0f} s needed to judge the calibration",

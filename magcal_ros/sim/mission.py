@@ -80,11 +80,13 @@ def mission(
     step: ArraySimulation | None = None,
     step_at: float = 0.0,
     start: float = 0.0,
+    currents: Array | None = None,
 ) -> tuple[Recording, Truth]:
     """Simulate the legs (raw recording and truth, as :meth:`ArraySimulation.run`).
 
     ``targets`` are added to ``sim``'s dipoles; from ``step_at`` s on the readings are those of
-    ``step`` (the array after its hard iron moved), when given. Stamps from ``start`` s.
+    ``step`` (the array after its hard iron moved), when given. Stamps from ``start`` s;
+    ``currents`` (N, m) A of the thrusters at each set (default: off).
     """
     rot = mission_attitudes(legs, rate, wobble_deg, rng, float(rng.uniform(0.0, 360.0)))
     n = len(rot)
@@ -93,10 +95,11 @@ def mission(
     dipoles = tuple(Dipole(np.array([speed * g.seconds, 0.0, g.distance]), np.asarray(g.moment, dtype=float))
                     for g in targets)
     before = replace(sim, dipoles=sim.dipoles + dipoles)
-    rec, truth = before.run(rot, rng, rate=rate, start=start, track=track)
+    rec, truth = before.run(rot, rng, rate=rate, start=start, currents=currents, track=track)
     if step is None:
         return rec, truth
     k = int(round(step_at * rate))
-    after_rec, _ = replace(step, dipoles=step.dipoles + dipoles).run(rot, rng, rate=rate, start=start, track=track)
+    after_rec, _ = replace(step, dipoles=step.dipoles + dipoles).run(rot, rng, rate=rate, start=start,
+                                                                     currents=currents, track=track)
     vectors = np.concatenate([rec.vectors[:k], after_rec.vectors[k:]])
     return Recording(rec.names, rec.stamps, vectors, rec.channels, rec.currents), truth
