@@ -340,6 +340,7 @@ class CalibrationHealth:
         self._last_tmi: Array | None = None
         self._last_stamp = 0
         self._report: DriftReport | None = None
+        self._judged: tuple[int, int] | None = None
         self.sets = 0
         """Sets taken since the last reset."""
 
@@ -365,6 +366,7 @@ class CalibrationHealth:
         self._last_tmi = None
         self._last_stamp = 0
         self._report = None
+        self._judged = None
         self.sets = 0
 
     def _digest(self) -> None:
@@ -423,6 +425,10 @@ class CalibrationHealth:
         """Judge the window as it stands (see the module docstring)."""
         self._digest()
         b = self._blocks
+        key = (b.index[-1], len(b)) if len(b) else None
+        if self._report is not None and key is not None and key == self._judged:
+            return self._report  # no block closed since: the same judgement
+        self._judged = key
         names = self.geometry.names
         th = self.thresholds
         in_window = int(sum(b.count))
