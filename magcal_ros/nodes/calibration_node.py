@@ -42,6 +42,14 @@ next, in words) and ``prior``. ``/diagnostics`` (DiagnosticArray, same period): 
 health of the raw streams (silent or late sensors, drops, sets lost before the node, no
 complete set for ``output_timeout``, stale currents), as the correction node reports it.
 
+Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the node keeps a
+rolling window of the mission's sets and watches the correction node's calibration health on
+``/diagnostics``. When it names a drift, with ``auto_recalibrate`` the sets flown since
+(``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
+(what changed determined, the held-out sets fitted) and pushed and saved, at most once per
+``recalibrate_interval``; without it, ``~/progress`` and the status ``<node>: recalibration``
+say what to fly so that ``~/calibrate`` fixes it.
+
 Usage::
 
     ros2 run magcal_ros calibration_node --ros-args -p reference_field:=5.15e-5

@@ -44,6 +44,12 @@ published for want of a calibration), ``pending``, ``sync_window_ms`` and, when 
 published, ``age_ms_p50/p99/max``: node clock at publication minus the set's stamp (a
 latency when the sensors stamp with the same clock; simulated time with use_sim_time).
 
+The calibration health (:mod:`magcal_ros.core.calibration_health`) goes on ``/diagnostics`` as
+its own status, ``<node>: calibration``, in the same array: whether the running calibration
+still fits, judged from the corrected sets over ``health_window`` s against the noise the
+calibration stored (``<name>.noise``, ``calibration_intensity``); WARN or ERROR naming the
+drifted sensors above ``health_warn_factor`` / ``health_error_factor`` times that noise.
+
 Usage::
 
     ros2 run magcal_ros correction_node --ros-args --params-file calibration.yaml
