@@ -86,8 +86,11 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     currents = rng.uniform(0.0, max_current, (count, m)) if m else None
     moved = hard_iron_moved(sim, rng)
     target = replace(TARGET, seconds=target_at)
+    # The mission starts a health window after whatever the correction node saw last (the driver's probe
+    # sets, stamped now, all sensors reading one constant vector): judged by stamps, they are out of it.
+    window = float(driver.get_parameters(correction, ["health_window"]).get("health_window") or 60.0)
     rec, _ = mission(sim, [Leg(seconds, YAW_RATE)], rng, rate=RATE, targets=[target], step=moved, step_at=clean,
-                     start=time.time() + 1.0, currents=currents)
+                     start=time.time() + window + 1.0, currents=currents)
     jump_ns = int(rec.stamps[0]) + int(clean * NS_PER_S)
     say(f"mission: yaw turns at {YAW_RATE:g} deg/s with +-5 deg wobble, {RATE:g} sets/s, replayed at {speed:g}x real "
         f"time; a target ({np.linalg.norm(target.moment):.0f} A m^2, {target.distance:g} m below) passed at "
