@@ -205,3 +205,23 @@ def test_a_restart_of_the_stamps_starts_the_window_again() -> None:
         health.add(stamp, vectors)
     again = health.assess()
     assert not again.sensors and again.message.startswith("collecting")
+
+
+def test_sets_completed_out_of_order_are_put_in_order_not_taken_for_a_restart() -> None:
+    """A synchroniser may complete a set after a later one: the window goes on (no restart), and a set
+    of a block already closed is left out."""
+    sim, rng = array(13)
+    rec, _ = mission(sim, [Leg(40.0, 6.0)], rng, rate=RATE)
+    corrected = sim.true_calibration().apply(rec.vectors)
+    order = np.arange(len(rec))
+    order[1::40], order[2::40] = order[2::40], order[1::40].copy()  # pairs swapped now and then
+    health = CalibrationHealth(sim.geometry, np.full(4, NOISE), INTENSITY)
+    in_order = CalibrationHealth(sim.geometry, np.full(4, NOISE), INTENSITY)
+    for k in range(len(rec)):
+        health.add(int(rec.stamps[order[k]]), corrected[order[k]])
+        in_order.add(int(rec.stamps[k]), corrected[k])
+        if k % 77 == 0:
+            health.assess()  # blocks close between the swapped sets now and then
+    late, straight = health.assess(), in_order.assess()
+    assert late.sensors and int(late.values["window_s"]) >= 39  # not restarted
+    assert abs(int(late.values["sets"]) - int(straight.values["sets"])) <= 5

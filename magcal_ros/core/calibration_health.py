@@ -71,6 +71,7 @@ from scipy import stats
 
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.stamps import format_seconds
+from magcal_ros.core.sync import RESTART_JUMP
 from magcal_ros.core.tensor import least_squares_operator
 from magcal_ros.core.units import NS_PER_S, NT
 
@@ -93,6 +94,8 @@ RIDGE: float = 1e-12
 """Relative ridge of the normal equations (directions the data do not determine stay at 0)."""
 RANK_TOLERANCE: float = 1e-9
 """An eigenvalue of the information below this fraction of its trace is a direction not determined."""
+RESTART_NS: int = int(RESTART_JUMP * NS_PER_S)
+"""Stamps this far behind the newest: the source restarted (the synchroniser's rule)."""
 DEFAULT_WINDOW: float = 60.0
 """Seconds of sets judged at once (default of the correction node's ``health_window``)."""
 DEFAULT_WARN_FACTOR: float = 10.0
@@ -375,14 +378,27 @@ class CalibrationHealth:
         if n == 0:
             return
         stamps = self._stamps[:n]
-        back = np.flatnonzero(np.diff(stamps) < 0)
-        if len(back) or (self._last_stamp and stamps[0] < self._last_stamp):  # the source restarted
-            first = int(back[-1]) + 1 if len(back) else 0
+        # A stamp jumping back as far as the synchroniser's restart: the source restarted, the window starts again.
+        newest = np.maximum.accumulate(np.concatenate([[self._last_stamp], stamps]))[:-1]
+        back = np.flatnonzero(stamps < newest - RESTART_NS)
+        if len(back):
             self._blocks.clear()
             self._last_tmi = None
+            self._last_stamp = 0
             self.sets = 0
-            self._keep(first, n)
+            self._keep(int(back[-1]), n)
             n, stamps = self._n, self._stamps[: self._n]
+        if np.any(np.diff(stamps) < 0):  # sets completed out of order: put them in order
+            order = np.argsort(stamps, kind="stable")
+            self._buf[:n] = self._buf[order]
+            self._stamps[:n] = stamps[order]
+        closed = self._last_stamp // self._block_ns if self._last_stamp else None
+        late = int(np.searchsorted(stamps // self._block_ns, closed, side="right")) if closed is not None else 0
+        if late:  # sets of a block already closed: too late to count
+            self._keep(late, n)
+            n, stamps = self._n, self._stamps[: self._n]
+            if n == 0:
+                return
         blocks = stamps // self._block_ns
         done = int(np.searchsorted(blocks, blocks[-1], side="left"))
         if done == 0:
