@@ -777,6 +777,25 @@ class ArrayDriver:
         self.wait_for_message(DiagnosticArray, "/diagnostics", match, timeout)
         return found[0] if found else None
 
+    def watch_diagnostics(self) -> None:
+        """Keep the latest status of every name seen on /diagnostics (see :meth:`status`)."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        if getattr(self, "_diagnostics_sub", None) is not None:
+            return
+
+        def keep(msg: Any) -> None:
+            with self._lock:
+                for status in msg.status:
+                    self.statuses[status.name] = status
+
+        self._diagnostics_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics", keep, 100)
+
+    def status(self, name: str) -> Any:
+        """The latest status named ``name`` on /diagnostics (after :meth:`watch_diagnostics`), or None."""
+        with self._lock:
+            return self.statuses.get(name)
+
     def wait_for_message(self, msg_type: Any, topic: str, predicate: Any = None, timeout: float = 30.0) -> Any:
         """The first message on ``topic`` satisfying ``predicate`` (None on timeout)."""
         got: list[Any] = []

@@ -29,7 +29,6 @@ from numpy.typing import ArrayLike, NDArray
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.matching import LatestValues, MatchStats, match_latest
 from magcal_ros.core.stamps import seconds_to_ns
-from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]

@@ -67,7 +67,6 @@ from magcal_ros.core.sync_rules import (
     SyncStats,
     Vector,
     empty_batch,
-    median_int,
     tolerance_ns,
 )
 from magcal_ros.core.units import NS_PER_S

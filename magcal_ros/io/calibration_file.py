@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import noise_and_intensity
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path, write_target
 
@@ -112,8 +113,19 @@ def _ros_value(value: Any) -> Any:
 
 
 def parameters(calibration: ArrayCalibration) -> dict[str, Any]:
-    """The correction node's parameters for ``calibration`` (nested), exactly as the file holds them."""
-    return _ros_value(calibration.to_parameters())
+    """The correction node's parameters for ``calibration`` (nested), exactly as the file holds them.
+
+    Besides the correction, what the calibration health compares with, from the provenance
+    when it has them: ``calibration_intensity`` (T) and per sensor ``noise`` (T per axis)."""
+    params = _ros_value(calibration.to_parameters())
+    noise, intensity = noise_and_intensity(calibration.metadata, calibration.geometry.names)
+    if intensity is not None:
+        params["calibration_intensity"] = ros_float(intensity)
+    if noise is not None:
+        for name, sigma in zip(calibration.geometry.names, noise.tolist()):
+            if math.isfinite(sigma) and sigma > 0:
+                params[name]["noise"] = ros_float(sigma)
+    return params
 
 
 def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> str:

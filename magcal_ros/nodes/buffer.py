@@ -1,6 +1,7 @@
-"""Bounded store of synchronized raw sets that keeps a spread of attitudes (no ROS import).
+"""Bounded stores of synchronized raw sets (no ROS import): :class:`SetBuffer` keeps a spread of
+attitudes for a calibration manoeuvre, :class:`MissionWindow` the latest seconds of a mission.
 
-Each set is filed under the sphere cell (one of :data:`CELLS` roughly uniform
+:class:`SetBuffer` files each set under the sphere cell (one of :data:`CELLS` roughly uniform
 directions) nearest to the direction of its array-centre raw reading, which is the field
 direction in the array frame and so a proxy for the attitude. Below ``capacity`` every
 set is kept; when full, a new set replaces a random set of the most crowded cell (its
@@ -10,6 +11,7 @@ rare attitudes a calibration needs.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -125,3 +127,58 @@ def collected_recording(names: Sequence[str], channels: Sequence[str], stamps: N
             notes.append(f"{int(np.sum(~have_imu))} sets collected before the IMU arrived left out")
         rec = rec.take(have_imu).with_imu(ImuSamples(imu[have_imu, :4], imu[have_imu, 4:], imu_frame_id))
     return rec, notes
+
+
+class MissionWindow:
+    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents), at most
+    one set every ``spacing_ns`` (a set closer than that to the last one kept is skipped), so that
+    a long window at a high rate stays small."""
+
+    def __init__(self, seconds_ns: int, spacing_ns: int, sensors: int, channels: int = 0) -> None:
+        self.seconds_ns = max(int(seconds_ns), 1)
+        self.spacing_ns = max(int(spacing_ns), 0)
+        self.sensors = sensors
+        self.channels = channels
+        self._sets: deque[tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...]]] = deque()
+        self._next = -(2**62)
+        self.newest = 0
+        """Stamp (ns) of the newest set seen (kept or not): the mission's time."""
+
+    def __len__(self) -> int:
+        return len(self._sets)
+
+    def due(self, stamp_ns: int) -> bool:
+        """Whether a set stamped ``stamp_ns`` would be kept (the caller then fetches its currents). A stamp
+        more than the window before the newest means the source restarted: a new mission, the window
+        starts again."""
+        if stamp_ns < self.newest - self.seconds_ns:
+            self.clear()
+            self.newest = stamp_ns
+        elif stamp_ns > self.newest:
+            self.newest = stamp_ns
+        return stamp_ns >= self._next
+
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
+        """Keep one set (S raw vectors, T; the channels' currents, A) if :meth:`due`; forget sets older
+        than the window."""
+        if not self.due(stamp_ns):
+            return
+        self._sets.append((stamp_ns, tuple(values), tuple(currents)))
+        self._next = stamp_ns + self.spacing_ns
+        self.newest = max(self.newest, stamp_ns)
+        first = stamp_ns - self.seconds_ns
+        while self._sets and self._sets[0][0] < first:
+            self._sets.popleft()
+
+    def clear(self) -> None:
+        """Forget every set."""
+        self._sets.clear()
+        self._next = -(2**62)
+
+    def snapshot(self, since_ns: int | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Stamps (N,) ns, raw sets (N, S, 3) T and currents (N, m) A of the sets stamped ``since_ns`` or later."""
+        rows = [s for s in self._sets if since_ns is None or s[0] >= since_ns]
+        stamps = np.array([r[0] for r in rows], dtype=np.int64)
+        raw = np.array([r[1] for r in rows], dtype=float).reshape(len(rows), self.sensors, 3)
+        currents = np.array([r[2] for r in rows], dtype=float).reshape(len(rows), self.channels)
+        return stamps, raw, currents

@@ -42,6 +42,14 @@ next, in words) and ``prior``. ``/diagnostics`` (DiagnosticArray, same period): 
 health of the raw streams (silent or late sensors, drops, sets lost before the node, no
 complete set for ``output_timeout``, stale currents), as the correction node reports it.
 
+Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the node keeps a
+rolling window of the mission's sets and watches the correction node's calibration health on
+``/diagnostics``. When it names a drift, with ``auto_recalibrate`` the sets flown since
+(``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
+(what changed determined, the held-out sets fitted) and pushed and saved, at most once per
+``recalibrate_interval``; without it, ``~/progress`` and the status ``<node>: recalibration``
+say what to fly so that ``~/calibrate`` fixes it.
+
 Usage::
 
     ros2 run magcal_ros calibration_node --ros-args -p reference_field:=5.15e-5
@@ -90,7 +98,7 @@ from magcal_ros.core.observability import excitation
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
-from magcal_ros.methods import progress
+from magcal_ros.methods import progress, recalibration
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -98,8 +106,8 @@ from magcal_ros.methods.pipeline import (
     SolveOptions,
     calibrate_array,
 )
-from magcal_ros.nodes import common
-from magcal_ros.nodes.buffer import SetBuffer, collected_recording
+from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
 NODE_NAME = "magcal_calibration"
@@ -166,6 +174,15 @@ class CalibrationNode(Node):
         self._calibrate_group = ReentrantCallbackGroup()
         self._wake = self.create_guard_condition(lambda: None)
         self._subs: list[Any] = []
+        window_ns = int(float(self.get_parameter("recalibrate_window").value) * 1e9)
+        self._watch = recalibration.DriftWatch(window_ns, self._interval_ns())
+        self._recalibration: dict[str, str] = {"recalibrations": "0", "last_recalibration": "", "last_attempt": ""}
+        """What the mission recalibration did last (values of its status)."""
+        self._advice: tuple[int, str] | None = None
+        """(mission time, text) of the latest advice on what to fly to fix a drift."""
+        self._drift_worker: threading.Thread | None = None
+        self._health_seen = ""
+        """The latest calibration health message of the correction node ('' before the first)."""
         self._connect(self._geometry)
         self._progress_pub = self.create_publisher(DiagnosticStatus, "~/progress", 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
@@ -180,6 +197,8 @@ class CalibrationNode(Node):
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
         self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
+        self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._drift_tick)
+        self.create_subscription(DiagnosticArray, common.DIAGNOSTICS_TOPIC, self._on_diagnostics, 10)
         channels = self._inputs.channels
         self.get_logger().info(
             f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}"
@@ -278,6 +297,20 @@ class CalibrationNode(Node):
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
+        self.declare_parameter(
+            "auto_recalibrate", False,
+            d("when the correction node's calibration health names a drift: true = recalibrate from the sets "
+              "flown since (running calibration as the prior, checked on held-out sets), push and save it; false = "
+              "advise on /diagnostics and ~/progress what to fly so that ~/calibrate can fix it"))
+        self.declare_parameter(
+            "recalibrate_window", 60.0,
+            d("seconds of the mission's sets (flown after the drift was named) a recalibration during the mission "
+              "fits and checks (at most max_samples sets, evenly in time)", read_only=True, numbers=True,
+              floats=(10.0, 3600.0)))
+        self.declare_parameter(
+            "recalibrate_interval", 600.0,
+            d("shortest time (s, of the sets' stamps) between two recalibrations pushed by auto_recalibrate",
+              numbers=True, floats=(0.0, 86400.0)))
 
     def _numeric(self, name: str) -> bool:
         """Whether parameter ``name`` holds numbers."""
@@ -391,6 +424,9 @@ class CalibrationNode(Node):
         if names & {"prior", "correction_node", "reference_field", "site", "date"}:
             with self._lock:
                 self._generation += 1  # the progress analysis starts afresh with the new settings
+        if "recalibrate_interval" in names:
+            with self._lock:
+                self._watch.interval_ns = self._interval_ns()
 
     # -- collecting -----------------------------------------------------------------
     def _connect(self, geo: ArrayGeometry) -> None:
@@ -401,6 +437,9 @@ class CalibrationNode(Node):
                                          mode, gap)
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
+        window_ns = self._watch.window_ns
+        self._mission = MissionWindow(2 * window_ns, window_ns // int(self.get_parameter("max_samples").value),
+                                      geo.size, len(inputs.channels))
         self._generation += 1
         self._subs = [
             self.create_subscription(
@@ -472,6 +511,10 @@ class CalibrationNode(Node):
             with self._lock:
                 self._health.seen(index, stamp)
                 for synced in self._sync.add(index, stamp, f.x, f.y, f.z, self._receipt_clock()):
+                    if self._mission.due(synced.stamp):  # the mission's rolling window, for a recalibration at sea
+                        values, fresh = self._currents.at(synced.stamp) if self._inputs.channels else ([], [])
+                        if all(fresh):
+                            self._mission.add(synced.stamp, synced.values, values)
                     if not self._collecting:
                         continue
                     currents: list[float] = []
@@ -548,14 +591,8 @@ class CalibrationNode(Node):
                 cached = self._progress_prior = (key[0], prior, note)
             _, prior, note = cached
             reference, site = self._reference()
-            spawn = self._analyser is None
-            if spawn:
-                self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
-            with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
-                job = self._analyser.submit(progress.assess, raw, geo, reference, prior, stamps,
-                                            currents if channels else None, channels,
-                                            inclination_deg=site.inclination_deg if site is not None else None)
-            result = job.result()
+            result = self._analyse(raw, geo, reference, prior, stamps, currents if channels else None, channels,
+                                   inclination_deg=site.inclination_deg if site is not None else None)
         except Stopping:
             return
         except Exception as exc:  # noqa: BLE001 - progress must never stop the node
@@ -568,6 +605,15 @@ class CalibrationNode(Node):
         with self._lock:
             if key[0] == self._generation:
                 self._assessment = (*key, result, note)
+
+    def _analyse(self, *args: Any, **kwargs: Any) -> progress.Assessment:
+        """:func:`magcal_ros.methods.progress.assess` in the analysis process (started with the first one)."""
+        spawn = self._analyser is None
+        if spawn:
+            self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
+        with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
+            job = self._analyser.submit(progress.assess, *args, **kwargs)  # type: ignore[union-attr]
+        return job.result()
 
     def _publish_progress(self) -> None:
         now = common.now_ns(self)
@@ -620,6 +666,11 @@ class CalibrationNode(Node):
             "advice": assessed.advice if assessed is not None else "",
             "prior": latest[3] if latest is not None else "",
         }
+        recal = self._recalibration_status()
+        values |= {
+            "calibration_health": self._watch.health if self._watch.since is not None else self._health_seen,
+            "recalibration": recal.message,
+        }
         if not collecting and not len(raw):
             message = "idle: call ~/start to collect"
         elif problem is None and len(raw):
@@ -638,7 +689,142 @@ class CalibrationNode(Node):
         health.values.update(collecting=values["collecting"], samples=values["samples"])
         sensors = ",".join(self._geometry.names)
         self._diagnostics_pub.publish(common.diagnostic_array(
-            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health)]))
+            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health), recal]))
+
+    # -- recalibration during the mission -------------------------------------------
+    def _interval_ns(self) -> int:
+        return int(float(self.get_parameter("recalibrate_interval").value) * 1e9)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """The correction node's calibration health: a drift named starts the mission recalibration's clock."""
+        target = self._target_name()
+        for status in msg.status:
+            if status.name != target + drift.STATUS_SUFFIX:
+                continue
+            drifted = any(kv.key == "drifted" and kv.value == "true" for kv in status.values)
+            with self._lock:
+                self._health_seen = status.message
+                named = self._watch.report(drifted, status.message, self._mission.newest)
+            if named:
+                auto = bool(self.get_parameter("auto_recalibrate").value)
+                window = self._watch.window_ns / 1e9
+                self.get_logger().warn(
+                    f"{target}: {status.message}; " + (
+                        f"auto_recalibrate: recalibrating from the next {window:.0f} s of sets" if auto else
+                        "auto_recalibrate is off: ~/progress and /diagnostics say what to fly, then call ~/calibrate"))
+
+    def _drift_tick(self) -> None:
+        """While a drift is named: recalibrate (auto_recalibrate) or advise, in a worker thread."""
+        if self._stopping.is_set() or (self._drift_worker is not None and self._drift_worker.is_alive()):
+            return
+        with self._lock:
+            now = self._mission.newest
+            due, _ = self._watch.due(now)
+            if self._watch.since is None:
+                return
+            start = self._watch.window_start(now)
+        if bool(self.get_parameter("auto_recalibrate").value):
+            if not due or not self._solve_lock.acquire(blocking=False):
+                return
+            with self._lock:
+                window = self._mission.snapshot(start)
+            target, args = self._auto_recalibrate, (now, window)
+        else:
+            if now - start < self._watch.window_ns // 3 or (self._advice is not None and self._advice[0] == now):
+                return
+            with self._lock:
+                window = self._mission.snapshot(start)
+            target, args = self._advise, (now, window)
+        self._drift_worker = threading.Thread(target=target, args=args, name="magcal-recalibrate", daemon=True)
+        self._drift_worker.start()
+
+    def _auto_recalibrate(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Fit the sets flown since the drift was named (held-out sets aside), check, push and save (worker thread)."""
+        pushed = False
+        with self._lock:
+            health = self._watch.health  # what named the drift (a push makes the next report say otherwise)
+        try:
+            stamps, raw, currents = window
+            fit, held = recalibration.split(stamps)
+            seen: dict[str, Any] = {}
+
+            def check(result: CalibrationResult, prior: ArrayCalibration | None) -> str | None:
+                why, figures = recalibration.verdict(result, prior, raw[fit], raw[held], currents[fit], currents[held])
+                seen.update(result=result, prior=prior, held=figures)
+                return why
+
+            fallback = self._running_intensity() if self._reference()[0] is None else None
+            pushed, message = self._calibrate((stamps[fit], raw[fit], currents[fit]), check, fallback)
+            if pushed:
+                figures = seen["held"]
+                message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
+                           f"calibration health said: {health}): "
+                           f"{recalibration.changes(seen['prior'], seen['result'].calibration)}; "
+                           f"{figures.describe()}; {message}")
+                self.get_logger().info(message)
+                with self._lock:
+                    self._recalibration["recalibrations"] = str(int(self._recalibration["recalibrations"]) + 1)
+                    self._recalibration["last_recalibration"] = message
+                    self._recalibration["last_attempt"] = ""
+            else:
+                with self._lock:
+                    self._recalibration["last_attempt"] = message
+        except Stopping:
+            return
+        except Exception as exc:  # noqa: BLE001 - the mission goes on whatever happened here
+            if self._stopping.is_set():
+                return
+            self.get_logger().error(f"recalibration during the mission failed unexpectedly ({type(exc).__name__}: "
+                                    f"{exc}); nothing was changed")
+            with self._lock:
+                self._recalibration["last_attempt"] = f"failed unexpectedly: {exc}; nothing was changed"
+        finally:
+            with self._lock:
+                self._watch.attempted(now, pushed)
+            self._solve_lock.release()
+
+    def _running_intensity(self) -> float | None:
+        """The intensity (T) the correction node's calibration maps |B| to, when it says (else None)."""
+        try:
+            value = self._target_values(self._geometry.names).get(drift.INTENSITY)
+        except CallFailed:
+            return None
+        return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+    def _advise(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """What to fly so that ~/calibrate fixes the drift: the progress analysis of the sets flown since it was
+        named, with the running calibration as the prior (worker thread; the math in the analysis process)."""
+        stamps, raw, currents = window
+        try:
+            prior, _ = self._resolve_prior(self._geometry)
+            reference, site = self._reference()
+            channels = self._inputs.channels
+            assessed = self._analyse(raw, self._geometry, reference or self._running_intensity(), prior, stamps,
+                                     currents if channels else None, channels,
+                                     inclination_deg=site.inclination_deg if site is not None else None)
+            text = recalibration.advice(assessed, prior is not None, self._watch.window_ns / 1e9)
+        except Stopping:
+            return
+        except Exception as exc:  # noqa: BLE001 - advice must never stop the node
+            if self._stopping.is_set():
+                return
+            if isinstance(exc, BrokenProcessPool):
+                self._analyser = None
+            text = f"cannot analyse the sets flown since the drift was named: {exc}"
+        with self._lock:
+            self._advice = (now, text)
+
+    def _recalibration_status(self) -> DiagnosticStatus:
+        """``<node>: recalibration``: a drift named and what is done about it (WARN until fixed)."""
+        auto = bool(self.get_parameter("auto_recalibrate").value)
+        with self._lock:
+            advice = self._advice[1] if self._advice is not None else ""
+            warn, message, values = recalibration.status(self._target_name(), auto, self._watch, self._mission.newest,
+                                                         self._health_seen, advice, self._recalibration)
+        return DiagnosticStatus(level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
+                                name=self.get_fully_qualified_name() + ": recalibration", message=message,
+                                hardware_id=",".join(self._geometry.names),
+                                values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     # -- calibrating ----------------------------------------------------------------
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -683,9 +869,9 @@ class CalibrationNode(Node):
             worker.join(2.0)
         if self._analyser is not None:
             self._analyser.shutdown(wait=False, cancel_futures=True)
-        assessor = self._assessor
-        if assessor is not None and assessor.is_alive():
-            assessor.join(2.0)
+        for thread in (self._assessor, self._drift_worker):
+            if thread is not None and thread.is_alive():
+                thread.join(2.0)
 
     def _check_stop(self) -> None:
         if self._stopping.is_set():
@@ -736,9 +922,19 @@ class CalibrationNode(Node):
         return collected_recording(self._geometry.names, self._inputs.channels, stamps, raw, currents, temperatures,
                                    imu, self._imu.frame_id)
 
-    def _calibrate(self) -> tuple[bool, str]:
+    def _calibrate(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, check: Any = None,
+                   reference_fallback: float | None = None) -> tuple[bool, str]:
+        """Solve, save and push (the ~/calibrate service; a recalibration during the mission).
+
+        ``window``: (stamps, raw, currents) to fit instead of the collected sets; ``check(result, prior)``:
+        why the result must not be applied (or None), asked before anything changes;
+        ``reference_fallback``: the intensity (T) when neither reference_field nor site gives one."""
         with self._lock:
-            collected, collect_notes = self._collected()
+            if window is None:
+                collected, collect_notes = self._collected()
+            else:
+                collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
+                collect_notes = []
             geo, inputs = self._geometry, self._inputs
         stamps, raw, currents = collected.stamps, collected.vectors, collected.currents
         channels = inputs.channels
@@ -750,11 +946,12 @@ class CalibrationNode(Node):
             reference, site = self._reference()
         except InputError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed")
+        reference = reference or reference_fallback
         residual = float(self.get_parameter("max_residual").value) or None
         setting = str(self.get_parameter("prior").value).strip()
         settings = (method, reference, residual, setting, channels)
         fingerprint = self._fingerprint(raw, currents, geo, settings, collected)
-        if self._last_solved is not None and self._last_solved[0] == fingerprint:
+        if window is None and self._last_solved is not None and self._last_solved[0] == fingerprint:
             message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
                        f"so nothing was solved, applied or written again; call ~/start to collect new sets "
                        f"(last result: {self._last_solved[1]})")
@@ -774,6 +971,9 @@ class CalibrationNode(Node):
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()
+        why = check(result, prior) if check is not None else None
+        if why:
+            return self._fail(f"not recalibrated: {why}; nothing was changed (prior: {prior_note})")
         cal = result.calibration
         if site is not None:
             cal.metadata.update(site.provenance())
@@ -811,6 +1011,9 @@ class CalibrationNode(Node):
                 except CallFailed as again:
                     undo += f"; could NOT set the previous calibration again on the correction node ({again})"
             return self._fail(f"solved but not applied: {exc}; {undo}")
+        if window is not None:  # the calibration in force changed: a ~/calibrate is never "unchanged" now
+            self._last_solved = None
+            return True, self._success_message(result, path, prior_note, site)
         with self._lock:
             self._collecting = False
             self._generation += 1
@@ -889,9 +1092,9 @@ class CalibrationNode(Node):
     def _wanted(names: Sequence[str]) -> list[str]:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
         per_sensor = [f"{n}.{s}" for n in names
-                      for s in ("matrix", "offset", "covariance", "interference", *common.TEMPERATURE_SUFFIXES)]
+                      for s in ("matrix", "offset", "covariance", "interference", "noise", *common.TEMPERATURE_SUFFIXES)]
         return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], *common.CALIBRATION_FRAME_PARAMETERS,
-                "frame_id"] + per_sensor
+                "frame_id", "calibration_intensity"] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
         """ParameterValue messages of the correction node's parameters ``names`` that are set.

@@ -55,6 +55,12 @@ counters (``sets``, ``unmatched``, ``nonfinite``, ``duplicate``, ``out_of_order`
 published, ``age_ms_p50/p99/max``: node clock at publication minus the set's stamp (a
 latency when the sensors stamp with the same clock; simulated time with use_sim_time).
 
+The calibration health (:mod:`magcal_ros.core.calibration_health`) goes on ``/diagnostics`` as
+its own status, ``<node>: calibration``, in the same array: whether the running calibration
+still fits, judged from the corrected sets over ``health_window`` s against the noise the
+calibration stored (``<name>.noise``, ``calibration_intensity``); WARN or ERROR naming the
+drifted sensors above ``health_warn_factor`` / ``health_error_factor`` times that noise.
+
 Usage::
 
     ros2 run magcal_ros correction_node --ros-args --params-file calibration.yaml
@@ -80,6 +86,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import CalibrationHealth
 from magcal_ros.core.interference import LatestCurrents
 from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
@@ -88,14 +95,14 @@ from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
-from magcal_ros.nodes import common
+from magcal_ros.nodes import common, drift
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
     "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
     "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
-    "temperature_tolerance",
+    "temperature_tolerance", drift.INTENSITY,
 )
 SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset",
                                     *common.TEMPERATURE_SUFFIXES)
@@ -127,6 +134,10 @@ class CorrectionState:
     """Covariance of the centre field (the mean of the sensors): sum / S^2, or unknown."""
     currents: common.CurrentInputs = common.CurrentInputs()
     """The interference channels' current topics (the calibration's ``channels``)."""
+    noise: tuple[float, ...] = ()
+    """Per sensor, the noise per axis at calibration (T; 0 unknown): the calibration health's reference."""
+    intensity: float = 0.0
+    """The intensity (T) the calibration maps ``|B|`` to (0 unknown)."""
     sync_mode: str = sync.DEFAULT_SYNC_MODE
     max_gap_ns: int = 0
     temperature_tolerance_ns: int = 0
@@ -236,8 +247,9 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         lagging = ", ".join(f"{n}.time_offset" for n, t in zip(geo.names, cal.time_offsets) if t)  # type: ignore[arg-type]
         verb = "needs" if lagging.count(",") == 0 else "need"
         raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
-    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, mode, gap,
-                           temperature_tolerance)
+    noise, intensity = drift.reference(values, geo.names)
+    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, noise,
+                           intensity, mode, gap, temperature_tolerance)
 
 
 def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
@@ -308,6 +320,8 @@ class CorrectionNode(Node):
         self._withheld = 0
         self._ages: list[int] = []
         self._drops = common.DropReporter(self.get_logger())
+        self._drift_thresholds = drift.declare_thresholds(self)
+        self._calibration_health(self._state)
         self._connect(self._state)
         self._gradient_outputs(self._state.gradient_kind)
         self._connect_currents(self._state.currents)
@@ -392,6 +406,7 @@ class CorrectionNode(Node):
               "matrix and offset stops field and gradient output; [] = none"),
         )
         common.declare_currents(self)
+        drift.declare_reference(self, names)
         self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID,
                                d("frame of all outputs: the platform (array) frame, or the frame output_rotation "
                                  "turns them into (a calibration file made with an IMU sets it to the IMU's)"))
@@ -427,7 +442,7 @@ class CorrectionNode(Node):
         if name in CORE_PARAMETERS:
             return True
         stem, _, suffix = name.rpartition(".")
-        return suffix in SENSOR_SUFFIXES and stem in names
+        return suffix in (*SENSOR_SUFFIXES, drift.SENSOR_SUFFIX) and stem in names
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate the combined new state; stash it for :meth:`_after_set_parameters`."""
@@ -506,6 +521,19 @@ class CorrectionNode(Node):
         )
         if new.missing != old.missing:
             self._warn_missing(new)
+        self._calibration_health(new)
+
+    def _calibration_health(self, state: CorrectionState) -> None:
+        """Judge the calibration of ``state`` afresh (its sets only), or say why it is not judged."""
+        self._drifted = False
+        uncalibrated = [n for n in state.names if not {f"{n}.matrix", f"{n}.offset"} <= self._given]
+        if uncalibrated:
+            self._health_cal: CalibrationHealth | None = None
+            self._not_judged = drift.not_assessed(f"{', '.join(uncalibrated)} not calibrated")
+            return
+        noise = [v if v > 0 else float("nan") for v in state.noise]
+        self._health_cal = CalibrationHealth(state.calibration.geometry, noise, state.intensity or None,
+                                             self._drift_thresholds)
 
     @staticmethod
     def _outputs_text(state: CorrectionState) -> str:
@@ -670,6 +698,9 @@ class CorrectionNode(Node):
             return
         raw = np.array(synced.values, dtype=float).reshape(1, -1, 3)
         out = state.calibration.outputs(raw, state.gradient_method, currents, temperatures)
+        if self._health_cal is not None:  # judged in the array frame, where the positions are
+            rotation = state.calibration.output_rotation
+            self._health_cal.add(synced.stamp, out.vectors[0] if rotation is None else out.vectors[0] @ rotation)
         frame = state.frame_id
         missing = state.missing
         for name, msg, pub, stamp, v in zip(state.names, self._corrected_msgs, self._corrected_pubs, synced.stamps,
@@ -749,7 +780,19 @@ class CorrectionNode(Node):
             assessment.values.update(age_ms_p50=f"{p50:.3f}", age_ms_p99=f"{p99:.3f}", age_ms_max=f"{pmax:.3f}")
         status = common.diagnostic_status(self.get_fully_qualified_name(), state.frame_id, assessment)
         self._status_pub.publish(status)
-        self._diagnostics_pub.publish(common.diagnostic_array(self, [status]))
+        calibration = self._report_calibration(state)
+        self._diagnostics_pub.publish(common.diagnostic_array(self, [status, calibration]))
+
+    def _report_calibration(self, state: CorrectionState) -> DiagnosticStatus:
+        """The calibration health's status; a drift (and its end) is logged once."""
+        report = self._health_cal.assess() if self._health_cal is not None else self._not_judged
+        if report.drifted != self._drifted:
+            self._drifted = report.drifted
+            if report.drifted:
+                self.get_logger().warn(report.message)
+            else:
+                self.get_logger().info(f"calibration health back to normal: {report.message}")
+        return drift.status(self.get_fully_qualified_name(), ",".join(state.names), report)
 
 
 def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:

@@ -238,11 +238,15 @@ class ArraySimulation:
             raw = raw + self._noise(raw.shape, rng)
         return raw
 
-    def platform_field(self, attitudes: ArrayLike) -> tuple[Array, Array, Array]:
-        """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient."""
+    def platform_field(self, attitudes: ArrayLike, track: ArrayLike | None = None) -> tuple[Array, Array, Array]:
+        """Noise-free (N, S, 3) sensor fields, (N, 3) centre field, (N, 3, 3) centre gradient.
+
+        ``track`` (N, 3) m, world frame: the platform's position at each set (a vehicle passing
+        the dipoles); default :attr:`position` throughout."""
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
-        world_pos = self.position + np.einsum("nij,sj->nsi", rot, self.geometry.positions)
-        centre_pos = self.position + rot @ self.geometry.centre
+        where = self.position if track is None else np.asarray(track, dtype=float).reshape(len(rot), 1, 3)
+        world_pos = where + np.einsum("nij,sj->nsi", rot, self.geometry.positions)
+        centre_pos = (where[:, 0] if track is not None else where) + rot @ self.geometry.centre
         b_world = np.broadcast_to(self.earth, world_pos.shape).copy()
         c_world = np.broadcast_to(self.earth, centre_pos.shape).copy()
         g_world = np.zeros((len(rot), 3, 3))
@@ -269,6 +273,7 @@ class ArraySimulation:
         currents: ArrayLike | None = None,
         temperatures: ArrayLike | None = None,
         continuous: bool = False,
+        track: ArrayLike | None = None,
     ) -> tuple[Recording, Truth]:
         """Raw recording and truth for the given attitudes, ``rate`` sets per second from ``start`` (s).
 
@@ -278,6 +283,7 @@ class ArraySimulation:
         temperatures (recorded with ``temperature_noise``); None: no temperature (the sensors at
         the reference). ``continuous``: the attitudes are a path flown in time, sampled at the
         sets (the IMU then has a gyro). With an IMU the recording carries it (measured at each set).
+        ``track`` (N, 3) m: the platform's world position at each set (see :meth:`platform_field`).
         """
         gen = np.random.default_rng(rng)
         rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
@@ -294,7 +300,7 @@ class ArraySimulation:
                                  f"{self.geometry.size}), got {temp.shape}")
         elif self.temperature_dependent:
             raise InputError("the sensors follow their temperature: give the temperature of each set")
-        b, c, g = self.platform_field(rot)
+        b, c, g = self.platform_field(rot, track)
         seen = b + np.einsum("sac,nc->nsa", self.interference(), u)  # the platform's own field added
         raw = np.empty_like(b)
         for i in range(len(self.sensors)):
