@@ -15,6 +15,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 FLOOR_TENSOR = math.sqrt(2) * 1.0 / 0.4  # nT/m
 FLOOR_TMI = 1.0  # nT
 ROW = re.compile(r"^\s{2}(?P<label>[a-z][a-z ,]+?)\s+(?P<tensor>[\d.]+) nT/m\s+(?P<tmi>[\d.]+) nT$")

@@ -291,7 +291,7 @@ class ArrayDriver:
         domain_id: int,
         node_name: str = "magcal_driver",
         collect_corrected: bool = True,
-        publish_depth: int = 1000,
+        publish_depth: int = 10000,
         namespace: str = "",
         listen: bool = True,
         kind: str = "tensor",
@@ -335,7 +335,7 @@ class ArrayDriver:
         self._lock = threading.Lock()
         self._fields: deque[int] = deque()
         self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
-        out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        out_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)  # a busy reader catches up
         self.subscriptions = [
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
         ] if listen else []
