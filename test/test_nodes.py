@@ -126,6 +126,23 @@ def test_calibration_over_dds_reaches_the_noise_floor(calibrated: dict[str, Any]
     assert np.max(tmi_rms(b, h.INTENSITY)) <= 1.3 * h.NOISE
 
 
+def test_the_service_answer_reads_true_numbers_in_nT(calibrated: dict[str, Any], data: h.Data) -> None:
+    """``~/calibrate``'s answer, as a user reads it: sets, F, TMI and tensor RMS before (from the raw
+    manoeuvre, recomputed here) and after (at the level the true calibration reaches on it)."""
+    from truth_tools import correct, cross_rows, summary_numbers, true_correction
+
+    got = summary_numbers(calibrated["message"])
+    raw = data.manoeuvre.vectors
+    pos = data.sim.geometry.positions
+    true_b = correct(*true_correction(data.sim), raw)
+    assert got["sensors"] == 4 and got["sets"] == len(data.manoeuvre) == int(calibrated["progress"]["samples"])
+    assert got["F"] == pytest.approx(h.INTENSITY / 1e-9, abs=0.05)
+    assert got["tmi_before"] == pytest.approx(np.max(tmi_rms(raw, h.INTENSITY)) / 1e-9, abs=0.006)
+    assert got["gradient_before"] == pytest.approx(float(rms(cross_rows(raw, pos))) / 1e-9, abs=0.06)
+    assert 0.9 < got["tmi_after"] / (np.max(tmi_rms(true_b, h.INTENSITY)) / 1e-9) < 1.05, got
+    assert 0.9 < got["gradient_after"] / (float(rms(cross_rows(true_b, pos))) / 1e-9) < 1.05, got
+
+
 def test_outputs_follow_the_contract(calibrated: dict[str, Any], driver: Any) -> None:
     """Gradient layout dims and the corrected vectors' relation to the live parameters."""
     assert driver.outputs.gradient_layouts[0] == (("row", 3, 9), ("col", 3, 3))
