@@ -147,7 +147,7 @@ def _publish(driver: ArrayDriver, messages: list[RawMessage], rate: float = 400.
     _clock["next"] = max([_clock["next"]] + [m.stamp_ns + PERIOD_NS for m in messages])
 
 
-def _diagnostic(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 30.0) -> DiagnosticStatus:
+def _diagnostic(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 60.0) -> DiagnosticStatus:
     seen: list[DiagnosticStatus] = []
 
     def check(status: DiagnosticStatus) -> bool:
@@ -199,7 +199,7 @@ def test_outputs_move_with_the_namespace_with_stamped_tensor_and_covariance(
         assert np.allclose(cov[name], world.covariances[k].reshape(9), rtol=1e-12, atol=0)
     assert np.allclose(cov["field"], world.covariances.sum(axis=0).reshape(9) / 16, rtol=1e-12, atol=0)
     # The private status topic moved with the node.
-    status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status", None, 10.0)
+    status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status", None, 60.0)
     assert status is not None and status.name == CORRECTION
 
 
@@ -385,7 +385,7 @@ def test_zero_stamps_are_dropped_counted_and_never_published(
         assert _counts(status)["zero_stamp"] - before[node]["zero_stamp"] == 120
     status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status",
                                      lambda m: int(status_values(m)["zero_stamp"]) >= before[CORRECTION]["zero_stamp"]
-                                     + 120, 10.0)
+                                     + 120, 60.0)
     assert status is not None
     with driver._lock:
         assert 0 not in driver.outputs.field and 0 not in driver.outputs.stamped
@@ -403,12 +403,12 @@ def test_a_silent_sensor_is_named_at_warn_and_no_output_is_an_error(
     feeder.start()
     try:
         for node in (CORRECTION, CALIBRATION):
-            warn = _diagnostic(driver, node, lambda s: "silent: mag3" in s.message, 10.0)
+            warn = _diagnostic(driver, node, lambda s: "silent: mag3" in s.message, 60.0)
             assert warn.level[0] >= WARN
             assert "mag1 (" not in warn.message and "mag2 (" not in warn.message and "mag4 (" not in warn.message
-        error = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == ERROR, 10.0)
+        error = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == ERROR, 60.0)
         assert "no sets published" in error.message and "silent: mag3" in error.message
-        error = _diagnostic(driver, CALIBRATION, lambda s: s.level[0] == ERROR, 10.0)
+        error = _diagnostic(driver, CALIBRATION, lambda s: s.level[0] == ERROR, 60.0)
         assert "no complete sets" in error.message
     finally:
         feeder.join()
@@ -416,7 +416,7 @@ def test_a_silent_sensor_is_named_at_warn_and_no_output_is_an_error(
     feeder = threading.Thread(target=_publish, args=(driver, _sets(data.names, vectors, _start()), 50.0))
     feeder.start()
     try:
-        ok = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == 0, 10.0)
+        ok = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == 0, 60.0)
         assert ok.message == "ok"
     finally:
         feeder.join()
@@ -432,7 +432,7 @@ def test_the_window_cap_at_2khz_is_warned_once_and_shown(world: World, driver: A
     stamps = sorted({m.stamp_ns for m in messages})
     assert driver.wait_for_outputs(stamps, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE) == len(stamps)
     line = "sync window capped at 0.25 ms (sync_tolerance 1 ms is more than half the 2000 Hz sample period)"
-    status = _diagnostic(driver, CORRECTION, lambda s: "capped" in s.message, 10.0)
+    status = _diagnostic(driver, CORRECTION, lambda s: "capped" in s.message, 60.0)
     assert line in status.message and status.level[0] >= WARN
     assert status_values(status)["sync_window_ms"] == "0.25"
     time.sleep(1.0)
@@ -472,17 +472,19 @@ def test_a_file_missing_a_sensor_warns_and_publishes_no_tensor(world: World, par
     vectors = data.check.vectors[:100]
     start = _start()
     _publish(partial, _sets(data.names, vectors, start))
-    time.sleep(2.0)
+    deadline = time.monotonic() + h.OUTPUT_TIMEOUT  # every set's mag2 comes back, however busy the machine
+    while time.monotonic() < deadline and len(partial.outputs.corrected["mag2"]) < len(vectors):
+        time.sleep(0.05)
     with partial._lock:
         outputs = partial.outputs
         assert not outputs.field and not outputs.gradient and not outputs.stamped and not outputs.corrected["mag4"]
         got = dict(outputs.corrected["mag2"])
-    assert len(got) >= 95
+    assert len(got) == len(vectors)
     for t, v in got.items():
         expected = world.truth.apply(vectors[(t - start) // PERIOD_NS][None])[0, 1]
         assert np.allclose(v, expected, rtol=1e-12, atol=1e-20)
-    error = _diagnostic(partial, "/partial/magcal_correction", lambda s: s.level[0] == ERROR, 10.0)
-    assert "not calibrated: mag4" in error.message and int(status_values(error)["withheld"]) >= 95
+    error = _diagnostic(partial, "/partial/magcal_correction", lambda s: s.level[0] == ERROR, 60.0)
+    assert "not calibrated: mag4" in error.message and int(status_values(error)["withheld"]) >= len(vectors)
     # Saying mag4 is uncorrected on purpose brings the tensor back (mag4 raw).
     (ok, reason), = partial.set_parameters("partial/magcal_correction", {"uncorrected_sensors": ["mag4"]})
     assert ok, reason
