@@ -35,8 +35,8 @@ from magcal_ros.sim.simulator import ArraySimulation, Truth, random_sensor_error
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT
 BASELINE = 0.4
-STARTUP_TIMEOUT = 60.0
-DISCOVERY_TIMEOUT = 60.0
+STARTUP_TIMEOUT = 180.0
+DISCOVERY_TIMEOUT = 180.0
 REPLAY_RATE = 400.0
 CORRECTION = "magcal_correction"
 CALIBRATION = "magcal_calibration"
