@@ -52,6 +52,8 @@ SAMPLES_TIMEOUT = 180.0
 """Generous deadline (s) for a node to count what was sent: never reached unless it is lost."""
 OUTPUT_TIMEOUT = 180.0
 """Generous deadline (s) for the outputs of what was sent."""
+SERVICE_TIMEOUT = 120.0
+"""The calibration node's ``service_timeout`` in the tests: the correction node answers, only late."""
 OUTPUT_SETTLE = 60.0
 """Give up waiting for outputs only after this long (s) without a new one."""
 

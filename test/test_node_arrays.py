@@ -89,7 +89,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
                 params["positions"] = [float(x) for x in geo.positions.reshape(-1)]
             run.start("correction_node", params=params, namespace=key, log_name=f"{key}_correction")
             cal = {"sensor_names": list(geo.names), "reference_field": h.INTENSITY, "prior": "none", **LOSSLESS,
-                   "calibration_file": str(workdir / f"{key}.yaml"), "service_timeout": 10.0, "progress_period": 0.5}
+                   "calibration_file": str(workdir / f"{key}.yaml"), "service_timeout": h.SERVICE_TIMEOUT, "progress_period": 0.5}
             if key == "two":
                 cal["positions"] = params["positions"]
             run.start("calibration_node", params=cal, namespace=key, log_name=f"{key}_calibration")

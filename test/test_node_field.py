@@ -128,7 +128,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, sea_data: Sea, thruster_data
         run.start("correction_node", params=dict(fast, **h.UNCORRECTED, **reliable), namespace="sea",
                   log_name="sea_correction")
         run.start("calibration_node", namespace="sea", log_name="sea_calibration", params={
-            "site": SITE, "date": DATE, "calibration_file": str(sea_data.file), "service_timeout": 10.0,
+            "site": SITE, "date": DATE, "calibration_file": str(sea_data.file), "service_timeout": h.SERVICE_TIMEOUT,
             "progress_period": 0.5, "assess_period": 1.0, **reliable})
         truth = workdir / "thrusters.yaml"
         truth.write_text(calfile.dumps(thruster_data.true, node_name=THR_CORRECTION))
@@ -136,7 +136,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, sea_data: Sea, thruster_data
                   log_name="thr_correction")
         run.start("calibration_node", namespace="thrusters", log_name="thr_calibration", params=dict(reliable, **{
             "reference_field": F_THR, "interference_channels": list(CHANNELS), "prior": "none",
-            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": 10.0, "progress_period": 0.5}))
+            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": h.SERVICE_TIMEOUT, "progress_period": 0.5}))
         yield run
     finally:
         codes = run.close()

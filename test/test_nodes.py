@@ -63,7 +63,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Any:
         r.start("correction_node", params=h.UNCORRECTED, log_name="correction")
         r.start(
             "calibration_node",
-            params={"reference_field": h.INTENSITY, "calibration_file": str(calibration_file), "service_timeout": 10.0},
+            params={"reference_field": h.INTENSITY, "calibration_file": str(calibration_file), "service_timeout": h.SERVICE_TIMEOUT},
             log_name="calibration",
         )
         r.calibration_file = calibration_file
@@ -301,7 +301,7 @@ def test_calibration_with_unreachable_correction_node_changes_nothing(
         assert run.calibration_file.read_text() == calibrated["file_text"]
         assert driver.get_parameters(h.CORRECTION, CALIBRATION_PARAMS) == calibrated["params"]
     finally:
-        driver.set_parameters(h.CALIBRATION, {"correction_node": h.CORRECTION, "service_timeout": 10.0})
+        driver.set_parameters(h.CALIBRATION, {"correction_node": h.CORRECTION, "service_timeout": h.SERVICE_TIMEOUT})
         driver.trigger(f"/{h.CALIBRATION}/reset")
 
 

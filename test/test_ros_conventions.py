@@ -90,7 +90,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, data: h.Data) -> Any:
     try:
         run.start("correction_node", params=FAST, params_files=[wrong, right], namespace=NS, log_name="ns_correction")
         run.start("calibration_node", namespace=NS, log_name="ns_calibration", params={
-            "reference_field": h.INTENSITY, "calibration_file": str(output), "service_timeout": 10.0,
+            "reference_field": h.INTENSITY, "calibration_file": str(output), "service_timeout": h.SERVICE_TIMEOUT,
             "backups": KEEP, "progress_period": 0.25, "sensor_timeout": 0.5, "output_timeout": 1.5})
         yield World(run, workdir, truth, np.stack(covariances), right, wrong, output)
     finally:

@@ -80,7 +80,7 @@ def test_sigint_to_the_process_group_stops_both_nodes_cleanly(
         calibration = run.start(
             found["calibration_node"], log_name="calibration", process_group=correction.pid,
             params={"reference_field": h.INTENSITY, "calibration_file": str(calibration_file), "method": "pso",
-                    "service_timeout": 10.0},
+                    "service_timeout": h.SERVICE_TIMEOUT},
         )
         assert os.getpgid(calibration.pid) == os.getpgid(correction.pid) == correction.pid
         driver = run.driver(data.names)
