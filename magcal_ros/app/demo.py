@@ -91,7 +91,7 @@ def measure(driver, check: Recording, rate: float) -> tuple[float, float, int]: 
     mapping = driver.replay(recording_messages(check.names, check.stamps, check.vectors), rate=rate,
                             currents=check.currents if check.channels else None)
     stamps = list(mapping.values())
-    driver.wait_for_outputs(stamps, timeout=60.0)
+    driver.wait_for_outputs(stamps, timeout=180.0, settle=60.0)  # a busy machine delays, never loses
     gradients = driver.gradients(stamps)
     corrected = driver.corrected(stamps)
     if not gradients or not corrected:
@@ -133,11 +133,14 @@ def run(args: argparse.Namespace) -> int:
     driver = None
     try:
         # Uncalibrated at first, on purpose (the "before" figures): raw readings for every sensor.
-        raw = {"uncorrected_sensors": list(sim.geometry.names)}
+        # Reliable raw subscriptions with deep queues: on a busy machine the nodes fall behind and catch
+        # up, they never drop the replayed sets.
+        lossless = {"raw_reliability": "reliable", "qos_depth": 10000}
+        raw = {"uncorrected_sensors": list(sim.geometry.names), **lossless}
         nodes.append(NodeProcess("correction_node", ros_args(params=raw), env, work / "correction_node.log"))
         cal_params: dict[str, object] = {"calibration_file": str(calibration_file),
                                          "reference_field": 0.0 if args.relative else INTENSITY,
-                                         "assess_period": 2.0}
+                                         "assess_period": 2.0, **lossless}
         if channels:
             cal_params["interference_channels"] = channels  # currents on /thrusterN/battery, collected with the sets
         nodes.append(NodeProcess("calibration_node", ros_args(params=cal_params), env, work / "calibration_node.log"))
@@ -156,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         clock.say(f"~/start -> {message}")
         messages = bag_messages(bag)
         sent = driver.replay(messages, rate=args.rate, currents=manoeuvre.currents if channels else None)
-        progress = wait_for_samples(driver, "magcal_calibration", len(sent), timeout=15.0)
+        progress = wait_for_samples(driver, "magcal_calibration", len(sent), timeout=180.0)
         clock.say(f"replayed {len(messages)} bag messages{' with the thruster currents' if channels else ''}; the "
                   f"calibration node holds {progress.get('samples', '?')} sets, coverage "
                   f"{float(progress.get('coverage', 0)):.0%}, ready={progress.get('ready', '?')}")

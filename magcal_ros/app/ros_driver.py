@@ -291,7 +291,7 @@ class ArrayDriver:
         domain_id: int,
         node_name: str = "magcal_driver",
         collect_corrected: bool = True,
-        publish_depth: int = 1000,
+        publish_depth: int = 10000,
         namespace: str = "",
         listen: bool = True,
         kind: str = "tensor",
@@ -344,7 +344,7 @@ class ArrayDriver:
         self._lock = threading.Lock()
         self._fields: deque[int] = deque()
         self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
-        out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        out_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)  # a busy reader catches up
         self.subscriptions = [
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
         ] if listen else []
@@ -707,7 +707,7 @@ class ArrayDriver:
         finally:
             self.node.destroy_client(client)
 
-    def trigger(self, name: str, timeout: float = 60.0) -> tuple[bool, str]:
+    def trigger(self, name: str, timeout: float = 300.0) -> tuple[bool, str]:
         """Call a std_srvs/Trigger service; returns (success, message)."""
         from std_srvs.srv import Trigger
 
@@ -715,7 +715,7 @@ class ArrayDriver:
         return bool(reply.success), str(reply.message)
 
     def set_parameters(self, node: str, values: Mapping[str, Any], atomic: bool = True,
-                       timeout: float = 30.0) -> list[tuple[bool, str]]:
+                       timeout: float = 120.0) -> list[tuple[bool, str]]:
         """Set parameters of ``node`` through its parameter service; (successful, reason) each."""
         from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 
@@ -730,7 +730,7 @@ class ArrayDriver:
                            SetParameters.Request(parameters=msgs), timeout)
         return [(bool(r.successful), str(r.reason)) for r in reply.results]
 
-    def get_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+    def get_parameters(self, node: str, names: Sequence[str], timeout: float = 120.0) -> dict[str, Any]:
         """Values of parameters of ``node`` (None for unset ones)."""
         from rcl_interfaces.srv import GetParameters
         from rclpy.parameter import parameter_value_to_python
@@ -743,7 +743,7 @@ class ArrayDriver:
             out[n] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
         return out
 
-    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 120.0) -> dict[str, Any]:
         """rcl_interfaces/ParameterDescriptor of parameters of ``node``, by name."""
         from rcl_interfaces.srv import DescribeParameters
 
