@@ -11,6 +11,7 @@ messages or rows at a time, so memory stays flat however long the recording.
 from __future__ import annotations
 
 import csv
+import itertools
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -68,7 +69,6 @@ def _bag_chunks(path: Path, names: Sequence[str]) -> Iterator[OutputChunk]:
         missing = [t for t in [*wanted, "/" + topics.FIELD] if (t, MAGNETIC_FIELD) not in by_topic]
         if missing:
             raise InputError(f"{path}: not a corrected output of these sensors (no {', '.join(missing)})")
-        index = {by_topic[(t, MAGNETIC_FIELD)].id: k for k, t in enumerate(wanted)}
         field_id = by_topic[("/" + topics.FIELD, MAGNETIC_FIELD)].id
         grad = by_topic.get((topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY))
         base = by_topic.get((topics.absolute(topics.BASELINE_GRADIENT), VECTOR3_STAMPED))
@@ -76,30 +76,22 @@ def _bag_chunks(path: Path, names: Sequence[str]) -> Iterator[OutputChunk]:
         conns = [by_topic[(t, MAGNETIC_FIELD)] for t in wanted] + [by_topic[("/" + topics.FIELD, MAGNETIC_FIELD)]]
         if grad_conn is not None:
             conns.append(grad_conn)
-        grad_id = grad_conn.id if grad_conn is not None else None
 
-        def decode(sensor: list[list[bytes]], fields: list[bytes], grads: list[bytes]) -> OutputChunk:
-            vectors = [decode_magnetic_fields(m, str(path))[1] for m in sensor]
-            stamps = decode_magnetic_fields(fields, str(path))[0]
-            g = _trailing_doubles(grads, width, str(path)) if width else np.empty((0, 0))
+        def decode(lists: dict[int, list[bytes]]) -> OutputChunk:
+            vectors = [decode_magnetic_fields(lists[c.id], str(path))[1] for c in conns[: len(names)]]
+            stamps = decode_magnetic_fields(lists[field_id], str(path))[0]
+            g = _trailing_doubles(lists[grad_conn.id], width, str(path)) if grad_conn is not None else np.empty((0, 0))
             return OutputChunk(vectors, stamps, g)
 
-        sensor: list[list[bytes]] = [[] for _ in names]
-        fields: list[bytes] = []
-        grads: list[bytes] = []
-        n = 0
-        for cid, _, data in message_rows(reader, conns):
-            if cid == field_id:
-                fields.append(data)
-            elif cid == grad_id:
-                grads.append(data)
-            elif cid in index:
-                sensor[index[cid]].append(data)
-            n += 1
-            if n >= CHUNK:
-                yield decode(sensor, fields, grads)
-                sensor, fields, grads, n = [[] for _ in names], [], [], 0
-        yield decode(sensor, fields, grads)
+        rows = iter(message_rows(reader, conns))
+        while True:
+            block = list(itertools.islice(rows, CHUNK))
+            lists: dict[int, list[bytes]] = {c.id: [] for c in conns}
+            for cid, _, data in block:
+                lists[cid].append(data)
+            yield decode(lists)
+            if len(block) < CHUNK:
+                break
 
 
 def _csv_chunks(path: Path, names: Sequence[str]) -> Iterator[OutputChunk]:
