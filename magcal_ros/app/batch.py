@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -22,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from magcal_ros.errors import InputError
+from magcal_ros.errors import InputError, MagcalError
 
 if TYPE_CHECKING:
     from magcal_ros.app.campaign import Job, Outcome
@@ -70,6 +72,10 @@ vehicle their trend over time.
 exit codes: 0 every recording done (corrected now or skipped); 1 some failed (the report names
 them); 2 the batch refused (bad option, calibration, mapping or scheduler; nothing run);
 130, 143, 129 stopped by SIGINT, SIGTERM, SIGHUP."""
+
+
+WORKER_START_TIMEOUT = 300.0
+"""Seconds the local cluster's workers may take to start (imports on a loaded machine)."""
 
 
 def _workers(text: str) -> int:
@@ -282,51 +288,145 @@ def failure_reason(exc: BaseException) -> str:
     return f"{kind}: {text[0]}" if text else kind
 
 
+class StopSignals:
+    """While a batch runs, a stop signal (SIGINT, SIGTERM, SIGHUP) only sets a flag; :meth:`check`
+    raises it as the CLI's ``Stopped`` at a point where the cluster can be closed cleanly
+    (raising inside Dask's own waits leaves its state broken)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "StopSignals":
+        from magcal_ros.io.atomic import STOP_SIGNALS
+
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {s: signal.signal(s, self._note) for s in STOP_SIGNALS}
+        return self
+
+    def _note(self, signum: int, frame: object) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+    def check(self) -> None:
+        """Raise ``Stopped`` if a stop signal came."""
+        if self.signum is not None:
+            from magcal_ros.app.cli import Stopped
+
+            raise Stopped(self.signum)
+
+    def __exit__(self, *exc: object) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+
+
+def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
+    """A ``LocalCluster`` of ``n`` single-threaded worker processes and its client.
+
+    The worker processes are spawned with SIGINT ignored (a disposition they inherit and
+    Python keeps), so a terminal's Ctrl-C, sent to the whole process group, stops only this
+    process, which then closes them; this process ignores SIGINT too only until the
+    processes exist (a fraction of a second), not during their start-up.
+    """
+    import logging
+    import multiprocessing
+
+    from distributed import Client, LocalCluster
+
+    main = threading.current_thread() is threading.main_thread()
+    held = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    cluster = None
+    try:
+        try:
+            cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.CRITICAL)  # a failed task is reported by name instead
+            cluster.scale(n)
+            deadline = time.monotonic() + WORKER_START_TIMEOUT
+            while len(multiprocessing.active_children()) < n and time.monotonic() < deadline:
+                time.sleep(0.02)
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, held)
+        client = Client(cluster)
+        deadline = time.monotonic() + WORKER_START_TIMEOUT
+        while len(client.scheduler_info(n_workers=-1).get("workers", {})) < n:
+            stop.check()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"not up within {WORKER_START_TIMEOUT:.0f} s")
+            time.sleep(0.1)
+    except (OSError, RuntimeError, TimeoutError) as exc:
+        if cluster is not None:
+            cluster.close()
+        raise MagcalError(f"cannot start a local Dask cluster of {n} workers: {exc}") from None
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
+    return cluster, client
+
+
 def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
                 on_done: Callable[[Outcome], None]) -> str:
     """Run ``jobs`` as Dask tasks, calling ``on_done`` with each outcome as it finishes; returns
-    where they ran (for the summary). :class:`InputError` when the scheduler cannot be reached."""
-    import logging
-
-    from distributed import Client, LocalCluster, as_completed
+    where they ran (for the summary). :class:`InputError` when the scheduler cannot be reached;
+    a stop signal closes the cluster and raises the CLI's ``Stopped``."""
+    from distributed import Client, as_completed
 
     from magcal_ros.app.batch_task import run_job
 
     cluster: Any = None
-    try:
-        if scheduler:
-            try:
-                client = Client(scheduler, timeout="20s")
-            except (OSError, TimeoutError, ValueError) as exc:
-                raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
-            where = f"the Dask cluster at {scheduler} ({len(client.scheduler_info().get('workers', {}))} workers)"
-        else:
-            n = workers or default_workers()
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.CRITICAL)  # a failed task is reported by name below
-            client = Client(cluster)
-            where = f"{n} local worker process{'es' if n != 1 else ''}"
-        with client:
-            tag = uuid.uuid4().hex[:8]
-            keys = [f"magcal-batch-{tag}-{i}-{job.name}" for i, job in enumerate(jobs)]
-            futures = client.map(run_job, list(jobs), key=keys, pure=False, retries=0)
-            by_key = dict(zip(keys, jobs))
-            for fut in as_completed(futures):
-                job = by_key[fut.key]
-                if fut.status == "finished":
-                    outcome = fut.result()
-                else:
-                    try:
-                        exc = fut.exception()
-                    except BaseException as cancelled:  # a cancelled future raises instead
-                        exc = cancelled
-                    outcome = job.outcome("failed", reason=failure_reason(exc))
-                fut.release()
-                on_done(outcome)
-    finally:
-        if cluster is not None:
-            cluster.close()
+    with StopSignals() as stop:
+        try:
+            if scheduler:
+                try:
+                    client = Client(scheduler, timeout="20s")
+                except (OSError, TimeoutError, ValueError) as exc:
+                    raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+                where = f"the Dask cluster at {scheduler} ({len(client.scheduler_info().get('workers', {}))} workers)"
+            else:
+                n = workers or default_workers()
+                cluster, client = _local_cluster(n, stop)
+                where = f"{n} local worker process{'es' if n != 1 else ''}"
+            with client:
+                stop.check()
+                tag = uuid.uuid4().hex[:8]
+                keys = [f"magcal-batch-{tag}-{i}-{job.name}" for i, job in enumerate(jobs)]
+                futures = client.map(run_job, list(jobs), key=keys, pure=False, retries=0)
+                by_key = dict(zip(keys, jobs))
+                done = as_completed(futures)
+                while not done.is_empty():
+                    stop.check()
+                    finished = done.next_batch(block=False)
+                    if not finished:
+                        time.sleep(0.1)
+                    for fut in finished:
+                        job = by_key[fut.key]
+                        if fut.status == "finished":
+                            outcome = fut.result()
+                        else:
+                            try:
+                                exc = fut.exception()
+                            except BaseException as cancelled:  # a cancelled future raises instead
+                                exc = cancelled
+                            outcome = job.outcome("failed", reason=failure_reason(exc))
+                        fut.release()
+                        on_done(outcome)
+                        stop.check()
+        finally:
+            if cluster is not None:
+                cluster.close()
     return where
+
+
+def _clean_unfinished(jobs: Sequence[Job]) -> None:
+    """Remove what stopped tasks left beside their outputs (their worker processes are gone;
+    a task still running elsewhere keeps its partial output, which its next run cleans up)."""
+    from magcal_ros.io.atomic import recover
+
+    for job in jobs:
+        for target in (job.output, job.calibration_out):
+            if target:
+                recover(target)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -340,7 +440,6 @@ def cmd_batch(args: argparse.Namespace) -> int:
     for note in notes:
         print(f"  note: {note}", file=sys.stderr)
     outdir = Path(args.output).absolute()
-    outdir.mkdir(parents=True, exist_ok=True)
     outcomes: dict[str, Outcome] = {}
     pending = []
     digests: dict[str, str] = {}
@@ -371,9 +470,14 @@ def cmd_batch(args: argparse.Namespace) -> int:
             console.done(o)
             bar(1)
 
-        with bar:
-            where = run_on_dask(pending, args.workers, args.scheduler, on_done)
+        try:
+            with bar:
+                where = run_on_dask(pending, args.workers, args.scheduler, on_done)
+        except KeyboardInterrupt:
+            _clean_unfinished([j for j in pending if j.name not in outcomes])
+            raise
     ordered = [outcomes[j.name] for j in jobs]
+    outdir.mkdir(parents=True, exist_ok=True)
     batch_report.write_csv(outdir / campaign.REPORT_CSV, ordered)
     batch_report.write_html(outdir / campaign.REPORT_HTML, ordered, str(outdir))
     failed = [o for o in ordered if o.status == "failed"]
