@@ -375,3 +375,49 @@ def test_calibrate_first_from_each_recordings_own_manoeuvre(
         row = next(csv.DictReader(fh))
     assert row["calibration"] == str(own)
     assert float(row["tmi_median_noise"]) == pytest.approx(0.674, rel=0.15), "its own calibration holds"
+
+
+def test_ctrl_c_stops_the_batch_closes_its_workers_and_leaves_no_partial_output(
+        campaign: dict[str, Path], tmp_path: Path) -> None:
+    import signal
+
+    import psutil
+
+    camp = tmp_path / "in"
+    write_recording_bag(camp / "long_bag", recording(T0, 60_000), "sqlite3")
+    write_recording_bag(camp / "long2_bag", recording(T0 + DAY, 60_000), "sqlite3")
+    out = tmp_path / "out"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "magcal_ros.app.cli", "batch", str(camp), "-c", str(campaign["cal"]),
+                             "-o", str(out), "--workers", "2"], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (out.exists() and any(p.name.endswith(".partial") for p in out.iterdir())):
+            assert proc.poll() is None and time.monotonic() < deadline, "no task started writing"
+            time.sleep(0.02)
+        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["magcal batch: stopped by SIGINT; unfinished output removed"], err
+    assert not [p for p in out.rglob("*") if ".partial" in p.name], "no partial output left"
+    assert not (out / "long_bag").exists() or (out / ".magcal_batch" / "long_bag.json").exists()
+    deadline = time.monotonic() + 30
+    while True:
+        left = [p for p in psutil.process_iter(["pid", "status"])
+                if _session(p.pid) == proc.pid and p.info["status"] != psutil.STATUS_ZOMBIE]
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    assert left == [], f"worker processes left running: {left}"
+
+
+def _session(pid: int) -> int | None:
+    try:
+        return os.getsid(pid)
+    except OSError:
+        return None
