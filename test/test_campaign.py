@@ -208,3 +208,20 @@ def test_other_commands_do_not_import_dask() -> None:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_reports_reference_comes_from_the_calibration_or_a_truth_file(tmp_path: Path) -> None:
+    from magcal_ros.app.batch_task import reference_of
+    from magcal_ros.io.truth_file import write_simulation
+    from magcal_ros.sim.spec import SimulationSpec
+
+    _, truth_yaml, _ = write_simulation(tmp_path / "sim.csv", SimulationSpec(count=20, intensity=4.8e-5, noise=2e-9))
+    assert reference_of(str(truth_yaml), calfile.read(truth_yaml)) == (4.8e-5, 2e-9)
+    cal = ArrayCalibration(ArrayGeometry.single("mag1"), np.eye(3)[None], np.zeros((1, 3)),
+                           {"intensity": 5.1e-5, "noise": [1e-9, 3e-9]})
+    calfile.write(tmp_path / "cal.yaml", cal)
+    assert reference_of(str(tmp_path / "cal.yaml"), calfile.read(tmp_path / "cal.yaml")) == \
+        pytest.approx((5.1e-5, np.sqrt(5e-18)), rel=1e-12)
+    plain = ArrayCalibration(ArrayGeometry.single("mag1"), np.eye(3)[None], np.zeros((1, 3)))
+    calfile.write(tmp_path / "plain.yaml", plain)
+    assert reference_of(str(tmp_path / "plain.yaml"), calfile.read(tmp_path / "plain.yaml")) == (None, None)

@@ -132,6 +132,27 @@ def notes_of(stderr: str) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- what the output shows
 
 
+def _positive(value: object) -> float | None:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) and v > 0 else None
+
+
+def reference_of(path: str, calibration: ArrayCalibration) -> tuple[float | None, float | None]:
+    """F (T) and the noise per axis (T) a calibration file states: its provenance (``intensity``,
+    ``noise``), else for a simulation's truth file the simulated ``intensity`` and ``noise``."""
+    intensity, noise = calibration_intensity(calibration), calibration_noise(calibration)
+    if intensity is None or noise is None:
+        from magcal_ros.io.truth_file import simulation_parameters
+
+        sim = simulation_parameters(path)
+        intensity = intensity or _positive(sim.get("intensity"))
+        noise = noise or _positive(sim.get("noise"))
+    return intensity, noise
+
+
 def calibration_noise(calibration: ArrayCalibration) -> float | None:
     """The calibration's noise per axis (T): RMS of its provenance ``noise`` over sensors, or None."""
     values = calibration.metadata.get("noise")
@@ -145,11 +166,7 @@ def calibration_noise(calibration: ArrayCalibration) -> float | None:
 
 def calibration_intensity(calibration: ArrayCalibration) -> float | None:
     """The intensity F (T) the calibration was solved for (provenance ``intensity``), or None."""
-    try:
-        f = float(calibration.metadata.get("intensity") or 0.0)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) and f > 0 else None
+    return _positive(calibration.metadata.get("intensity"))
 
 
 def measure_output(path: str, calibration: ArrayCalibration, intensity: float | None) -> dict[str, Any]:
@@ -215,13 +232,14 @@ def run_job(job: Job) -> Outcome:
         from magcal_ros.io.output_scan import input_samples
 
         cal = calfile.read(job.used_calibration, uncorrected=job.uncorrected)
-        intensity = job.reference_field or calibration_intensity(cal)
+        stated, noise = reference_of(job.used_calibration, cal)
+        intensity = job.reference_field or stated
         found = measure_output(job.output, cal, intensity)
         offered = input_samples(job.input, cal.geometry.names)
     except MagcalError as exc:
         raise RecordingFailed(f"corrected, but its output could not be read back: {exc}") from None
     outcome = job.outcome(
-        "corrected", drops=max(0, offered - found["sets"]), intensity=intensity, noise=calibration_noise(cal),
+        "corrected", drops=max(0, offered - found["sets"]), intensity=intensity, noise=noise,
         seconds=time.perf_counter() - t0, worker=f"{socket.gethostname()}:{os.getpid()}", notes=tuple(notes), **found,
     )
     write_record(job, cal_digest, outcome)
