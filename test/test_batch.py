@@ -329,8 +329,18 @@ def test_a_rerun_skips_finished_work(campaign: dict[str, Path], dask_cluster: Da
         (camp / name).parent.mkdir(parents=True, exist_ok=True)
         (shutil.copytree if src.is_dir() else shutil.copy2)(src, camp / name)
     out = tmp_path / "out"
-    first = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--workers", "2"))  # the default local cluster
+    import socket
+
+    with socket.socket() as taken:  # Dask's default HTTP port in use elsewhere must not matter (nor warn)
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            taken.bind(("0.0.0.0", 8787))
+            taken.listen()
+        except OSError:
+            pass  # already taken: the same situation
+        first = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--workers", "2"))  # the local cluster
     assert "2 corrected, 0 skipped, 0 failed" in first.stdout
+    assert first.stderr == "", first.stderr
 
     def state() -> dict[str, tuple[int, int]]:
         return {str(p.relative_to(out)): (p.stat().st_ino, p.stat().st_mtime_ns)

@@ -338,7 +338,8 @@ def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
     cluster = None
     try:
         try:
-            cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True, dashboard_address=None,
+            # The scheduler's HTTP server on a free local port (the default 8787 may be taken: a warning).
+            cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
                                    silence_logs=logging.CRITICAL)  # a failed task is reported by name instead
             cluster.scale(n)
             deadline = time.monotonic() + WORKER_START_TIMEOUT
