@@ -1047,6 +1047,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n"
         "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
         "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
+        "  magcal batch campaign/ -c cal.yaml -o corrected/   # every recording, on Dask, with a report\n"
         "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -1055,6 +1056,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_correct(sub)
+    from magcal_ros.app.batch import add_batch_parser  # Dask itself is imported only when a batch runs
+
+    add_batch_parser(sub, _subcommand)
     return parser
 
 

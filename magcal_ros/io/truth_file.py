@@ -63,6 +63,18 @@ from magcal_ros.sim.streams import StreamRecording, StreamSpec, simulate_streams
 SIMULATION_NODE = "magcal_simulation"
 
 
+def simulation_parameters(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The ``magcal_simulation`` parameters of a truth file (``intensity`` T, ``noise`` T, ...);
+    ``{}`` for any other file, or one that cannot be read."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return {}
+    block = doc.get(SIMULATION_NODE) if isinstance(doc, dict) else None
+    params = block.get("ros__parameters") if isinstance(block, dict) else None
+    return params if isinstance(params, dict) else {}
+
+
 def truth_paths(out: str | os.PathLike[str]) -> tuple[Path, Path]:
     """``OUT.truth.yaml`` and ``OUT.truth.npz`` beside the recording ``OUT``."""
     base = str(out).rstrip("/\\")
