@@ -10,6 +10,10 @@ run times out, or the package no longer imports).
     an aligner angle off by 5e-5 rad, an offset 10 % off, joint refinement disabled ...)
     against the accuracy, core, method and paper tests; prints which tests fail.
 
+``python benchmarks/mutation.py survivors [NAME ...]``
+    The survivors of an independent mutation pass (``SURVIVORS``), each planted against the
+    tests written for it; every one must make a test fail.
+
 ``python benchmarks/mutation.py mutants [--per-module N] [--seed S] [--modules a,b] [--json OUT]``
     AST mutations, one at a time, of the core's math (``MODULES``): numeric constants
     (ints + 1, floats x 2, 0.0 -> 1.0), index offsets (an integer index or slice bound + 1),
@@ -111,6 +115,8 @@ class Plant:
     what: str
     measure: str = ""
     """What test/test_accuracy.py measures for the effect column (default: ``method``)."""
+    tests: tuple[str, ...] = ()
+    """The tests (pytest arguments) this plant runs against (default: :data:`PLANT_TESTS`)."""
 
 
 PLANTS: tuple[Plant, ...] = (
@@ -170,8 +176,74 @@ PLANTS: tuple[Plant, ...] = (
           "the swarm's social term halved (a slower, less precise swarm)"),
 )
 
+_CLI_CURRENTS = "test/test_interference.py::test_bags_with_battery_state_and_float64_channels_via_the_cli"
+SURVIVORS: tuple[Plant, ...] = (
+    Plant("undetermined-800", "ml", "magcal_ros/core/identifiability.py",
+          "UNDETERMINED_EFFECT: float = 400.0", "UNDETERMINED_EFFECT: float = 800.0",
+          "the identifiability threshold doubled: undetermined only above 800 noise sd",
+          tests=("test/test_limits.py",)),
+    Plant("jackknife-off", "ml", "magcal_ros/methods/pipeline.py",
+          "    n = len(order)\n    blocks = np.array_split(order, JACKKNIFE_BLOCKS)",
+          "    return 1.0\n    n = len(order)\n    blocks = np.array_split(order, JACKKNIFE_BLOCKS)",
+          "the block-jackknife widening skipped (stated sigmas 1.1-1.9x too small)",
+          tests=("test/test_field.py::test_reported_uncertainty_matches_the_spread_with_correlated_noise",)),
+    Plant("quantity-unit", "ml", "magcal_ros/core/identifiability.py",
+          'scale = {"nT": 1.0 / NT,', 'scale = {"nT": NT,',
+          "quantities reported in nT (summary, file uncertainty.*_nT) off by 1e18",
+          tests=("test/test_user_numbers.py",)),
+    Plant("corrected-set-stamp", "ml", "magcal_ros/app/correct.py",
+          "self.sensor_template.fill(blocks, off[k], batch.stamps[:, k], sets.vectors[:, k])",
+          "self.sensor_template.fill(blocks, off[k], batch.set_stamps, sets.vectors[:, k])",
+          "magcal correct stamps /<name>/corrected with the set's stamp instead of the sensor's own",
+          tests=(_CLI_CURRENTS,)),
+    Plant("currents-bag-time", "ml", "magcal_ros/io/cdr.py",
+          "    return stamp or int(bag_time_ns), float(msg.current)",
+          "    return int(bag_time_ns), float(msg.current)",
+          "BatteryState currents stamped by bag time instead of their header",
+          tests=(_CLI_CURRENTS,)),
+    Plant("matrix-transposed", "ml", "magcal_ros/core/calibration.py",
+          'params[name] = {"matrix": [float(x) for x in m.reshape(-1)]',
+          'params[name] = {"matrix": [float(x) for x in m.T.reshape(-1)]',
+          "the calibration matrix written transposed (column-major) to the file",
+          tests=("test/test_calibration_file.py",)),
+    Plant("stamp-truncated", "ml", "magcal_ros/core/stamps.py",
+          "np.rint((t - whole) * NS_PER_S).astype(np.int64)", "((t - whole) * NS_PER_S).astype(np.int64)",
+          "float seconds truncated instead of rounded to the nanosecond (1 ns off)",
+          tests=("test/test_bagio.py::test_stamp_conversion",)),
+)
+"""The survivors of an independent mutation pass (docs/mutation_report.md), each with the tests
+written to kill it. The node's own stamp mutant (``correction_node``) needs the package installed
+(the DDS tests run the installed executables), so it is planted by hand: see the report."""
+
 PLANT_TESTS = ["test/test_accuracy.py", "test/test_tensor_geometry.py", "test/test_core.py", "test/test_methods.py",
                "test/test_papers.py"]
+
+
+def run_survivors(names: list[str]) -> int:
+    """Each survivor plant against its own tests: which fail (every one must)."""
+    box = Sandbox()
+    missed = 0
+    try:
+        print("| plant | bug | tests run | result |\n| --- | --- | --- | --- |")
+        for p in SURVIVORS:
+            if names and p.name not in names:
+                continue
+            text = (ROOT / p.path).read_text(encoding="utf-8")
+            assert text.count(p.old) == 1, f"{p.name}: the text to replace is not unique in {p.path}"
+            base, failing, _ = box.pytest(list(p.tests), 1800, stop_first=False)
+            if base != "passed":
+                print(f"| {p.name} | {p.what} | unchanged copy {base}: {failing} | - |")
+                missed += 1
+                continue
+            box.write(p.path, text.replace(p.old, p.new))
+            status, failing, secs = box.pytest(list(p.tests), 1800, stop_first=False)
+            box.restore(p.path)
+            shown = ", ".join(f.split("::", 1)[1] if "::" in f else f for f in failing) or "NONE"
+            missed += status != "failed"
+            print(f"| {p.name} | {p.what} | {', '.join(p.tests)} | {status} ({secs:.0f} s): {shown} |", flush=True)
+    finally:
+        box.close()
+    return 1 if missed else 0
 
 
 def run_plants(names: list[str]) -> int:
@@ -211,6 +283,9 @@ MODULES: tuple[str, ...] = (
     "magcal_ros/core/alignment.py",
     "magcal_ros/core/tensor.py",
     "magcal_ros/core/sync.py",
+    "magcal_ros/core/sync_rules.py",
+    "magcal_ros/core/sync_interpolate.py",
+    "magcal_ros/core/sample_clock.py",
     "magcal_ros/io/cdr.py",
     "magcal_ros/core/rotation.py",
 )
@@ -227,7 +302,10 @@ SUBSETS: dict[str, list[str]] = {
                                      "test/test_papers.py::test_coaxial2022_axis_angle", *_FIT],
     "magcal_ros/core/tensor.py": ["test/test_tensor_geometry.py", "test/test_core.py",
                                   "test/test_methods.py::test_pipeline_methods"],
-    "magcal_ros/core/sync.py": ["test/test_sync.py", "test/test_bagio.py"],
+    "magcal_ros/core/sync.py": ["test/test_sync.py", "test/test_bagio.py", "test/test_streams.py"],
+    "magcal_ros/core/sync_rules.py": ["test/test_sync.py", "test/test_streams.py"],
+    "magcal_ros/core/sync_interpolate.py": ["test/test_streams.py"],
+    "magcal_ros/core/sample_clock.py": ["test/test_sample_clock.py", "test/test_streams.py", "test/test_health.py"],
     "magcal_ros/io/cdr.py": ["test/test_bagio.py", "test/test_node_helpers.py"],
     "magcal_ros/core/rotation.py": ["test/test_papers.py::test_li2018_table3_misalignment", *_FIT],
 }
@@ -410,6 +488,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("plants", help="run the planted regressions")
     p.add_argument("names", nargs="*", help="only these plants (default: all)")
+    sv = sub.add_parser("survivors", help="the survivors of the independent pass, each against its own tests")
+    sv.add_argument("names", nargs="*", help="only these plants (default: all)")
     m = sub.add_parser("mutants", help="mutation run over the core's math")
     m.add_argument("--per-module", type=int, default=None, help="sample at most N mutants per module")
     m.add_argument("--seed", type=int, default=0)
@@ -423,6 +503,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "plants":
         return run_plants(args.names)
+    if args.command == "survivors":
+        return run_survivors(args.names)
     modules = [x for x in args.modules.split(",") if x]
     if args.list:
         for module in modules:

@@ -20,6 +20,14 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$root/requirements-test.txt"
   echo "$want" > "$stamp"
 fi
+# The tests render the campaign report (magcal batch) in headless Chromium: Debian's package,
+# installed when missing and this is a root shell with apt (elsewhere the report test skips).
+if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  echo "[setup] installing chromium (headless browser for the report test; apt, about a minute)" >&2
+  if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium; } >/dev/null 2>&1; then
+    echo "[setup] could not install chromium with apt-get" >&2
+  fi
+fi
 # `ros2 run` and `ros2 launch` find packages through AMENT_PREFIX_PATH; the ROS wheels and this
 # package install their ament index into the venv, so activating the venv puts it there.
 marker="# magcal_ros: ament prefix"

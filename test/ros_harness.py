@@ -35,14 +35,27 @@ from magcal_ros.sim.simulator import ArraySimulation, Truth, random_sensor_error
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT
 BASELINE = 0.4
-STARTUP_TIMEOUT = 60.0
-DISCOVERY_TIMEOUT = 60.0
+STARTUP_TIMEOUT = 180.0
+DISCOVERY_TIMEOUT = 180.0
 REPLAY_RATE = 400.0
 CORRECTION = "magcal_correction"
 CALIBRATION = "magcal_calibration"
 NAMES = ("mag1", "mag2", "mag3", "mag4")
 UNCORRECTED = {"uncorrected_sensors": list(NAMES)}
 """Correction node parameters to run without a calibration (raw readings on purpose)."""
+LOSSLESS = {"raw_reliability": "reliable", "qos_depth": 10000}
+"""Node parameters that deliver every message the test publishes however busy the machine is:
+reliable raw (and current) subscriptions and 10,000-deep queues (25 s of a 400 Hz replay), so a
+node that falls behind catches up instead of dropping. :meth:`RosRun.start` adds them unless a
+test sets these parameters itself (or passes ``lossless=False``)."""
+SAMPLES_TIMEOUT = 180.0
+"""Generous deadline (s) for a node to count what was sent: never reached unless it is lost."""
+OUTPUT_TIMEOUT = 180.0
+"""Generous deadline (s) for the outputs of what was sent."""
+SERVICE_TIMEOUT = 120.0
+"""The calibration node's ``service_timeout`` in the tests: the correction node answers, only late."""
+OUTPUT_SETTLE = 60.0
+"""Give up waiting for outputs only after this long (s) without a new one."""
 
 
 @dataclass
@@ -135,9 +148,14 @@ class RosRun:
         ready_text: str | None = None,
         namespace: str | None = None,
         process_group: int | None = None,
+        lossless: bool = True,
     ) -> NodeProcess:
-        """Start an installed node executable (name or path) and wait for its start-up log line."""
+        """Start an installed node executable (name or path) and wait for its start-up log line.
+
+        ``lossless``: a magcal node gets :data:`LOSSLESS` (for the keys ``params`` does not set)."""
         log = self.workdir / f"{log_name or executable}.log"
+        if lossless and Path(executable).name in ("correction_node", "calibration_node"):
+            params = {**LOSSLESS, **(params or {})}
         args = ros_args(params=params, params_files=params_files, namespace=namespace)
         proc = NodeProcess(executable, args, self.env, log, process_group=process_group)
         self.processes.append(proc)
@@ -147,11 +165,13 @@ class RosRun:
         return proc
 
     def driver(self, names: Sequence[str], namespace: str = "", kind: str = "tensor",
-               currents: Sequence[tuple[str, str]] = ()) -> ArrayDriver:
-        """A driver node on this domain (publishing and listening in ``namespace``; ``kind`` and
-        ``currents`` as :class:`ArrayDriver` takes them)."""
+               currents: Sequence[tuple[str, str]] = (), temperatures: bool = False,
+               imu_topic: str | None = None) -> ArrayDriver:
+        """A driver node on this domain (publishing and listening in ``namespace``; ``kind``,
+        ``currents``, ``temperatures`` and ``imu_topic`` as :class:`ArrayDriver` takes them)."""
         d = ArrayDriver(names, self.domain_id, node_name=f"magcal_test_driver_{len(self.drivers)}",
-                        namespace=namespace, kind=kind, currents=currents)
+                        namespace=namespace, kind=kind, currents=currents, temperatures=temperatures,
+                        imu_topic=imu_topic)
         self.drivers.append(d)
         return d
 
@@ -193,7 +213,7 @@ def outputs_by_original(
     Waits for the outputs of ``wait_for`` (original stamps; default ``stamps``) first.
     """
     waited = [mapping[t] for t in (stamps if wait_for is None else wait_for) if t in mapping]
-    driver.wait_for_outputs(waited, timeout=60.0)
+    driver.wait_for_outputs(waited, timeout=OUTPUT_TIMEOUT, settle=OUTPUT_SETTLE)
     published = [mapping[t] for t in stamps if t in mapping]
     back = {mapping[t]: t for t in stamps if t in mapping}
     g = {back[t]: v for t, v in driver.gradients(published).items()}
@@ -205,3 +225,72 @@ def chunked(values: Sequence[Any], n: int) -> Iterator[Sequence[Any]]:
     """Slices of ``n``."""
     for a in range(0, len(values), n):
         yield values[a : a + n]
+
+
+# -- bags with the stamps a real recording has ------------------------------------------------------
+SENSOR_SKEW_NS = 200_000
+"""Each sensor after the first stamps this much later than the one before it (ns): four sensors
+span 0.6 ms (+ jitter), inside the default 1 ms sync tolerance."""
+STAMP_JITTER_NS = 100_000
+"""Header stamps of the sensors after the first jitter by up to this much (ns), uniformly."""
+BAG_DELAY_NS = (2_000_000, 6_000_000)
+"""A message reaches the recorder (its bag time) this long after its header stamp (ns)."""
+CURRENT_LEAD_NS = 300_000
+"""A current is sampled (header stamp) this much before the set it belongs to (ns)."""
+
+
+def realistic_stamps(path: str | os.PathLike[str], seed: int = 0) -> dict[str, np.ndarray]:
+    """Rewrite a rosbag2 directory in place with the stamps of a real recording; returns each
+    ``/<name>/raw`` topic's new header stamps (ns) by sensor name, in bag order.
+
+    The bag's sensors (topics ``/<name>/raw``, names sorted) keep their sets, but sensor ``k``
+    stamps ``k`` x :data:`SENSOR_SKEW_NS` plus up to :data:`STAMP_JITTER_NS` of jitter later than
+    the first (whose stamps, the sets' stamps, stay as they were); ``BatteryState`` currents are
+    stamped :data:`CURRENT_LEAD_NS` before their set; every message's bag time is its header stamp
+    plus 2-6 ms (a ``Float64``, which has no header, arrives that much after its old bag time).
+    Anything that reads bag time for a header stamp, or the set's stamp for a sensor's own, is
+    off by a set then. Values are unchanged.
+    """
+    from rosbags.rosbag2 import Reader
+
+    from magcal_ros.io.atomic import atomic_path
+    from magcal_ros.io.bag_writer import BagSink, storage_of
+    from magcal_ros.io.cdr import BATTERY_STATE, MAGNETIC_FIELD, typestore
+
+    src = Path(path)
+    rng = np.random.default_rng(seed)
+    store = typestore()
+    with Reader(src) as reader:
+        conns = list(reader.connections)
+        raw_topics = sorted(c.topic for c in conns if c.msgtype == MAGNETIC_FIELD and c.topic.endswith("/raw"))
+        items = [(c, t, bytes(d)) for c, t, d in reader.messages()]
+    skew = {topic: k for k, topic in enumerate(raw_topics)}
+    stamps: dict[str, list[int]] = {topic.strip("/")[: -len("/raw")]: [] for topic in raw_topics}
+    out = []
+    for conn, bag_time, data in items:
+        delay = int(rng.integers(*BAG_DELAY_NS))
+        if conn.msgtype in (MAGNETIC_FIELD, BATTERY_STATE):
+            msg = store.deserialize_cdr(data, conn.msgtype)
+            t = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            if conn.msgtype == MAGNETIC_FIELD and conn.topic in skew:
+                k = skew[conn.topic]
+                t += k * SENSOR_SKEW_NS + (int(rng.integers(-STAMP_JITTER_NS, STAMP_JITTER_NS + 1)) if k else 0)
+                stamps[conn.topic.strip("/")[: -len("/raw")]].append(t)
+            elif conn.msgtype == BATTERY_STATE and t:
+                t -= CURRENT_LEAD_NS
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t, 1_000_000_000)
+            data = bytes(store.serialize_cdr(msg, conn.msgtype))
+            bag_time = (t if t else bag_time) + delay
+        else:
+            bag_time += delay
+        out.append((conn, bag_time, data))
+    storage = storage_of(src)
+    tmp_out = src.with_name(src.name + ".realistic")
+    with atomic_path(tmp_out) as tmp, BagSink.create(tmp, storage) as sink:  # type: ignore[arg-type]
+        new = {c.id: sink.add_copy_of(c) for c in conns}
+        sink.write_messages([(new[c.id], t, d) for c, t, d in sorted(out, key=lambda x: x[1])])
+    import shutil
+
+    shutil.rmtree(src)
+    tmp_out.rename(src)
+    return {name: np.array(v, dtype=np.int64) for name, v in stamps.items()}

@@ -11,6 +11,7 @@ from rcl_interfaces.msg import ParameterType
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 
 # Values whose repr has no decimal point (5e-08): YAML 1.1 reads "5e-08" as a string.
@@ -120,3 +121,55 @@ def test_an_unwritable_destination_changes_nothing(tmp_path: Path) -> None:
     with pytest.raises(NotADirectoryError):
         calfile.write(blocker / "calibration.yaml", _calibration())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_time_offsets_round_trip_and_an_old_file_reads_as_zeros(tmp_path: Path) -> None:
+    """<name>.time_offset (s) is written when a sensor has one, read back exactly, and absent means 0:
+    a file without any reads and writes as before."""
+    plain = _calibration()
+    text = calfile.dumps(plain)
+    assert "time_offset" not in text
+    assert np.array_equal(calfile.loads(text).time_offsets, np.zeros(4))
+    lagging = ArrayCalibration(plain.geometry, plain.matrices, plain.offsets, plain.metadata, plain.covariances,
+                               time_offsets=[0.0, 0.0, 0.005, -0.00025])
+    path = _write(tmp_path, lagging)
+    doc = yaml.safe_load(path.read_text())["/magcal_correction"]["ros__parameters"]
+    assert doc["mag3"]["time_offset"] == 0.005 and doc["mag1"]["time_offset"] == 0.0
+    assert calfile.read(path).time_offsets.tolist() == [0.0, 0.0, 0.005, -0.00025]
+
+
+@pytest.mark.parametrize("bad", ["0.7", "abc", "[0.1, 0.2]", ".nan"])
+def test_an_unusable_time_offset_is_refused_by_name(bad: str) -> None:
+    text = calfile.dumps(_calibration()).replace("      offset: [4.000000000000001e-08", f"      time_offset: {bad}\n"
+                                                 "      offset: [4.000000000000001e-08")
+    assert "time_offset" in text
+    with pytest.raises(InputError, match="mag3.time_offset"):
+        calfile.loads(text)
+
+
+def test_a_non_symmetric_matrix_is_written_row_major_and_read_back_unchanged(tmp_path: Path) -> None:
+    """``matrix: [m00, m01, m02, m10, ...]`` is ``B = M (raw - offset)`` row by row: a transposed
+    matrix would survive a round trip through the package's own reader, so the file's numbers
+    are read with plain YAML and applied with plain numpy (test/truth_tools.py)."""
+    from truth_tools import correct
+
+    rng = np.random.default_rng(12)
+    geo = ArrayGeometry.cross()
+    matrices = np.eye(3)[None] + rng.uniform(-0.05, 0.05, (4, 3, 3))  # far from symmetric
+    matrices[:, 0, 1] += 0.03
+    assert np.min(np.abs(matrices - matrices.transpose(0, 2, 1))[:, [0, 0, 1], [1, 2, 2]]) > 1e-4
+    offsets = rng.normal(0, 300e-9, (4, 3))
+    cal = ArrayCalibration(geo, matrices, offsets, {"method": "ml"})
+    path = _write(tmp_path, cal)
+    block = yaml.safe_load(path.read_text())["/magcal_correction"]["ros__parameters"]
+    for i, name in enumerate(geo.names):
+        assert block[name]["matrix"] == pytest.approx(matrices[i].reshape(-1).tolist(), rel=1e-15, abs=0)
+        assert block[name]["matrix"][1] == pytest.approx(matrices[i][0, 1], rel=1e-15)  # row 0, column 1
+        assert block[name]["offset"] == pytest.approx(offsets[i].tolist(), rel=1e-15, abs=0)
+    back = calfile.read(path)
+    np.testing.assert_allclose(back.matrices, matrices, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(back.offsets, offsets, rtol=1e-15, atol=0)
+    raw = rng.normal(0, 3e-5, (50, 4, 3))
+    from_file = np.stack([np.array(block[n]["matrix"]).reshape(3, 3) for n in geo.names])
+    expected = correct(from_file, np.stack([block[n]["offset"] for n in geo.names]), raw)
+    np.testing.assert_allclose(back.apply(raw), expected, rtol=1e-12, atol=1e-20)

@@ -15,6 +15,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 FLOOR_TENSOR = math.sqrt(2) * 1.0 / 0.4  # nT/m
 FLOOR_TMI = 1.0  # nT
 ROW = re.compile(r"^\s{2}(?P<label>[a-z][a-z ,]+?)\s+(?P<tensor>[\d.]+) nT/m\s+(?P<tmi>[\d.]+) nT$")
@@ -30,8 +32,8 @@ def _table(stdout: str) -> dict[str, tuple[float, float]]:
 
 
 def test_demo_reaches_the_floor_and_shows_what_the_thrusters_cost() -> None:
-    run = subprocess.run([sys.executable, "-m", "magcal_ros.app.demo", "--sets", "800", "--fresh", "300"],
-                         capture_output=True, text=True, timeout=170)
+    run = subprocess.run([sys.executable, "-m", "magcal_ros.app.demo", "--sets", "800", "--fresh", "300", "--no-drift"],
+                         capture_output=True, text=True, timeout=1200)  # a generous deadline: a busy machine only slows it
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     rows = _table(run.stdout)
     before = rows["before calibration"]

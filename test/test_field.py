@@ -353,10 +353,16 @@ def test_a_step_in_the_field_is_refused_naming_a_non_constant_field(order: str) 
 
 
 # -- honest uncertainty -----------------------------------------------------------------------
-@pytest.mark.parametrize("correlation", [0.0, 0.9])
-def test_reported_uncertainty_matches_the_spread_with_correlated_noise(correlation: float) -> None:
+@pytest.mark.parametrize("correlation,band", [(0.0, (0.9, 1.35)), (0.9, (0.9, 1.2))])
+def test_reported_uncertainty_matches_the_spread_with_correlated_noise(correlation: float,
+                                                                      band: tuple[float, float]) -> None:
     """Monte Carlo, 30 runs of the same smooth manoeuvre: each quantity's reported 1-sigma within a
-    factor 2 of its actual spread, white or AR(1) 0.9 noise."""
+    factor 2 of its actual spread, and the median over the quantities within ``band``, white or
+    AR(1) 0.9 noise.
+
+    The median of 48 ratios from 30 runs scatters by about 3 % (seeds 0-5 of this scenario: 0.99-1.09
+    with AR(1) 0.9); the block jackknife lifts it from about 0.75, which the band refuses (sigmas
+    stated 1.3x too small). With white noise the jackknife errs on the safe side (about 1.18)."""
     sim = array(7, noise_correlation=correlation)
     rng = np.random.default_rng(7)
     att = tumble(800, 3.0, rng)
@@ -368,6 +374,7 @@ def test_reported_uncertainty_matches_the_spread_with_correlated_noise(correlati
         sigmas.append([q.sigma for q in res.identifiability.quantities])
     ratio = np.mean(sigmas, axis=0) / np.std(values, axis=0, ddof=1)
     assert np.all((ratio > 0.5) & (ratio < 2.0)), np.round(ratio, 2)
+    assert band[0] < np.median(ratio) < band[1], (np.median(ratio), np.round(ratio, 2))
 
 
 @pytest.mark.skipif(not REAL.exists(), reason="the real recording is not beside this checkout")

@@ -29,6 +29,7 @@ from magcal_ros.errors import CalibrationFailed, InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
 from magcal_ros.io.bag_writer import write_recording_bag
+from ros_harness import realistic_stamps
 from magcal_ros.io.csv_recording import parse_header, read_csv, write_csv
 from magcal_ros.io.recordings import read_recording
 from magcal_ros.io.truth_file import load_truth, truth_paths
@@ -271,9 +272,12 @@ def test_joint_path_drops_undetermined_channels_and_warns(manoeuvre) -> None:
 
     lockstep = np.column_stack([rec.currents[:, 0], rec.currents[:, 0]])
     data = sim.run(truth.attitudes, 3, currents=lockstep)[0]
-    result = calibrate_array(data.vectors, sim.geometry, F, currents=lockstep, channels=CHANNELS)
-    assert result.calibration.channels == ()
-    assert "thruster1/battery, thruster2/battery varied in lockstep" in result.warnings[0]
+    # Without the channels the thrusters' varying field makes the field over the array far from
+    # uniform (hundreds of nT/m): refused, naming both causes (it used to be accepted, corrupted).
+    with pytest.raises(CalibrationFailed) as err:
+        calibrate_array(data.vectors, sim.geometry, F, currents=lockstep, channels=CHANNELS)
+    assert "thruster1/battery, thruster2/battery varied in lockstep" in str(err.value)
+    assert "the field is not uniform where you calibrate" in str(err.value) and "currents near the array" in str(err.value)
 
 
 # -- through the command line: bags with BatteryState and Float64 channels, CSV ----------------
@@ -307,6 +311,7 @@ def test_bags_with_battery_state_and_float64_channels_via_the_cli(tmp_path: Path
     sim_bag = tmp_path / "rotation_sim"
     ok(magcal("simulate", sim_bag, "--count", SETS, "--seed", SEED, "--noise", NOISE, "--storage", storage,
               *THRUSTER_ARGS, "--thruster-current", f"random:{IMAX:g}"))
+    realistic_stamps(sim_bag, SEED)  # currents: header stamp 0.3 ms before the set, bag time 2-6 ms after it
     with Reader(sim_bag) as reader:
         types = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
     assert types["/thruster1/battery"] == (cdr.BATTERY_STATE, SETS)
@@ -330,6 +335,7 @@ def test_bags_with_battery_state_and_float64_channels_via_the_cli(tmp_path: Path
     sim, _ = build(SimulationSpec(count=1, seed=SEED, noise=NOISE, thrusters=THRUSTERS))
     fresh, fresh_truth = fresh_run(sim, 1000, 31)
     write_recording_bag(tmp_path / "survey_sim", fresh, storage)  # type: ignore[arg-type]
+    sensor_stamps = realistic_stamps(tmp_path / "survey_sim", SEED + 1)
     survey = tmp_path / "survey"
     with_float64_channel(tmp_path / "survey_sim", survey, storage, lead_ns=30_000_000)
     out = tmp_path / "corrected"
@@ -337,6 +343,7 @@ def test_bags_with_battery_state_and_float64_channels_via_the_cli(tmp_path: Path
     assert "corrected 1000 sets" in proc.stdout
     res = read_corrected(out)
     np.testing.assert_array_equal(res["stamps"], fresh.stamps)
+    np.testing.assert_array_equal(res["sensor_stamps"], np.stack([sensor_stamps[n] for n in fresh.names], axis=1))
     true_b = fresh_truth.calibration.apply(fresh.vectors, fresh.currents)
     assert np.all(tmi_rms(res["sensors"], F) < 1.1 * tmi_rms(true_b, F))
     g_true = tensor_rms(gradient_difference(true_b, sim.geometry))

@@ -38,6 +38,8 @@ from magcal_ros.io import calibration_file as calfile
 from magcal_ros.sim.attitudes import uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 ONE = ArrayGeometry.single("mag1")
 TWO = ArrayGeometry(("fore", "aft"), np.array([[0.25, 0.0, 0.0], [-0.25, 0.0, 0.0]]))
 SIX = ArrayGeometry(tuple(f"m{i}" for i in range(1, 7)), np.array([
@@ -87,7 +89,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
                 params["positions"] = [float(x) for x in geo.positions.reshape(-1)]
             run.start("correction_node", params=params, namespace=key, log_name=f"{key}_correction")
             cal = {"sensor_names": list(geo.names), "reference_field": h.INTENSITY, "prior": "none", **LOSSLESS,
-                   "calibration_file": str(workdir / f"{key}.yaml"), "service_timeout": 10.0, "progress_period": 0.5}
+                   "calibration_file": str(workdir / f"{key}.yaml"), "service_timeout": h.SERVICE_TIMEOUT, "progress_period": 0.5}
             if key == "two":
                 cal["positions"] = params["positions"]
             run.start("calibration_node", params=cal, namespace=key, log_name=f"{key}_calibration")
@@ -103,7 +105,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
 def _replay(array: Array, rec: Recording) -> tuple[dict[int, int], list[int]]:
     mapping = array.driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE)
     published = [mapping[int(t)] for t in rec.stamps]
-    array.driver.wait_for_outputs(published, timeout=60.0)
+    array.driver.wait_for_outputs(published, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
     return mapping, published
 
 
@@ -122,8 +124,8 @@ def _calibrate(array: Array) -> str:
     assert ok, message
     rec = array.manoeuvre
     sent = d.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE)
-    progress = wait_for_samples(d, array.calibration.strip("/"), len(sent), timeout=30.0)
-    assert int(progress.get("samples", 0)) >= 0.95 * len(rec), progress
+    progress = wait_for_samples(d, array.calibration.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
+    assert int(progress.get("samples", 0)) == len(rec), progress
     ok, message = d.trigger(f"{array.calibration}/calibrate")
     assert ok, message
     return message
@@ -164,7 +166,7 @@ def test_one_sensor_calibrates_over_dds_to_the_noise_floor(world: Any) -> None:
     live = _live_calibration(one.driver, one.correction, ONE)
     mapping, published = _replay(one, one.fresh)
     corrected = one.driver.corrected(published)
-    assert len(corrected) >= 0.95 * len(one.fresh)
+    assert len(corrected) == len(one.fresh)
     raw = {mapping[int(t)]: v for t, v in zip(one.fresh.stamps, one.fresh.vectors)}
     got = np.stack([corrected[t][0] for t in sorted(corrected)])
     expected = live.apply(np.stack([raw[t] for t in sorted(corrected)]))[:, 0]
@@ -191,7 +193,7 @@ def test_two_sensors_publish_the_baseline_gradient_at_its_floor(world: Any) -> N
     live = _live_calibration(d, two.correction, TWO)
     mapping, published = _replay(two, two.fresh)
     base = d.baselines(published)
-    assert len(base) >= 0.95 * len(two.fresh) and d.outputs.baseline_frames == {"magcal_array"}
+    assert len(base) == len(two.fresh) and d.outputs.baseline_frames == {"magcal_array"}
     raw = {mapping[int(t)]: v for t, v in zip(two.fresh.stamps, two.fresh.vectors)}
     stamps = sorted(base)
     got = np.stack([base[t] for t in stamps])
@@ -224,9 +226,9 @@ def test_six_sensors_in_any_geometry_give_the_least_squares_tensor(world: Any, t
     rec, truth = sim.run(uniform_random(200, rng), rng, rate=50.0)
     mapping = d.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE)
     published = [mapping[int(t)] for t in rec.stamps]
-    d.wait_for_outputs(published, timeout=60.0)
+    d.wait_for_outputs(published, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
     g = d.gradients(published)
-    assert len(g) >= 0.95 * len(rec)
+    assert len(g) == len(rec)
     index = {mapping[int(t)]: k for k, t in enumerate(rec.stamps)}
     rows = [index[t] for t in sorted(g)]
     got = np.stack([g[t] for t in sorted(g)])

@@ -47,6 +47,8 @@ from magcal_ros.sim.attitudes import sea_manoeuvre, uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 from magcal_ros.sim.spec import SimulationSpec, build
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 NT = 1e-9
 SITE = [43.2, 5.4, 0.0]
 DATE = "2026-06-01"
@@ -126,7 +128,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, sea_data: Sea, thruster_data
         run.start("correction_node", params=dict(fast, **h.UNCORRECTED, **reliable), namespace="sea",
                   log_name="sea_correction")
         run.start("calibration_node", namespace="sea", log_name="sea_calibration", params={
-            "site": SITE, "date": DATE, "calibration_file": str(sea_data.file), "service_timeout": 10.0,
+            "site": SITE, "date": DATE, "calibration_file": str(sea_data.file), "service_timeout": h.SERVICE_TIMEOUT,
             "progress_period": 0.5, "assess_period": 1.0, **reliable})
         truth = workdir / "thrusters.yaml"
         truth.write_text(calfile.dumps(thruster_data.true, node_name=THR_CORRECTION))
@@ -134,7 +136,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, sea_data: Sea, thruster_data
                   log_name="thr_correction")
         run.start("calibration_node", namespace="thrusters", log_name="thr_calibration", params=dict(reliable, **{
             "reference_field": F_THR, "interference_channels": list(CHANNELS), "prior": "none",
-            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": 10.0, "progress_period": 0.5}))
+            "calibration_file": str(workdir / "thr_out.yaml"), "service_timeout": h.SERVICE_TIMEOUT, "progress_period": 0.5}))
         yield run
     finally:
         codes = run.close()
@@ -194,19 +196,25 @@ def _progress(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 1
     return dict(seen)
 
 
+CURRENT_LEAD = 400
+"""Currents go out this many sets (1 s at 400 Hz) ahead of their sets: a node keeps 2 s of them, and
+on a busy machine the current topics may be served well after the raw ones (a set whose current has
+not arrived yet is withheld, by design)."""
+
+
 def _collect(driver: ArrayDriver, node: str, rec: Recording, currents: np.ndarray | None = None) -> None:
     ok, message = driver.trigger(f"{node}/start")
     assert ok, message
     sent = driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
-                         currents=currents)
-    progress = wait_for_samples(driver, node.strip("/"), len(sent), timeout=30.0)
-    assert int(progress.get("samples", 0)) >= 0.95 * len(rec), progress
+                         currents=currents, current_lead=CURRENT_LEAD)
+    progress = wait_for_samples(driver, node.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
+    assert int(progress.get("samples", 0)) == len(rec), progress
 
 
 def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None) -> dict[int, int]:
     mapping = driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
-                            currents=currents)
-    driver.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=60.0)
+                            currents=currents, current_lead=CURRENT_LEAD)
+    driver.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
     return mapping
 
 
@@ -282,7 +290,7 @@ def test_site_date_max_residual_and_prior_parameters_are_checked_with_reasons(wo
 def first(world: h.RosRun, sea: ArrayDriver, sea_data: Sea) -> dict[str, Any]:
     """The full calibration: a random manoeuvre with 2 % spikes, F from the site."""
     _collect(sea, SEA, sea_data.manoeuvre)
-    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= 0.95 * len(sea_data.manoeuvre))
+    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= len(sea_data.manoeuvre))
     ok, message = sea.trigger(f"{SEA}/calibrate")
     assert ok, message
     return {"message": message, "progress": progress, "params": sea.get_parameters(SEA_CORRECTION, CAL_PARAMS),
@@ -330,7 +338,7 @@ def test_at_sea_a_yaw_circle_recalibrates_from_the_running_calibration(
     yaw = sea_data.yaw
     assert sea.set_parameters(SEA, {"prior": "none"})[0][0]
     _collect(sea, SEA, yaw)
-    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= 0.95 * len(yaw)
+    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= len(yaw)
                          and v.get("prior", "").startswith("none"))
     assert progress["ready"] == "false" and "scale z" in progress["undetermined"]
     assert TILT_ADVICE.match(progress["advice"]), progress["advice"]
@@ -341,7 +349,7 @@ def test_at_sea_a_yaw_circle_recalibrates_from_the_running_calibration(
     assert sea_data.file.read_text() == first["file"]
 
     assert sea.set_parameters(SEA, {"prior": "running"})[0][0]  # the same collected sets
-    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= 0.95 * len(yaw)
+    progress = _progress(sea, SEA, lambda v: int(v.get("assessed") or 0) >= len(yaw)
                          and v.get("prior", "").startswith("the running calibration"))
     assert progress["prior"] == f"the running calibration of {SEA_CORRECTION}"
     assert progress["ready"] == "true" and ENVELOPE.match(progress["envelope"]), progress
@@ -360,7 +368,7 @@ def test_at_sea_a_yaw_circle_recalibrates_from_the_running_calibration(
     rng = np.random.default_rng(77)
     fresh, _ = sea_data.moved.run(uniform_random(400, rng), rng, rate=50.0, start=3000.0)
     rows, b, g, _ = _fresh_outputs(sea, fresh)
-    assert len(rows) >= 0.95 * len(fresh)
+    assert len(rows) == len(fresh)
     tmi, tensor = _ratios(rows, b, g, fresh, sea_data.moved.true_calibration(), FIELD.intensity)
     assert tmi < 1.2 and tensor < 1.2, (tmi, tensor)
 
@@ -376,7 +384,7 @@ def test_the_correction_node_subtracts_the_latest_currents(world: h.RosRun, thr:
     true = thruster_data.true
     u = check.currents
     rows, b, g, used = _fresh_outputs(thr, check, u)
-    assert len(rows) >= 0.95 * len(check)
+    assert len(rows) == len(check)
     expected = true.outputs(check.vectors[rows], "difference", _float32(used))
     np.testing.assert_allclose(b, expected.vectors, rtol=1e-9, atol=1e-18)
     np.testing.assert_allclose(g, expected.tensor, rtol=1e-9, atol=1e-15)
@@ -387,7 +395,7 @@ def test_the_correction_node_subtracts_the_latest_currents(world: h.RosRun, thr:
     assert ok, reason
     try:
         rows, _, g, _ = _fresh_outputs(thr, check, u)
-        assert len(rows) >= 0.95 * len(check)
+        assert len(rows) == len(check)
         assert rms(g[:, :2, :]) > 100 * FLOOR, rms(g[:, :2, :]) / FLOOR
     finally:
         params = {"interference_channels": list(CHANNELS)}
@@ -444,7 +452,7 @@ def test_float64_currents_are_stamped_on_arrival(world: h.RosRun, thr: ArrayDriv
         u[:, 1] = 12.5
         _prime(d, replace(thruster_data, check=Recording(rec.names, rec.stamps, rec.vectors, rec.channels, u)))
         rows, b, _, used = _fresh_outputs(d, rec, u)
-        assert len(rows) >= 0.95 * len(rec)
+        assert len(rows) == len(rec)
         expected = thruster_data.true.apply(rec.vectors[rows], _float32(used))
         np.testing.assert_allclose(b, expected, rtol=1e-9, atol=1e-18)
     finally:
@@ -479,6 +487,6 @@ def test_the_calibration_node_solves_the_interference_with_the_calibration(
     assert np.max(error) < 0.02, np.round(error, 4)
     check = thruster_data.check
     rows, b, g, used = _fresh_outputs(thr, check, check.currents)
-    assert len(rows) >= 0.95 * len(check)
+    assert len(rows) == len(check)
     tmi, tensor = _ratios(rows, b, g, check, true, F_THR, used)
     assert tmi <= 1.1 and tensor <= 1.1, (tmi, tensor)

@@ -200,3 +200,22 @@ def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing()
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr, proc.stderr
     assert "node stderr still works" in proc.stderr and "BrokenProcessPool" in proc.stdout
+
+
+def test_the_calibration_health_reference_is_validated_with_the_calibration() -> None:
+    """<name>.noise and calibration_intensity come with a calibration; a bad one is refused with the reason."""
+    from magcal_ros.errors import InputError
+    from magcal_ros.nodes.drift import reference
+
+    names = ("mag1", "mag2")
+    assert reference({}, names) == ((0.0, 0.0), 0.0)  # unknown: the live noise is used
+    assert reference({"mag2.noise": 1e-9, "calibration_intensity": 5.15e-5}, names) == ((0.0, 1e-9), 5.15e-5)
+    for values, why in (({"mag1.noise": -1e-9}, "mag1.noise must be 0 (unknown) or a noise in T"),
+                        ({"mag1.noise": "x"}, "mag1.noise must be a finite number"),
+                        ({"calibration_intensity": 51500.0}, "calibration_intensity 51500 T is not Earth-like")):
+        try:
+            reference(values, names)
+        except InputError as exc:
+            assert str(exc).startswith(why), exc
+        else:
+            raise AssertionError(f"{values} accepted")

@@ -26,6 +26,7 @@ from magcal_ros.core.stamps import format_seconds, parse_seconds
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
 from magcal_ros.io.bag_writer import write_recording_bag
+from ros_harness import realistic_stamps
 from magcal_ros.io.recordings import read_recording
 from magcal_ros.io.truth_file import load_truth, truth_paths
 
@@ -95,7 +96,12 @@ def read_corrected(path: Path) -> dict[str, np.ndarray]:
     for topic, _, t, m in msgs:
         if topic != "/gradient":
             assert m.header.frame_id == "magcal_array"  # type: ignore[attr-defined]
+        if topic == "/field":
             assert stamp_ns(m) == t, "bag time = header stamp = the set's stamp"
+    sensor_stamps = np.array([stamp_ns(m[3]) for m in msgs if m[0].endswith("/corrected")]).reshape(-1, 4)
+    set_times = np.array([m[2] for m in msgs if m[0] == "/field"])
+    assert np.array_equal(np.array([m[2] for m in msgs if m[0].endswith("/corrected")]).reshape(-1, 4),
+                          np.repeat(set_times[:, None], 4, axis=1)), "a sensor's bag time is its set's stamp"
     g = [m for m in msgs if m[0] == "/gradient"]
     assert all([(d.label, d.size, d.stride) for d in m[3].layout.dim] == [("row", 3, 9), ("col", 3, 3)] for m in g)
     return {
@@ -104,6 +110,7 @@ def read_corrected(path: Path) -> dict[str, np.ndarray]:
         "field": np.array([vec(m[3]) for m in msgs if m[0] == "/field"]),
         "gradient": np.array([m[3].data for m in g]).reshape(-1, 3, 3),
         "bagtimes": np.array([m[2] for m in g]),
+        "sensor_stamps": sensor_stamps,  # (N, S): each /<name>/corrected header stamp, the sensor's own
     }
 
 
@@ -112,10 +119,14 @@ def out_name(tmp: Path, stem: str, storage: str) -> Path:
 
 
 def simulate(out: Path, storage: str, *extra: object) -> Path:
+    """``magcal simulate``; a bag is then given the stamps of a real recording (per-sensor header
+    stamps that differ within the sync tolerance, bag time after the header stamp, jitter)."""
     args: list[object] = ["simulate", out, "--count", SETS, "--seed", SEED, "--noise", NOISE]
     if storage != "csv":
         args += ["--storage", storage]
     ok(magcal(*args, *extra))
+    if storage != "csv":
+        realistic_stamps(out, SEED)
     return out
 
 
@@ -150,8 +161,9 @@ def test_simulate_calibrate_correct(tmp_path: Path, storage: str) -> None:
                 f"/{n}/raw": (cdr.MAGNETIC_FIELD, SETS) for n in NAMES
             }
             assert any(p.suffix == (".mcap" if storage == "mcap" else ".db3") for p in raw.iterdir())
-        assert [m[2] for m in msgs[::4]] == truth["stamps"].tolist()
-        assert [m[3].header.frame_id for m in msgs[:4]] == list(NAMES)
+        first = [m for m in msgs if m[0] == f"/{NAMES[0]}/raw"]  # the first sensor's stamps are the sets'
+        assert [stamp_ns(m[3]) for m in first] == truth["stamps"].tolist()
+        assert all(m[3].header.frame_id == m[0].split("/")[1] for m in msgs)
 
     cal = tmp_path / "cal.yaml"
     args = ["calibrate", raw, "-o", cal, "--plot", tmp_path / "cal.png"]

@@ -40,6 +40,8 @@ from magcal_ros.core.metrics import rms, tensor_floor
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 NS = "array1"
 CORRECTION = f"/{NS}/magcal_correction"
 CALIBRATION = f"/{NS}/magcal_calibration"
@@ -88,7 +90,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, data: h.Data) -> Any:
     try:
         run.start("correction_node", params=FAST, params_files=[wrong, right], namespace=NS, log_name="ns_correction")
         run.start("calibration_node", namespace=NS, log_name="ns_calibration", params={
-            "reference_field": h.INTENSITY, "calibration_file": str(output), "service_timeout": 10.0,
+            "reference_field": h.INTENSITY, "calibration_file": str(output), "service_timeout": h.SERVICE_TIMEOUT,
             "backups": KEEP, "progress_period": 0.25, "sensor_timeout": 0.5, "output_timeout": 1.5})
         yield World(run, workdir, truth, np.stack(covariances), right, wrong, output)
     finally:
@@ -145,7 +147,7 @@ def _publish(driver: ArrayDriver, messages: list[RawMessage], rate: float = 400.
     _clock["next"] = max([_clock["next"]] + [m.stamp_ns + PERIOD_NS for m in messages])
 
 
-def _diagnostic(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 30.0) -> DiagnosticStatus:
+def _diagnostic(driver: ArrayDriver, node: str, predicate: Any, timeout: float = 60.0) -> DiagnosticStatus:
     seen: list[DiagnosticStatus] = []
 
     def check(status: DiagnosticStatus) -> bool:
@@ -177,7 +179,7 @@ def test_outputs_move_with_the_namespace_with_stamped_tensor_and_covariance(
     mapping = h.replay_recording(driver, data.check)
     gradients, corrected = h.outputs_by_original(driver, mapping, stamps)
     got = [t for t in stamps if t in gradients and t in corrected]
-    assert len(got) >= 0.95 * len(stamps)
+    assert len(got) == len(stamps)
     # The node applies the file's calibration: the tensor is at the noise floor of the truth.
     rows = [stamps.index(t) for t in got]
     g = np.stack([gradients[t] for t in got])
@@ -197,7 +199,7 @@ def test_outputs_move_with_the_namespace_with_stamped_tensor_and_covariance(
         assert np.allclose(cov[name], world.covariances[k].reshape(9), rtol=1e-12, atol=0)
     assert np.allclose(cov["field"], world.covariances.sum(axis=0).reshape(9) / 16, rtol=1e-12, atol=0)
     # The private status topic moved with the node.
-    status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status", None, 10.0)
+    status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status", None, 60.0)
     assert status is not None and status.name == CORRECTION
 
 
@@ -238,8 +240,8 @@ def _collect(driver: ArrayDriver, data: h.Data, count: int) -> None:
     assert ok, message
     rec = data.manoeuvre
     sent = driver.replay(recording_messages(rec.names, rec.stamps[:count], rec.vectors[:count]), rate=h.REPLAY_RATE)
-    progress = wait_for_samples(driver, CALIBRATION.strip("/"), len(sent), timeout=30.0)
-    assert int(progress.get("samples", 0)) >= 0.95 * count, progress
+    progress = wait_for_samples(driver, CALIBRATION.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
+    assert int(progress.get("samples", 0)) == count, progress
 
 
 def test_calibrating_in_a_namespace_keeps_backup_generations_and_skips_unchanged_data(
@@ -308,10 +310,10 @@ def test_a_failed_write_or_push_changes_nothing_and_no_set_uses_the_new_calibrat
         stream.join()
         assert not ok and "cannot write" in message and "nothing was changed" in message, message
         assert _params(driver, CORRECTION) == before_params
-        driver.wait_for_outputs(list(mapping.values()), timeout=30.0)
+        driver.wait_for_outputs(list(mapping.values()), timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
         with driver._lock:
             field = dict(driver.outputs.field)
-        assert len(field) >= 0.9 * len(rec)
+        assert len(field) == len(rec)
         raw = {mapping[int(t)]: v for t, v in zip(rec.stamps, rec.vectors)}
         for t, centre in field.items():
             expected = cal.apply(raw[t][None])[0].mean(axis=0)
@@ -377,13 +379,13 @@ def test_zero_stamps_are_dropped_counted_and_never_published(
         messages += good[4 * k : 4 * k + 4] + zero[4 * k : 4 * k + 4]
     _publish(driver, messages)
     stamps = sorted({m.stamp_ns for m in good})
-    assert driver.wait_for_outputs(stamps, timeout=30.0) >= 29
+    assert driver.wait_for_outputs(stamps, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE) == 30
     for node in (CORRECTION, CALIBRATION):
         status = _diagnostic(driver, node, lambda s, n=node: _counts(s)["zero_stamp"] - before[n]["zero_stamp"] >= 120)
         assert _counts(status)["zero_stamp"] - before[node]["zero_stamp"] == 120
     status = driver.wait_for_message(DiagnosticStatus, f"{CORRECTION}/status",
                                      lambda m: int(status_values(m)["zero_stamp"]) >= before[CORRECTION]["zero_stamp"]
-                                     + 120, 10.0)
+                                     + 120, 60.0)
     assert status is not None
     with driver._lock:
         assert 0 not in driver.outputs.field and 0 not in driver.outputs.stamped
@@ -401,12 +403,12 @@ def test_a_silent_sensor_is_named_at_warn_and_no_output_is_an_error(
     feeder.start()
     try:
         for node in (CORRECTION, CALIBRATION):
-            warn = _diagnostic(driver, node, lambda s: "silent: mag3" in s.message, 10.0)
+            warn = _diagnostic(driver, node, lambda s: "silent: mag3" in s.message, 60.0)
             assert warn.level[0] >= WARN
             assert "mag1 (" not in warn.message and "mag2 (" not in warn.message and "mag4 (" not in warn.message
-        error = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == ERROR, 10.0)
+        error = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == ERROR, 60.0)
         assert "no sets published" in error.message and "silent: mag3" in error.message
-        error = _diagnostic(driver, CALIBRATION, lambda s: s.level[0] == ERROR, 10.0)
+        error = _diagnostic(driver, CALIBRATION, lambda s: s.level[0] == ERROR, 60.0)
         assert "no complete sets" in error.message
     finally:
         feeder.join()
@@ -414,7 +416,7 @@ def test_a_silent_sensor_is_named_at_warn_and_no_output_is_an_error(
     feeder = threading.Thread(target=_publish, args=(driver, _sets(data.names, vectors, _start()), 50.0))
     feeder.start()
     try:
-        ok = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == 0, 10.0)
+        ok = _diagnostic(driver, CORRECTION, lambda s: s.level[0] == 0, 60.0)
         assert ok.message == "ok"
     finally:
         feeder.join()
@@ -428,9 +430,9 @@ def test_the_window_cap_at_2khz_is_warned_once_and_shown(world: World, driver: A
                 for m in _sets(data.names, data.check.vectors[:80], start)]
     _publish(driver, messages, rate=200.0)
     stamps = sorted({m.stamp_ns for m in messages})
-    assert driver.wait_for_outputs(stamps, timeout=30.0) >= 0.95 * len(stamps)
+    assert driver.wait_for_outputs(stamps, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE) == len(stamps)
     line = "sync window capped at 0.25 ms (sync_tolerance 1 ms is more than half the 2000 Hz sample period)"
-    status = _diagnostic(driver, CORRECTION, lambda s: "capped" in s.message, 10.0)
+    status = _diagnostic(driver, CORRECTION, lambda s: "capped" in s.message, 60.0)
     assert line in status.message and status.level[0] >= WARN
     assert status_values(status)["sync_window_ms"] == "0.25"
     time.sleep(1.0)
@@ -470,23 +472,25 @@ def test_a_file_missing_a_sensor_warns_and_publishes_no_tensor(world: World, par
     vectors = data.check.vectors[:100]
     start = _start()
     _publish(partial, _sets(data.names, vectors, start))
-    time.sleep(2.0)
+    deadline = time.monotonic() + h.OUTPUT_TIMEOUT  # every set's mag2 comes back, however busy the machine
+    while time.monotonic() < deadline and len(partial.outputs.corrected["mag2"]) < len(vectors):
+        time.sleep(0.05)
     with partial._lock:
         outputs = partial.outputs
         assert not outputs.field and not outputs.gradient and not outputs.stamped and not outputs.corrected["mag4"]
         got = dict(outputs.corrected["mag2"])
-    assert len(got) >= 95
+    assert len(got) == len(vectors)
     for t, v in got.items():
         expected = world.truth.apply(vectors[(t - start) // PERIOD_NS][None])[0, 1]
         assert np.allclose(v, expected, rtol=1e-12, atol=1e-20)
-    error = _diagnostic(partial, "/partial/magcal_correction", lambda s: s.level[0] == ERROR, 10.0)
-    assert "not calibrated: mag4" in error.message and int(status_values(error)["withheld"]) >= 95
+    error = _diagnostic(partial, "/partial/magcal_correction", lambda s: s.level[0] == ERROR, 60.0)
+    assert "not calibrated: mag4" in error.message and int(status_values(error)["withheld"]) >= len(vectors)
     # Saying mag4 is uncorrected on purpose brings the tensor back (mag4 raw).
     (ok, reason), = partial.set_parameters("partial/magcal_correction", {"uncorrected_sensors": ["mag4"]})
     assert ok, reason
     messages = _sets(data.names, vectors, _start())
     _publish(partial, messages)
-    assert partial.wait_for_outputs(sorted({m.stamp_ns for m in messages}), timeout=30.0) >= 95
+    assert partial.wait_for_outputs(sorted({m.stamp_ns for m in messages}), timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE) == 100
     assert partial.outputs.corrected["mag4"]
 
 

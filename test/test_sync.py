@@ -67,9 +67,9 @@ def feed_streaming(streams: list[list[int]], tol: int, rng: np.random.Generator)
         if not live:
             return got, sync
         k = live[int(rng.integers(len(live)))]
-        s = sync.add(k, streams[k][pos[k]], 1.0 * k, 0.0, 0.0)
+        formed = sync.add_all(k, streams[k][pos[k]], 1.0 * k, 0.0, 0.0)
         pos[k] += 1
-        if s is not None:
+        for s in formed:
             assert s.values == tuple((1.0 * i, 0.0, 0.0) for i in range(len(streams)))
             assert s.stamp == s.stamps[0], "a set's stamp is its first sensor's"
             got.append(s.stamps)
@@ -177,9 +177,7 @@ def test_zero_stamps_are_dropped_and_counted() -> None:
 def feed(sync: SetSynchronizer, items: list[tuple[int, int, float]]) -> list[tuple[int, ...]]:
     out = []
     for index, stamp, value in items:
-        s = sync.add(index, stamp, value, 0.0, 0.0)
-        if s is not None:
-            out.append(s.stamps)
+        out += [s.stamps for s in sync.add_all(index, stamp, value, 0.0, 0.0)]
     return out
 
 
@@ -222,12 +220,16 @@ def test_a_silent_sensor_cannot_grow_the_pending_queue_without_bound() -> None:
     assert sync.pending <= 10 and sync.stats.unmatched >= 990
 
 
-def test_a_source_restart_resets_instead_of_dropping_everything() -> None:
+def test_a_source_restart_starts_a_new_segment_instead_of_dropping_everything() -> None:
+    """A jump back is a restart once the next stamp goes on from it (held until then): both
+    sensors jumped by the same amount, so their new stamps pair as before (one restart)."""
     sync = SetSynchronizer(2, tolerance_ns=MS)
     base = 100 * NS
     assert feed(sync, [(0, base, 1.0), (1, base, 1.0)]) == [(base, base)]
-    assert feed(sync, [(0, 5 * MS, 1.0), (1, 5 * MS, 1.0)]) == [(5 * MS, 5 * MS)]
-    assert sync.stats.restarts == 1
+    assert feed(sync, [(0, 5 * MS, 1.0), (1, 5 * MS, 1.0)]) == []
+    assert sync.pending == 2 and sync.stats.restarts == 0
+    assert feed(sync, [(0, 15 * MS, 1.0), (1, 15 * MS, 1.0)]) == [(5 * MS, 5 * MS), (15 * MS, 15 * MS)]
+    assert sync.stats.restarts == 1 and sync.stats.dropped() == 0
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -248,18 +250,19 @@ def test_both_paths_follow_the_rule_where_the_period_cap_decides(seed: int) -> N
 
 @pytest.mark.parametrize("path", ["live", "bag"])
 def test_a_restart_is_a_jump_back_of_more_than_a_second(path: str) -> None:
-    """Exactly 1 s back (RESTART_JUMP) is an out-of-order stamp; one nanosecond more is a restart."""
+    """Exactly 1 s back (RESTART_JUMP) is an out-of-order stamp; one nanosecond more is a restart
+    (once the next stamp goes on from there)."""
     jump = NS
     for back, restarts in ((jump, 0), (jump + 1, 1)):
-        stamps = [100 * NS, 100 * NS + 10 * MS, 100 * NS + 10 * MS - back]
+        stamps = [100 * NS, 100 * NS + 10 * MS, 100 * NS + 10 * MS - back, 100 * NS + 20 * MS - back]
         sync = SetSynchronizer(2, MS)
         if path == "live":
             for t in stamps:
                 sync.add(0, t, 1.0, 0.0, 0.0)
         else:
-            sync.add_batch(0, np.array(stamps, dtype=np.int64), np.ones((3, 3)))
+            sync.add_batch(0, np.array(stamps, dtype=np.int64), np.ones((4, 3)))
             sync.pop()
-        assert (sync.stats.restarts, sync.stats.out_of_order) == (restarts, 1 - restarts), back
+        assert (sync.stats.restarts, sync.stats.out_of_order) == (restarts, 2 * (1 - restarts)), back
 
 
 def test_a_message_waits_for_its_partners_at_most_the_default_lag() -> None:
@@ -303,8 +306,8 @@ def test_every_drop_counter_counts_as_dropped() -> None:
 
 @pytest.mark.parametrize("path", ["live", "bag"])
 def test_sets_after_a_restart_carry_their_own_readings(path: str) -> None:
-    """Both sources restart (stamps jump from 100 s back to 5 s): the queues are emptied once and
-    the sets on either side pair each stamp with its own vector."""
+    """Both sources restart (stamps jump from 100 s back to 5 s): each starts a new segment (one
+    restart counted), every set on either side is kept and pairs each stamp with its own vector."""
     sync = SetSynchronizer(2, MS)
     before = [100 * NS + k * 10 * MS for k in range(3)]
     after = [5 * NS + k * 10 * MS for k in range(3)]
@@ -314,8 +317,7 @@ def test_sets_after_a_restart_carry_their_own_readings(path: str) -> None:
         if path == "live":
             for t in part:
                 for k in range(2):
-                    s = sync.add(k, t, t / NS, float(k), 0.0)
-                    if s is not None:
+                    for s in sync.add_all(k, t, t / NS, float(k), 0.0):
                         got += list(zip(s.stamps, [v[0] for v in s.values]))
         else:
             for k in range(2):
@@ -324,7 +326,7 @@ def test_sets_after_a_restart_carry_their_own_readings(path: str) -> None:
             got += list(zip(batch.stamps.ravel().tolist(), batch.vectors[:, :, 0].ravel().tolist()))
     assert sync.stats.restarts == 1
     assert all(v == pytest.approx(t / NS, rel=1e-15) for t, v in got)
-    assert {t for t, _ in got} >= set(after)
+    assert {t for t, _ in got} == set(before) | set(after) and len(got) == 2 * 6
 
 
 def test_a_zero_tolerance_pairs_equal_stamps_only() -> None:
@@ -333,3 +335,23 @@ def test_a_zero_tolerance_pairs_equal_stamps_only() -> None:
         tolerance_ns(1.0)
     sync = SetSynchronizer(2, 0)
     assert feed(sync, [(0, 10 * MS, 1.0), (1, 10 * MS, 1.0), (0, 20 * MS, 1.0), (1, 20 * MS + 1, 1.0)]) == [(10 * MS, 10 * MS)]
+
+
+def test_bad_stamps_in_a_row_never_take_a_sensor_off_the_common_timeline() -> None:
+    """Two identical far-future stamps, or a far-future stamp then a stamp back in line, are
+    glitches or a placement back in line with the other sensors: every later set still forms
+    (a far-ahead stamp accepted as is would wait forever for partners; a restart placed after it
+    would put the sensor seconds off the others)."""
+    from magcal_ros.core.sync import stream_synchronizer
+
+    sync = stream_synchronizer(["a", "b"], mode="exact")
+    t0, period = 1_700_000_000 * 10**9, 20_000_000
+    far = (2**31 - 1) * 10**9
+    sets = 0
+    for k in range(400):
+        t = t0 + k * period
+        for index in range(2):
+            stamp = far if (index == 0 and k in (100, 101)) else t
+            sets += len(sync.engine.add_all(index, stamp, 1e-5, 2e-5, 3e-5, t + 1_000_000))
+    assert sets >= 396  # the two bad stamps cost their own sets, nothing more
+    assert sync.stats.glitch + sync.stats.duplicate >= 1 and sync.stats.sets == sets

@@ -151,3 +151,51 @@ def least_squares_tensor(b: Array, positions: Array, with_centre: bool = False) 
     g = np.stack([np.stack([gxx, gxy, gxz], 1), np.stack([gxy, gyy, gyz], 1),
                   np.stack([gxz, gyz, -gxx - gyy], 1)], axis=1)
     return (sol[:, :3], g) if with_centre else g
+
+
+# -- what a user reads ----------------------------------------------------------------------------
+SUMMARY = (r"calibrated (?P<sensors>\d+) sensors? from (?P<sets>\d+) sets \(method (?P<method>\w+), "
+           r"(?:F|relative: no reference, F taken as) (?P<F>[\d.]+) nT\): "
+           r"TMI RMS (?P<tmi_before>[\d.]+) -> (?P<tmi_after>[\d.]+) nT"
+           r"(?:, (?:tensor|baseline gradient) RMS (?P<gradient_before>[\d.]+) -> (?P<gradient_after>[\d.]+) nT/m)?")
+"""The numbers of a calibration summary line (``magcal calibrate``, ``~/calibrate``'s answer, the
+file's ``summary``), with their units as printed: nT and nT/m."""
+
+QUANTITY = (r"(?P<sensor>\S+) (?P<name>offset [xyz]|scale [xyz]|non-orthogonality [xyz]-[xyz]|misalignment about [xyz]"
+            r"|interference \S+ [xyz]) (?P<value>-?[\d.e+-]+) \+- (?P<sigma>[\d.e+-]+) (?P<unit>nT/A|nT|ppm|deg)")
+"""One quantity as :meth:`Quantity.describe` prints it (a scale's value is the gain, its sigma in ppm)."""
+
+
+def summary_numbers(text: str) -> dict[str, float | str]:
+    """The numbers of the summary line in ``text`` (nT, nT/m, counts); AssertionError if there is none."""
+    import re
+
+    found = re.search(SUMMARY, text)
+    assert found, f"no calibration summary in {text!r}"
+    out: dict[str, float | str] = {}
+    for key, value in found.groupdict().items():
+        if value is not None:
+            out[key] = value if key == "method" else float(value)
+    return out
+
+
+def quantities(text: str) -> list[dict[str, float | str]]:
+    """Every quantity printed in ``text`` (see :data:`QUANTITY`): value, sigma (floats), unit, names."""
+    import re
+
+    return [{k: (float(v) if k in ("value", "sigma") else v) for k, v in m.groupdict().items()}
+            for m in re.finditer(QUANTITY, text)]
+
+
+def sensor_errors(forward: Array) -> dict[str, Array]:
+    """Scale (gains), non-orthogonality angles (rad, order x-z, x-y, y-z) of a forward matrix ``K``
+    (raw = K B + o), from its RQ decomposition ``K = U Q`` with a positive diagonal: invariant to
+    the platform frame (a rotation of the frame only changes ``Q``)."""
+    import scipy.linalg
+
+    upper, _ = scipy.linalg.rq(np.asarray(forward, dtype=float))
+    upper = upper * np.sign(np.diag(upper))[None, :]
+    scale = np.linalg.norm(upper, axis=1)
+    a = upper / scale[:, None]
+    return {"scale": scale,
+            "angles": np.array([np.arcsin(a[0, 2]), np.arctan2(a[0, 1], a[0, 0]), np.arcsin(a[1, 2])])}

@@ -18,11 +18,21 @@ import numpy as np
 from magcal_ros.app.progress import ProgressBar
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, IMU_FRAMES
 from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
 from magcal_ros.core.stamps import parse_seconds
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SyncStats, tolerance_ns
+from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
+    DEFAULT_SYNC_TOLERANCE,
+    SYNC_MODES,
+    SyncStats,
+    max_gap_ns,
+    tolerance_ns,
+)
+from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
@@ -33,6 +43,8 @@ from magcal_ros.io.recordings import (
     open_recording,
     recording_sensors,
     with_bag_currents,
+    with_bag_imu,
+    with_bag_temperatures,
 )
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
@@ -69,8 +81,10 @@ EPILOG_CALIBRATE = """examples:
       --currents /thruster1/battery,/thruster2/battery     # still vehicle, thrusters stepped
 
 input: a rosbag2 directory (sqlite3 or mcap) with /<name>/raw sensor_msgs/MagneticField
-topics (synchronised by header stamp within --sync-tolerance), or a CSV file with header
-stamp,mag1.x,mag1.y,mag1.z,mag2.x,... (seconds, Tesla, one set per row).
+topics (grouped into sets by --sync-mode: stamps that coincide within --sync-tolerance, or
+the sensors interpolated at the first sensor's sample instants when they are sampled apart
+or stamped on receipt), or a CSV file with header stamp,mag1.x,mag1.y,mag1.z,mag2.x,...
+(seconds, Tesla, one set per row).
 """ + UNITS_NOTE + """
 
 arrays: one sensor needs no positions (no gradient); four default to the 0.4 m cross; any
@@ -92,6 +106,15 @@ channel = topic without its leading '/'), or from CSV columns current.<channel> 
 sensor columns. They must vary during the manoeuvre, each on its own: a channel whose
 current never varies or varies in lockstep with another is not solved (a warning says
 so). The file gains interference_channels: [...] and <name>.interference (3 x m, T/A).
+
+temperature and IMU: a bag's /<name>/temperature topics (sensor_msgs/msg/Temperature, deg C)
+are read with the sets when the bag has them (--temperature-topics names others), the IMU
+with --imu TOPIC (sensor_msgs/msg/Imu: orientation IMU frame -> world ENU, or NED with
+--imu-frame ned; angular velocity rad/s; an orientation_covariance[0] of -1 means no
+orientation). A CSV gives them as temperature.<name> (or one temperature) columns and
+imu.qx,imu.qy,imu.qz,imu.qw / imu.wx,imu.wy,imu.wz columns after the sensor columns. Each
+set takes each sensor's latest temperature within --temperature-tolerance before it, and
+the IMU interpolated to its instant (sets without them are dropped, with a note).
 
 methods:
 """ + "\n".join(f"  {m.name:<11} {m.source}: {m.description}" for m in METHODS.values())
@@ -126,6 +149,31 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current random:20
   magcal simulate steps_bag --count 480 --still --thruster=-0.7,0.25,0.1,0.06,0,0.04 \\
       --thruster=-0.7,-0.25,0.1,0,-0.06,0.04 --thruster-current steps:0,5,10,20 --step-sets 30
+sensor streams (rosbag2 only): each sensor samples on its own clock and is stamped on receipt;
+the schedule's attitudes at --rate become a continuous turn. Four 100 Hz sensors 2.5 ms apart
+with 0.5 ms of receipt jitter, turning at 0.2 rad/s about y (2 pi 100 / 0.2 = 3142 steps):
+  magcal simulate streams_bag --schedule single-axis --axis y --count 3142 --rate 100 \
+      --phases 0,0.0025,0.005,0.0075 --receipt-jitter 0.0005
+  ... --lags 0,0,0.005,0          # mag3 reads 5 ms late (its time_offset in the truth YAML)
+  ... --restart 15,60,mag3        # mag3's driver restarts 15 s in, its stamps 60 s behind
+  ... --glitch mag2,10,2 --clock-ppm 0,50,-50,20 --loss 0.02
+The truth NPZ then holds per sensor stamps_<name>, instants_<name> (true sample instants,
+ns), receipts_<name> (bag times) and field_<name> (N, 3) T.
+temperature: --temperatures 5,15,25 (steps), --temperature-ramp 5,25 (warming) or --thermocline
+25,4,2 (dives) give each set a temperature; --tempco-offset (T/K) and --tempco-gain (1/K) draw
+per sensor and axis how offset and gain follow it about --temperature-reference. A bag gets
+/<name>/temperature (sensor_msgs/msg/Temperature, deg C), a CSV temperature.<name> columns; the
+truth YAML the exact temperature terms, the truth NPZ the true temperatures (N,S). E.g.
+  magcal simulate warm.csv --schedule tumble --count 1500 --temperatures 5,15,25 \
+      --tempco-offset 0.5e-9 --tempco-gain 30e-6
+IMU: --imu adds the vehicle's IMU mounted --imu-mounting ROLL,PITCH,YAW deg off the array
+(orientation IMU frame -> world ENU; the gyro for schedules flown in time: single-axis, sea,
+tumble), with --imu-orientation-noise, --imu-gyro-noise, --imu-gyro-bias, --imu-rate (a bag's
+/imu at the IMU's own rate); --world-gradient XX,XY,XZ,YY,YZ (T/m, NED) a site that is not
+uniform. The truth NPZ adds imu_orientation, imu_angular_velocity, output_rotation (the
+mounting) and world_gradient. E.g.
+  magcal simulate imu_bag --schedule sea --pitch 5 --roll 5 --imu --imu-mounting 2,-1.5,3 \
+      --imu-rate 100 --world-gradient 30e-9,0,0,-15e-9,0
 schedules: single-axis (one turn about --axis, --count steps), li2018 (Li et al. 2018: 12^3
 grid of 30 deg steps, 1728 sets), coaxial2022 (the 2022 coaxial array calibration paper: x
 every 60 deg, y every 90, z every 60, 144 sets), three-axes (a turn about each axis,
@@ -156,6 +204,10 @@ CSV output header (gradient.* or baseline_gradient.x,y,z as above):
   stamp,<name>.x,<name>.y,<name>.z,...,field.x,field.y,field.z,
   gradient.xx,gradient.xy,gradient.xz,gradient.yx,gradient.yy,gradient.yz,
   gradient.zx,gradient.zy,gradient.zz
+Sets are formed by --sync-mode (auto: from the stamps). A calibration with <name>.time_offset
+(s; the sensor's reading stamped t is the field at t - time_offset) shifts that sensor's
+stamps and interpolates it to the first sensor's sample instants (bag or CSV input); every
+output of a set is then stamped with the set's instant.
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
 must exist, and each needs its block in the calibration file unless listed in --uncorrected.
 A calibration with interference_channels subtracts their interference: give the currents
@@ -163,6 +215,12 @@ A calibration with interference_channels subtracts their interference: give the 
 CSV's current.<channel> columns); sets without a current of every channel within
 --current-tolerance before them are dropped and counted. E.g.
   magcal correct survey_bag -c cal.yaml -o corrected_bag --currents /thruster1/battery,/thruster2/battery
+A calibration with temperature terms (temperature_reference, <name>.offset_per_kelvin,
+<name>.matrix_per_kelvin) needs each sensor's temperature: a bag's /<name>/temperature
+topics (sensor_msgs/msg/Temperature, deg C; --temperature-topics names others, one per sensor
+or one for all) or a CSV's temperature.<name> (or temperature) columns; each set takes the
+latest within --temperature-tolerance before it, other sets are dropped. A calibration with
+an output frame (output_rotation, frame_id: e.g. the IMU's) writes every output in it.
 """ + UNITS_NOTE
 
 
@@ -251,10 +309,29 @@ def add_window_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--end", type=_stamp, metavar="SECONDS", help="ignore sets stamped after this time (s, header stamp)")
 
 
+def _max_gap(text: str) -> float:
+    """An argparse type: the largest gap (s) interpolation bridges, 0 <= g < 60 (0: automatic)."""
+    try:
+        max_gap_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return float(text)
+
+
 def add_sync_options(p: argparse.ArgumentParser) -> None:
     """Bag synchronisation options."""
+    p.add_argument("--sync-mode", choices=list(SYNC_MODES), default=DEFAULT_SYNC_MODE,
+                   help="how sets are formed from the sensors' messages (docs/synchronisation.md): exact (stamps "
+                   "that coincide within --sync-tolerance: sensors sampled together and stamped alike), "
+                   "interpolate (at each sample of the first sensor, the others interpolated between their "
+                   "samples; sensors sampled apart or stamped on receipt), auto (chosen from the first stamps; "
+                   f"default {DEFAULT_SYNC_MODE})")
     p.add_argument("--sync-tolerance", type=_tolerance, default=DEFAULT_SYNC_TOLERANCE, metavar="SECONDS",
-                   help=f"largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+                   help=f"exact matching: largest header stamp difference within a set (default {DEFAULT_SYNC_TOLERANCE} s)")
+    p.add_argument("--max-gap", type=_max_gap, default=DEFAULT_MAX_GAP, metavar="SECONDS",
+                   help="interpolation: a set whose neighbouring samples of a sensor are further apart is dropped "
+                   "and counted (default 0: 3.5 sample periods of that sensor, i.e. two lost samples in a row "
+                   "are bridged)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="skip bag sets with NaN/inf readings instead of refusing the input")
 
@@ -269,6 +346,70 @@ def add_current_options(p: argparse.ArgumentParser) -> None:
                    help="a set takes each channel's latest value stamped at most this long before it "
                    f"(BatteryState: header stamp, Float64: bag time); sets without one are dropped "
                    f"(default {DEFAULT_CURRENT_TOLERANCE} s)")
+
+
+def add_temperature_options(p: argparse.ArgumentParser) -> None:
+    """The sensors' temperatures in a bag (CSV recordings carry temperature.<name> columns)."""
+    p.add_argument("--temperature-topics", metavar="TOPIC[,TOPIC...]",
+                   help="bag topics of the sensors' temperatures, sensor_msgs/msg/Temperature (deg C), one per sensor "
+                   "in sensor order or one for all (default: /<name>/temperature when the bag has them). CSV: "
+                   "temperature.<name> columns, or one temperature column for all")
+    p.add_argument("--temperature-tolerance", type=float, default=DEFAULT_TEMPERATURE_TOLERANCE, metavar="SECONDS",
+                   help="a set takes each sensor's latest temperature stamped at most this long before it; sets "
+                   f"without one are dropped (default {DEFAULT_TEMPERATURE_TOLERANCE:g} s: temperatures change slowly)")
+
+
+def add_imu_options(p: argparse.ArgumentParser) -> None:
+    """The vehicle's IMU: a bag topic (CSV recordings carry imu.* columns)."""
+    p.add_argument("--imu", metavar="TOPIC",
+                   help="bag topic of the vehicle's IMU, sensor_msgs/msg/Imu (orientation IMU -> world, angular "
+                   "velocity rad/s); interpolated to each set's instant. CSV: imu.qx,imu.qy,imu.qz,imu.qw and "
+                   "imu.wx,imu.wy,imu.wz columns instead")
+    p.add_argument("--imu-tolerance", type=float, default=DEFAULT_IMU_TOLERANCE, metavar="SECONDS",
+                   help="a set needs an IMU sample stamped at most this long before it (and uses one at most this "
+                   f"long after it to interpolate); sets without one are dropped (default {DEFAULT_IMU_TOLERANCE:g} s)")
+    p.add_argument("--imu-frame", default="enu", choices=list(IMU_FRAMES),
+                   help="world frame of the IMU's orientation: enu (sensor_msgs/Imu, REP 103/145; default) or ned "
+                   "(turned into ENU on reading; the IMU's own axes are kept)")
+
+
+def _temperature_topics(args: argparse.Namespace) -> list[str] | None:
+    """The --temperature-topics (absolute), or None; :class:`InputError` for a CSV input or a bad tolerance."""
+    tolerance_of(args.temperature_tolerance, "temperature")
+    found = [topics.absolute(t.strip()) for t in (args.temperature_topics or "").split(",") if t.strip()]
+    if found and is_csv(args.input):
+        raise InputError("--temperature-topics names bag topics; a CSV recording gives its temperatures as "
+                         "temperature.<name> columns")
+    return found or None
+
+
+def _with_temperatures(args: argparse.Namespace, rec: Recording, needed: bool = False) -> Recording:
+    """``rec`` with its bag's temperatures matched to its sets (the given topics, or /<name>/temperature when
+    the bag has them; a note when sets were dropped). ``needed``: a bag without them is refused."""
+    wanted = _temperature_topics(args)
+    if is_csv(args.input):
+        return rec
+    rec, stats = with_bag_temperatures(args.input, rec, wanted, args.temperature_tolerance)
+    if stats is None and needed:
+        raise InputError(f"{args.input}: the calibration corrects for temperature, but the bag has no "
+                         f"{', '.join(topics.absolute(topics.temperature(n)) for n in rec.names)} "
+                         "(sensor_msgs/msg/Temperature): name the temperature topics with --temperature-topics")
+    if stats is not None and stats.dropped:
+        _note(stats.describe())
+    return rec
+
+
+def _with_imu(args: argparse.Namespace, rec: Recording) -> Recording:
+    """``rec`` with the --imu topic of its bag matched to its sets (a note when sets were dropped)."""
+    tolerance_of(args.imu_tolerance, "IMU")
+    if not args.imu:
+        return rec
+    if is_csv(args.input):
+        raise InputError("--imu names a bag topic; a CSV recording gives the IMU as imu.qx,...,imu.wz columns")
+    rec, stats = with_bag_imu(args.input, rec, args.imu, args.imu_tolerance, args.imu_frame)
+    if stats.dropped:
+        _note(stats.describe())
+    return rec
 
 
 def _current_topics(args: argparse.Namespace) -> list[str]:
@@ -350,16 +491,22 @@ def _report_quantities(result: Any) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Solve a calibration from a recording and write the calibration file."""
     reference_field, site = _reference(args)
-    _current_topics(args)  # refuse bad current options before reading
+    _current_topics(args)  # refuse bad current, temperature and IMU options before reading
+    _temperature_topics(args)
+    if args.imu and is_csv(args.input):
+        raise InputError("--imu names a bag topic; a CSV recording gives the IMU as imu.qx,...,imu.wz columns")
     names = _name_list(args.sensors) or None
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap,
+            imu_orientation_frame=args.imu_frame,
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
     rec = _with_currents(args, rec)
+    rec = _with_temperatures(args, rec)
+    rec = _with_imu(args, rec)
     if args.interference_only:
         return _calibrate_interference(args, rec)
     prior = _read_calibration(args.prior) if args.prior else None
@@ -418,7 +565,7 @@ def _calibrate_interference(args: argparse.Namespace, rec: Recording) -> int:
                          "columns (CSV)")
     held = _read_calibration(args.interference_only)
     rec = rec.select(held.geometry.names)
-    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held)
+    result = calibrate_interference(rec.vectors, rec.currents, rec.channels, held, rec.temperatures)
     calfile.write(args.output, result.calibration)
     print(result.summary())
     for c in result.solved:
@@ -448,11 +595,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         position=_numbers(args.position, 3, "--position"),  # type: ignore[arg-type]
         rate=args.rate, start_time=args.start_time, seed=args.seed, baseline=args.baseline,
         thrusters=thrusters, thruster_current=args.thruster_current, step_sets=args.step_sets, still=args.still,
+        **_simulate_temperature_and_imu(args),
     )
     if not is_csv(args.output):
         from magcal_ros.io.bag_writer import check_bag_output
 
         check_bag_output(args.output)
+    streams = _stream_spec(args, spec.names)
+    if streams is not None:
+        return _simulate_streams(args, spec, streams)
     truth, ypath, npath = write_simulation(args.output, spec, args.storage)
     kind = "CSV" if is_csv(args.output) else f"rosbag2 ({args.storage})"
     print(
@@ -460,12 +611,119 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"(schedule {spec.schedule}, F {spec.intensity / NT:.1f} nT, noise {spec.noise / NT:g} nT, "
         f"{len(spec.dipoles)} dipoles{', still' if spec.still else ''})"
     )
+    profile = spec.temperature_profile()
+    if profile is not None:
+        temps = truth.temperatures
+        where = ("/<name>/temperature (Temperature)" if not is_csv(args.output) else "temperature.<name> columns")
+        print(f"  temperature {profile[0]} {','.join(f'{v:g}' for v in profile[1])}: {temps.min():.1f} .. "  # type: ignore[union-attr]
+              f"{temps.max():.1f} deg C on {where}; tempco spreads {spec.tempco_offset / NT:g} nT/K, "  # type: ignore[union-attr]
+              f"{spec.tempco_gain * 1e6:g} ppm/K about {spec.temperature_reference:g} deg C")
+    if spec.imu:
+        gyro = "orientation and gyro" if spec.continuous else "orientation only (the schedule is not flown in time)"
+        where = f"/imu (Imu, {f'{spec.imu_rate:g} Hz' if spec.imu_rate else 'at each set'})" if not is_csv(args.output) \
+            else "imu.* columns"
+        print(f"  IMU {spec.imu_frame_id}: {gyro} on {where}; mounted roll,pitch,yaw "
+              f"{','.join(f'{v:g}' for v in spec.imu_mounting)} deg off the array")
+    if spec.world_gradient:
+        print(f"  world gradient (NED, nT/m): {np.round(spec.world_gradient_matrix() / NT, 3).reshape(-1).tolist()}")  # type: ignore[operator]
     if spec.thrusters:
         print(f"  {len(spec.thrusters)} thrusters ({spec.thruster_current} A): currents on "
               + (", ".join(topics.current_topic(c) for c in spec.channels) + " (BatteryState)" if not is_csv(args.output)
                  else ", ".join(f"current.{c}" for c in spec.channels)))
     print(f"  truth {ypath} and {npath}")
     return 0
+
+
+STREAM_OPTIONS: tuple[str, ...] = ("sensor_rate", "phases", "receipt_delay", "receipt_jitter", "jitter_kind",
+                                   "clock_ppm", "loss", "lags", "glitch", "restart")
+
+
+def _per_sensor(text: str | None, option: str, count: int) -> float | tuple[float, ...]:
+    """``N`` or ``N,N,...`` (one per sensor) of a stream option; 0 when not given."""
+    if text is None:
+        return 0.0
+    try:
+        values = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"{option} must be a number or {count} numbers separated by commas, got {text!r}") from None
+    if len(values) not in (1, count) or not np.all(np.isfinite(values)):
+        raise InputError(f"{option} must be a number or {count} finite numbers separated by commas, got {text!r}")
+    return values[0] if len(values) == 1 else values
+
+
+def _stream_spec(args: argparse.Namespace, names: tuple[str, ...]) -> Any:
+    """The sensor-stream settings of ``magcal simulate``, or None when none is given."""
+    if all(getattr(args, o) is None for o in STREAM_OPTIONS):
+        return None
+    from magcal_ros.sim.streams import StreamSpec
+
+    glitches = []
+    for text in args.glitch or []:
+        parts = [v.strip() for v in text.split(",")]
+        if len(parts) != 3 or parts[0] not in names:
+            raise InputError(f"--glitch must be NAME,TIME,SHIFT with NAME one of {', '.join(names)}, got {text!r}")
+        time_, shift = _numbers(",".join(parts[1:]), 2, "--glitch TIME,SHIFT")
+        glitches.append((names.index(parts[0]), time_, shift))
+    restarts = []
+    for text in args.restart or []:
+        parts = [v.strip() for v in text.split(",")]
+        which = parts[2:]
+        if len(parts) < 2 or any(n not in names for n in which):
+            raise InputError(f"--restart must be TIME,JUMP[,NAME...] with names among {', '.join(names)}, got {text!r}")
+        time_, jump = _numbers(",".join(parts[:2]), 2, "--restart TIME,JUMP")
+        restarts.append((time_, jump, tuple(names.index(n) for n in which)))
+    rate = _per_sensor(args.sensor_rate, "--sensor-rate", len(names)) if args.sensor_rate else args.rate
+    spec = StreamSpec(
+        rate=rate, phases=_per_sensor(args.phases, "--phases", len(names)),
+        delay=_per_sensor(args.receipt_delay, "--receipt-delay", len(names)),
+        jitter=args.receipt_jitter or 0.0, jitter_kind=args.jitter_kind or "gaussian",
+        clock_ppm=_per_sensor(args.clock_ppm, "--clock-ppm", len(names)), loss=args.loss or 0.0,
+        lags=_per_sensor(args.lags, "--lags", len(names)), glitches=tuple(glitches), restarts=tuple(restarts),
+    )
+    if not (0.0 <= spec.loss < 1.0) or not (np.isfinite(spec.jitter) and spec.jitter >= 0):
+        raise InputError("--loss must be in [0, 1) and --receipt-jitter a standard deviation >= 0 (s)")
+    return spec
+
+
+def _simulate_streams(args: argparse.Namespace, spec: Any, streams: Any) -> int:
+    """``magcal simulate`` with sensor-stream options: the bag of per-sensor streams and its truth."""
+    from magcal_ros.io.truth_file import write_stream_simulation
+
+    rec, ypath, npath = write_stream_simulation(args.output, spec, streams, args.storage)
+    counts = ", ".join(f"{s.name} {len(s)}" for s in rec.streams)
+    print(f"wrote {args.output}: rosbag2 ({args.storage}), per-sensor streams over {spec.count / spec.rate:g} s "
+          f"(schedule {spec.schedule} as a continuous turn): {counts} messages")
+    lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(rec.names, rec.calibration.time_offsets) if t]
+    if lags:
+        print(f"  lags (true time_offset in the truth YAML): {', '.join(lags)}")
+    print(f"  truth {ypath} and {npath}")
+    return 0
+
+
+def _simulate_temperature_and_imu(args: argparse.Namespace) -> dict[str, Any]:
+    """The simulation spec's temperature, IMU and world gradient fields from the options."""
+    def numbers(text: str | None, option: str) -> tuple[float, ...]:
+        if not text:
+            return ()
+        try:
+            values = tuple(float(v) for v in text.replace(",", " ").split())
+        except ValueError:
+            raise InputError(f"{option} must be numbers separated by commas, got {text!r}") from None
+        if not values or not np.all(np.isfinite(values)):
+            raise InputError(f"{option} must be finite numbers separated by commas, got {text!r}")
+        return values
+
+    return {
+        "temperatures": numbers(args.temperatures, "--temperatures"),
+        "temperature_ramp": numbers(args.temperature_ramp, "--temperature-ramp"),
+        "thermocline": numbers(args.thermocline, "--thermocline"),
+        "temperature_reference": args.temperature_reference, "tempco_offset": args.tempco_offset,
+        "tempco_gain": args.tempco_gain, "temperature_noise": args.temperature_noise,
+        "imu": args.imu, "imu_mounting": _numbers(args.imu_mounting, 3, "--imu-mounting"),
+        "imu_orientation_noise": args.imu_orientation_noise, "imu_gyro_noise": args.imu_gyro_noise,
+        "imu_gyro_bias": _numbers(args.imu_gyro_bias, 3, "--imu-gyro-bias"), "imu_rate": args.imu_rate,
+        "imu_frame_id": args.imu_frame_id, "world_gradient": numbers(args.world_gradient, "--world-gradient"),
+    }
 
 
 def _read_calibration(path: str, uncorrected: tuple[str, ...] = ()) -> ArrayCalibration:
@@ -498,6 +756,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
         args.gradient_method = "difference" if extra else method_for(cal.geometry)
     out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else _name_list(args.copy_topics)
+    from magcal_ros.app.correct import check_temperature_topics
+
+    check_temperature_topics(cal, _temperature_topics(args))
     if not is_csv(args.input):
         from magcal_ros.app.correct import check_channels
 
@@ -517,12 +778,16 @@ def cmd_correct(args: argparse.Namespace) -> int:
             nonfinite="drop" if args.drop_nonfinite else "error", start_ns=args.start, end_ns=args.end,
             calibration_name=args.calibration,
             currents=_current_topics(args), current_tolerance=args.current_tolerance,
+            sync_mode=args.sync_mode, max_gap=args.max_gap,
+            temperature_topics=_temperature_topics(args), temperature_tolerance=args.temperature_tolerance,
         )
     for note in report.notes:
         _note(note)
     _report_sync(report.stats)
     if report.currents is not None and report.currents.dropped:
         print(f"  note: {report.currents.describe()}", file=sys.stderr)
+    if report.temperatures is not None and report.temperatures.dropped:
+        _note(report.temperatures.describe())
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {_sensors(len(cal.geometry.names))} -> {args.output} "
@@ -534,14 +799,18 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
 
 def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool) -> int:
+    from magcal_ros.app.correct import time_offsets_of
+
     with _progress(args, "read") as bar:
         rec, stats = open_recording(
             args.input, cal.geometry.names, args.start, args.end, args.sync_tolerance,
-            "drop" if args.drop_nonfinite else "error", bar,
+            "drop" if args.drop_nonfinite else "error", bar, args.sync_mode, args.max_gap, time_offsets_of(cal),
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
     rec = _with_currents(args, rec)
+    if cal.has_temperature_terms:
+        rec = _with_temperatures(args, rec, needed=True)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
@@ -598,6 +867,8 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--plot", metavar="FILE.png",
                    help="draw TMI per sensor, tensor components and corrected vectors before/after (PNG)")
     add_current_options(p)
+    add_temperature_options(p)
+    add_imu_options(p)
     p.add_argument("--interference-only", metavar="CAL.yaml",
                    help="hold CAL.yaml's calibration and estimate only the current interference, from a run with "
                    "the vehicle still and the currents stepped (each on its own); writes CAL.yaml plus the "
@@ -662,6 +933,42 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
                    help=f"sets each level of steps: is held (default {d.step_sets})")
     g.add_argument("--still", action="store_true",
                    help="the vehicle does not move: every set takes the schedule's first attitude (a stepped-thruster run)")
+    g = p.add_argument_group("temperature (the sensors' offsets and gains follow it)")
+    g.add_argument("--temperatures", metavar="T1,T2,...",
+                   help="temperature steps (deg C): the sets in equal consecutive blocks, e.g. 5,15,25")
+    g.add_argument("--temperature-ramp", metavar="T0,T1",
+                   help="a warming (or cooling) from T0 to T1 deg C over the recording (exponential, levelling off)")
+    g.add_argument("--thermocline", metavar="SURFACE,DEEP[,DIVES]",
+                   help="a glider's dives through a sharp thermocline: SURFACE and DEEP deg C, DIVES dives (default 1)")
+    g.add_argument("--temperature-reference", type=float, default=d.temperature_reference, metavar="DEG_C",
+                   help=f"temperature at which the sensors have their drawn errors (default {d.temperature_reference:g})")
+    g.add_argument("--tempco-offset", type=float, default=d.tempco_offset, metavar="TESLA_PER_K",
+                   help="spread (1-sigma) of each sensor axis' offset change per kelvin, e.g. 0.5e-9 (default 0)")
+    g.add_argument("--tempco-gain", type=float, default=d.tempco_gain, metavar="PER_K",
+                   help="spread (1-sigma) of each sensor axis' gain change per kelvin, e.g. 30e-6 (default 0)")
+    g.add_argument("--temperature-noise", type=float, default=d.temperature_noise, metavar="K",
+                   help="noise (1-sigma) of the recorded temperatures (default 0)")
+    g = p.add_argument_group("IMU and site")
+    g.add_argument("--imu", action="store_true",
+                   help="simulate the vehicle's IMU: orientation (IMU frame -> ENU) and, for schedules flown in time "
+                   "(single-axis, sea, tumble, --still), the gyro; bag topic /imu (sensor_msgs/msg/Imu), CSV columns "
+                   "imu.qx..imu.qw, imu.wx..imu.wz")
+    g.add_argument("--imu-mounting", default="0,0,0", metavar="ROLL,PITCH,YAW",
+                   help="the IMU's mounting (deg): the rotation Rz(yaw) Ry(pitch) Rx(roll) from the array frame to "
+                   "the IMU frame (default 0,0,0)")
+    g.add_argument("--imu-orientation-noise", type=float, default=d.imu_orientation_noise, metavar="DEG",
+                   help="noise (1-sigma per axis) of the measured orientation (default 0)")
+    g.add_argument("--imu-gyro-noise", type=float, default=d.imu_gyro_noise, metavar="RAD_PER_S",
+                   help="white noise (1-sigma per axis) of the gyro (default 0)")
+    g.add_argument("--imu-gyro-bias", default="0,0,0", metavar="WX,WY,WZ",
+                   help="constant bias of the gyro (rad/s, IMU frame; default 0,0,0)")
+    g.add_argument("--imu-rate", type=float, default=d.imu_rate, metavar="HZ",
+                   help="the IMU's own rate in a bag (its clock offset from the sets'; default 0: one sample at each "
+                   "set's stamp)")
+    g.add_argument("--imu-frame-id", default=d.imu_frame_id, help=f"the IMU's frame (default {d.imu_frame_id})")
+    g.add_argument("--world-gradient", metavar="XX,XY,XZ,YY,YZ",
+                   help="a constant gradient over the array (T/m, world frame NED, symmetric and traceless: 5 "
+                   "numbers, or all 9 row-major), e.g. 30e-9,0,0,-15e-9,0")
     g = p.add_argument_group("sensor errors (1-sigma spreads, drawn per sensor from --seed)")
     g.add_argument("--scale-sd", type=float, default=d.scale_sd, help=f"scale factor spread (default {d.scale_sd:g})")
     g.add_argument("--angle-sd", type=float, default=d.angle_sd, metavar="DEG", help=f"non-orthogonality (default {d.angle_sd:g} deg)")
@@ -674,6 +981,24 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g.add_argument("--noise-kind", default=d.noise_kind, choices=["gaussian", "uniform"], help="noise distribution")
     g.add_argument("--noise-domain", default=d.noise_domain, choices=["raw", "sensor"],
                    help="add noise to the reading (raw) or before scale and non-orthogonality (sensor, Li et al. (2018))")
+    g = p.add_argument_group(
+        "sensor streams (rosbag2 output; any of these simulates each sensor on its own clock, stamped on receipt: "
+        "the schedule's attitudes at --rate become a continuous turn; N or N,N,... per sensor)")
+    g.add_argument("--sensor-rate", metavar="HZ[,HZ...]", help="sample rate of each sensor (default --rate)")
+    g.add_argument("--phases", metavar="S[,S...]",
+                   help="first sample instant of each sensor after the start, s (e.g. 0,0.0025,0.005,0.0075)")
+    g.add_argument("--receipt-delay", metavar="S[,S...]", help="mean delay of each sensor's stamps after its sample (s)")
+    g.add_argument("--receipt-jitter", type=float, metavar="S", help="standard deviation of the stamps' jitter (s)")
+    g.add_argument("--jitter-kind", choices=["gaussian", "uniform"], help="distribution of the jitter (default gaussian)")
+    g.add_argument("--clock-ppm", metavar="PPM[,PPM...]", help="each sensor's clock error (ppm; positive samples slower)")
+    g.add_argument("--loss", type=float, metavar="FRACTION", help="fraction of messages lost at random")
+    g.add_argument("--lags", metavar="S[,S...]",
+                   help="each sensor's reading lags its sample instant by this (s): its true time_offset (truth YAML)")
+    g.add_argument("--glitch", action="append", metavar="NAME,TIME,SHIFT",
+                   help="the message of NAME nearest TIME (s after the start) stamped SHIFT s off; repeatable")
+    g.add_argument("--restart", action="append", metavar="TIME,JUMP[,NAME...]",
+                   help="from TIME (s after the start) the stamps of NAME... (default every sensor) are JUMP s behind "
+                   "(a driver restarted), bag time moving on; repeatable")
     g = p.add_argument_group("output")
     g.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default sqlite3)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed of errors, attitudes and noise (default 0)")
@@ -699,14 +1024,16 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     copy.add_argument("--copy-topics", metavar="T1,T2", help="also copy these input topics unchanged (bag to bag)")
     copy.add_argument("--copy-all", action="store_true", help="also copy every input topic unchanged (bag to bag)")
     p.add_argument("--storage", choices=["sqlite3", "mcap"], help="output storage (default: the input's; sqlite3 for CSV input)")
-    p.add_argument("--frame-id", default=topics.DEFAULT_FRAME_ID,
-                   help=f"platform frame of the output (default {topics.DEFAULT_FRAME_ID})")
+    p.add_argument("--frame-id", default=None,
+                   help="frame of the output (default: the calibration's frame_id, e.g. its IMU's, else "
+                   f"{topics.DEFAULT_FRAME_ID})")
     p.add_argument("--gradient-method", default=None, choices=["difference", "least_squares"],
                    help="cross difference formula or constrained least squares (any geometry); default: difference "
                    "for the planar cross, least_squares otherwise")
     add_window_options(p)
     add_sync_options(p)
     add_current_options(p)
+    add_temperature_options(p)
     add_common_options(p)
     p.set_defaults(func=cmd_correct)
 
@@ -720,6 +1047,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="examples:\n"
         "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
         "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
+        "  magcal batch campaign/ -c cal.yaml -o corrected/   # every recording, on Dask, with a report\n"
         "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -728,19 +1056,33 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_correct(sub)
+    from magcal_ros.app.batch import add_batch_parser  # Dask itself is imported only when a batch runs
+
+    add_batch_parser(sub, _subcommand)
     return parser
 
 
-NEGATIVE_VALUE_OPTIONS: tuple[str, ...] = ("--site", "--thruster", "--dipole", "--position")
-"""Options whose comma-separated numbers may start with a minus sign."""
+def _value_options(parser: argparse.ArgumentParser) -> frozenset[str]:
+    """The option strings (of every subcommand) that take a value."""
+    found: set[str] = set()
+    stack = [parser]
+    while stack:
+        p = stack.pop()
+        for action in p._actions:  # noqa: SLF001 - argparse keeps its actions here
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                stack.extend(action.choices.values())
+            elif action.option_strings and action.nargs != 0:
+                found.update(action.option_strings)
+    return frozenset(found)
 
 
-def _attach_negative_site(argv: Sequence[str]) -> list[str]:
-    """``--site -33.9,151.2`` as ``--site=-33.9,151.2`` (and the other :data:`NEGATIVE_VALUE_OPTIONS`):
-    argparse takes a leading '-' for an option."""
+def _attach_negative_values(argv: Sequence[str], options: frozenset[str]) -> list[str]:
+    """``--positions -0.25,0,0,...`` as ``--positions=-0.25,0,0,...`` for every option that takes a
+    value (numbers, or lists of them, may start with a minus sign): argparse takes a leading '-'
+    followed by anything but a plain number for an option."""
     out: list[str] = []
     for arg in argv:
-        if out and out[-1] in NEGATIVE_VALUE_OPTIONS and re.match(r"-\.?\d", arg):
+        if out and out[-1] in options and re.match(r"-\.?\d", arg):
             out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)
@@ -778,10 +1120,14 @@ def _check_paths(args: argparse.Namespace) -> None:
     """Refuse an output that is one of the command's inputs, or two outputs at one path."""
     inputs = [p for p in (getattr(args, "input", None), getattr(args, "calibration", None)) if p]
     seen: dict[Path, str] = {Path(p).resolve(): p for p in inputs}
+    folders = [(Path(p).resolve(), p) for p in inputs if Path(p).is_dir()]  # a bag is a directory
     for out in _outputs(args):
         where = Path(out).resolve()
         if where in seen and seen[where] in inputs:
             raise InputError(f"output {out} would overwrite the input {seen[where]}: write to another path")
+        inside = next((p for folder, p in folders if folder in where.parents), None)
+        if inside is not None:
+            raise InputError(f"output {out} is inside the input bag {inside}: write outside it")
         if where in seen:
             raise InputError(f"outputs {seen[where]} and {out} are the same file: give different paths")
         seen[where] = out
@@ -804,7 +1150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     line says so, and the exit code is 128 + the signal number (130, 143, 129).
     """
     parser = build_parser()
-    args = parser.parse_args(_attach_negative_site(sys.argv[1:] if argv is None else argv))
+    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv, _value_options(parser)))
     previous: dict[signal.Signals, Any] = {}
     try:
         if threading.current_thread() is threading.main_thread():

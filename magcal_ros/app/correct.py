@@ -9,7 +9,11 @@ A calibration with interference channels subtracts ``interference @ u`` per sens
 the channels' currents at each set: from a CSV's ``current.<channel>`` columns, or from
 bag topics (:func:`~magcal_ros.io.bag_reader.read_current_samples`) matched to each set
 by time (:func:`~magcal_ros.core.interference.match_currents`); sets without a fresh
-current of every channel are dropped and counted.
+current of every channel are dropped and counted. A calibration with temperature terms
+needs each sensor's temperature the same way: a CSV's ``temperature.<name>`` (or
+``temperature``) columns, or a bag's ``/<name>/temperature`` topics (or the topics given),
+``sensor_msgs/msg/Temperature``. A calibration with an output frame writes its ``frame_id``
+unless another is given.
 """
 
 from __future__ import annotations
@@ -30,8 +34,11 @@ from magcal_ros.core.interference import (
     match_currents,
     tolerance_of,
 )
+from magcal_ros.core.matching import match_latest
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
+from magcal_ros.core.tensor import gradient
+from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, TemperatureStats
 from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
@@ -42,8 +49,10 @@ from magcal_ros.io.bag_reader import (
     SetReader,
     open_bag,
     read_current_samples,
+    read_temperature_samples,
     resolve_sensor_topics,
     sensor_names_of,
+    temperature_topics,
 )
 from magcal_ros.io.bag_writer import (
     SETS_PER_WRITE,
@@ -110,6 +119,11 @@ def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: 
     return CorrectionOutput(sink.layout(parts), mf, gt, vt, len(names), kind)
 
 
+def time_offsets_of(calibration: ArrayCalibration) -> dict[str, float]:
+    """The calibration's non-zero time offsets (s) by sensor name (empty when there are none)."""
+    return {n: float(t) for n, t in zip(calibration.geometry.names, calibration.time_offsets) if t}  # type: ignore[arg-type]
+
+
 def check_sensors(
     calibration: ArrayCalibration,
     available: Sequence[str],
@@ -133,7 +147,7 @@ def check_sensors(
     if not extra:
         return []
     try:
-        calibration.field_and_gradient(np.zeros((1, len(names), 3)), gradient_method)
+        gradient(np.zeros((1, len(names), 3)), calibration.geometry, gradient_method)
     except InputError:
         raise InputError(
             f"{recording} has sensors {have} but {calibration_file} covers only {', '.join(names)}: "
@@ -166,6 +180,18 @@ def check_channels(calibration: ArrayCalibration, given: Sequence[str], how: str
                          f"(its interference_channels: {', '.join(need)})")
 
 
+def output_frame(calibration: ArrayCalibration, frame_id: str | None) -> str:
+    """The frame of the corrected outputs: ``frame_id`` if given, else the calibration's, else the default."""
+    return frame_id or calibration.frame_id or DEFAULT_FRAME_ID
+
+
+def check_temperature_topics(calibration: ArrayCalibration, given: Sequence[str] | None) -> None:
+    """:class:`InputError` when temperature topics are given for a calibration without temperature terms."""
+    if given and not calibration.has_temperature_terms:
+        raise InputError(f"--temperature-topics {','.join(given)} given, but the calibration has no temperature terms "
+                         "(no temperature_reference with offset_per_kelvin/matrix_per_kelvin)")
+
+
 @dataclass(frozen=True)
 class CorrectionReport:
     """What :func:`correct_bag` did."""
@@ -179,6 +205,8 @@ class CorrectionReport:
     """Sensors of the input left out (see :func:`check_sensors`)."""
     currents: CurrentStats | None = None
     """Sets dropped for lack of a fresh current (None: the calibration has no channels)."""
+    temperatures: TemperatureStats | None = None
+    """Sets dropped for lack of a fresh temperature (None: the calibration has no temperature terms)."""
 
 
 def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
@@ -200,7 +228,7 @@ def correct_bag(
     storage: Storage | None = None,
     copy_topics: Sequence[str] | Literal["all"] = (),
     progress: Progress | None = None,
-    frame_id: str = DEFAULT_FRAME_ID,
+    frame_id: str | None = None,
     gradient_method: str = "difference",
     tolerance: float = DEFAULT_SYNC_TOLERANCE,
     nonfinite: NonFinite = "drop",
@@ -209,6 +237,10 @@ def correct_bag(
     calibration_name: str = "the calibration",
     currents: Sequence[str] = (),
     current_tolerance: float = DEFAULT_CURRENT_TOLERANCE,
+    sync_mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    temperature_topics: Sequence[str] | None = None,
+    temperature_tolerance: float = DEFAULT_TEMPERATURE_TOLERANCE,
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -223,20 +255,36 @@ def correct_bag(
     ``calibration_name`` names the calibration in messages) and the readings must be in
     Tesla. ``currents``: the topics of the calibration's interference channels, each set's current the
     latest value at most ``current_tolerance`` s older than the set (sets without one are
-    dropped and counted). Streaming and atomic: nothing is left at ``out_path`` on failure.
+    dropped and counted). Sets are formed by ``sync_mode`` (``auto``, ``exact`` within
+    ``tolerance`` s, ``interpolate`` never across more than ``max_gap`` s) with the
+    calibration's time offsets: a sensor whose ``time_offset`` is not zero is shifted and
+    interpolated to the reference sensor's instants, and every output of a set is stamped
+    with the set's instant. A calibration with temperature terms takes each sensor's temperature
+    from ``temperature_topics`` (one per sensor or one for all; default ``/<name>/temperature``),
+    the latest at most ``temperature_tolerance`` s older than the set (sets without one of every
+    sensor are dropped and counted). ``frame_id``: the outputs' frame (default the calibration's,
+    else ``magcal_array``). Streaming and atomic: nothing is left at ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
     out_storage = check_storage(storage) if storage else storage_of(inp)
     check_bag_output(out_path, inp)
     check_channels(calibration, [topics.current_channel(t) for t in currents], "topics")
+    check_temperature_topics(calibration, temperature_topics)
     tol = tolerance_of(current_tolerance)
+    temp_tol = tolerance_of(temperature_tolerance, "temperature")
+    frame_id = output_frame(calibration, frame_id)
     with open_bag(inp) as reader:
         notes = check_sensors(calibration, sensor_names_of(reader), inp, calibration_name, gradient_method)
         _, conns = resolve_sensor_topics(reader, inp, names)
         samples = read_current_samples(reader, inp, currents) if calibration.channels else []
         samples = sorted(samples, key=lambda c: calibration.channels.index(c.channel))
         current_stats = CurrentStats(calibration.channels, tol) if calibration.channels else None
+        temperatures, temperature_stats = [], None
+        if calibration.has_temperature_terms:
+            found = list(temperature_topics) if temperature_topics else _bag_temperature_topics(reader, inp, names)
+            temperatures = read_temperature_samples(reader, inp, names, found)
+            temperature_stats = TemperatureStats(names, temp_tol)
         outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
                                                 topics.BASELINE_GRADIENT]}
         if copy_topics == "all":
@@ -266,7 +314,8 @@ def correct_bag(
                 sink.write_messages([(copy_map[c.id], t, d) for c, t, d in items if c.id in copy_map])
                 copied[0] += len(items)
 
-            sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress)
+            sets = SetReader(reader, inp, conns, tolerance, nonfinite, extra=extra, on_extra=on_extra, progress=progress,
+                             sync_mode=sync_mode, max_gap=max_gap, time_offsets=time_offsets_of(calibration))
             n_in = 0
             checked = False
             for batch in sets:
@@ -279,10 +328,16 @@ def correct_bag(
                     u, fresh = match_currents(batch.set_stamps, samples, tol)
                     keep = current_stats.keep(fresh)
                     batch, u = batch.take(keep), u[keep]
+                temps = None
+                if temperature_stats is not None:
+                    temps, fresh = match_latest(batch.set_stamps, temperatures, temp_tol)
+                    keep = temperature_stats.keep(fresh)
+                    batch, temps, u = batch.take(keep), temps[keep], None if u is None else u[keep]
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
                     part_u = None if u is None else u[a : a + SETS_PER_WRITE]
-                    sets_out = calibration.outputs(part.vectors, gradient_method, part_u)
+                    part_t = None if temps is None else temps[a : a + SETS_PER_WRITE]
+                    sets_out = calibration.outputs(part.vectors, gradient_method, part_u, part_t)
                     sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
             if sets.stats.sets == 0:
@@ -290,9 +345,23 @@ def correct_bag(
             if n_in == 0 and current_stats is not None and current_stats.dropped:
                 raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
                                  "widen --current-tolerance")
+            if n_in == 0 and temperature_stats is not None and temperature_stats.dropped:
+                raise InputError(f"{inp}: {temperature_stats.describe()}: no set left; check the topics' stamps or "
+                                 "widen --temperature-tolerance")
             if n_in == 0:
                 raise InputError(f"{inp}: no synchronized sets in the selected time window")
-    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats)
+    return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats,
+                            temperature_stats)
+
+
+def _bag_temperature_topics(reader: Any, path: Path, names: Sequence[str]) -> list[str]:
+    """The bag's ``/<name>/temperature`` topics, which a calibration with temperature terms needs."""
+    found = temperature_topics(reader, names)
+    if found is None:
+        raise InputError(f"{path}: the calibration corrects for temperature, but the bag has no "
+                         f"{', '.join(topics.absolute(topics.temperature(n)) for n in names)} "
+                         "(sensor_msgs/msg/Temperature): name the temperature topics with --temperature-topics")
+    return found
 
 
 def write_corrected_bag(
@@ -300,22 +369,24 @@ def write_corrected_bag(
     recording: Recording,
     calibration: ArrayCalibration,
     storage: Storage = "sqlite3",
-    frame_id: str = DEFAULT_FRAME_ID,
+    frame_id: str | None = None,
     gradient_method: str = "difference",
 ) -> None:
     """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`.
 
-    The recording must carry the currents of the calibration's channels (:func:`corrected_input`)."""
+    The recording must carry the currents of the calibration's channels and, for temperature
+    terms, the sensors' temperatures (:func:`corrected_input`)."""
     check_bag_output(path)
     rec = corrected_input(recording, calibration)
     stamps = rec.stamps
     with atomic_path(path) as tmp, BagSink.create(tmp, check_storage(storage)) as sink:
-        out = correction_output(sink, rec.names, frame_id, calibration.geometry.gradient_kind)
+        out = correction_output(sink, rec.names, output_frame(calibration, frame_id), calibration.geometry.gradient_kind)
         for a in range(0, len(rec), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
             part = SetBatch(np.repeat(ts[:, None], len(rec.names), axis=1), rec.vectors[a : a + SETS_PER_WRITE])
             u = rec.currents[a : a + SETS_PER_WRITE] if rec.channels else None  # type: ignore[index]
-            sink.write_sets(out.layout, out.encode(part, calibration.outputs(part.vectors, gradient_method, u)), ts)
+            t = None if rec.temperatures is None else rec.temperatures[a : a + SETS_PER_WRITE]
+            sink.write_sets(out.layout, out.encode(part, calibration.outputs(part.vectors, gradient_method, u, t)), ts)
 
 
 def correct_recording_csv(
@@ -326,9 +397,10 @@ def correct_recording_csv(
 ) -> int:
     """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count.
 
-    The recording must carry the currents of the calibration's channels (:func:`corrected_input`)."""
+    The recording must carry the currents of the calibration's channels and, for temperature
+    terms, the sensors' temperatures (:func:`corrected_input`)."""
     rec = corrected_input(recording, calibration)
-    sets = calibration.outputs(rec.vectors, gradient_method, rec.currents if rec.channels else None)
+    sets = calibration.outputs(rec.vectors, gradient_method, rec.currents if rec.channels else None, rec.temperatures)
     write_corrected_csv(path, rec.stamps, rec.names, sets)
     return len(rec)
 
@@ -336,7 +408,11 @@ def correct_recording_csv(
 def corrected_input(recording: Recording, calibration: ArrayCalibration) -> Recording:
     """``recording`` restricted to the calibration's sensors and current channels, in its order.
 
-    :class:`InputError` when a channel's currents are missing (:func:`check_channels`).
+    :class:`InputError` when a channel's currents are missing (:func:`check_channels`), or the
+    temperatures a calibration with temperature terms needs.
     """
     check_channels(calibration, recording.channels, "columns")
+    if calibration.has_temperature_terms and recording.temperatures is None:
+        raise InputError("the calibration corrects for temperature: the recording has no temperatures (CSV: "
+                         "temperature.<name> columns or one temperature column; bag: /<name>/temperature topics)")
     return recording.select(calibration.geometry.names).select_channels(calibration.channels)

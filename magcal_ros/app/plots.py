@@ -71,7 +71,8 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
     cal = result.calibration
     rec = recording.select(cal.geometry.names)
     raw = rec.vectors
-    corrected = cal.apply(raw, rec.select_channels(cal.channels).currents if cal.channels else None)
+    corrected = cal.apply_array(raw, rec.select_channels(cal.channels).currents if cal.channels else None,
+                                rec.temperatures)  # the array frame: the gradient is formed there
     f = result.intensity
     kind = cal.geometry.gradient_kind
     idx = _thin(len(rec))

@@ -93,6 +93,13 @@ class ProgressBar:
         self.stream.flush()
         self._drawn = True
 
+    def clear(self) -> None:
+        """Erase the drawn bar so a line of other output can be printed; the next update redraws it."""
+        if self.enabled and self._drawn:
+            self.stream.write("\r\x1b[K")
+            self.stream.flush()
+            self._drawn = False
+
     def close(self) -> None:
         """Draw the final state and end the line (only if anything was drawn)."""
         if self.enabled and self._drawn:

@@ -291,24 +291,28 @@ class ArrayDriver:
         domain_id: int,
         node_name: str = "magcal_driver",
         collect_corrected: bool = True,
-        publish_depth: int = 1000,
+        publish_depth: int = 10000,
         namespace: str = "",
         listen: bool = True,
         kind: str = "tensor",
         currents: Sequence[tuple[str, str]] = (),
+        temperatures: bool = False,
+        imu_topic: str | None = None,
     ) -> None:
         """``namespace``: the nodes' namespace; raw topics are published and outputs read in it.
         ``listen=False``: publish only (no subscriptions to the outputs). ``kind``: the gradient
         the correction node publishes for this array (``tensor``: ``gradient`` and
         ``gradient_stamped``; ``baseline``: ``baseline_gradient``; ``none``: only ``field``).
         ``currents``: (topic, type) of each current channel to publish (type
-        ``sensor_msgs/msg/BatteryState`` or ``std_msgs/msg/Float64``)."""
+        ``sensor_msgs/msg/BatteryState`` or ``std_msgs/msg/Float64``). ``temperatures``: publish
+        ``<name>/temperature`` (sensor_msgs/Temperature) per sensor; ``imu_topic``: publish the IMU
+        (sensor_msgs/Imu) there."""
         import rclpy
         from geometry_msgs.msg import Vector3Stamped
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import BatteryState, JointState, MagneticField
+        from sensor_msgs.msg import BatteryState, Imu, JointState, MagneticField, Temperature
         from std_msgs.msg import Float64, Float64MultiArray
 
         self._rclpy = rclpy
@@ -331,11 +335,16 @@ class ArrayDriver:
             (self.node.create_publisher(self._current_types[t], self.topic(topic), reliable), t)
             for topic, t in currents
         ]
+        self._temperature_type, self._imu_type = Temperature, Imu
+        self.temperature_publishers = [
+            self.node.create_publisher(Temperature, self.topic(f"{n}/temperature"), reliable) for n in self.names
+        ] if temperatures else []
+        self.imu_publisher = self.node.create_publisher(Imu, self.topic(imu_topic), reliable) if imu_topic else None
         self.outputs = Outputs()
         self._lock = threading.Lock()
         self._fields: deque[int] = deque()
         self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
-        out_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        out_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)  # a busy reader catches up
         self.subscriptions = [
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
         ] if listen else []
@@ -568,6 +577,34 @@ class ArrayDriver:
             msg.data = float(amperes)
         pub.publish(msg)
 
+    def publish_temperature(self, sensor: int, stamp_ns: int, celsius: float) -> None:
+        """Publish one temperature (deg C) of sensor ``sensor`` (index into ``names``) stamped ``stamp_ns``."""
+        msg = self._temperature_type()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), NS_PER_S)
+        msg.header.frame_id = self.names[sensor]
+        msg.temperature = float(celsius)
+        self.temperature_publishers[sensor].publish(msg)
+
+    def publish_imu(self, stamp_ns: int, orientation: Sequence[float], angular_velocity: Sequence[float],
+                    frame_id: str = "imu_link") -> None:
+        """Publish one IMU sample: quaternion x, y, z, w (IMU frame -> ENU; NaN: unknown, sent as covariance[0]
+        = -1) and angular velocity rad/s (NaN: unknown), stamped ``stamp_ns``."""
+        msg = self._imu_type()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), NS_PER_S)
+        msg.header.frame_id = frame_id
+        q = [float(v) for v in orientation]
+        w = [float(v) for v in angular_velocity]
+        if all(math.isfinite(v) for v in q):
+            msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = q
+        else:
+            msg.orientation_covariance[0] = -1.0
+        if all(math.isfinite(v) for v in w):
+            msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = w
+        else:
+            msg.angular_velocity_covariance[0] = -1.0
+        msg.linear_acceleration_covariance[0] = -1.0
+        self.imu_publisher.publish(msg)  # type: ignore[union-attr]
+
     def replay(
         self,
         messages: Sequence[RawMessage],
@@ -576,6 +613,8 @@ class ArrayDriver:
         progress: Any = None,
         currents: NDArray[np.float64] | None = None,
         current_lead: int = 25,
+        temperatures: NDArray[np.float64] | None = None,
+        imu: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     ) -> dict[int, int]:
         """Publish ``messages`` in order, ``rate`` sets (distinct stamps) per second.
 
@@ -588,15 +627,18 @@ class ArrayDriver:
         first messages), published on the :attr:`current_publishers` with the set's stamp
         ``current_lead`` sets ahead of the set itself (the first sets start that much later), so
         that a receiver has them whatever the order in which its topics are served (a receiver
-        keeps recent values and takes the latest stamped not after the set).
+        keeps recent values and takes the latest stamped not after the set). ``temperatures``
+        (sets, S) deg C and ``imu`` (orientation (sets, 4), angular velocity (sets, 3)) go out the
+        same way, with each set's stamp.
         """
         mapping: dict[int, int] = {}
         period = 1.0 / rate if rate > 0 else 0.0
         spacing = int(period * NS_PER_S) if period else 10_000_000
-        lead = current_lead if currents is not None else 0  # the current sensors started that much earlier
+        sides = currents is not None or temperatures is not None or imu is not None
+        lead = current_lead if sides else 0  # the side sensors started that much earlier
         start = time.monotonic() + lead * period
         start_ns = time.time_ns() + lead * spacing
-        originals = list(dict.fromkeys(m.stamp_ns for m in messages)) if currents is not None else []
+        originals = list(dict.fromkeys(m.stamp_ns for m in messages)) if sides else []
         sent_currents = 0
 
         def stamp_of(k: int) -> int:
@@ -604,9 +646,16 @@ class ArrayDriver:
 
         def send_currents(upto: int) -> None:
             nonlocal sent_currents
-            while currents is not None and sent_currents < min(upto, len(originals)):
-                for j, amperes in enumerate(currents[sent_currents]):
-                    self.publish_current(j, stamp_of(sent_currents), float(amperes))
+            while sides and sent_currents < min(upto, len(originals)):
+                k = sent_currents
+                if currents is not None:
+                    for j, amperes in enumerate(currents[k]):
+                        self.publish_current(j, stamp_of(k), float(amperes))
+                if temperatures is not None:
+                    for j, celsius in enumerate(temperatures[k]):
+                        self.publish_temperature(j, stamp_of(k), float(celsius))
+                if imu is not None:
+                    self.publish_imu(stamp_of(k), imu[0][k], imu[1][k])
                 sent_currents += 1
 
         send_currents(lead)
@@ -658,7 +707,7 @@ class ArrayDriver:
         finally:
             self.node.destroy_client(client)
 
-    def trigger(self, name: str, timeout: float = 60.0) -> tuple[bool, str]:
+    def trigger(self, name: str, timeout: float = 300.0) -> tuple[bool, str]:
         """Call a std_srvs/Trigger service; returns (success, message)."""
         from std_srvs.srv import Trigger
 
@@ -666,7 +715,7 @@ class ArrayDriver:
         return bool(reply.success), str(reply.message)
 
     def set_parameters(self, node: str, values: Mapping[str, Any], atomic: bool = True,
-                       timeout: float = 30.0) -> list[tuple[bool, str]]:
+                       timeout: float = 120.0) -> list[tuple[bool, str]]:
         """Set parameters of ``node`` through its parameter service; (successful, reason) each."""
         from rcl_interfaces.srv import SetParameters, SetParametersAtomically
 
@@ -681,7 +730,7 @@ class ArrayDriver:
                            SetParameters.Request(parameters=msgs), timeout)
         return [(bool(r.successful), str(r.reason)) for r in reply.results]
 
-    def get_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+    def get_parameters(self, node: str, names: Sequence[str], timeout: float = 120.0) -> dict[str, Any]:
         """Values of parameters of ``node`` (None for unset ones)."""
         from rcl_interfaces.srv import GetParameters
         from rclpy.parameter import parameter_value_to_python
@@ -694,7 +743,7 @@ class ArrayDriver:
             out[n] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
         return out
 
-    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 30.0) -> dict[str, Any]:
+    def describe_parameters(self, node: str, names: Sequence[str], timeout: float = 120.0) -> dict[str, Any]:
         """rcl_interfaces/ParameterDescriptor of parameters of ``node``, by name."""
         from rcl_interfaces.srv import DescribeParameters
 
@@ -727,6 +776,25 @@ class ArrayDriver:
 
         self.wait_for_message(DiagnosticArray, "/diagnostics", match, timeout)
         return found[0] if found else None
+
+    def watch_diagnostics(self) -> None:
+        """Keep the latest status of every name seen on /diagnostics (see :meth:`status`)."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        if getattr(self, "_diagnostics_sub", None) is not None:
+            return
+
+        def keep(msg: Any) -> None:
+            with self._lock:
+                for status in msg.status:
+                    self.statuses[status.name] = status
+
+        self._diagnostics_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics", keep, 100)
+
+    def status(self, name: str) -> Any:
+        """The latest status named ``name`` on /diagnostics (after :meth:`watch_diagnostics`), or None."""
+        with self._lock:
+            return self.statuses.get(name)
 
     def wait_for_message(self, msg_type: Any, topic: str, predicate: Any = None, timeout: float = 30.0) -> Any:
         """The first message on ``topic`` satisfying ``predicate`` (None on timeout)."""

@@ -245,8 +245,8 @@ class _Eval:
             d_tau = None
             dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
         kd = np.einsum("sab,nsb->nsa", k, dl)
-        gain = 1.0 + inputs.temperatures[:, :, None] * g[None, :, :] if g is not None and inputs.temperatures is not None \
-            else np.ones((1, 1, 1))
+        gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
+            if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], psi)
         self.e = self.pred - x
         jac = np.zeros((n, s, 3, p))
@@ -255,7 +255,7 @@ class _Eval:
             jac[:, :, a, a * q + 3 : a * q + q] = psi
         if model.gain_slice is not None and inputs.temperatures is not None:
             for a in range(3):
-                jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a]
+                jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
         if model.lag_index is not None and d_tau is not None:
             jac[:, :, :, model.lag_index] = gain * np.einsum("sab,nsb->nsa", k, d_tau)
         self.jac = jac
@@ -316,7 +316,7 @@ def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: Se
     w, g, tau = model.split(theta)
     rest = x - np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
     if g is not None and inputs.temperatures is not None:
-        rest = rest / (1.0 + inputs.temperatures[:, :, None] * g[None, :, :])
+        rest = rest * (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
     b = np.einsum("sab,nsb->nsa", np.linalg.inv(w[:, :, :3]), rest)
     if tau is not None and rates is not None:
         b = b + tau[None, :, None] * rates[:, None, :] * np.linalg.norm(b, axis=2, keepdims=True)
@@ -349,7 +349,7 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
         dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
     kd = np.einsum("sab,nsb->nsa", w[:, :, :3], dl)
     if g is not None and inputs.temperatures is not None:
-        kd = kd * (1.0 + inputs.temperatures[:, :, None] * g[None, :, :])
+        kd = kd / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
     return kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
 
 

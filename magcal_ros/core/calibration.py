@@ -2,12 +2,23 @@
 
 This is the object the solver returns, the calibration file stores and the correction
 node applies. Matrices map raw sensor axes (T) into the platform frame (T); ``u`` are the
-currents (A) of the interference channels, when the calibration has any.
+currents (A) of the interference channels, when the calibration has any. ``time_offsets``
+(s) say when each sensor's readings were taken: a reading stamped ``t`` is the field at
+``t - time_offset`` (positive: the sensor reads late); they are applied where sets are
+formed (:mod:`magcal_ros.core.sync`), not by :meth:`ArrayCalibration.apply`.
+
+With temperature terms (``dT = T - temperature_reference``, T the sensor's temperature in
+deg C) the correction is ``B = (matrix + dT matrix_tempco) (raw - offset - dT offset_tempco)
+- interference @ u``. With an ``output_rotation`` ``R`` (array frame to the output frame,
+e.g. the IMU's) every output is turned: vectors and centre field ``R v``, tensor ``R G R^T``,
+baseline gradient ``R g``; the gradient itself is formed in the array frame, where the
+positions are.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,6 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.sync_rules import MAX_TIME_OFFSET
 from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient
 from magcal_ros.errors import InputError
 
@@ -26,6 +38,14 @@ GAIN_RANGE: tuple[float, float] = (0.1, 10.0)
 """Accepted range of a correction matrix's singular values."""
 MAX_OFFSET: float = 1e-3
 """Largest accepted offset magnitude (T): 1 mT, twenty times the Earth's field."""
+MAX_OFFSET_TEMPCO: float = 1e-6
+"""Largest accepted offset temperature coefficient (T/K): 1000 nT/K, a thousand times a fluxgate's."""
+MAX_MATRIX_TEMPCO: float = 1e-2
+"""Largest accepted matrix temperature coefficient (1/K): 1 %/K, hundreds of times a fluxgate's."""
+TEMPERATURE_REFERENCE_RANGE: tuple[float, float] = (-60.0, 150.0)
+"""Accepted reference temperatures (deg C)."""
+ROTATION_TOLERANCE: float = 1e-6
+"""Largest departure of an output rotation from orthonormal (entries of ``R R^T - I``)."""
 
 
 def check_sensor(name: str, matrix: ArrayLike, offset: ArrayLike) -> tuple[Array, Array]:
@@ -86,13 +106,19 @@ class ArrayCalibration:
     interference: Array | None = None
     """(S, 3, m) interference gains (T/A, platform frame), one column per channel."""
     time_offsets: Array | None = None
-    """(S,) s each sensor reads late: its reading stamped ``t`` is the field at ``t - offset``."""
+    """(S,) s: sensor ``i``'s reading stamped ``t`` is the field at ``t - time_offsets[i]`` (reads
+    late when positive). None: zeros."""
+    # -- temperature terms and output frame ----------------------------------------------------
     temperature_reference: float | None = None
-    """deg C about which the temperature terms are linear (None: no temperature terms)."""
+    """Temperature (deg C) at which ``matrices`` and ``offsets`` hold; None: no temperature terms."""
     offset_tempco: Array | None = None
-    """(S, 3) offset change per kelvin (T/K, raw axes)."""
+    """(S, 3) T/K, raw sensor axes: the offset at ``dT`` is ``offsets + dT offset_tempco`` (default 0)."""
     matrix_tempco: Array | None = None
-    """(S, 3, 3) correction matrix change per kelvin (1/K)."""
+    """(S, 3, 3) 1/K: the matrix at ``dT`` is ``matrices + dT matrix_tempco`` (default 0)."""
+    output_rotation: Array | None = None
+    """(3, 3) rotation from the array (platform) frame to the output frame; None: identity."""
+    frame_id: str | None = None
+    """The output frame's name (e.g. the IMU's); None: the user's choice (``magcal_array`` by default)."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -111,6 +137,11 @@ class ArrayCalibration:
             raise InputError(f"interference must be {s} finite 3 x {len(channels)} matrices (T/A), got shape {d.shape}")
         object.__setattr__(self, "channels", channels)
         object.__setattr__(self, "interference", d)
+        lag = np.zeros(s) if self.time_offsets is None else np.asarray(self.time_offsets, dtype=float).reshape(-1)
+        if lag.shape != (s,) or not np.all(np.isfinite(lag)) or np.any(np.abs(lag) > MAX_TIME_OFFSET):
+            raise InputError(f"time_offsets must be {s} finite numbers of seconds within +-{MAX_TIME_OFFSET:g} s, "
+                             f"got {lag.tolist()}")
+        object.__setattr__(self, "time_offsets", lag)
         if self.covariances is not None:
             c = np.asarray(self.covariances, dtype=float)
             known = np.all(np.isfinite(c.reshape(len(c), -1)), axis=1) if c.ndim == 3 else np.zeros(0, bool)
@@ -120,28 +151,75 @@ class ArrayCalibration:
                 raise InputError(f"covariances must be {s} positive semi-definite 3x3 matrices (T^2), "
                                  "or all NaN for a sensor whose covariance is unknown")
             object.__setattr__(self, "covariances", c)
-        if self.time_offsets is not None:
-            t = np.asarray(self.time_offsets, dtype=float).reshape(-1)
-            if t.shape != (s,) or not np.all(np.isfinite(t)):
-                raise InputError(f"time_offsets must be {s} finite numbers (s), got {t}")
-            object.__setattr__(self, "time_offsets", t)
-        if self.temperature_reference is not None:
-            ref = float(self.temperature_reference)
-            oc = np.zeros((s, 3)) if self.offset_tempco is None else np.asarray(self.offset_tempco, dtype=float)
-            mc = np.zeros((s, 3, 3)) if self.matrix_tempco is None else np.asarray(self.matrix_tempco, dtype=float)
-            if not np.isfinite(ref) or oc.shape != (s, 3) or mc.shape != (s, 3, 3) or not (
-                    np.all(np.isfinite(oc)) and np.all(np.isfinite(mc))):
-                raise InputError("temperature terms need a finite reference (deg C), offset_tempco (S, 3) T/K and "
-                                 "matrix_tempco (S, 3, 3) 1/K")
-            object.__setattr__(self, "temperature_reference", ref)
-            object.__setattr__(self, "offset_tempco", oc)
-            object.__setattr__(self, "matrix_tempco", mc)
+        self._check_temperature_and_frame()
 
-    @property
-    def has_temperature(self) -> bool:
-        """True when the correction depends on the sensors' temperature."""
-        return self.temperature_reference is not None
+    # -- temperature terms and output frame ----------------------------------------------------
+    def _check_temperature_and_frame(self) -> None:
+        """Validate and normalise the temperature terms and the output rotation (neutral defaults)."""
+        s, names = self.geometry.size, self.geometry.names
+        ref = self.temperature_reference
+        if ref is not None:
+            ref = float(ref)
+            lo, hi = TEMPERATURE_REFERENCE_RANGE
+            if not (np.isfinite(ref) and lo <= ref <= hi):
+                raise InputError(f"temperature_reference {ref} is not a temperature in deg C ({lo:g} .. {hi:g})")
+        a = np.zeros((s, 3)) if self.offset_tempco is None else np.asarray(self.offset_tempco, dtype=float)
+        g = np.zeros((s, 3, 3)) if self.matrix_tempco is None else np.asarray(self.matrix_tempco, dtype=float)
+        if a.shape != (s, 3) or g.shape != (s, 3, 3) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(g))):
+            raise InputError(f"temperature terms must be {s} finite offset_per_kelvin (3, T/K) and matrix_per_kelvin "
+                             f"(9, 1/K), got shapes {a.shape} and {g.shape}")
+        for name, ai, gi in zip(names, a, g):
+            if np.max(np.abs(ai)) > MAX_OFFSET_TEMPCO:
+                raise InputError(f"{name}.offset_per_kelvin {ai.tolist()} exceeds {MAX_OFFSET_TEMPCO:g} T/K: units "
+                                 "must be T/K")
+            if np.max(np.abs(gi)) > MAX_MATRIX_TEMPCO:
+                raise InputError(f"{name}.matrix_per_kelvin exceeds {MAX_MATRIX_TEMPCO:g} per K: units must be 1/K")
+        if ref is None and (np.any(a) or np.any(g)):
+            raise InputError("temperature terms (offset_per_kelvin, matrix_per_kelvin) need temperature_reference "
+                             "(deg C)")
+        r = np.eye(3) if self.output_rotation is None else np.asarray(self.output_rotation, dtype=float)
+        if r.size != 9 or not np.all(np.isfinite(r)):
+            raise InputError(f"output_rotation needs 9 finite numbers (row-major 3x3), got {r.size}")
+        r = r.reshape(3, 3)
+        if np.max(np.abs(r @ r.T - np.eye(3))) > ROTATION_TOLERANCE or np.linalg.det(r) <= 0:
+            raise InputError("output_rotation must be a rotation matrix (orthonormal, determinant +1)")
+        frame = self.frame_id
+        if frame is not None and (not isinstance(frame, str) or not frame.strip()):
+            frame = None
+        object.__setattr__(self, "temperature_reference", ref)
+        object.__setattr__(self, "offset_tempco", a)
+        object.__setattr__(self, "matrix_tempco", g)
+        object.__setattr__(self, "output_rotation", r)
+        object.__setattr__(self, "frame_id", frame.strip() if frame else None)
 
+    @functools.cached_property
+    def has_temperature_terms(self) -> bool:
+        """True when the correction depends on the sensors' temperatures (a reference and a non-zero term)."""
+        return self.temperature_reference is not None and bool(np.any(self.offset_tempco) or np.any(self.matrix_tempco))
+
+    @functools.cached_property
+    def rotated(self) -> bool:
+        """True when the outputs are turned into another frame (``output_rotation`` is not the identity)."""
+        return not np.array_equal(self.output_rotation, np.eye(3))
+
+    def _temperature_delta(self, temperatures: ArrayLike | None, count: int) -> Array:
+        """``dT`` (N, S) K of the sensors' temperatures (N, S) deg C (:class:`InputError` when missing or bad)."""
+        if temperatures is None:
+            raise InputError(f"this calibration corrects for temperature: give the temperatures (deg C) of "
+                             f"{', '.join(self.geometry.names)}")
+        t = np.asarray(temperatures, dtype=float)
+        s = self.geometry.size
+        if t.ndim == 1 and s == 1:
+            t = t[:, None]
+        if t.shape != (count, s) or not np.all(np.isfinite(t)):
+            raise InputError(f"need finite temperatures (N, {s}) deg C, one per sensor and set, got shape {t.shape}")
+        return t - self.temperature_reference  # type: ignore[operator]
+
+    def to_output_frame(self, vectors: Array) -> Array:
+        """Vectors (..., 3) from the array frame into the output frame (``R v``)."""
+        return vectors @ self.output_rotation.T if self.rotated else vectors  # type: ignore[union-attr]
+
+    # -- construction ----------------------------------------------------------------------------
     @classmethod
     def identity(cls, geometry: ArrayGeometry) -> "ArrayCalibration":
         """No correction: identity matrices, zero offsets."""
@@ -149,20 +227,23 @@ class ArrayCalibration:
         return cls(geometry, np.tile(np.eye(3), (s, 1, 1)), np.zeros((s, 3)), {"method": "identity"})
 
     def apply(self, raw: ArrayLike, currents: ArrayLike | None = None, temperatures: ArrayLike | None = None) -> Array:
-        """Corrected vectors (N, S, 3) in T, platform frame, from raw (N, S, 3) in T.
+        """Corrected vectors (N, S, 3) in T, output frame, from raw (N, S, 3) in T.
 
         ``currents`` (N, m) in A, one column per :attr:`channels`: their interference is
-        subtracted. Required when the calibration has channels. ``temperatures`` (N, S) deg C
-        (required with temperature terms): ``(matrix + dT matrix_tempco) (raw - offset - dT
-        offset_tempco)`` with ``dT`` the temperature minus the reference.
+        subtracted. Required when the calibration has channels. ``temperatures`` (N, S) deg C:
+        required when it has temperature terms. The output frame is the platform (array)
+        frame unless :attr:`output_rotation` turns it (:meth:`apply_array` stays in it).
         """
+        return self.to_output_frame(self.apply_array(raw, currents, temperatures))
+
+    def apply_array(self, raw: ArrayLike, currents: ArrayLike | None = None,
+                    temperatures: ArrayLike | None = None) -> Array:
+        """Corrected vectors (N, S, 3) in T in the array (platform) frame: :meth:`apply` before the output rotation."""
         r = np.asarray(raw, dtype=float)
-        if self.has_temperature:
-            if temperatures is None:
-                raise InputError("this calibration has temperature terms: give the sensors' temperatures")
-            dt = np.asarray(temperatures, dtype=float).reshape(len(r), -1) - self.temperature_reference
-            mats = self.matrices[None] + dt[:, :, None, None] * self.matrix_tempco[None]  # type: ignore[index]
-            b = np.einsum("nsij,nsj->nsi", mats, r - self.offsets - dt[:, :, None] * self.offset_tempco[None])  # type: ignore[index]
+        if self.has_temperature_terms:
+            dt = self._temperature_delta(temperatures, len(r))
+            m = self.matrices + dt[:, :, None, None] * self.matrix_tempco
+            b = (m @ (r - self.offsets - dt[:, :, None] * self.offset_tempco)[..., None])[..., 0]
         else:
             b = np.einsum("sij,nsj->nsi", self.matrices, r - self.offsets)
         if self.channels:
@@ -175,22 +256,32 @@ class ArrayCalibration:
             b = b - np.einsum("sac,nc->nsa", self.interference, u)
         return b
 
-    def outputs(self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None) -> CorrectedSets:
-        """Corrected vectors, centre field and the gradient the geometry determines (see :class:`CorrectedSets`)."""
-        b = self.apply(raw, currents)
+    def outputs(self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None,
+                temperatures: ArrayLike | None = None) -> CorrectedSets:
+        """Corrected vectors, centre field and the gradient the geometry determines (see :class:`CorrectedSets`),
+        in the output frame (the gradient is formed in the array frame, then turned)."""
+        b = self.apply_array(raw, currents, temperatures)
         kind = self.geometry.gradient_kind
-        return CorrectedSets(
-            b, centre_field(b),
-            gradient(b, self.geometry, method) if kind == "tensor" else None,
-            baseline_gradient(b, self.geometry) if kind == "baseline" else None,
-        )
+        tensor = gradient(b, self.geometry, method) if kind == "tensor" else None
+        baseline = baseline_gradient(b, self.geometry) if kind == "baseline" else None
+        if self.rotated:
+            rot = self.output_rotation
+            b = self.to_output_frame(b)
+            tensor = None if tensor is None else rot @ tensor @ rot.T
+            baseline = None if baseline is None else self.to_output_frame(baseline)
+        return CorrectedSets(b, centre_field(b), tensor, baseline)
 
     def field_and_gradient(
-        self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None
+        self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None,
+        temperatures: ArrayLike | None = None,
     ) -> tuple[Array, Array, Array]:
-        """Corrected vectors (N, S, 3), centre field (N, 3) and tensor (N, 3, 3) from raw sets."""
-        b = self.apply(raw, currents)
-        return b, centre_field(b), gradient(b, self.geometry, method)
+        """Corrected vectors (N, S, 3), centre field (N, 3) and tensor (N, 3, 3) from raw sets, output frame."""
+        b = self.apply_array(raw, currents, temperatures)
+        g = gradient(b, self.geometry, method)
+        if self.rotated:
+            g = self.output_rotation @ g @ self.output_rotation.T  # type: ignore[union-attr]
+            b = self.to_output_frame(b)
+        return b, centre_field(b), g
 
     def to_parameters(self) -> dict[str, Any]:
         """ROS parameters of the correction node (``sensor_names``, ``positions``, per-sensor)."""
@@ -206,14 +297,29 @@ class ArrayCalibration:
                 params[name]["covariance"] = [float(x) for x in self.covariances[i].reshape(-1)]
             if self.channels:
                 params[name]["interference"] = [float(x) for x in self.interference[i].reshape(-1)]  # type: ignore[index]
-            if self.time_offsets is not None:
-                params[name]["time_offset"] = float(self.time_offsets[i])
-            if self.has_temperature:
-                params[name]["offset_per_kelvin"] = [float(x) for x in self.offset_tempco[i]]  # type: ignore[index]
-                params[name]["matrix_per_kelvin"] = [float(x) for x in self.matrix_tempco[i].reshape(-1)]  # type: ignore[index]
-        if self.has_temperature:
-            params["temperature_reference"] = float(self.temperature_reference)  # type: ignore[arg-type]
+            if np.any(self.time_offsets):  # type: ignore[arg-type]
+                params[name]["time_offset"] = float(self.time_offsets[i])  # type: ignore[index]
+        for key, value in self._temperature_and_frame_parameters().items():
+            if isinstance(value, dict):
+                params[key].update(value)
+            else:
+                params[key] = value
         return params
+
+    def _temperature_and_frame_parameters(self) -> dict[str, Any]:
+        """``temperature_reference`` and per sensor ``offset_per_kelvin``, ``matrix_per_kelvin`` (when the
+        calibration has a reference); ``output_rotation`` and ``frame_id`` (when it has an output frame)."""
+        out: dict[str, Any] = {}
+        if self.temperature_reference is not None:
+            out["temperature_reference"] = float(self.temperature_reference)
+            for i, name in enumerate(self.geometry.names):
+                out[name] = {"offset_per_kelvin": [float(x) for x in self.offset_tempco[i]],  # type: ignore[index]
+                             "matrix_per_kelvin": [float(x) for x in self.matrix_tempco[i].reshape(-1)]}  # type: ignore[index]
+        if self.rotated or self.frame_id:
+            out["output_rotation"] = [float(x) for x in self.output_rotation.reshape(-1)]  # type: ignore[union-attr]
+        if self.frame_id:
+            out["frame_id"] = self.frame_id
+        return out
 
     @classmethod
     def from_parameters(
@@ -236,7 +342,7 @@ class ArrayCalibration:
         channels = params.get("interference_channels") or []
         if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
             raise InputError("interference_channels must be a list of channel names")
-        mats, offs, covs, infs = [], [], [], []
+        mats, offs, covs, infs, lags = [], [], [], [], []
         for name in names:
             block = params.get(name)
             if block is None or block == {}:
@@ -256,6 +362,10 @@ class ArrayCalibration:
                 offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
                 covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3) if "covariance" in block
                             else np.full((3, 3), np.nan))
+                lag = block.get("time_offset", 0.0)
+                if isinstance(lag, bool) or not isinstance(lag, (int, float)):
+                    raise InputError(f"{name}.time_offset must be a number of seconds, got {lag!r}")
+                lags.append(float(lag))
                 if channels:
                     gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
                     if gains.size != 3 * len(channels):
@@ -265,22 +375,60 @@ class ArrayCalibration:
             except (TypeError, ValueError):
                 raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
                                  "interference") from None
-        lags = [float(params.get(n, {}).get("time_offset", 0.0) or 0.0) if isinstance(params.get(n), dict) else 0.0
-                for n in names]
-        t_ref = params.get("temperature_reference")
-        oc, mc = [], []
-        if t_ref is not None:
-            for name in names:
-                block = params.get(name) if isinstance(params.get(name), dict) else {}
-                oc.append(np.asarray(block.get("offset_per_kelvin", [0.0] * 3), dtype=float).reshape(3))
-                mc.append(np.asarray(block.get("matrix_per_kelvin", [0.0] * 9), dtype=float).reshape(3, 3))
         given = [not np.isnan(c).all() for c in covs]
         if any(given) and not all(g or n in uncorrected for g, n in zip(given, names)):
             raise InputError("calibration gives a covariance for some sensors but not all")
         if not any(given):
             covs = []
         checked = [check_sensor(n, m, o) for n, m, o in zip(names, mats, offs)]
+        for name, lag in zip(names, lags):
+            if not np.isfinite(lag) or abs(lag) > MAX_TIME_OFFSET:
+                raise InputError(f"{name}.time_offset {lag} s is not a lag (finite, within +-{MAX_TIME_OFFSET:g} s)")
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
                    np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None,
-                   np.array(lags) if any(lags) else None, None if t_ref is None else float(t_ref),
-                   np.stack(oc) if oc else None, np.stack(mc) if mc else None)
+                   np.asarray(lags, dtype=float), **_temperature_and_frame(params, names))
+
+
+# -- temperature terms and output frame in parameters ----------------------------------------------
+def _unset(value: Any) -> bool:
+    """A parameter value that says "not given": None, an empty string or list, NaN."""
+    if value is None or (isinstance(value, (str, list, tuple)) and len(value) == 0):
+        return True
+    return isinstance(value, float) and not np.isfinite(value)
+
+
+def _numbers(value: Any, count: int, what: str, unit: str) -> Array:
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be {count} numbers ({unit})") from None
+    if v.size != count:
+        raise InputError(f"{what} needs {count} numbers ({unit}), got {v.size}")
+    return v
+
+
+def _temperature_and_frame(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any]:
+    """The temperature terms and output frame of a parameter dict (see :meth:`ArrayCalibration.to_parameters`)."""
+    ref = params.get("temperature_reference")
+    if _unset(ref):
+        ref = None
+    elif isinstance(ref, bool) or not isinstance(ref, (int, float)):
+        raise InputError(f"temperature_reference must be a number (deg C), got {ref!r}")
+    offsets, matrices = [], []
+    for name in names:
+        block = params.get(name) if isinstance(params.get(name), dict) else {}
+        a, g = block.get("offset_per_kelvin"), block.get("matrix_per_kelvin")  # type: ignore[union-attr]
+        offsets.append(np.zeros(3) if _unset(a) else _numbers(a, 3, f"{name}.offset_per_kelvin", "T/K"))
+        matrices.append(np.zeros((3, 3)) if _unset(g) else _numbers(g, 9, f"{name}.matrix_per_kelvin",
+                                                                    "row-major 3x3, 1/K").reshape(3, 3))
+    rot = params.get("output_rotation")
+    frame = params.get("frame_id")
+    if not _unset(frame) and not isinstance(frame, str):
+        raise InputError(f"frame_id must be a frame name, got {frame!r}")
+    return {
+        "temperature_reference": None if ref is None else float(ref),
+        "offset_tempco": np.stack(offsets),
+        "matrix_tempco": np.stack(matrices),
+        "output_rotation": None if _unset(rot) else _numbers(rot, 9, "output_rotation", "row-major 3x3").reshape(3, 3),
+        "frame_id": None if _unset(frame) else frame,
+    }

@@ -3,7 +3,7 @@
 A set ``k`` is one reading of every sensor at one instant in a field of intensity ``F`` and
 unit direction ``d_k`` (platform frame). Sensor ``i`` reads (T)::
 
-    r_ik = F (I + dT_ik diag(g_i)) K_i d~_ik  +  o_i  +  E_i u_k  +  c_i dT_ik  +  noise
+    r_ik = F (I - dT_ik diag(g_i))^-1 K_i d~_ik  +  o_i  +  E_i u_k  +  c_i dT_ik  +  noise
 
 with the blocks
 
@@ -16,7 +16,9 @@ block            parameters (per sensor)                 enters when
 ``interference`` ``E_i`` (3 x m, T/A, raw axes)           current channels are given
 ``temperature``  ``c_i`` offset per kelvin (T/K, raw      sensor temperatures are given; ``dT`` is
                  axes), ``g_i`` gain per kelvin (1/K,     the temperature minus the reference (K)
-                 per raw axis)
+                 per raw axis; the correction is then
+                 exactly linear in ``dT``:
+                 ``M_i (I - dT diag(g_i))``)
 ``lag``          ``tau_i`` (s): the reading stamped       the sets follow a continuous motion in
                  ``t`` is the field at ``t - tau_i``      time (two or more sensors); ``tau`` of the
                                                           first (reference) sensor is 0

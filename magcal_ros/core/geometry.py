@@ -5,6 +5,8 @@ collinear array), or the full tensor (three or more sensors spread in a plane or
 from __future__ import annotations
 
 import functools
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +18,31 @@ Array = NDArray[np.float64]
 
 DEFAULT_NAMES: tuple[str, ...] = ("mag1", "mag2", "mag3", "mag4")
 DEFAULT_BASELINE: float = 0.4
+_NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a sensor, or None. A sensor name is a relative ROS name: one or more
+    tokens of letters, digits and underscores (not starting with a digit) joined by single ``/``
+    (``mag1``, ``front/mag1``), because it becomes the topic ``<name>/raw`` and the parameters
+    ``<name>.matrix``; ``mag 1``, ``../x``, ``/mag1``, ``mag1.x`` and ``~/mag1`` are not."""
+    text = str(name)
+    if not text:
+        return "a sensor name must not be empty"
+    bad = next((t for t in text.split("/") if not _NAME_TOKEN.fullmatch(t)), None)
+    if bad is None:
+        return None
+    what = "an empty token (a leading, trailing or double '/')" if bad == "" else f"the token {bad!r}"
+    return (f"sensor name {text!r} is not a valid relative ROS name ({what}): use letters, digits and "
+            "underscores, not starting with a digit, tokens joined by '/'")
+
+
+def check_names(names: Iterable[str]) -> None:
+    """:class:`InputError` naming the first sensor name that is not a valid relative ROS name."""
+    for name in names:
+        why = name_problem(name)
+        if why:
+            raise InputError(why)
 
 
 @dataclass(frozen=True)
@@ -43,6 +70,7 @@ class ArrayGeometry:
             raise InputError("an array needs at least one sensor")
         if len(set(names)) != len(names) or not all(names):
             raise InputError(f"sensor names must be unique and non-empty, got {list(names)}")
+        check_names(names)
         if pos.size != 3 * len(names):
             raise InputError(
                 f"positions needs 3 numbers per sensor: {3 * len(names)} for {len(names)} sensors, "

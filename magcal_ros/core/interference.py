@@ -19,16 +19,16 @@ be told apart (:func:`undetermined_channels`).
 
 from __future__ import annotations
 
-import bisect
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.matching import LatestValues, MatchStats, match_latest
 from magcal_ros.core.stamps import seconds_to_ns
-from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
@@ -65,115 +65,34 @@ def match_currents(
     For a set stamped ``t`` a channel's current is its latest value stamped in
     ``[t - tolerance_ns, t]`` (never a value newer than the set; of equal stamps the one
     recorded last); ``fresh`` is False (and the current 0) when there is none. Non-finite
-    values are no values.
+    values are no values. The rule of every side stream (:func:`~magcal_ros.core.matching.match_latest`).
     """
-    t = np.asarray(set_stamps).astype(np.int64).reshape(-1)
-    u = np.zeros((len(t), len(samples)))
-    fresh = np.zeros((len(t), len(samples)), bool)
-    for j, s in enumerate(samples):
-        ok = np.isfinite(s.values)
-        order = np.argsort(s.stamps[ok], kind="stable")
-        st, val = s.stamps[ok][order], s.values[ok][order]
-        if not len(st):
-            continue
-        idx = np.searchsorted(st, t, side="right") - 1
-        at = np.maximum(idx, 0)
-        fresh[:, j] = (idx >= 0) & (t - st[at] <= tolerance_ns)
-        u[:, j] = np.where(fresh[:, j], val[at], 0.0)
-    return u, fresh
+    return match_latest(set_stamps, samples, tolerance_ns)
 
 
 @dataclass
-class CurrentStats:
+class CurrentStats(MatchStats):
     """Sets dropped because a channel had no fresh current (one line for users)."""
 
-    channels: tuple[str, ...]
-    tolerance_ns: int
-    sets: int = 0
-    """Sets looked at."""
-    dropped: int = 0
-    """Sets without a fresh current of every channel."""
-    stale: list[int] = field(default_factory=list)
-    """Per channel: sets at which it had no fresh current."""
+    NOUN: ClassVar[str] = "current"
+    OWNER: ClassVar[str] = "channel"
 
-    def keep(self, fresh: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        """Count ``fresh`` (N, m) from :func:`match_currents`; the sets to keep (N,)."""
-        if not self.stale:
-            self.stale = [0] * len(self.channels)
-        ok = np.all(fresh, axis=1)
-        self.sets += len(ok)
-        self.dropped += int(np.sum(~ok))
-        for j, n in enumerate(np.sum(~fresh, axis=0)):
-            self.stale[j] += int(n)
-        return ok
-
-    def describe(self) -> str:
-        """``12 sets dropped without a current of every channel within 0.5 s (a: 12)``."""
-        per = ", ".join(f"{c}: {n}" for c, n in zip(self.channels, self.stale) if n)
-        return (f"{self.dropped} of {self.sets} sets dropped without a current of every channel within "
-                f"{self.tolerance_ns / NS_PER_S:g} s before the set ({per})")
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The current channels (the streams)."""
+        return self.streams
 
 
-def tolerance_of(seconds: float) -> int:
-    """A current tolerance in s as integer ns; :class:`InputError` unless finite and >= 0."""
+def tolerance_of(seconds: float, what: str = "current") -> int:
+    """A tolerance in s as integer ns; :class:`InputError` unless finite and >= 0."""
     if not (np.isfinite(seconds) and seconds >= 0):
-        raise InputError(f"the current tolerance must be a finite number of seconds >= 0, got {seconds}")
+        raise InputError(f"the {what} tolerance must be a finite number of seconds >= 0, got {seconds}")
     return int(seconds_to_ns(seconds))
 
 
-class LatestCurrents:
-    """The currents of the channels as a live node receives them, matched to each set by the
-    rule of :func:`match_currents`: a channel's current at a set stamped ``t`` is its latest
-    value stamped in ``[t - tolerance_ns, t]``.
-
-    Values may arrive in any order, before or after the set; each channel keeps those of the
-    last ``keep_ns`` (behind its newest stamp) and at most ``most`` of them. Non-finite values
-    are no values. Stamps are int ns, currents A.
-    """
-
-    def __init__(self, channels: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096) -> None:
-        self.tolerance_ns = int(tolerance_ns)
-        self.keep_ns = max(int(keep_ns), 2 * self.tolerance_ns)
-        self.most = most
-        self._stamps: list[list[int]] = [[] for _ in range(channels)]
-        self._values: list[list[float]] = [[] for _ in range(channels)]
-        self.received = [0] * channels
-        """Values received per channel (finite ones)."""
-
-    @property
-    def channels(self) -> int:
-        """Number of channels."""
-        return len(self._stamps)
-
-    def add(self, channel: int, stamp_ns: int, value: float) -> None:
-        """Keep one value (A) of ``channel`` stamped ``stamp_ns``."""
-        if not np.isfinite(value):
-            return
-        st, val = self._stamps[channel], self._values[channel]
-        k = bisect.bisect_right(st, stamp_ns)  # after equal stamps: the one received last wins
-        st.insert(k, int(stamp_ns))
-        val.insert(k, float(value))
-        self.received[channel] += 1
-        old = bisect.bisect_left(st, st[-1] - self.keep_ns)
-        old = max(old, len(st) - self.most)
-        if old > 0:
-            del st[:old], val[:old]
-
-    def latest(self, channel: int) -> float | None:
-        """The newest value of ``channel`` (A), or None."""
-        val = self._values[channel]
-        return val[-1] if val else None
-
-    def at(self, stamp_ns: int) -> tuple[list[float], list[bool]]:
-        """Every channel's current (A) at a set stamped ``stamp_ns`` and whether it is fresh (a
-        value stamped in ``[t - tolerance, t]``); a stale channel's current is 0."""
-        currents, fresh = [], []
-        for st, val in zip(self._stamps, self._values):
-            k = bisect.bisect_right(st, stamp_ns) - 1
-            ok = k >= 0 and stamp_ns - st[k] <= self.tolerance_ns
-            currents.append(val[k] if ok else 0.0)
-            fresh.append(ok)
-        return currents, fresh
+LatestCurrents = LatestValues
+"""The currents of the channels as a live node receives them (A), matched to each set by the rule
+of :func:`match_currents` (see :class:`~magcal_ros.core.matching.LatestValues`)."""
 
 
 # -- what a run determines ------------------------------------------------------------------
@@ -240,8 +159,10 @@ class InterferenceEstimate:
     """(m,) channels not solved (see :func:`undetermined_channels`)."""
 
 
-def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration) -> InterferenceEstimate:
-    """Interference gains from a still run: raw sets (N, S, 3) T, channel currents (N, m) A.
+def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration,
+                          temperatures: ArrayLike | None = None) -> InterferenceEstimate:
+    """Interference gains from a still run: raw sets (N, S, 3) T, channel currents (N, m) A (and the
+    sensors' temperatures (N, S) deg C when the calibration has temperature terms).
 
     The vehicle does not move, so with the calibration's matrices and offsets held the
     corrected field of sensor ``i`` is ``M_i (r_ik - o_i) = B_i + D_i u_k`` plus noise: one
@@ -264,7 +185,8 @@ def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: Arra
     x = np.concatenate([np.ones((n, 1)), u[:, solved]], axis=1)
     if n < x.shape[1] + 2:
         raise InputError(f"{n} sets cannot determine {len(solved)} channels: record more sets")
-    b = np.einsum("sij,nsj->nsi", calibration.matrices, r - calibration.offsets).reshape(n, 3 * s)
+    held = replace(calibration, channels=(), interference=None)  # its own interference is not applied
+    b = held.apply_array(r, temperatures=temperatures).reshape(n, 3 * s)
     coef, *_ = np.linalg.lstsq(x, b, rcond=None)  # (1 + k, 3 S)
     e = b - x @ coef
     var = np.sum(e * e, axis=0) / (n - x.shape[1])  # (3 S,) per sensor and axis

@@ -90,11 +90,11 @@ class DriftModel:
         model = model or ForwardModel(len(idx), m)
         g_mean = tau_mean = None
         if model.temperature:
-            has = previous.has_temperature
+            has = previous.has_temperature_terms
             c = previous.offset_tempco[idx] if has else np.zeros((len(idx), 3))  # type: ignore[index]
             mean = np.concatenate([mean, (c / intensity)[:, :, None]], axis=2)
             sigma = np.concatenate([sigma, np.full((len(idx), 3, 1), self.offset_tempco / intensity)], axis=2)
-            # matrix_tempco = -M diag(g) to first order: g = diag(-K matrix_tempco)
+            # matrix_tempco = -M diag(g) (the forward gain 1 / (1 - g dT)): g = diag(-K matrix_tempco)
             g_mean = (-np.einsum("sab,sbc->sac", k, previous.matrix_tempco[idx]).diagonal(axis1=1, axis2=2)  # type: ignore[index]
                       if has else np.zeros((len(idx), 3)))
         if model.lag:

@@ -48,6 +48,8 @@ WARN_RATIO: float = 3.5
 """A residual beyond this many times the white noise is reported as a warning."""
 MAX_OUTLIER_FRACTION: float = 0.25
 """Largest accepted fraction of a sensor's readings excluded as outliers."""
+STUCK_FRACTION: float = 0.5
+"""An axis that reads one exact value in more than this fraction of a manoeuvre is stuck."""
 MIN_RUN: int = 10
 """Excluded readings in runs of at least this many consecutive sets count as a run."""
 MAX_GAIN_ERROR: float = 0.2
@@ -176,9 +178,37 @@ def saturated(name: str, fraction: float) -> str:
             "larger range, or mount it farther from the iron that drives it there")
 
 
+def stuck_axis(readings: Array) -> tuple[int, float, float] | None:
+    """(axis, value T, fraction) of an axis of one sensor's readings (N, 3) that holds one exact value
+    in more than :data:`STUCK_FRACTION` of them, or None. A turning sensor's axis sweeps the field;
+    even one clipped at full scale on one side cannot stay there for most of a rotation."""
+    r = np.asarray(readings, dtype=float)
+    for axis in range(3):
+        values, counts = np.unique(r[:, axis], return_counts=True)
+        if len(counts) and counts.max() > STUCK_FRACTION * len(r):
+            k = int(np.argmax(counts))
+            return axis, float(values[k]), float(counts[k] / len(r))
+    return None
+
+
+def stuck(names: tuple[str, ...], index: int, axis: int, value: float, fraction: float) -> str:
+    """Why a sensor with a stuck axis is refused, and which sensors to calibrate instead."""
+    name = names[index]
+    others = [n for n in names if n != name]
+    leave = (f"calibrate the others without it (magcal --sensors {','.join(others)}; calibration node: "
+             f"sensor_names without {name})") if others else "check the sensor and its cable"
+    return (f"{name}'s {'xyz'[axis]} axis is stuck at {value:.6g} T in {fraction:.0%} of its readings while the "
+            f"array turned: a sensor fault, not the field; {leave}")
+
+
 def saturation(names: tuple[str, ...], raw: Array) -> tuple[NDArray[np.bool_], str | None]:
     """(N, S) True for readings clipped at a sensor's full scale, and the cause of a refusal when a
-    sensor has more of them than outlier exclusion may take (:data:`MAX_OUTLIER_FRACTION`)."""
+    sensor has an axis stuck at one value (:func:`stuck_axis`) or more clipped readings than outlier
+    exclusion may take (:data:`MAX_OUTLIER_FRACTION`)."""
+    for i in range(len(names)):
+        found = stuck_axis(raw[:, i])
+        if found is not None:
+            return np.zeros(raw.shape[:2], bool), stuck(names, i, *found)
     clipped = np.stack([clipped_readings(raw[:, i]) for i in range(len(names))], axis=1)
     for i, name in enumerate(names):
         if clipped[:, i].mean() > MAX_OUTLIER_FRACTION:

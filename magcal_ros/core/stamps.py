@@ -17,6 +17,8 @@ from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
 Stamps = NDArray[np.int64]
+MAX_SECONDS: int = 9_000_000_000
+"""Largest magnitude (s) of a stamp: int64 nanoseconds end at about 9.22e9 s (year 2262)."""
 
 
 def split_stamp(stamp_ns: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -47,7 +49,7 @@ def parse_seconds(text: str) -> int:
     """Decimal seconds as text (``1700000000.123456789``, ``0.02``, ``1.7e9``) to exact nanoseconds.
 
     More than nine decimals are rounded to the nearest nanosecond. Raises :class:`InputError`
-    for text that is not a finite number.
+    for text that is not a finite number or beyond :data:`MAX_SECONDS`.
     """
     try:
         value = Decimal(text.strip())
@@ -55,6 +57,8 @@ def parse_seconds(text: str) -> int:
         raise InputError(f"not a time in seconds: {text!r}") from None
     if not value.is_finite():
         raise InputError(f"not a finite time in seconds: {text!r}")
+    if abs(value) >= MAX_SECONDS:
+        raise InputError(f"time {text.strip()} s is out of range (integer nanoseconds hold +-{MAX_SECONDS} s)")
     return int((value * NS_PER_S).to_integral_value())
 
 

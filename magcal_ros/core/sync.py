@@ -1,158 +1,136 @@
-"""The one rule that groups per-sensor messages into synchronized sets, for bags and live nodes.
+"""The one rule that groups per-sensor messages into sets, for bags, CSV and live nodes.
 
 Input: for each sensor, its messages in the order that sensor produced them (a topic's
 order in a bag, or on the wire), each a header stamp (integer ns) and a vector (T).
+Every message first goes through per-sensor acceptance
+(:mod:`magcal_ros.core.sync_rules`: zero, repeated and out-of-order stamps, glitches,
+restarts, non-finite readings). Sets are then formed in one of two modes:
 
-1. **Per-sensor acceptance.** A message is dropped and counted when its stamp is 0 (never
-   stamped), not newer than the sensor's previous stamp (``duplicate`` or
-   ``out_of_order``), or its vector is NaN or infinite (``nonfinite``; its stamp still
-   counts as the sensor's previous one). A stamp more than ``restart_ns`` behind the
-   sensor's previous one means a source restarted: every queued message is dropped and
-   all sensors start afresh (``restarts``).
-2. **Sets.** Accepted messages wait in one queue per sensor. Repeatedly, with the head
-   (oldest) message of every queue in view: the earliest head is the *anchor* ``t0``;
-   if every head lies within ``[t0, t0 + w]`` the heads form a set, otherwise the
-   anchor alone is dropped (``unmatched``). The window ``w`` is ``tolerance_ns``, capped
-   at half of each member sensor's sample period (the median of its last 8 stamp
-   intervals), so that a window can never hold two samples of one sensor: at 2 kHz a
-   1 ms tolerance would otherwise pair sample ``n`` of one sensor with ``n + 1`` of
-   another after a loss.
+- **exact** (sensors sampled together and stamped alike): accepted messages wait in one
+  queue per sensor. Repeatedly, with the head (oldest) message of every queue in view: the
+  earliest head is the *anchor* ``t0``; if every head lies within ``[t0, t0 + w]`` the
+  heads form a set, otherwise the anchor alone is dropped (``unmatched``). The window
+  ``w`` is ``tolerance_ns``, capped at half of each member sensor's sample period (the
+  median of its last 8 stamp intervals), so that a window can never hold two samples of
+  one sensor. A set's stamps are its members' own header stamps.
+- **interpolate** (sensors sampled at different instants, or stamped on receipt): each
+  sensor's stamps give its sample clock (:mod:`magcal_ros.core.sample_clock`) and so each
+  sample's instant; a set is formed at every sample instant of the reference sensor (the
+  first), the other sensors interpolated linearly between their samples on either side
+  of it, never across more than ``max_gap`` (such sets are dropped and counted, ``gap``);
+  see :mod:`magcal_ros.core.sync_interpolate`. Every member of a set carries the set's
+  instant.
+
+:class:`StreamSynchronizer` is what readers and nodes use: mode ``auto`` (default) decides
+from the first :data:`DECIDE_AFTER` stamps of every sensor (:func:`choose_mode`), ``exact``
+or ``interpolate`` force one; per-sensor time offsets (``time_offsets_ns``: a sensor's
+sample stamped ``t`` is the field at ``t - offset``) need interpolation.
 
 The rule depends only on each sensor's own message sequence, never on how the sensors'
 messages interleave, so a recording gives the same sets on the ship (streaming,
-:meth:`SetSynchronizer.add`, one message at a time, a set released the moment its last
-member arrives) and on shore (batches, :meth:`SetSynchronizer.add_batch` and
-:meth:`SetSynchronizer.pop`, vectorised acceptance). Two bounds keep memory finite in a
-live node and are the only departures from that: a head older than ``lag_ns`` behind
-the newest stamp seen, or beyond ``max_pending`` queued messages of one sensor, is given
-up (``unmatched``) while another sensor is silent; and sets around a restart depend on
-arrival order. A set's stamp is its first sensor's stamp.
+:meth:`StreamSynchronizer.add`, one message at a time, a set released the moment its last
+member arrives) and on shore (batches, :meth:`StreamSynchronizer.add_batch` and
+:meth:`StreamSynchronizer.pop`). Two bounds keep memory finite in a live node and are the
+only departures from that: a head older than ``lag_ns`` behind the newest stamp seen, or
+beyond ``max_pending`` queued messages of one sensor, is given up (``unmatched``) while
+another sensor is silent; and where a sensor restarts alone, its new stamps are placed by
+their arrival (bag time offline, the node's clock live).
 """
 
 from __future__ import annotations
 
+import bisect
 import math
-from dataclasses import dataclass, fields
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from magcal_ros.core import acceptance
+from magcal_ros.core.acceptance import reading_fault_list
+from magcal_ros.core.sync_interpolate import MAX_GAP_PERIODS, InterpolatingSynchronizer
+from magcal_ros.core.sync_rules import (
+    DEFAULT_LAG,
+    DEFAULT_SYNC_TOLERANCE,
+    DROP_FIELDS,
+    MAX_TIME_OFFSET,
+    NEVER,
+    NO_CAP,
+    PERIOD_WINDOW,
+    RESTART_JUMP,
+    SUSPECT_PERIODS,
+    AcceptanceRule,
+    SetBatch,
+    SyncedSet,
+    SyncStats,
+    Vector,
+    empty_batch,
+    tolerance_ns,
+)
 from magcal_ros.core.units import NS_PER_S
+from magcal_ros.errors import InputError
 
-DEFAULT_SYNC_TOLERANCE: float = 1e-3
-"""Default largest spread (s) of the header stamps of one set, for nodes and offline tools."""
-DEFAULT_LAG: float = 1.0
-"""Default time (s) a live synchronizer waits for a silent sensor before giving a set up."""
-RESTART_JUMP: float = 1.0
-"""A stamp this far (s) behind its sensor's previous one means the source restarted."""
-PERIOD_WINDOW: int = 8
-"""Stamp intervals in each sensor's sample period estimate (median)."""
+__all__ = [
+    "DEFAULT_LAG", "DEFAULT_MAX_GAP", "DEFAULT_SYNC_MODE", "DEFAULT_SYNC_TOLERANCE", "DROP_FIELDS", "MAX_GAP_PERIODS",
+    "PERIOD_WINDOW", "RESTART_JUMP", "SYNC_MODES", "SetBatch", "SetSynchronizer", "StreamSynchronizer", "SyncStats",
+    "SyncedSet", "choose_mode", "max_gap_ns", "stream_synchronizer", "synchronise_streams", "time_offset_ns",
+    "tolerance_ns",
+]
 
-_NO_CAP = 2**62
-_NEVER = -(2**62)
-Vector = tuple[float, float, float]
-
-
-@dataclass
-class SyncStats:
-    """What the synchronizer did, message by message (one vocabulary for bags and nodes)."""
-
-    sets: int = 0
-    """Complete sets released."""
-    unmatched: int = 0
-    """Messages in no set: a partner sample was missing, too far in time, or never came."""
-    nonfinite: int = 0
-    """Messages with a NaN or infinite reading."""
-    duplicate: int = 0
-    """Messages whose stamp repeats the sensor's previous one."""
-    out_of_order: int = 0
-    """Messages whose stamp is older than the sensor's previous one."""
-    zero_stamp: int = 0
-    """Messages with header stamp 0 (the driver never stamped them)."""
-    malformed: int = 0
-    """Messages that could not be decoded (live nodes only; a bag refuses them)."""
-    restarts: int = 0
-    """Stamps jumped back by more than a second: the source restarted, queues were reset."""
-
-    def dropped(self) -> int:
-        """Messages dropped for any reason."""
-        return self.unmatched + self.nonfinite + self.duplicate + self.out_of_order + self.zero_stamp + self.malformed
-
-    def as_dict(self) -> dict[str, int]:
-        """Counters by name."""
-        return {f.name: int(getattr(self, f.name)) for f in fields(self)}
-
-    def describe(self) -> str:
-        """One line for users: sets, then each non-zero drop count in words."""
-        parts = [f"{self.sets} sets"]
-        for name, value in self.as_dict().items():
-            if name != "sets" and value:
-                parts.append(f"{value} {_PHRASES[name]}")
-        return ", ".join(parts)
+SyncMode = Literal["auto", "exact", "interpolate"]
+SYNC_MODES: tuple[str, ...] = ("auto", "exact", "interpolate")
+DEFAULT_SYNC_MODE: str = "auto"
+DEFAULT_MAX_GAP: float = 0.0
+"""Default ``max_gap`` (s): 0 means :data:`MAX_GAP_PERIODS` sample periods of the interpolated sensor."""
+DECIDE_AFTER: int = 32
+"""Stamps of every sensor mode ``auto`` looks at before choosing ..."""
+DECIDE_EARLY: tuple[int, int] = (8, NS_PER_S)
+"""... or at least 8 stamps of every sensor spanning 1 s (slow sensors)."""
+EXACT_FRACTION: float = 0.9
+"""Mode ``auto`` matches exactly when the exact window holds at least this fraction of the sets
+(:func:`choose_mode`)."""
 
 
-_PHRASES = {
-    "unmatched": "messages without a complete set dropped",
-    "nonfinite": "messages with NaN/inf readings dropped",
-    "duplicate": "repeated stamps dropped",
-    "out_of_order": "out-of-order stamps dropped",
-    "zero_stamp": "zero (unset) stamps dropped",
-    "malformed": "undecodable messages dropped",
-    "restarts": "source restarts (stamps jumped back)",
-}
+def max_gap_ns(seconds: Any) -> int:
+    """``max_gap`` in seconds as integer ns (``ValueError`` unless 0 <= g < 60 s; 0 = automatic)."""
+    try:
+        g = float(seconds)
+    except (TypeError, ValueError):
+        raise ValueError(f"max_gap must be a number of seconds, got {seconds!r}") from None
+    if not (0.0 <= g < 60.0) or not math.isfinite(g):
+        raise ValueError(f"max_gap must be between 0 (automatic) and 60 s, got {seconds!r}")
+    return int(round(g * NS_PER_S))
 
 
-@dataclass(frozen=True)
-class SyncedSet:
-    """One set from the streaming path: per-sensor stamps (ns) and raw vectors (T), sensor order."""
-
-    stamps: tuple[int, ...]
-    values: tuple[Vector, ...]
-
-    @property
-    def stamp(self) -> int:
-        """The set's stamp (ns): its first sensor's."""
-        return self.stamps[0]
-
-
-@dataclass(frozen=True)
-class SetBatch:
-    """Sets from the batch path, in stamp order: per-sensor stamps (N, S) ns, vectors (N, S, 3) T."""
-
-    stamps: NDArray[np.int64]
-    vectors: NDArray[np.float64]
-
-    @property
-    def set_stamps(self) -> NDArray[np.int64]:
-        """The stamp of each set (its first sensor's), ns."""
-        return self.stamps[:, 0]
-
-    def __len__(self) -> int:
-        return len(self.stamps)
-
-    def take(self, keep: Any) -> "SetBatch":
-        """The sets selected by ``keep`` (boolean mask or indices)."""
-        return SetBatch(self.stamps[keep], self.vectors[keep])
-
-
-def tolerance_ns(seconds: Any) -> int:
-    """A tolerance in seconds as integer nanoseconds (``ValueError`` unless 0 <= t < 1 s)."""
-    t = float(seconds)
-    if not (0.0 <= t < 1.0) or not math.isfinite(t):
-        raise ValueError(f"sync tolerance must be between 0 and 1 s, got {seconds!r}")
+def time_offset_ns(seconds: Any, name: str = "time_offset") -> int:
+    """A sensor's time offset in seconds as integer ns (``ValueError`` naming ``name`` unless finite
+    and within +-:data:`MAX_TIME_OFFSET`)."""
+    try:
+        t = float(seconds)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of seconds, got {seconds!r}") from None
+    if not math.isfinite(t) or abs(t) > MAX_TIME_OFFSET:
+        raise ValueError(f"{name} must be a finite number of seconds within +-{MAX_TIME_OFFSET:g} s, got {seconds!r}")
     return int(round(t * NS_PER_S))
 
 
-def _median_int(values: list[int]) -> int:
-    v = sorted(values)
-    m = len(v) // 2
-    return v[m] if len(v) % 2 else (v[m - 1] + v[m]) // 2
+def check_mode(mode: str) -> str:
+    """``mode`` if it is one of :data:`SYNC_MODES` (``ValueError`` naming them otherwise)."""
+    if mode not in SYNC_MODES:
+        raise ValueError(f"sync mode must be one of {', '.join(SYNC_MODES)}, got {mode!r}")
+    return mode
 
 
-class SetSynchronizer:
-    """Groups ``sensors`` message streams into complete sets (see the module docstring)."""
+class SetSynchronizer(AcceptanceRule):
+    """Exact matching of ``sensors`` message streams into complete sets (see the module docstring).
+
+    ``clocked``: keep each sensor's sample clock in the streaming path (its period and the
+    samples lost before the node, for health reports).
+    """
+
+    mode = "exact"
 
     def __init__(
         self,
@@ -162,196 +140,226 @@ class SetSynchronizer:
         max_pending: int = 10_000,
         restart_ns: int = int(RESTART_JUMP * NS_PER_S),
         reject_zero: bool = True,
+        stats: SyncStats | None = None,
+        clocked: bool = True,
+        pause_ns: int | None = None,
+        max_reading: float = math.inf,
     ) -> None:
-        """``reject_zero``: drop stamp 0 as unstamped (header stamps; a CSV's relative clock may start at 0)."""
-        if sensors < 1:
-            raise ValueError("need at least one sensor")
+        """``reject_zero``: drop stamps 0 and negative as unstamped or faulty (header stamps; a CSV's
+        relative clock may start at 0). ``max_reading``: largest reading magnitude accepted (T)."""
+        super().__init__(sensors, stats, restart_ns, reject_zero, clocked, pause_ns)
+        self.max_reading = float(max_reading)
         if tolerance_ns < 0:
             raise ValueError("tolerance must be >= 0")
-        self.size = sensors
         self.tolerance_ns = int(tolerance_ns)
         self.lag_ns = int(lag_ns)
         self.max_pending = int(max_pending)
-        self.restart_ns = int(restart_ns)
-        self.reject_zero = reject_zero
-        self.stats = SyncStats()
-        self.min_period_ns: int | None = None
-        """Shortest sample period estimate seen (ns), None before two stamps of a sensor."""
         self._stamps: list[list[int]] = [[] for _ in range(sensors)]
+        """Common-timeline stamps of the queued messages (the rule compares these)."""
+        self._raws: list[list[int]] = [[] for _ in range(sensors)]
+        """Their header stamps (what the sets carry)."""
         self._caps: list[list[int]] = [[] for _ in range(sensors)]
         self._values: list[list[Vector]] = [[] for _ in range(sensors)]
         self._arrays: list[NDArray[np.float64]] = [np.empty((0, 3)) for _ in range(sensors)]
         self._head = [0] * sensors
-        self._last = [_NEVER] * sensors
-        self._intervals: list[list[int]] = [[] for _ in range(sensors)]
-        self._periods: list[int | None] = [None] * sensors
-        self._newest = _NEVER
 
     # -- state ------------------------------------------------------------------------
     @property
     def pending(self) -> int:
-        """Messages queued, not yet in a set or dropped."""
-        return sum(len(s) - h for s, h in zip(self._stamps, self._head))
+        """Messages queued or held, not yet in a set or dropped."""
+        return sum(len(s) - h for s, h in zip(self._stamps, self._head)) + self.held
 
     @property
     def effective_tolerance_ns(self) -> int:
-        """The window actually used: the tolerance, capped at half the shortest sample period."""
-        if self.min_period_ns is None:
-            return self.tolerance_ns
-        return min(self.tolerance_ns, self.min_period_ns // 2)
-
-    def period_ns(self, index: int) -> int | None:
-        """Sample period estimate (ns) of sensor ``index``: median of its last stamp intervals; None before two."""
-        return self._periods[index]
+        """The window in use: the tolerance, capped at half the shortest sample period."""
+        shortest = self.min_period_ns
+        return self.tolerance_ns if shortest is None else min(self.tolerance_ns, shortest // 2)
 
     def reset(self) -> None:
         """Drop every queued message (counted as unmatched) and forget each sensor's history."""
-        self.stats.unmatched += self.pending
+        self.stats.unmatched += sum(len(s) - h for s, h in zip(self._stamps, self._head))
         for k in range(self.size):
-            self._stamps[k], self._caps[k], self._values[k] = [], [], []
+            self._stamps[k], self._raws[k], self._caps[k], self._values[k] = [], [], [], []
             self._arrays[k] = np.empty((0, 3))
             self._head[k] = 0
-            self._last[k] = _NEVER
-            self._intervals[k] = []
-            self._periods[k] = None
-        self._newest = _NEVER
-
-    def _period(self, index: int, interval: int) -> int:
-        """Record one stamp interval of sensor ``index``; its window cap (ns)."""
-        iv = self._intervals[index]
-        iv.append(interval)
-        if len(iv) > PERIOD_WINDOW:
-            del iv[0]
-        period = _median_int(iv)
-        self._periods[index] = period
-        if self.min_period_ns is None or period < self.min_period_ns:
-            self.min_period_ns = period
-        return period // 2
+        self.forget()
 
     # -- streaming --------------------------------------------------------------------
-    def add(self, index: int, stamp_ns: int, x: float, y: float, z: float) -> SyncedSet | None:
-        """Offer one message of sensor ``index``; return the set it completes, if any."""
-        st = self.stats
-        if stamp_ns == 0 and self.reject_zero:
-            st.zero_stamp += 1
-            return None
-        last = self._last[index]
-        if stamp_ns <= last:
-            if last - stamp_ns > self.restart_ns:
-                st.restarts += 1
-                self.reset()
-                last = _NEVER
-            elif stamp_ns == last:
-                st.duplicate += 1
-                return None
-            else:
-                st.out_of_order += 1
-                return None
-        cap = _NO_CAP if last == _NEVER else self._period(index, stamp_ns - last)
-        self._last[index] = stamp_ns
-        if stamp_ns > self._newest:
-            self._newest = stamp_ns
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            st.nonfinite += 1
-            return None
-        self._stamps[index].append(stamp_ns)
-        self._caps[index].append(cap)
-        self._values[index].append((x, y, z))
+    def add_all(self, index: int, stamp_ns: int, x: float, y: float, z: float,
+                receipt_ns: int | None = None) -> list[SyncedSet]:
+        """Offer one message of sensor ``index`` (``receipt_ns``: when it arrived, for restarts);
+        the sets it completes (a held suspect released with it may complete one more)."""
+        accepted = self.accept(index, stamp_ns, (x, y, z), self.fault(x, y, z), receipt_ns)
+        if not accepted:
+            return []
+        self._queue(index, accepted)
         formed = self._advance(final=False)
         if not formed:
-            return None
-        members = formed[-1]
-        synced = SyncedSet(
-            tuple(self._stamps[k][i] for k, i in enumerate(members)),
-            tuple(self._values[k][i] for k, i in enumerate(members)),
-        )
+            return []
+        stamps, values = self._raws, self._values
+        out = [SyncedSet(tuple(stamps[k][i] for k, i in enumerate(members)),
+                         tuple(values[k][i] for k, i in enumerate(members))) for members in formed]
         self._compact(keep_values=True)
-        return synced
+        return out
+
+    def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
+            receipt_ns: int | None = None) -> SyncedSet | None:
+        """Offer one message of sensor ``index``; the (last) set it completes, if any (see :meth:`add_all`)."""
+        formed = self.add_all(index, stamp_ns, x, y, z, receipt_ns)
+        return formed[-1] if formed else None
+
+    def _queue(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
+        clock = self.streams[index].clock
+        for stamp, common, value, cap, restart in accepted:
+            if clock is not None:
+                if restart:
+                    clock.restart()
+                clock.offer(common)
+            if value is None:
+                continue
+            self._stamps[index].append(common)
+            self._raws[index].append(stamp)
+            self._caps[index].append(cap)
+            self._values[index].append(value)
 
     # -- batches ----------------------------------------------------------------------
-    def add_batch(self, index: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
-        """Queue messages of sensor ``index`` in its order: stamps (n,) ns, vectors (n, 3) T."""
-        s = np.asarray(stamps, dtype=np.int64)
+    def add_batch(self, index: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+                  receipts: NDArray[np.int64] | None = None) -> None:
+        """Queue messages of sensor ``index`` in its order: stamps (n,) ns, vectors (n, 3) T,
+        ``receipts`` (n,) ns when they arrived (bag times; used only where a sensor restarts alone)."""
+        s = np.asarray(stamps, dtype=np.int64).reshape(-1)
         v = np.asarray(vectors, dtype=float).reshape(-1, 3)
-        while len(s):
-            s, v = self._accept_batch(index, s, v)
-
-    def _accept_batch(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64]) -> tuple[Any, Any]:
-        """Accept messages up to the first restart; returns what is left after it."""
-        st = self.stats
-        zero = (s == 0) & self.reject_zero
-        st.zero_stamp += int(zero.sum())
-        if zero.any():
-            s, v = s[~zero], v[~zero]
+        r = None if receipts is None else np.asarray(receipts, dtype=np.int64).reshape(-1)
         if not len(s):
-            return s, v
-        prev = np.maximum.accumulate(np.concatenate([[self._last[index]], s[:-1]]))
-        restart = np.flatnonzero(prev - s > self.restart_ns)
-        rest: tuple[Any, Any] = (s[:0], v[:0])
-        if len(restart):
-            cut = int(restart[0])
-            rest = (s[cut:], v[cut:])
-            s, v, prev = s[:cut], v[:cut], prev[:cut]
+            return
+        if self.streams[index].held is None and self._plain(index, s):
+            self._batch_fast(index, s, v, r)
+        else:
+            self._batch_scalar(index, s, v, r)
+
+    def _plain(self, index: int, s: NDArray[np.int64]) -> bool:
+        """True when no message of ``s`` is a suspect (the vectorised path then equals the scalar one)."""
+        st = self.streams[index]
+        if self.reject_zero:
+            s = s[s > 0]
+        if not len(s):
+            return True
+        prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
+        if np.any(prev - s > self.restart_ns):
+            return False
+        acc = s[s > prev]
+        if not len(acc):
+            return True
+        iv = np.diff(np.concatenate([[st.last], acc])) if st.last != NEVER else np.diff(acc)
+        hist = np.asarray(st.intervals, dtype=np.int64)
+        full = np.concatenate([hist, iv])
+        first = max(len(hist), PERIOD_WINDOW)
+        if len(full) <= first:
+            return True
+        w = np.sort(sliding_window_view(full, PERIOD_WINDOW), axis=1)
+        median = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2  # of full[i : i + 8]
+        at = np.arange(first, len(full))
+        return not np.any(SUSPECT_PERIODS[1] * full[at] > SUSPECT_PERIODS[0] * median[at - PERIOD_WINDOW])
+
+    def _batch_fast(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
+                    r: NDArray[np.int64] | None) -> None:
+        """Vectorised acceptance of a batch without suspects (same outcome as :meth:`accept`)."""
+        stats, st = self.stats, self.streams[index]
+        if self.reject_zero:
+            faults = acceptance.stamp_faults(s)
+            for name, mask in faults.items():
+                stats.count(name, int(mask.sum()))
+            bad = np.logical_or.reduce(list(faults.values()))
+            if bad.any():
+                s, v = s[~bad], v[~bad]
+                r = None if r is None else r[~bad]
+        if not len(s):
+            return
+        prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
         ordered = s > prev
-        st.duplicate += int(np.count_nonzero(s == prev))
-        st.out_of_order += int(np.count_nonzero(s < prev))
+        stats.duplicate += int(np.count_nonzero(s == prev))
+        stats.out_of_order += int(np.count_nonzero(s < prev))
         s, v = s[ordered], v[ordered]
-        if len(s):
-            caps = self._batch_caps(index, s)
-            self._last[index] = int(s[-1])
-            self._newest = max(self._newest, int(s[-1]))
-            finite = np.all(np.isfinite(v), axis=1)
-            st.nonfinite += int(np.count_nonzero(~finite))
-            self._stamps[index].extend(s[finite].tolist())
-            self._caps[index].extend(caps[finite].tolist())
-            self._arrays[index] = np.concatenate([self._arrays[index], v[finite]])
-        if len(rest[0]):
-            st.restarts += 1
-            self.reset()
-        return rest
+        if r is not None:
+            r = r[ordered]
+        if not len(s):
+            return
+        caps = self._batch_caps(index, s)
+        st.last = int(s[-1])
+        st.lastc = st.last + st.base
+        st.last_receipt = None if r is None else int(r[-1])
+        self.newest = max(self.newest, st.lastc)
+        faults = acceptance.reading_faults(v, self.max_reading)
+        for name, mask in faults.items():
+            stats.count(name, int(mask.sum()))
+        finite = ~np.logical_or.reduce(list(faults.values()))  # usable readings
+        kept = s[finite]
+        self._raws[index].extend(kept.tolist())
+        self._stamps[index].extend((kept + st.base).tolist() if st.base else kept.tolist())
+        self._caps[index].extend(caps[finite].tolist())
+        self._arrays[index] = np.concatenate([self._arrays[index], v[finite]])
+
+    def _batch_scalar(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
+                      r: NDArray[np.int64] | None) -> None:
+        """Message-by-message acceptance (suspects in the batch)."""
+        faults = reading_fault_list(v, self.max_reading)
+        receipts = [None] * len(s) if r is None else r.tolist()
+        out: list[tuple[int, int, Any, int, bool]] = []
+        for i, t in enumerate(s.tolist()):
+            out += self.accept(index, t, v[i], faults[i], receipts[i])
+        self._queue_rows(index, out)
+
+    def _queue_rows(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
+        rows = [a for a in accepted if a[2] is not None]
+        if not rows:
+            return
+        self._raws[index].extend(a[0] for a in rows)
+        self._stamps[index].extend(a[1] for a in rows)
+        self._caps[index].extend(a[3] for a in rows)
+        self._arrays[index] = np.concatenate([self._arrays[index], np.asarray([a[2] for a in rows], dtype=float)])
 
     def _batch_caps(self, index: int, s: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Window caps of newly accepted stamps ``s`` (same values :meth:`add` computes)."""
-        last = self._last[index]
-        caps = np.full(len(s), _NO_CAP, dtype=np.int64)
-        if last == _NEVER:
+        """Window caps of newly accepted stamps ``s`` (the values :meth:`accept` computes)."""
+        st = self.streams[index]
+        caps = np.full(len(s), NO_CAP, dtype=np.int64)
+        if st.last == NEVER:
             first, s_iv = 1, np.diff(s)
         else:
-            first, s_iv = 0, np.diff(np.concatenate([[last], s]))
-        history = self._intervals[index]
-        # The first few need the short history: compute them one by one, like add().
-        head = min(len(s_iv), max(0, PERIOD_WINDOW - len(history)))
+            first, s_iv = 0, np.diff(np.concatenate([[st.last], s]))
+        # The first few need the short history: compute them one by one, like accept().
+        head = min(len(s_iv), max(0, PERIOD_WINDOW - len(st.intervals)))
         for j in range(head):
-            caps[first + j] = self._period(index, int(s_iv[j]))
+            caps[first + j] = st.record(int(s_iv[j]))
         if head < len(s_iv):
-            iv = np.concatenate([np.asarray(self._intervals[index], dtype=np.int64), s_iv[head:]])
+            iv = np.concatenate([np.asarray(st.intervals, dtype=np.int64), s_iv[head:]])
             w = np.sort(sliding_window_view(iv, PERIOD_WINDOW)[1:], axis=1)  # windows ending at new ones
             period = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2
             caps[first + head :] = period // 2
-            self._intervals[index] = iv[-PERIOD_WINDOW:].tolist()
-            self._periods[index] = int(period[-1])
-            low = int(period.min())
-            if self.min_period_ns is None or low < self.min_period_ns:
-                self.min_period_ns = low
+            st.intervals = iv[-PERIOD_WINDOW:].tolist()
+            st.period = int(period[-1])
         return caps
 
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets the queued messages decide (and drop everything left when ``final``)."""
+        if final:
+            for k in range(self.size):
+                self._queue_rows(k, self.release_held(k))
         formed = self._advance(final)
         s = self.size
         if formed:
             idx = np.asarray(formed, dtype=np.int64).reshape(-1, s)
-            stamps = np.stack([np.asarray(self._stamps[k], dtype=np.int64)[idx[:, k]] for k in range(s)], axis=1)
+            stamps = np.stack([np.asarray(self._raws[k], dtype=np.int64)[idx[:, k]] for k in range(s)], axis=1)
             vectors = np.stack([self._arrays[k][idx[:, k]] for k in range(s)], axis=1)
+            batch = SetBatch(stamps, vectors)
         else:
-            stamps, vectors = np.empty((0, s), np.int64), np.empty((0, s, 3))
+            batch = empty_batch(s)
         self._compact(keep_values=False)
-        return SetBatch(stamps, vectors)
+        return batch
 
     # -- the rule ---------------------------------------------------------------------
     def _advance(self, final: bool) -> list[tuple[int, ...]]:
         """Apply the set rule to the queues; returns the member indices of each set formed."""
-        stamps, caps, head, last = self._stamps, self._caps, self._head, self._last
+        stamps, caps, head, streams = self._stamps, self._caps, self._head, self.streams
         tol, st = self.tolerance_ns, self.stats
         sensors = range(self.size)
         formed: list[tuple[int, ...]] = []
@@ -377,8 +385,9 @@ class SetSynchronizer:
             t0 = min(t)
             anchor = avail[t.index(t0)]
             # A sensor has nothing queued: decide only what its next message cannot change.
-            dead = any(last[k] >= t0 + tol for k in sensors if head[k] >= len(stamps[k]))
-            stale = self._newest - t0 > self.lag_ns
+            dead = any(streams[k].lastc >= t0 + tol and streams[k].held is None
+                       for k in sensors if head[k] >= len(stamps[k]))
+            stale = self.newest - t0 > self.lag_ns
             crowded = max(len(stamps[k]) - head[k] for k in avail) > self.max_pending
             if final or dead or stale or crowded:
                 st.unmatched += 1
@@ -386,6 +395,7 @@ class SetSynchronizer:
                 continue
             break
         st.sets += len(formed)
+        st.used += self.size * len(formed)
         return formed
 
     def _compact(self, keep_values: bool) -> None:
@@ -394,9 +404,367 @@ class SetSynchronizer:
             h = self._head[k]
             if h and (h >= 4096 or not keep_values or h == len(self._stamps[k])):
                 del self._stamps[k][:h]
+                del self._raws[k][:h]
                 del self._caps[k][:h]
                 if keep_values:
                     del self._values[k][:h]
                 else:
                     self._arrays[k] = self._arrays[k][h:]
                 self._head[k] = 0
+
+
+# --------------------------------------------------------------------------- choosing the mode
+
+
+def _median(values: list[float]) -> float:
+    v = sorted(values)
+    m = len(v) // 2
+    return v[m] if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
+
+
+def clean_stamps(stamps: Sequence[int]) -> list[int]:
+    """Nonzero stamps strictly newer than every earlier one (what the rule could accept)."""
+    out: list[int] = []
+    last = NEVER
+    for t in stamps:
+        if t != 0 and t > last:
+            out.append(t)
+            last = t
+    return out
+
+
+def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence[str] | None = None,
+                offsets: Sequence[int] | None = None) -> tuple[str, str]:
+    """``exact`` or ``interpolate`` for sensors whose first stamps are ``stamps`` (ns, per sensor,
+    increasing), and why, in words.
+
+    Exact when the exact rule would keep the sets: of the reference (first) sensor's stamps
+    that have a stamp of every other sensor within half a period (samples not lost), at
+    least :data:`EXACT_FRACTION` have all of them within the window (``tolerance``, capped
+    at half the shortest period), and no sensor's stamps sit off the reference's by more
+    than a quarter of the window in the median: the sensors are sampled together and
+    stamped alike. Interpolate otherwise, and always with time offsets.
+    """
+    names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(len(stamps))]
+    if offsets is not None and any(offsets):
+        return "interpolate", "time offsets are set"
+    if len(stamps) < 2:
+        return "exact", "one sensor"
+    if any(len(s) < 4 for s in stamps):
+        short = [n for n, s in zip(names, stamps) if len(s) < 4]
+        return "exact", f"too few stamps of {', '.join(short)} to tell"
+    periods = [_median([float(b - a) for a, b in zip(s[:-1], s[1:])]) for s in stamps]
+    window = min(float(tolerance), min(periods) / 2)
+    half = min(periods) / 2
+    offsets_by: list[list[float]] = [[] for _ in stamps]
+    present = matched = 0
+    for t in stamps[0]:
+        d = [0.0]
+        for other in stamps[1:]:
+            i = bisect.bisect_left(other, t)
+            near = [other[j] - t for j in (i - 1, i) if 0 <= j < len(other)]
+            d.append(float(min(near, key=abs)))
+        if max(abs(x) for x in d) > half:
+            continue  # a sample lost, or not sampled together at all
+        present += 1
+        matched += max(d) - min(d) <= window
+        for k, x in enumerate(d):
+            offsets_by[k].append(x)
+    if present < 4:
+        return "interpolate", f"the stamps of {', '.join(names)} do not coincide within half a period"
+    if matched < EXACT_FRACTION * present:
+        return "interpolate", (f"the stamps of {', '.join(names)} spread beyond {window / 1e6:.3g} ms in "
+                               f"{1 - matched / present:.0%} of the sets")
+    for k in range(1, len(stamps)):
+        middle = _median(offsets_by[k])
+        if abs(middle) > window / 4:
+            return "interpolate", f"{names[k]} is sampled {middle / 1e6:.3g} ms after {names[0]} (median)"
+    return "exact", f"the stamps of {', '.join(names)} coincide within {window / 1e6:.3g} ms"
+
+
+class StreamSynchronizer:
+    """The set synchroniser readers and nodes use: mode ``auto`` | ``exact`` | ``interpolate``.
+
+    ``max_gap_ns``: interpolation never bridges more (0: :data:`MAX_GAP_PERIODS` periods of
+    the interpolated sensor). ``time_offsets_ns`` (per sensor): a sample stamped ``t`` is the
+    field at ``t - offset``; non-zero offsets need interpolation. ``names`` only name sensors
+    in :attr:`reason`. In mode ``auto`` the first :data:`DECIDE_AFTER` messages of every
+    sensor (or 8 spanning a second, for slow sensors) are held (counted in :attr:`pending`)
+    until the mode is chosen; the same messages then go through the chosen rule, so the sets
+    do not depend on when that happened.
+    """
+
+    def __init__(
+        self,
+        sensors: int,
+        tolerance_ns: int = int(DEFAULT_SYNC_TOLERANCE * NS_PER_S),
+        mode: str = DEFAULT_SYNC_MODE,
+        max_gap_ns: int = 0,
+        time_offsets_ns: Sequence[int] | None = None,
+        lag_ns: int = int(DEFAULT_LAG * NS_PER_S),
+        max_pending: int = 10_000,
+        restart_ns: int = int(RESTART_JUMP * NS_PER_S),
+        reject_zero: bool = True,
+        names: Sequence[str] | None = None,
+        stats: SyncStats | None = None,
+        max_reading: float = math.inf,
+    ) -> None:
+        if sensors < 1:
+            raise ValueError("need at least one sensor")
+        self.max_reading = float(max_reading)
+        offsets = [int(t) for t in (time_offsets_ns or [0] * sensors)]
+        if len(offsets) != sensors:
+            raise ValueError(f"{len(offsets)} time offsets for {sensors} sensors")
+        if check_mode(mode) == "exact" and any(offsets):
+            raise ValueError("time offsets need sync mode interpolate (or auto): exact matching cannot shift stamps")
+        if tolerance_ns < 0 or max_gap_ns < 0:
+            raise ValueError("tolerance and max_gap must be >= 0")
+        self.size = sensors
+        self.requested = mode
+        self.max_gap_ns = int(max_gap_ns)
+        self.time_offsets_ns = offsets
+        self.names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(sensors)]
+        self._tolerance = int(tolerance_ns)
+        self.lag_ns, self.max_pending, self.restart_ns = int(lag_ns), int(max_pending), int(restart_ns)
+        self.reject_zero = reject_zero
+        self.stats = stats if stats is not None else SyncStats()
+        self.pause_ns = self.restart_ns
+        self.engine: SetSynchronizer | InterpolatingSynchronizer | None = None
+        self.reason = ""
+        """Why the mode in use was chosen (empty while choosing)."""
+        self._held: list[list[tuple[int, float, float, float, int | None]]] = [[] for _ in range(sensors)]
+        self._held_batches: list[list[tuple[Any, Any, Any]]] = [[] for _ in range(sensors)]
+        if mode != "auto" or any(offsets):
+            chosen = "interpolate" if any(offsets) else mode
+            self._start(chosen, "time offsets are set" if chosen != mode else f"sync mode {mode}")
+
+    # -- state ------------------------------------------------------------------------
+    @property
+    def mode(self) -> str | None:
+        """``exact`` or ``interpolate`` once chosen, None while mode ``auto`` is still choosing."""
+        return None if self.engine is None else self.engine.mode
+
+    @property
+    def tolerance_ns(self) -> int:
+        """The exact rule's tolerance (ns)."""
+        return self._tolerance
+
+    @tolerance_ns.setter
+    def tolerance_ns(self, value: int) -> None:
+        self._tolerance = int(value)
+        if isinstance(self.engine, SetSynchronizer):
+            self.engine.tolerance_ns = self._tolerance
+
+    @property
+    def pending(self) -> int:
+        """Messages held, queued, not yet in a set or dropped."""
+        if self.engine is None:
+            return sum(len(h) for h in self._held) + sum(len(b[0]) for h in self._held_batches for b in h)
+        return self.engine.pending
+
+    @property
+    def effective_tolerance_ns(self) -> int:
+        """The exact window in use (the tolerance capped at half the shortest period); the tolerance while
+        interpolating or choosing."""
+        return self.engine.effective_tolerance_ns if isinstance(self.engine, SetSynchronizer) else self._tolerance
+
+    @property
+    def min_period_ns(self) -> int | None:
+        """Shortest sample period estimate of the sensors (ns)."""
+        return None if self.engine is None else self.engine.min_period_ns
+
+    def period_ns(self, index: int) -> int | None:
+        """Sample period estimate of sensor ``index`` (ns; a fit over many samples), None before."""
+        return None if self.engine is None else self.engine.period_ns(index)
+
+    def lost(self, index: int) -> int:
+        """Samples of sensor ``index`` lost before they reached the synchroniser."""
+        return 0 if self.engine is None else self.engine.lost(index)
+
+    def gaps(self, index: int) -> int:
+        """Runs of lost samples of sensor ``index``."""
+        return 0 if self.engine is None else self.engine.gaps(index)
+
+    def set_pause(self, pause_ns: int) -> None:
+        """A sensor silent longer than ``pause_ns`` paused: its gap is not counted as lost samples."""
+        self.pause_ns = int(pause_ns)
+        if self.engine is not None:
+            self.engine.set_pause(self.pause_ns)
+
+    def _start(self, mode: str, reason: str) -> None:
+        if mode == "exact":
+            self.engine = SetSynchronizer(self.size, self._tolerance, self.lag_ns, self.max_pending, self.restart_ns,
+                                          self.reject_zero, self.stats, pause_ns=self.pause_ns)
+        else:
+            self.engine = InterpolatingSynchronizer(self.size, self.max_gap_ns, self.time_offsets_ns, self.lag_ns,
+                                                    self.max_pending, self.restart_ns, self.reject_zero, self.stats,
+                                                    pause_ns=self.pause_ns)
+        self.engine.max_reading = self.max_reading
+        self.reason = reason
+
+    # -- choosing ---------------------------------------------------------------------
+    def _candidates(self) -> list[list[int]]:
+        out = []
+        for k in range(self.size):
+            stamps = [m[0] for m in self._held[k] if acceptance.reading_fault(*m[1:4], self.max_reading) is None]
+            for s, v, _ in self._held_batches[k]:
+                ok = ~np.logical_or.reduce(list(acceptance.reading_faults(v, self.max_reading).values()))
+                stamps += s[ok].tolist()
+                if len(stamps) > 4 * DECIDE_AFTER:
+                    break
+            out.append(clean_stamps(stamps)[:DECIDE_AFTER])
+        return out
+
+    def _ready(self, final: bool) -> bool:
+        if final:
+            return True
+        counts = [len(h) + sum(len(b[0]) for b in hb) for h, hb in zip(self._held, self._held_batches)]
+        if max(counts) >= 8 * DECIDE_AFTER:  # a sensor stays silent: choose with what there is
+            return True
+        if min(counts) < DECIDE_EARLY[0]:
+            return False
+        candidates = self._candidates()
+        return all(len(c) >= DECIDE_AFTER or (len(c) >= DECIDE_EARLY[0] and c[-1] - c[0] >= DECIDE_EARLY[1])
+                   for c in candidates)
+
+    def _decide(self) -> None:
+        mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns)
+        self._start(mode, why)
+
+    def _replay(self) -> list[SyncedSet]:
+        """Feed what was held while choosing into the chosen rule, each sensor in its own order."""
+        engine = self.engine
+        assert engine is not None
+        out: list[SyncedSet] = []
+        for k in range(self.size):
+            for stamp, x, y, z, receipt in self._held[k]:
+                out += engine.add_all(k, stamp, x, y, z, receipt)
+            for s, v, r in self._held_batches[k]:
+                engine.add_batch(k, s, v, r)
+        self._held = [[] for _ in range(self.size)]
+        self._held_batches = [[] for _ in range(self.size)]
+        return out
+
+    # -- input ------------------------------------------------------------------------
+    def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
+            receipt_ns: int | None = None) -> list[SyncedSet]:
+        """Offer one message of sensor ``index`` (``receipt_ns``: when it arrived, node clock); the sets
+        it completes, in order (usually none or one)."""
+        engine = self.engine
+        if engine is not None:
+            return engine.add_all(index, stamp_ns, x, y, z, receipt_ns)
+        self._held[index].append((stamp_ns, x, y, z, receipt_ns))
+        if not self._ready(False):
+            return []
+        self._decide()
+        return self._replay()
+
+    def add_batch(self, index: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+                  receipts: NDArray[np.int64] | None = None) -> None:
+        """Queue messages of sensor ``index`` in its order (stamps (n,) ns, vectors (n, 3) T, receipts (n,)
+        ns or None); :meth:`pop` releases the sets."""
+        if self.engine is not None:
+            self.engine.add_batch(index, stamps, vectors, receipts)
+            return
+        s = np.asarray(stamps, dtype=np.int64).reshape(-1)
+        self._held_batches[index].append((s, np.asarray(vectors, dtype=float).reshape(-1, 3),
+                                          None if receipts is None else np.asarray(receipts, dtype=np.int64)))
+
+    def pop(self, final: bool = False) -> SetBatch:
+        """Release the sets decided so far (everything, dropping what is left, when ``final``)."""
+        if self.engine is None:
+            if not self._ready(final):
+                return empty_batch(self.size)
+            self._decide()
+            streamed = self._replay()
+            assert self.engine is not None
+            batch = self.engine.pop(final)
+            if streamed:
+                batch = _join(_batch_of(streamed, self.size), batch)
+            return batch
+        return self.engine.pop(final)
+
+    def reset(self) -> None:
+        """Drop everything queued or held (counted as unmatched) and choose the mode afresh (``auto``)."""
+        self.stats.unmatched += sum(len(h) for h in self._held) + sum(len(b[0]) for h in self._held_batches for b in h)
+        if self.engine is not None:
+            self.engine.reset()
+        self._held = [[] for _ in range(self.size)]
+        self._held_batches = [[] for _ in range(self.size)]
+        if self.requested == "auto" and not any(self.time_offsets_ns):
+            self.engine, self.reason = None, ""
+
+
+def stream_synchronizer(
+    names: Sequence[str],
+    tolerance: float = DEFAULT_SYNC_TOLERANCE,
+    mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    time_offsets: Mapping[str, float] | None = None,
+    **bounds: Any,
+) -> StreamSynchronizer:
+    """A :class:`StreamSynchronizer` for sensors ``names`` from user settings in seconds:
+    ``tolerance`` (exact window), ``mode`` (``auto`` | ``exact`` | ``interpolate``), ``max_gap``
+    (0: automatic) and ``time_offsets`` by sensor name (missing: 0). ``bounds``: ``lag_ns``,
+    ``max_pending``, ``restart_ns``, ``reject_zero``, ``max_reading`` (T). :class:`InputError` naming a bad value, a
+    sensor that is not one of ``names``, or time offsets with mode ``exact``."""
+    try:
+        tol = tolerance_ns(tolerance)
+        gap = max_gap_ns(max_gap)
+        check_mode(mode)
+        offsets = dict(time_offsets or {})
+        strangers = sorted(set(offsets) - set(names))
+        if strangers:
+            raise ValueError(f"time offset for {', '.join(strangers)}, not a sensor here ({', '.join(names)})")
+        shifts = [time_offset_ns(offsets.get(n, 0.0), f"{n}.time_offset") for n in names]
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if mode == "exact" and any(shifts):
+        lagging = ", ".join(f"{n} {t / 1e6:g} ms" for n, t in zip(names, shifts) if t)
+        raise InputError(f"time offsets ({lagging}) need sync mode interpolate or auto: exact matching pairs "
+                         "stamps as they are")
+    return StreamSynchronizer(len(names), tol, mode, gap, shifts, names=names, **bounds)
+
+
+def _batch_of(sets: list[SyncedSet], sensors: int) -> SetBatch:
+    if not sets:
+        return empty_batch(sensors)
+    return SetBatch(np.array([s.stamps for s in sets], dtype=np.int64), np.array([s.values for s in sets], dtype=float))
+
+
+def _join(a: SetBatch, b: SetBatch) -> SetBatch:
+    if not len(a):
+        return b
+    if not len(b):
+        return a
+    return SetBatch(np.concatenate([a.stamps, b.stamps]), np.concatenate([a.vectors, b.vectors]))
+
+
+def synchronise_streams(
+    streams: Sequence[tuple[NDArray[np.int64], NDArray[np.float64]]],
+    time_offsets: Sequence[float] | None = None,
+    mode: str = "interpolate",
+    max_gap: float = DEFAULT_MAX_GAP,
+    tolerance: float = DEFAULT_SYNC_TOLERANCE,
+    receipts: Sequence[NDArray[np.int64] | None] | None = None,
+    names: Sequence[str] | None = None,
+    reject_zero: bool = True,
+    max_reading: float = math.inf,
+) -> tuple[SetBatch, SyncStats, str]:
+    """Sets from per-sensor streams: ``streams[k] = (stamps (n_k,) ns, vectors (n_k, 3) T)`` in each
+    sensor's order, ``time_offsets`` (s) per sensor (a sample stamped ``t`` is the field at
+    ``t - offset``), by the rule of :class:`StreamSynchronizer` in ``mode``.
+
+    Returns the sets (interpolation: every member at the set's instant, the first sensor's
+    sample instant), the counters and the mode used. Offline, so nothing is given up for lag.
+    ``receipts``: per sensor, when each message arrived (bag times; None: unknown); readings
+    beyond ``max_reading`` (T) are dropped (``out_of_range``). :class:`InputError` for a bad setting.
+    """
+    names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(len(streams))]
+    offsets = dict(zip(names, time_offsets)) if time_offsets is not None else None
+    sync = stream_synchronizer(names, tolerance, mode, max_gap, offsets, lag_ns=2**62, max_pending=2**62,
+                               reject_zero=reject_zero, max_reading=max_reading)
+    for k, (stamps, vectors) in enumerate(streams):
+        sync.add_batch(k, stamps, vectors, None if receipts is None else receipts[k])
+    batch = sync.pop(final=True)
+    return batch, sync.stats, str(sync.mode)

@@ -26,6 +26,13 @@ EARTH_FIELD_RANGE: tuple[float, float] = (1e-7, 1e-3)
 the Earth's is 20-70 uT; the margins cover sensor errors and hull iron. Readings in nT, uT,
 mT or Gauss all fall outside."""
 
+MAX_READING: float = 2 * EARTH_FIELD_RANGE[1]
+"""Largest magnitude (T) of one raw reading the tools and nodes accept: an Earth field (at most
+the top of :data:`EARTH_FIELD_RANGE`) plus the largest offset a calibration may hold (as
+much again). Beyond it a reading is not a magnetometer's in the Earth's field (a corrupt
+message, a wrong unit, 1e30): it is dropped and counted (``out_of_range``), never used. A
+single reading has no lower bound: a hard-iron offset can cancel the field at one attitude."""
+
 
 def check_tesla(vectors: ArrayLike, names: Sequence[str], where: str) -> None:
     """Refuse readings (N, S, 3) whose median magnitude per sensor is not an Earth field in T.

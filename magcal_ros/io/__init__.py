@@ -14,6 +14,8 @@ __all__, __getattr__ = lazy_exports(
         "read_csv": "magcal_ros.io.csv_recording",
         "read_recording": "magcal_ros.io.recordings",
         "with_bag_currents": "magcal_ros.io.recordings",
+        "with_bag_imu": "magcal_ros.io.recordings",
+        "with_bag_temperatures": "magcal_ros.io.recordings",
         "write_csv": "magcal_ros.io.csv_recording",
         "write_recording_bag": "magcal_ros.io.bag_writer",
     },

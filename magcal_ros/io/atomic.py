@@ -27,6 +27,7 @@ import shutil
 import signal
 import socket
 import sqlite3
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -199,9 +200,20 @@ def write_failure(exc: BaseException) -> str | None:
     return None
 
 
+def write_target(target: str | os.PathLike[str]) -> Path:
+    """Where writing ``target`` really goes: through a symbolic link to the file it points to
+    (the link stays a link, its target is updated), else ``target`` itself."""
+    path = Path(target)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 @contextlib.contextmanager
-def atomic_path(target: str | os.PathLike[str], backup: bool = False) -> Iterator[Path]:
+def atomic_path(target: str | os.PathLike[str], backup: bool = False, mode: int | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success move it to ``target``.
+
+    A symbolic link is written through (:func:`write_target`). A new file gets the mode of
+    the file it replaces (a 0600 calibration stays 0600), or ``mode`` when given, or the
+    umask's default.
 
     On any exception (or signal) the temporary file or directory is removed and ``target``
     is left as it was; an ``OSError`` while writing becomes one :class:`MagcalError` line
@@ -209,8 +221,10 @@ def atomic_path(target: str | os.PathLike[str], backup: bool = False) -> Iterato
     copied to ``target.bak``. Works for files and for directories (rosbag2 recordings);
     see the module docstring for what a crash leaves and how the next run recovers.
     """
-    dest = Path(target)
+    dest = write_target(target)
     parent = dest.parent if str(dest.parent) else Path(".")
+    if mode is None and dest.is_file():
+        mode = stat.S_IMODE(dest.stat().st_mode)
     work: Path | None = None
     try:
         try:
@@ -221,6 +235,8 @@ def atomic_path(target: str | os.PathLike[str], backup: bool = False) -> Iterato
             tmp = work / dest.name
             yield tmp
             if tmp.is_file():
+                if mode is not None:
+                    os.chmod(tmp, mode)
                 with open(tmp, "rb") as fh:
                     os.fsync(fh.fileno())
             if backup and dest.is_file():

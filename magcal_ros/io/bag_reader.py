@@ -24,25 +24,34 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.imu import ImuStream, ned_to_enu
 from magcal_ros.core.interference import CurrentSamples
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.sync import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SYNC_MODE,
     DEFAULT_SYNC_TOLERANCE,
     SetBatch,
-    SetSynchronizer,
+    StreamSynchronizer,
     SyncStats,
-    tolerance_ns,
+    stream_synchronizer,
 )
+from magcal_ros.core.temperature import TemperatureSamples, check_temperatures
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics as topic_names
 from magcal_ros.io.atomic import write_failure
 from magcal_ros.io.cdr import (
     CURRENT_TYPES,
+    IMU,
     MAGNETIC_FIELD,
+    TEMPERATURE,
     decode_current,
+    decode_imu,
     decode_magnetic_field_rows,
     decode_magnetic_fields,
+    decode_temperature,
 )
 
 if TYPE_CHECKING:
@@ -279,10 +288,12 @@ class _Pending:
     """Raw messages of one chunk, per sensor."""
 
     messages: list[list[bytes]]
+    times: list[list[int]]
+    """Bag time (ns) of each message: when the recorder received it."""
 
     @classmethod
     def empty(cls, sensors: int) -> "_Pending":
-        return cls([[] for _ in range(sensors)])
+        return cls([[] for _ in range(sensors)], [[] for _ in range(sensors)])
 
 
 class SetReader:
@@ -290,7 +301,10 @@ class SetReader:
 
     Iterating yields :class:`~magcal_ros.core.sync.SetBatch` in stamp order; ``stats`` counts
     sets and dropped messages. Messages of ``extra`` connections are handed to
-    ``on_extra`` as ``(connection, bag time ns, bytes)`` in bag time order.
+    ``on_extra`` as ``(connection, bag time ns, bytes)`` in bag time order. ``sync_mode``,
+    ``max_gap`` (s) and ``time_offsets`` (s per sensor name) as
+    :func:`~magcal_ros.core.sync.stream_synchronizer` takes them; bag times are each
+    message's receipt (they place a sensor that restarted alone).
     """
 
     def __init__(
@@ -304,6 +318,9 @@ class SetReader:
         on_extra: Callable[[list[tuple["Connection", int, bytes]]], None] | None = None,
         progress: Progress | None = None,
         chunk: int = CHUNK_MESSAGES,
+        sync_mode: str = DEFAULT_SYNC_MODE,
+        max_gap: float = DEFAULT_MAX_GAP,
+        time_offsets: dict[str, float] | None = None,
     ) -> None:
         self.reader = reader
         self.path = str(path)
@@ -315,7 +332,8 @@ class SetReader:
         for c in self.extra:
             self.index.setdefault(c.id, -1)
         self.names = [topic_names.sensor_of_raw(conns[0].topic) or conns[0].topic for conns in connections]
-        self.sync = SetSynchronizer(len(connections), tolerance_ns(tolerance), max_pending=4 * chunk)
+        self.sync: StreamSynchronizer = stream_synchronizer(self.names, tolerance, sync_mode, max_gap, time_offsets,
+                                                            max_pending=4 * chunk, max_reading=MAX_READING)
         self.nonfinite = nonfinite
         self.on_extra = on_extra
         self.progress = progress
@@ -323,6 +341,7 @@ class SetReader:
         self.connections = [c for conns in connections for c in conns]
         self.wanted = {c.id: c for c in self.connections + self.extra}
         self._extras: list[tuple[Connection, int, bytes]] = []
+        self._units_checked = [False] * len(connections)
 
     @property
     def stats(self) -> SyncStats:
@@ -372,6 +391,7 @@ class SetReader:
             k = index[cid]
             if k >= 0:
                 pending.messages[k].append(data)
+                pending.times[k].append(bagtime)
             if copy_ids and cid in copy_ids:
                 extras.append((wanted[cid], bagtime, data))
             n += 1
@@ -384,9 +404,10 @@ class SetReader:
 
     def _decode(self, pending: _Pending) -> None:
         for k, msgs in enumerate(pending.messages):
-            self._queue(k, *decode_magnetic_fields(msgs, self.path))
+            self._queue(k, *decode_magnetic_fields(msgs, self.path), np.asarray(pending.times[k], dtype=np.int64))
 
-    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
+    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+               receipts: NDArray[np.int64]) -> None:
         """Hand one sensor's decoded messages (in its order) to the synchronizer."""
         if self.nonfinite == "error":
             bad = ~np.all(np.isfinite(vectors), axis=1)
@@ -396,7 +417,12 @@ class SetReader:
                     f"(first stamped {format_seconds(int(stamps[np.argmax(bad)]))} s); "
                     "pass --drop-nonfinite to skip them"
                 )
-        self.sync.add_batch(k, stamps, vectors)
+        if not self._units_checked[k]:  # a bag in nT is a units error, not readings out of range
+            finite = vectors[np.all(np.isfinite(vectors), axis=1)]
+            if len(finite):
+                check_tesla(finite[:, None, :], [self.names[k]], self.path)
+                self._units_checked[k] = True
+        self.sync.add_batch(k, stamps, vectors, receipts)
 
     def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:
         """Queue messages chunk by chunk through the mcap message indexes."""
@@ -420,7 +446,7 @@ class SetReader:
                         vectors = np.empty((len(batch.times), 3))
                         for rows, where in zip(batch.rows, batch.order):
                             stamps[where], vectors[where] = decode_magnetic_field_rows(rows, self.path)
-                        self._queue(k, stamps, vectors)
+                        self._queue(k, stamps, vectors, batch.times)
                     if gid in copy_ids:
                         conn = self.wanted[gid]
                         times = batch.times.tolist()
@@ -512,16 +538,7 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
     wanted = [topic_names.absolute(t) for t in topics]
     if len(set(wanted)) != len(wanted) or not all(t.strip("/") for t in wanted):
         raise InputError(f"current topics must be named once each, got {', '.join(topics)}")
-    conns: list[Connection] = []
-    for t in wanted:
-        found = [c for c in reader.connections if c.topic == t]
-        if not found:
-            have = ", ".join(sorted({c.topic for c in reader.connections if c.msgtype in CURRENT_TYPES})) or "none"
-            raise InputError(f"{path}: no current topic {t} (BatteryState/Float64 topics: {have})")
-        wrong = [c.msgtype for c in found if c.msgtype not in CURRENT_TYPES]
-        if wrong:
-            raise InputError(f"{path}: topic {t} has type {wrong[0]}, expected {' or '.join(CURRENT_TYPES)} (A)")
-        conns += found
+    conns = typed_connections(reader, path, wanted, CURRENT_TYPES, "current", "A")
     index = {c.id: wanted.index(c.topic) for c in conns}
     types = {c.id: c.msgtype for c in conns}
     stamps: list[list[int]] = [[] for _ in wanted]
@@ -537,6 +554,97 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
             for t, st, v in zip(wanted, stamps, values)]
 
 
+def typed_connections(reader: "Reader", path: str | os.PathLike[str], wanted: Sequence[str], types: Sequence[str],
+                      what: str, unit: str) -> list["Connection"]:
+    """The connections of the absolute topics ``wanted``, each of one of ``types``; :class:`InputError`
+    naming a missing topic (and the topics of those types there are) or a topic of another type."""
+    conns: list[Connection] = []
+    for t in wanted:
+        found = [c for c in reader.connections if c.topic == t]
+        if not found:
+            have = ", ".join(sorted({c.topic for c in reader.connections if c.msgtype in types})) or "none"
+            kinds = "/".join(k.rsplit("/", 1)[-1] for k in types)
+            raise InputError(f"{path}: no {what} topic {t} ({kinds} topics: {have})")
+        wrong = [c.msgtype for c in found if c.msgtype not in types]
+        if wrong:
+            raise InputError(f"{path}: topic {t} has type {wrong[0]}, expected {' or '.join(types)} ({unit})")
+        conns += found
+    return conns
+
+
+def temperature_topics(reader: "Reader", names: Sequence[str]) -> list[str] | None:
+    """``/<name>/temperature`` of every sensor when the bag has them all as ``sensor_msgs/msg/Temperature``;
+    None when it has none of them; :class:`InputError` naming the missing ones when it has some."""
+    wanted = [topic_names.absolute(topic_names.temperature(n)) for n in names]
+    have = {c.topic for c in reader.connections if c.msgtype == TEMPERATURE}
+    found = [t for t in wanted if t in have]
+    if not found:
+        return None
+    missing = [t for t in wanted if t not in have]
+    if missing:
+        raise InputError(f"the bag has {', '.join(found)} but not {', '.join(missing)} (sensor_msgs/msg/Temperature): "
+                         "every sensor needs its temperature; name the topics with --temperature-topics")
+    return wanted
+
+
+def read_temperature_samples(reader: "Reader", path: str | os.PathLike[str], names: Sequence[str],
+                             topics: Sequence[str]) -> list[TemperatureSamples]:
+    """Every temperature (deg C) of each sensor of ``names`` from its topic in ``topics`` (one per
+    sensor, or one topic for all), ``sensor_msgs/msg/Temperature`` at its header stamp (the bag time when
+    that is zero). A separate pass over these low-rate topics. :class:`InputError` naming a missing or
+    mistyped topic, a message that does not decode, or temperatures that are not deg C."""
+    wanted = [topic_names.absolute(t) for t in topics]
+    if len(wanted) == 1 and len(names) > 1:
+        wanted = wanted * len(names)
+    if len(wanted) != len(names):
+        raise InputError(f"{len(wanted)} temperature topics for {len(names)} sensors ({', '.join(names)}): give one "
+                         "per sensor, or one for all")
+    unique = list(dict.fromkeys(wanted))
+    conns = typed_connections(reader, path, unique, (TEMPERATURE,), "temperature", "deg C")
+    index = {c.id: unique.index(c.topic) for c in conns}
+    stamps: list[list[int]] = [[] for _ in unique]
+    values: list[list[float]] = [[] for _ in unique]
+    for cid, bag_time, data in message_rows(reader, conns):
+        try:
+            stamp, celsius = decode_temperature(data, bag_time)
+        except InputError as exc:
+            raise InputError(f"{path}: {unique[index[cid]]}: {exc}") from None
+        stamps[index[cid]].append(stamp)
+        values[index[cid]].append(celsius)
+    for t, v in zip(unique, values):
+        check_temperatures(np.array(v), f"{path}: {t}")
+    return [TemperatureSamples(n, np.array(stamps[unique.index(t)], np.int64), np.array(values[unique.index(t)]))
+            for n, t in zip(names, wanted)]
+
+
+def read_imu_stream(reader: "Reader", path: str | os.PathLike[str], topic: str, frame: str = "enu") -> ImuStream:
+    """Every sample of the ``sensor_msgs/msg/Imu`` topic ``topic``: header stamp (the bag time when zero),
+    orientation (none where orientation_covariance[0] is -1; ``frame="ned"``: an orientation to NED,
+    turned into ENU) and angular velocity (none where its covariance[0] is -1). :class:`InputError` naming a
+    missing or mistyped topic or a message that does not decode."""
+    wanted = topic_names.absolute(topic)
+    conns = typed_connections(reader, path, [wanted], (IMU,), "IMU", "orientation, rad/s")
+    stamps: list[int] = []
+    q: list[tuple[float, ...]] = []
+    w: list[tuple[float, ...]] = []
+    frame_id = ""
+    for _, bag_time, data in message_rows(reader, conns):
+        try:
+            stamp, quat, rate, frame_id = decode_imu(data, bag_time)
+        except InputError as exc:
+            raise InputError(f"{path}: {wanted}: {exc}") from None
+        stamps.append(stamp)
+        q.append(quat)
+        w.append(rate)
+    orientation = np.array(q, dtype=float).reshape(-1, 4)
+    if frame == "ned":
+        orientation = ned_to_enu(orientation)
+    try:
+        return ImuStream(np.array(stamps, np.int64), orientation, np.array(w, dtype=float).reshape(-1, 3), frame_id)
+    except InputError as exc:
+        raise InputError(f"{path}: {wanted}: {exc}") from None
+
+
 # --------------------------------------------------------------------------- reading
 
 
@@ -547,17 +655,23 @@ def read_bag_sets(
     tolerance: float = DEFAULT_SYNC_TOLERANCE,
     nonfinite: NonFinite = "drop",
     progress: Progress | None = None,
+    sync_mode: str = DEFAULT_SYNC_MODE,
+    max_gap: float = DEFAULT_MAX_GAP,
+    time_offsets: dict[str, float] | None = None,
 ) -> tuple[Recording, SyncStats]:
     """Synchronized raw sets of a bag and the synchronisation counters.
 
     ``names``: sensors (topics ``/<name>/raw``; default all ``*/raw`` MagneticField
     topics, sorted); ``topics``: explicit topic per sensor instead. ``tolerance`` (s):
-    largest header stamp difference within a set. Stamps of the recording are the sets'
-    header stamps in integer nanoseconds; vectors are in Tesla, sensor axes.
+    largest header stamp difference within a set (exact matching); ``sync_mode``,
+    ``max_gap`` (s) and ``time_offsets`` (s by sensor name) as
+    :func:`~magcal_ros.core.sync.stream_synchronizer` takes them. Stamps of the recording
+    are the sets' stamps in integer nanoseconds; vectors are in Tesla, sensor axes.
     """
     with open_bag(path) as reader:
         names_t, conns = resolve_sensor_topics(reader, path, names, topics)
-        sets = SetReader(reader, path, conns, tolerance, nonfinite, progress=progress)
+        sets = SetReader(reader, path, conns, tolerance, nonfinite, progress=progress, sync_mode=sync_mode,
+                         max_gap=max_gap, time_offsets=time_offsets)
         stamps: list[NDArray[np.int64]] = []
         vectors: list[NDArray[np.float64]] = []
         for batch in sets:

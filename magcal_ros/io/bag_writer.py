@@ -14,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import struct
+import zlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.imu import ImuStream
 from magcal_ros.core.recording import Recording
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import topics
@@ -29,9 +32,13 @@ from magcal_ros.io.atomic import atomic_path, public_path, write_failure
 from magcal_ros.io.bag_reader import first_line
 from magcal_ros.io.cdr import (
     BATTERY_STATE,
+    IMU,
     MAGNETIC_FIELD,
+    TEMPERATURE,
     battery_state_message,
+    imu_message,
     magnetic_field_template,
+    temperature_message,
     typestore,
 )
 
@@ -113,6 +120,31 @@ def _output_errors(method: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+MCAP_CHUNK_CRC_AT: int = 1 + 8 + 8 + 8 + 8
+"""Offset of a Chunk record's ``uncompressed_crc`` from the record's opcode: opcode (1), record
+length (8), message start time (8), message end time (8), uncompressed size (8)."""
+
+
+def _write_chunk_crcs(storage: Any) -> None:
+    """Make rosbags' MCAP storage writer fill in each chunk's CRC-32 of its uncompressed records
+    (it writes 0, "not computed", so a reader cannot detect a corrupted chunk): the chunk is
+    closed by rosbags, then its CRC field is written in place."""
+    close = getattr(storage, "close_chunk", None)
+    if close is None or not hasattr(storage, "chunk") or not hasattr(storage, "bio"):
+        return
+
+    def close_chunk() -> None:
+        crc = zlib.crc32(storage.chunk.bio.getbuffer())
+        start = storage.bio.tell()
+        close()
+        end = storage.bio.tell()
+        storage.bio.seek(start + MCAP_CHUNK_CRC_AT)
+        storage.bio.write(struct.pack("<I", crc))
+        storage.bio.seek(end)
+
+    storage.close_chunk = close_chunk
+
+
 class BagSink:
     """A rosbags ``Writer`` plus batch insertion for the sqlite3 and mcap storages."""
 
@@ -124,6 +156,8 @@ class BagSink:
         self.writer = writer
         self.storage = storage
         self._fast = self._detect_fast()
+        if storage == "mcap":
+            _write_chunk_crcs(writer.storage)
         self._sqlite_order: bool | None = None
         if self._fast == "sqlite3":
             # The bag is written in a temporary directory, fsynced and renamed when complete:
@@ -333,6 +367,8 @@ def write_recording_bag(
     recording: Recording,
     storage: Storage = "sqlite3",
     frame_ids: Sequence[str] | None = None,
+    imu_stream: ImuStream | None = None,
+    imu_topic: str = "/imu",
 ) -> None:
     """Write ``recording`` as a rosbag2 directory with topics ``/<name>/raw``.
 
@@ -340,8 +376,11 @@ def write_recording_bag(
     stamp, ``frame_id`` = the sensor name (or ``frame_ids``), field in T, covariance zero;
     bag time = the stamp. The recording's current channels become one
     ``sensor_msgs/msg/BatteryState`` topic each (``/<channel>``, ``current`` in A, header
-    stamp and bag time = the set's stamp). Atomic: written to a temporary directory,
-    renamed at the end.
+    stamp and bag time = the set's stamp); its temperatures one ``sensor_msgs/msg/Temperature``
+    topic per sensor (``/<name>/temperature``, deg C, at the set's stamp); its IMU the
+    ``sensor_msgs/msg/Imu`` topic ``imu_topic`` at the set's stamp, or every sample of
+    ``imu_stream`` at its own stamps (an IMU at its own rate). Atomic: written to a temporary
+    directory, renamed at the end.
     """
     check_storage(storage)
     names = recording.names
@@ -354,6 +393,7 @@ def write_recording_bag(
     with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:
         conns = [sink.add_topic(topics.absolute(topics.raw(n)), MAGNETIC_FIELD) for n in names]
         currents = [sink.add_topic(topics.current_topic(c), BATTERY_STATE) for c in recording.channels]
+        _write_side_topics(sink, recording, imu_stream, imu_topic)
         layout = sink.layout([(c, t.template) for c, t in zip(conns, templates)])
         for a in range(0, len(recording), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
@@ -367,3 +407,57 @@ def write_recording_bag(
                     for t, row in zip(ts.tolist(), recording.currents[a : a + SETS_PER_WRITE].tolist())  # type: ignore[index]
                     for conn, i in zip(currents, row)
                 ])
+
+
+def write_stream_bag(
+    path: str | os.PathLike[str],
+    names: Sequence[str],
+    stamps: Sequence[NDArray[np.int64]],
+    vectors: Sequence[NDArray[np.float64]],
+    bag_times: Sequence[NDArray[np.int64]],
+    storage: Storage = "sqlite3",
+) -> None:
+    """Write per-sensor streams as a rosbag2 directory: topic ``/<name>/raw`` per sensor, one
+    ``sensor_msgs/msg/MagneticField`` per sample (header stamp ``stamps[k]`` ns, field
+    ``vectors[k]`` (n_k, 3) T, ``frame_id`` the sensor name) at bag time ``bag_times[k]`` ns: each
+    sensor's messages in its own order, all of them in bag time order (as a recorder receives
+    them; stamps may jump or go back, bag time does not). Atomic like
+    :func:`write_recording_bag`."""
+    check_storage(storage)
+    if not (len(names) == len(stamps) == len(vectors) == len(bag_times)):
+        raise InputError("need stamps, vectors and bag times for every sensor")
+    check_bag_output(path)
+    with atomic_path(path) as tmp, BagSink.create(tmp, storage) as sink:
+        conns = [sink.add_topic(topics.absolute(topics.raw(n)), MAGNETIC_FIELD) for n in names]
+        encoded, events = [], []
+        for k, name in enumerate(names):
+            s = np.asarray(stamps[k], dtype=np.int64)
+            t = np.asarray(bag_times[k], dtype=np.int64)
+            if len(t) != len(s) or np.any(np.diff(t) < 0):
+                raise InputError(f"{name}: bag times must be one per message and never go back")
+            encoded.append(magnetic_field_template(name).encode(s, np.asarray(vectors[k], dtype=float).reshape(-1, 3)))
+            events += [(bt, k, i) for i, bt in enumerate(t.tolist())]
+        events.sort()
+        for a in range(0, len(events), 8 * SETS_PER_WRITE):
+            sink.write_messages([(conns[k], bt, bytes(encoded[k][i])) for bt, k, i in events[a : a + 8 * SETS_PER_WRITE]])
+
+
+def _write_side_topics(sink: BagSink, recording: Recording, imu_stream: ImuStream | None, imu_topic: str) -> None:
+    """The recording's temperatures (``/<name>/temperature``) and IMU (``imu_topic``, or ``imu_stream``)."""
+    store = typestore()
+    if recording.temperatures is not None:
+        conns = [sink.add_topic(topics.absolute(topics.temperature(n)), TEMPERATURE) for n in recording.names]
+        sink.write_messages([
+            (conn, t, bytes(store.serialize_cdr(temperature_message(t, celsius, name), TEMPERATURE)))
+            for t, row in zip(recording.stamps.tolist(), recording.temperatures.tolist())
+            for conn, name, celsius in zip(conns, recording.names, row)
+        ])
+    if imu_stream is None and recording.imu is not None:
+        imu = recording.imu
+        imu_stream = ImuStream(recording.stamps, imu.orientation, imu.angular_velocity, imu.frame_id)
+    if imu_stream is not None:
+        conn = sink.add_topic(topics.absolute(imu_topic), IMU)
+        sink.write_messages([
+            (conn, t, bytes(store.serialize_cdr(imu_message(t, q, w, imu_stream.frame_id), IMU)))
+            for t, q, w in zip(imu_stream.stamps.tolist(), imu_stream.orientation, imu_stream.angular_velocity)
+        ])

@@ -28,6 +28,7 @@ import errno
 import math
 import os
 import re
+import stat
 from collections.abc import Iterator, Sequence
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -37,8 +38,9 @@ import numpy as np
 import yaml
 
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import noise_and_intensity
 from magcal_ros.errors import InputError
-from magcal_ros.io.atomic import atomic_path
+from magcal_ros.io.atomic import atomic_path, write_target
 
 CORRECTION_NODE: str = "magcal_correction"
 PROVENANCE_NODE: str = "magcal_provenance"
@@ -55,9 +57,44 @@ def ros_float(value: float) -> float:
     return x
 
 
+def _reads_back(text: str) -> bool:
+    """Whether YAML reads ``text`` as itself: what rclpy does to every string of a params file."""
+    try:
+        return yaml.safe_load(text) == text
+    except (yaml.YAMLError, RecursionError):
+        return False
+
+
+_NBSP = "\u00a0"
+
+
+def ros_text(text: str) -> str:
+    """``text``, changed as little as needed for every ROS reader to read it as this text.
+
+    ``ros2 param load`` (rclpy) reads each string of a params file a second time as YAML: a
+    time (``2026-11-25T22:13:04+00:00``) becomes a datetime and ``a: b`` a mapping, and
+    either stops the command. In that order, until the text reads back as itself: line
+    breaks become spaces, the space after ``:`` and before ``#`` a no-break space (the text
+    looks the same);
+    a trailing UTC offset is written without its colon (``+0000``, still ISO 8601, Python
+    reads it); anything else is put in parentheses.
+    """
+    if _reads_back(text):
+        return text
+    fixed = " ".join(text.split("\n")).replace(": ", ":" + _NBSP).replace(" #", _NBSP + "#")
+    if _reads_back(fixed):
+        return fixed
+    timed = re.sub(r"([+-]\d\d):(\d\d)$", r"\1\2", fixed)
+    if _reads_back(timed):
+        return timed
+    return f"({fixed})" if _reads_back(f"({fixed})") else "(text not representable)"
+
+
 def _ros_value(value: Any) -> Any:
-    """A YAML value ROS parameters accept: scalars, strings, homogeneous lists, floats ROS-safe."""
-    if isinstance(value, (bool, int, str)):
+    """A YAML value ROS parameters accept: scalars, strings, homogeneous lists, floats and strings ROS-safe."""
+    if isinstance(value, str):
+        return ros_text(value)
+    if isinstance(value, (bool, int)):
         return value
     if isinstance(value, (float, np.floating)):
         return ros_float(value) if math.isfinite(value) else str(float(value))
@@ -69,15 +106,26 @@ def _ros_value(value: Any) -> Any:
         items = [_ros_value(v) for v in np.asarray(value).reshape(-1).tolist()]
         if items and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
             return [ros_float(v) for v in items]
-        return [str(v) for v in items]
+        return [str(v) for v in items]  # rclpy reads a list as Python writes it: its strings quoted
     if value is None:
         return ""
-    return str(value)
+    return ros_text(str(value))
 
 
 def parameters(calibration: ArrayCalibration) -> dict[str, Any]:
-    """The correction node's parameters for ``calibration`` (nested), exactly as the file holds them."""
-    return _ros_value(calibration.to_parameters())
+    """The correction node's parameters for ``calibration`` (nested), exactly as the file holds them.
+
+    Besides the correction, what the calibration health compares with, from the provenance
+    when it has them: ``calibration_intensity`` (T) and per sensor ``noise`` (T per axis)."""
+    params = _ros_value(calibration.to_parameters())
+    noise, intensity = noise_and_intensity(calibration.metadata, calibration.geometry.names)
+    if intensity is not None:
+        params["calibration_intensity"] = ros_float(intensity)
+    if noise is not None:
+        for name, sigma in zip(calibration.geometry.names, noise.tolist()):
+            if math.isfinite(sigma) and sigma > 0:
+                params[name]["noise"] = ros_float(sigma)
+    return params
 
 
 def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> str:
@@ -87,8 +135,38 @@ def dumps(calibration: ArrayCalibration, node_name: str = CORRECTION_NODE) -> st
     if meta:
         doc[PROVENANCE_NODE] = {"ros__parameters": meta}
     header = "# magcal_ros calibration: B = matrix (raw - offset); Tesla, platform frame.\n"
+    header = _temperature_and_frame_header(calibration) or header
     header += "# Load with: correction_node --ros-args --params-file <this file>\n"
-    return header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=1000)
+    text = header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=1000, allow_unicode=True)
+    _check_readable(text, node_name, calibration)
+    return text
+
+
+def _check_readable(text: str, node_name: str, calibration: ArrayCalibration) -> None:
+    """What is written must read back: the calibration it holds, equal to ``calibration`` to the
+    last place ROS-safe floats allow (:class:`InputError` otherwise, so nothing unreadable is written)."""
+    try:
+        back = loads(text, node_name.lstrip("/"))
+    except InputError as exc:
+        raise InputError(f"the calibration cannot be written: it would not read back ({exc})") from None
+    if back.geometry.names != calibration.geometry.names or not (
+            np.allclose(back.matrices, calibration.matrices, rtol=1e-15, atol=0)
+            and np.allclose(back.offsets, calibration.offsets, rtol=1e-15, atol=0)):
+        raise InputError("the calibration cannot be written: it would not read back as it is")
+
+
+def _temperature_and_frame_header(calibration: ArrayCalibration) -> str:
+    """The formula line of a calibration with temperature terms or an output frame ('' otherwise)."""
+    if not (calibration.has_temperature_terms or calibration.rotated or calibration.frame_id):
+        return ""
+    formula = "matrix (raw - offset)"
+    if calibration.has_temperature_terms:
+        formula = ("(matrix + dT matrix_per_kelvin) (raw - offset - dT offset_per_kelvin), "
+                   "dT = T - temperature_reference (deg C)")
+    frame = "platform frame"
+    if calibration.rotated or calibration.frame_id:
+        frame = f"output frame {calibration.frame_id or '(frame_id)'}: output_rotation @ B"
+    return f"# magcal_ros calibration: B = {formula}; Tesla, {frame}.\n"
 
 
 def backups(path: str | os.PathLike[str]) -> list[Path]:
@@ -126,7 +204,7 @@ def replace(
     file is as before. On success only the ``keep`` newest backups are kept. OSError if
     the file cannot be written (then nothing changed).
     """
-    target = Path(path)
+    target = write_target(path)  # through a symbolic link: its target is the calibration file
     text = dumps(calibration, node_name)
     for folder in (target.parent, *target.parent.parents):
         if folder.exists():
@@ -134,9 +212,10 @@ def replace(
                 raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
             break
     previous = target.read_bytes() if target.is_file() else None
+    mode = stat.S_IMODE(target.stat().st_mode) if previous is not None else None
     backup = _backup_path(target) if previous is not None and keep > 0 else None
     if backup is not None:
-        with atomic_path(backup) as tmp:
+        with atomic_path(backup, mode=mode) as tmp:  # a backup is as private as the file
             tmp.write_bytes(previous)  # type: ignore[arg-type]
     try:
         with atomic_path(target) as tmp:
@@ -193,6 +272,8 @@ def loads(text: str, node_name: str = CORRECTION_NODE, uncorrected: Sequence[str
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InputError(f"calibration file is not valid YAML: {str(exc).splitlines()[0]}") from None
+    except RecursionError:
+        raise InputError("calibration file is nested too deeply to be a calibration (not a ROS parameters file)") from None
     blocks = _node_blocks(doc)
     params = blocks.get(node_name)
     if params is None:

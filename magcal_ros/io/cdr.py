@@ -12,7 +12,9 @@ Templates are produced by rosbags' own serializer at import, so the bytes writte
 exactly what ``Typestore.serialize_cdr`` gives (the tests check this).
 
 Current channels (``sensor_msgs/msg/BatteryState`` and ``std_msgs/msg/Float64``, a few per
-second) go through rosbags' typestore one message at a time (:func:`decode_current`).
+second), the sensors' temperatures (``sensor_msgs/msg/Temperature``) and the IMU
+(``sensor_msgs/msg/Imu``, tens to hundreds per second) go through rosbags' typestore one
+message at a time (:func:`decode_current`, :func:`decode_temperature`, :func:`decode_imu`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ BATTERY_STATE = "sensor_msgs/msg/BatteryState"
 FLOAT64 = "std_msgs/msg/Float64"
 """A current channel: ``data`` (A); no header, so its bag time is its stamp."""
 CURRENT_TYPES: tuple[str, ...] = (BATTERY_STATE, FLOAT64)
+TEMPERATURE = "sensor_msgs/msg/Temperature"
+"""A sensor's temperature: ``temperature`` (deg C) at its header stamp."""
+IMU = "sensor_msgs/msg/Imu"
+"""The IMU: ``orientation`` (IMU frame to world ENU), ``angular_velocity`` (rad/s, IMU frame)."""
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
 
 F8 = np.dtype("<f8")
@@ -112,6 +118,76 @@ def decode_current(msgtype: str, data: bytes, bag_time_ns: int) -> tuple[int, fl
         return int(bag_time_ns), float(msg.data)
     stamp = int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec)
     return stamp or int(bag_time_ns), float(msg.current)  # an unstamped header: the bag time
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    t = typestore().types
+    sec, nsec = divmod(int(stamp_ns), NS_PER_S)
+    return t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id)
+
+
+def temperature_message(stamp_ns: int, celsius: float, frame_id: str = "", variance: float = 0.0) -> Any:
+    """A rosbags ``Temperature`` of ``celsius`` (deg C) at ``stamp_ns``."""
+    return typestore().types[TEMPERATURE](header=_header(stamp_ns, frame_id), temperature=float(celsius),
+                                          variance=float(variance))
+
+
+def imu_message(stamp_ns: int, orientation: Any, angular_velocity: Any, frame_id: str = "") -> Any:
+    """A rosbags ``Imu``: ``orientation`` x, y, z, w (IMU frame to ENU) and ``angular_velocity`` (rad/s, IMU
+    frame) at ``stamp_ns``; a NaN orientation or angular velocity is sent as unknown (covariance element 0 is
+    -1, the values 0, as REP 145 says); no linear acceleration (unknown)."""
+    t = typestore().types
+    q = np.asarray(orientation, dtype=float).reshape(4)
+    w = np.asarray(angular_velocity, dtype=float).reshape(3)
+    unknown = np.zeros(9)
+    unknown[0] = -1.0
+    q_ok, w_ok = bool(np.all(np.isfinite(q))), bool(np.all(np.isfinite(w)))
+    if not q_ok:
+        q = np.array([0.0, 0.0, 0.0, 1.0])
+    if not w_ok:
+        w = np.zeros(3)
+    return t[IMU](
+        header=_header(stamp_ns, frame_id),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        orientation_covariance=np.zeros(9) if q_ok else unknown,
+        angular_velocity=t["geometry_msgs/msg/Vector3"](x=float(w[0]), y=float(w[1]), z=float(w[2])),
+        angular_velocity_covariance=np.zeros(9) if w_ok else unknown.copy(),
+        linear_acceleration=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        linear_acceleration_covariance=unknown.copy(),
+    )
+
+
+def _deserialize(msgtype: str, data: bytes) -> Any:
+    try:
+        return typestore().deserialize_cdr(data, msgtype)
+    except Exception as exc:  # rosbags raises several kinds for bytes of another layout
+        raise InputError(f"malformed {msgtype} message ({type(exc).__name__})") from None
+
+
+def _stamp(msg: Any, bag_time_ns: int) -> int:
+    """A message's header stamp (ns), or its bag time when the header is unstamped."""
+    return int(msg.header.stamp.sec) * NS_PER_S + int(msg.header.stamp.nanosec) or int(bag_time_ns)
+
+
+def decode_temperature(data: bytes, bag_time_ns: int) -> tuple[int, float]:
+    """Stamp (ns; the bag time when the header is unstamped) and temperature (deg C) of a serialized Temperature."""
+    msg = _deserialize(TEMPERATURE, data)
+    return _stamp(msg, bag_time_ns), float(msg.temperature)
+
+
+def decode_imu(data: bytes, bag_time_ns: int) -> tuple[int, tuple[float, ...], tuple[float, ...], str]:
+    """Stamp (ns; the bag time when unstamped), orientation (x, y, z, w; NaN when orientation_covariance[0]
+    is -1 or the quaternion is zero), angular velocity (rad/s; NaN when its covariance[0] is -1) and frame_id
+    of a serialized Imu."""
+    msg = _deserialize(IMU, data)
+    o, w = msg.orientation, msg.angular_velocity
+    q: tuple[float, ...] = (float(o.x), float(o.y), float(o.z), float(o.w))
+    if msg.orientation_covariance[0] == -1.0 or not any(q):
+        q = (np.nan,) * 4
+    rate: tuple[float, ...] = (float(w.x), float(w.y), float(w.z))
+    if msg.angular_velocity_covariance[0] == -1.0:
+        rate = (np.nan,) * 3
+    return _stamp(msg, bag_time_ns), q, rate, str(msg.header.frame_id)
 
 
 def _put(out: NDArray[np.uint8], offset: int, values: Any, dtype: str) -> None:

@@ -1,14 +1,25 @@
 """CSV recordings: raw sets in, corrected sets out.
 
 Raw layout: header ``stamp,mag1.x,mag1.y,mag1.z,mag2.x,...``; stamp in decimal seconds,
-fields in Tesla, one synchronized set per row; optionally, after the sensor columns, one
-column ``current.<channel>`` per interference channel (A, the channel's current at the set). Stamps are parsed and written exactly as
-decimal digits (9 decimals on output), never through a float, so nanoseconds survive.
+fields in Tesla, one synchronized set per row. After the sensor columns, in any order:
+
+- ``current.<channel>``: an interference channel's current at the set (A);
+- ``temperature.<name>``: a sensor's temperature (deg C), one per sensor, or a single
+  ``temperature`` column for every sensor;
+- ``imu.qx,imu.qy,imu.qz,imu.qw``: the IMU's orientation at the set, the quaternion of the
+  rotation from the IMU frame to the world frame ENU as ``sensor_msgs/Imu`` gives it
+  (``imu_frame="ned"``: to north-east-down, turned into ENU on reading); empty or NaN cells:
+  unknown at that set;
+- ``imu.wx,imu.wy,imu.wz``: the IMU's angular velocity (rad/s, IMU frame); empty or NaN:
+  unknown.
+
+Stamps are parsed and written exactly as decimal digits (9 decimals on output), never
+through a float, so nanoseconds survive.
 
 Rows go through the same acceptance rule as bag messages
 (:mod:`magcal_ros.core.sync`): a row whose stamp is 0, repeats or goes back is dropped
-and counted, a row with a NaN or infinite value (a current included) is refused or
-dropped like a bag's.
+and counted, a row with a NaN or infinite value (a current or a temperature included; an
+IMU cell only means "unknown") is refused or dropped like a bag's.
 
 Corrected layout (``magcal correct``): ``stamp``, ``<name>.x,<name>.y,<name>.z`` per
 sensor (T, platform frame), ``field.x,field.y,field.z`` (centre field, T), then what the
@@ -23,15 +34,21 @@ import csv
 import io
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import CorrectedSets
-from magcal_ros.core.recording import Recording
+from magcal_ros.core.acceptance import reading_faults
+from magcal_ros.core.geometry import check_names
+from magcal_ros.core.imu import imu_frame, ned_to_enu
+from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.core.temperature import check_temperatures
+from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path
 
@@ -41,6 +58,16 @@ FIELD_COLUMNS: tuple[str, ...] = tuple(f"field.{a}" for a in AXIS_NAMES)
 BASELINE_COLUMNS: tuple[str, ...] = tuple(f"baseline_gradient.{a}" for a in AXIS_NAMES)
 CURRENT_PREFIX = "current."
 """Columns ``current.<channel>``: a channel's current (A)."""
+TEMPERATURE_PREFIX = "temperature."
+"""Columns ``temperature.<name>``: a sensor's temperature (deg C)."""
+TEMPERATURE_COLUMN = "temperature"
+"""One column: the temperature (deg C) of every sensor."""
+IMU_ORIENTATION_COLUMNS: tuple[str, ...] = ("imu.qx", "imu.qy", "imu.qz", "imu.qw")
+"""The IMU's orientation quaternion x, y, z, w (IMU frame to world ENU)."""
+IMU_RATE_COLUMNS: tuple[str, ...] = ("imu.wx", "imu.wy", "imu.wz")
+"""The IMU's angular velocity (rad/s, IMU frame)."""
+EXTRA_COLUMNS_HELP = ("current.<channel> (A), temperature.<name> or temperature (deg C), imu.qx,imu.qy,imu.qz,imu.qw "
+                      "and imu.wx,imu.wy,imu.wz")
 NonFinite = Literal["drop", "error"]
 
 
@@ -56,22 +83,61 @@ def corrected_header(names: Sequence[str], gradient: str = "tensor") -> list[str
     return csv_header(list(names)) + list(FIELD_COLUMNS) + list(extra)
 
 
-def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Sensor names and current channels of a CSV header; :class:`InputError` if it is not
-    the contract's layout (``stamp``, three columns per sensor, then ``current.<channel>``)."""
+@dataclass(frozen=True)
+class CsvLayout:
+    """What the columns of a raw CSV hold (see the module docstring)."""
+
+    names: tuple[str, ...]
+    """Sensor names, three columns each, in header order."""
+    extra: tuple[str, ...]
+    """The columns after the sensor columns, in header order."""
+    channels: tuple[str, ...]
+    """Current channels, in header order."""
+    temperatures: tuple[str, ...]
+    """Sensors with a ``temperature.<name>`` column, or ``("",)`` for one ``temperature`` column, or ()."""
+
+    def columns(self, names: Sequence[str]) -> list[int]:
+        """Indices into :attr:`extra` of the columns ``names``."""
+        return [self.extra.index(n) for n in names]
+
+    @property
+    def has_orientation(self) -> bool:
+        """True when the IMU's orientation columns are there."""
+        return IMU_ORIENTATION_COLUMNS[0] in self.extra
+
+    @property
+    def has_rate(self) -> bool:
+        """True when the IMU's angular velocity columns are there."""
+        return IMU_RATE_COLUMNS[0] in self.extra
+
+
+def _extra_kind(column: str) -> str | None:
+    """``current``, ``temperature`` or ``IMU`` for an extra column's name, else None."""
+    if column.startswith(CURRENT_PREFIX):
+        return "current"
+    if column == TEMPERATURE_COLUMN or column.startswith(TEMPERATURE_PREFIX):
+        return "temperature"
+    if column in IMU_ORIENTATION_COLUMNS or column in IMU_RATE_COLUMNS:
+        return "IMU"
+    return None
+
+
+def parse_columns(header: list[str]) -> CsvLayout:
+    """The layout of a raw CSV header; :class:`InputError` (one line) if it is not the contract's
+    (``stamp``, three columns per sensor, then the extra columns of the module docstring in any order)."""
     if header:
         header = [header[0].lstrip("\ufeff")] + header[1:]  # a byte order mark is not a column name
     if not header or header[0].strip() != "stamp":
         raise InputError("CSV header must start with 'stamp' (then mag1.x,mag1.y,mag1.z,...)")
     cols = [c.strip() for c in header[1:]]
     sensors = len(cols)
-    for k, c in enumerate(cols):  # the first current column no sensor triple claims
-        if c.startswith(CURRENT_PREFIX) and k % 3 == 0:
+    for k, c in enumerate(cols):  # the first extra column no sensor triple claims
+        if k % 3 == 0 and _extra_kind(c) is not None:
             stem = c.rsplit(".", 1)[0]
             if cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
                 sensors = k
                 break
-    sensor_cols, current_cols = cols[:sensors], cols[sensors:]
+    sensor_cols, extra = cols[:sensors], cols[sensors:]
     if len(sensor_cols) == 0 or len(sensor_cols) % 3:
         raise InputError(f"CSV needs 3 columns per sensor after 'stamp' (then current.<channel> columns), "
                          f"got {len(sensor_cols)}")
@@ -81,14 +147,45 @@ def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
         if sensor_cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
             raise InputError(f"CSV columns {sensor_cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
         names.append(stem)
-    channels = tuple(c[len(CURRENT_PREFIX):] for c in current_cols)
-    bad = [c for c in current_cols if not c.startswith(CURRENT_PREFIX) or not c[len(CURRENT_PREFIX):]]
-    if bad:
-        raise InputError(f"CSV column {bad[0]!r} after the current columns: only current.<channel> columns "
-                         "(amperes) may follow the sensor columns")
-    if len(set(channels)) != len(channels):
-        raise InputError(f"CSV names a current channel twice: {', '.join(current_cols)}")
-    return tuple(names), channels
+    check_names(names)
+    first = _extra_kind(extra[0]) if extra else None
+    for c in extra:
+        kind = _extra_kind(c)
+        if kind is None or c in (CURRENT_PREFIX, TEMPERATURE_PREFIX):
+            raise InputError(f"CSV column {c!r} after the {first} columns: only {EXTRA_COLUMNS_HELP} columns may "
+                             "follow the sensor columns")
+    twice = sorted({c for c in extra if extra.count(c) > 1})
+    if twice:
+        kind = _extra_kind(twice[0])
+        what = {"current": "a current channel", "temperature": "a temperature", "IMU": "an IMU column"}[kind or "IMU"]
+        raise InputError(f"CSV names {what} twice: {', '.join(c for c in extra if c == twice[0])}")
+    channels = tuple(c[len(CURRENT_PREFIX):] for c in extra if c.startswith(CURRENT_PREFIX))
+    temps = tuple(c[len(TEMPERATURE_PREFIX):] for c in extra if c.startswith(TEMPERATURE_PREFIX))
+    if TEMPERATURE_COLUMN in extra:
+        if temps:
+            raise InputError("CSV has a 'temperature' column for every sensor and temperature.<name> columns: give one "
+                             "or the other")
+        temps = ("",)
+    elif temps:
+        strangers = [t for t in temps if t not in names]
+        if strangers:
+            raise InputError(f"CSV column temperature.{strangers[0]}: no sensor {strangers[0]} (sensors: {', '.join(names)})")
+        missing = [n for n in names if n not in temps]
+        if missing:
+            raise InputError(f"CSV has the temperature of {', '.join(temps)} but not of {', '.join(missing)}: give "
+                             "temperature.<name> for every sensor, or one 'temperature' column for all")
+    for group in (IMU_ORIENTATION_COLUMNS, IMU_RATE_COLUMNS):
+        present = [c for c in group if c in extra]
+        if present and len(present) != len(group):
+            raise InputError(f"CSV has {', '.join(present)} but not {', '.join(c for c in group if c not in extra)}: "
+                             f"the IMU needs all of {','.join(group)}")
+    return CsvLayout(tuple(names), tuple(extra), channels, temps)
+
+
+def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Sensor names and current channels of a CSV header (see :func:`parse_columns`)."""
+    layout = parse_columns(header)
+    return layout.names, layout.channels
 
 
 def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
@@ -108,12 +205,21 @@ def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
 
 
 def _rows(text: str) -> list[list[str]]:
-    return [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    """Non-blank rows; LF, CRLF and CR-only (classic Mac) line endings alike."""
+    text = text.replace("\r\n", "\n").replace("\r", "\n")
+    try:
+        return [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    except csv.Error as exc:
+        raise InputError(f"not a readable CSV file ({exc})") from None
 
 
 def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
     """Sensor names of a CSV recording, from its header alone."""
-    rows = _rows(_read_text(path, header_only=True))
+    text = _read_text(path, header_only=True)
+    try:
+        rows = _rows(text)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     try:
@@ -122,19 +228,36 @@ def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
         raise InputError(f"{path}: {exc}") from None
 
 
-def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tuple[Recording, SyncStats]:
+def read_csv(
+    path: str | os.PathLike[str], nonfinite: NonFinite = "error", imu_orientation_frame: str = "enu"
+) -> tuple[Recording, SyncStats]:
     """Read a CSV recording and the counts of rows it dropped (per message, as for a bag).
 
     Ragged rows, text values or an empty file are :class:`InputError`; NaN or infinite
-    values are refused (``nonfinite="error"``) or their rows dropped (``"drop"``).
+    values are refused (``nonfinite="error"``) or their rows dropped (``"drop"``), but for
+    the IMU's columns, where they mean "unknown at this set". Readings beyond any
+    magnetometer's range are dropped and counted (``out_of_range``). ``imu_orientation_frame``:
+    the world frame of the ``imu.q*`` columns, ``enu`` (``sensor_msgs/Imu``) or ``ned``
+    (turned into ENU).
     """
-    rows = _rows(_read_text(path))
+    frame = imu_frame(imu_orientation_frame)
+    text = _read_text(path)
+    try:
+        rows = _rows(text)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
-    names, channels = parse_header(rows[0])
-    width = 1 + 3 * len(names) + len(channels)
+    try:
+        layout = parse_columns(rows[0])
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    names, channels = layout.names, layout.channels
+    width = 1 + 3 * len(names) + len(layout.extra)
     if len(rows) == 1:
         raise InputError(f"{path} has a header but no data rows")
+    imu_cols = {1 + 3 * len(names) + k for k, c in enumerate(layout.extra) if _extra_kind(c) == "IMU"}
+    checked = [k for k in range(1, width) if k not in imu_cols]
     stamps = np.empty(len(rows) - 1, np.int64)
     data = np.empty((len(rows) - 1, width - 1))
     for i, row in enumerate(rows[1:], start=2):
@@ -142,26 +265,56 @@ def read_csv(path: str | os.PathLike[str], nonfinite: NonFinite = "error") -> tu
             raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
         try:
             stamps[i - 2] = parse_seconds(row[0])
-            data[i - 2] = [float(c) for c in row[1:]]
-        except (ValueError, InputError):
+        except InputError as exc:
+            raise InputError(f"{path} line {i}: stamp: {exc}") from None
+        try:
+            data[i - 2] = [float(c) if k not in imu_cols or c.strip() else np.nan for k, c in enumerate(row[1:], 1)]
+        except ValueError:
             raise InputError(f"{path} line {i}: non-numeric value") from None
-        if nonfinite == "error" and not np.all(np.isfinite(data[i - 2])):
+        if nonfinite == "error" and not np.all(np.isfinite(data[i - 2, [k - 1 for k in checked]])):
             raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
     vectors = data[:, : 3 * len(names)].reshape(len(data), len(names), 3)
-    currents = data[:, 3 * len(names) :]
-    # Each sensor's messages carry their row number, so the sets the rule keeps name their
-    # rows (and so their currents); a row with a non-finite current is a non-finite row.
-    row = np.arange(len(data), dtype=float)
+    check_tesla(vectors, names, str(path))  # a file in nT is a units error, not readings out of range
+    extra = data[:, 3 * len(names) :]
+    currents = extra[:, layout.columns(CURRENT_PREFIX + c for c in channels)]
+    temperatures = None
+    if layout.temperatures == ("",):
+        temperatures = np.repeat(extra[:, layout.columns([TEMPERATURE_COLUMN])], len(names), axis=1)
+    elif layout.temperatures:
+        temperatures = extra[:, layout.columns(TEMPERATURE_PREFIX + n for n in names)]
+    if temperatures is not None:
+        check_temperatures(temperatures, str(path))
+    # Each sensor's messages carry their row number (scaled into the accepted range of a
+    # reading), so the sets the rule keeps name their rows (and so their currents and
+    # temperatures); a faulty reading goes in as it is, to be dropped and counted by the rule;
+    # a row with a non-finite current or temperature is a non-finite row.
+    scale = MAX_READING / 2 / max(len(data), 1)
+    row = np.arange(len(data), dtype=float) * scale
     row_ok = np.all(np.isfinite(currents), axis=1)
-    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False)
+    if temperatures is not None:
+        row_ok &= np.all(np.isfinite(temperatures), axis=1)
+    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False, max_reading=MAX_READING)
     for k in range(len(names)):
-        ok = row_ok & np.all(np.isfinite(vectors[:, k]), axis=1)
-        sync.add_batch(k, stamps, np.where(ok, row, np.nan)[:, None].repeat(3, axis=1))
+        faulty = np.logical_or.reduce(list(reading_faults(vectors[:, k]).values()))
+        tags = np.where(row_ok[:, None], np.stack([row, np.zeros_like(row), np.zeros_like(row)], axis=1), np.nan)
+        sync.add_batch(k, stamps, np.where(faulty[:, None], vectors[:, k], tags))
     sets = sync.pop(final=True)
     if len(sets) == 0:
         raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
-    rows_kept = sets.vectors[:, 0, 0].astype(np.int64)
-    return Recording(names, sets.set_stamps, vectors[rows_kept], channels, currents[rows_kept]), sync.stats
+    kept = np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64)
+    imu = None
+    if layout.has_orientation or layout.has_rate:
+        q = (extra[:, layout.columns(IMU_ORIENTATION_COLUMNS)] if layout.has_orientation
+             else np.full((len(data), 4), np.nan))[kept]
+        if frame == "ned":
+            q = ned_to_enu(q)
+        w = (extra[:, layout.columns(IMU_RATE_COLUMNS)] if layout.has_rate else np.full((len(data), 3), np.nan))[kept]
+        try:
+            imu = ImuSamples(q, w)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+    return Recording(names, sets.set_stamps, vectors[kept], channels, currents[kept],
+                     None if temperatures is None else temperatures[kept], imu), sync.stats
 
 
 def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:
@@ -173,9 +326,21 @@ def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:
 
 
 def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
-    """Write ``recording`` atomically as CSV (its currents as ``current.<channel>`` columns, A)."""
+    """Write ``recording`` atomically as CSV: its currents as ``current.<channel>`` columns (A), its
+    temperatures as ``temperature.<name>`` (deg C), its IMU as ``imu.q*`` (ENU) and ``imu.w*`` (rad/s)."""
     header = csv_header(recording.names) + [CURRENT_PREFIX + c for c in recording.channels]
-    columns = np.concatenate([recording.vectors.reshape(len(recording), -1), recording.currents], axis=1)  # type: ignore[list-item]
+    parts = [recording.vectors.reshape(len(recording), -1), recording.currents]
+    if recording.temperatures is not None:
+        header += [TEMPERATURE_PREFIX + n for n in recording.names]
+        parts.append(recording.temperatures)
+    imu = recording.imu
+    if imu is not None and (imu.has_orientation or not imu.has_angular_velocity):
+        header += list(IMU_ORIENTATION_COLUMNS)
+        parts.append(imu.orientation)
+    if imu is not None and imu.has_angular_velocity:
+        header += list(IMU_RATE_COLUMNS)
+        parts.append(imu.angular_velocity)
+    columns = np.concatenate(parts, axis=1)  # type: ignore[arg-type]
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(header) + "\n")

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 RAW_SUFFIX = "raw"
 CORRECTED_SUFFIX = "corrected"
+TEMPERATURE_SUFFIX = "temperature"
+IMU = "imu"
+"""Default IMU topic (sensor_msgs/Imu): relative for the nodes, ``/imu`` in a bag."""
 FIELD = "field"
 """Corrected field at the array centre (sensor_msgs/MagneticField, T)."""
 GRADIENT = "gradient"
@@ -30,6 +33,11 @@ def raw(name: str) -> str:
 def corrected(name: str) -> str:
     """Relative topic of a sensor's corrected readings: ``<name>/corrected``."""
     return f"{name.strip('/')}/{CORRECTED_SUFFIX}"
+
+
+def temperature(name: str) -> str:
+    """Relative topic of a sensor's temperature (sensor_msgs/Temperature, deg C): ``<name>/temperature``."""
+    return f"{name.strip('/')}/{TEMPERATURE_SUFFIX}"
 
 
 def absolute(topic: str) -> str:

@@ -10,7 +10,7 @@ are not solved: they are left out of the calibration and named in a warning.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -63,13 +63,15 @@ class InterferenceResult:
 
 
 def calibrate_interference(
-    raw: ArrayLike, currents: ArrayLike, channels: Sequence[str], held: ArrayCalibration
+    raw: ArrayLike, currents: ArrayLike, channels: Sequence[str], held: ArrayCalibration,
+    temperatures: ArrayLike | None = None,
 ) -> InterferenceResult:
     """``held`` plus the interference of ``channels`` from a still run.
 
     ``raw`` (N, S, 3) T of ``held``'s sensors, ``currents`` (N, m) A. The result subtracts
-    the solved channels only (the held calibration's own interference is replaced); its
-    provenance is the held one's plus what this run gave. Raises :class:`InputError` for
+    the solved channels only (the held calibration's own interference is replaced; its
+    temperature terms and output frame are kept, ``temperatures`` (N, S) deg C are needed
+    with temperature terms); its provenance is the held one's plus what this run gave. Raises :class:`InputError` for
     bad input or when the held calibration subtracts a channel the run does not record,
     and :class:`CalibrationFailed` when no channel can be determined.
     """
@@ -82,7 +84,7 @@ def calibrate_interference(
     if missing:
         raise InputError(f"the calibration subtracts {', '.join(missing)}, which this run does not record: "
                          "give its current too")
-    est = estimate_interference(r, u, held)
+    est = estimate_interference(r, u, held, temperatures)
     warnings = []
     if np.any(est.undetermined):
         warnings.append(f"interference not solved (undetermined): {describe_undetermined(channels, u, est.undetermined)}")
@@ -95,8 +97,7 @@ def calibrate_interference(
                         f"{est.residual[i] / noise[i]:.1f}x the calibration's noise: was the vehicle still, and "
                         "are all the currents given?")
     solved = [j for j in range(len(channels)) if not est.undetermined[j]]
-    cal = ArrayCalibration(held.geometry, held.matrices, held.offsets, {}, held.covariances,
-                           tuple(channels[j] for j in solved), est.gains[:, :, solved])
+    cal = replace(held, metadata={}, channels=tuple(channels[j] for j in solved), interference=est.gains[:, :, solved])
     result = InterferenceResult(cal, est, channels, len(r), warnings)
     object.__setattr__(cal, "metadata", _provenance(held.metadata, result))
     return result

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core import uniformity
 from magcal_ros.core import identifiability as ident
 from magcal_ros.core import quality
 from magcal_ros.core.array_fit import (
@@ -143,6 +144,8 @@ class CalibrationResult:
             parts.append(f"updated: {', '.join(updated) or 'nothing'}; kept from the prior: {', '.join(kept) or 'nothing'}")
         if int(self.outliers.sum()):
             parts.append(f"{int(self.outliers.sum())} outlying readings excluded")
+        if self.extras.get("uniformity") is not None and self.extras["uniformity"].detected:
+            parts.append(f"NOT uniform: {self.extras['uniformity'].gradient / NT:.3g} nT/m across the array")
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
 
@@ -682,10 +685,11 @@ def calibrate_array(
     temps = None if blocks.temperatures is None else blocks.temperatures + blocks.reference
     try:
         cal = ArrayCalibration(
-            geometry, matrices_out, sol.offsets, {}, vector_cov,
-            channels, sol.interference if channels else None, sol.time_offsets,
-            blocks.reference if sol.model.temperature else None, sol.offset_tempco,
-            None if sol.gain_tempco is None else -matrices_out * sol.gain_tempco[:, None, :],
+            geometry, matrices_out, sol.offsets, {}, vector_cov, channels, sol.interference if channels else None,
+            time_offsets=sol.time_offsets,
+            temperature_reference=blocks.reference if sol.model.temperature else None,
+            offset_tempco=sol.offset_tempco,
+            matrix_tempco=None if sol.gain_tempco is None else -matrices_out * sol.gain_tempco[:, None, :],
         )
     except InputError as exc_cal:
         raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
@@ -696,12 +700,16 @@ def calibrate_array(
     implied = None  # the mean sensor gain a given reference implies (None: relative or prior)
     if f_ref is not None and prior is None:
         implied = float(np.mean(np.abs(np.linalg.det(sol.matrices)) ** (-1.0 / 3.0)))
+    field = uniformity.check(corrected[order][(sol.weights[order] > 0).all(axis=1)], geometry.positions)
+    if field is not None and field.refused and opts.max_residual is None:
+        raise CalibrationFailed(f"{field.describe()}; to accept it anyway give a max residual (magcal "
+                                "--max-residual, the calibration node's max_residual)")
     verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
                             None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
                             implied, sol.intensity, sol.directions[order], clipped[order])
     if verdict.cause:
         raise CalibrationFailed(verdict.cause)
-    warnings = list(verdict.warnings)
+    warnings = list(verdict.warnings) + ([field.describe()] if field is not None and field.detected else [])
     if prior is None and ana.weak():
         warnings.append(_weak_warning(ana, sol, env))
     elif prior is None and env.empty:
@@ -737,7 +745,7 @@ def calibrate_array(
         seconds=time.perf_counter() - t0,
         prior=prior is not None,
         inflation=cov.inflation,
-        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth},
+        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field},
     )
     object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
     return replace(result, seconds=time.perf_counter() - t0)
@@ -782,6 +790,8 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
     if result.prior:
         meta["updated"] = [f"{q.sensor} {q.name}" for q in ana.updated()] or ["nothing"]
         meta["kept"] = [f"{q.sensor} {q.name}" for q in ana.kept()] or ["nothing"]
+    if result.extras.get("uniformity") is not None:
+        meta.update(result.extras["uniformity"].provenance())
     if result.warnings:
         meta["warnings"] = list(result.warnings)
     return meta

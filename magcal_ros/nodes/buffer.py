@@ -1,6 +1,7 @@
-"""Bounded store of synchronized raw sets that keeps a spread of attitudes (no ROS import).
+"""Bounded stores of synchronized raw sets (no ROS import): :class:`SetBuffer` keeps a spread of
+attitudes for a calibration manoeuvre, :class:`MissionWindow` the latest seconds of a mission.
 
-Each set is filed under the sphere cell (one of :data:`CELLS` roughly uniform
+:class:`SetBuffer` files each set under the sphere cell (one of :data:`CELLS` roughly uniform
 directions) nearest to the direction of its array-centre raw reading, which is the field
 direction in the array frame and so a proxy for the attitude. Below ``capacity`` every
 set is kept; when full, a new set replaces a random set of the most crowded cell (its
@@ -10,19 +11,22 @@ rare attitudes a calibration needs.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.observability import SPHERE_CELLS, sphere_cells
+from magcal_ros.core.recording import ImuSamples, Recording
 
 CELLS: int = SPHERE_CELLS
 
 
 class SetBuffer:
-    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns) and the currents (A) of
-    ``channels`` interference channels at each set."""
+    """Up to ``capacity`` raw sets (S, 3) in T with their stamps (ns), the currents (A) of
+    ``channels`` interference channels, the sensors' temperatures (deg C) and the IMU (orientation
+    x, y, z, w to ENU and angular velocity rad/s) at each set; NaN where a set has none."""
 
     def __init__(self, capacity: int, sensors: int, seed: int | None = 0, channels: int = 0) -> None:
         if capacity < 1:
@@ -31,6 +35,8 @@ class SetBuffer:
         self.sensors = sensors
         self._raw = np.empty((capacity, sensors, 3))
         self._currents = np.zeros((capacity, channels))
+        self._temperatures = np.full((capacity, sensors), np.nan)
+        self._imu = np.full((capacity, 7), np.nan)
         self._stamps = np.zeros(capacity, dtype=np.int64)
         self._cells = np.zeros(capacity, dtype=np.int64)
         self._counts = np.zeros(CELLS, dtype=np.int64)
@@ -49,8 +55,10 @@ class SetBuffer:
         self._counts[:] = 0
         self.offered = 0
 
-    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
-        """Store one set (S raw vectors, T; the channels' currents, A), replacing a crowded one when full."""
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = (),
+            temperatures: Sequence[float] | None = None, imu: Sequence[float] | None = None) -> None:
+        """Store one set (S raw vectors, T; the channels' currents, A; the sensors' temperatures, deg C; the IMU's
+        orientation and angular velocity, 7 numbers), replacing a crowded one when full."""
         raw = np.asarray(values, dtype=float)
         cell = int(np.argmax(self._dirs @ raw.sum(axis=0)))
         self.offered += 1
@@ -66,6 +74,8 @@ class SetBuffer:
             self._counts[target] -= 1
         self._raw[slot] = raw
         self._currents[slot] = currents
+        self._temperatures[slot] = np.nan if temperatures is None else temperatures
+        self._imu[slot] = np.nan if imu is None else imu
         self._stamps[slot] = stamp_ns
         self._cells[slot] = cell
         self._counts[cell] += 1
@@ -80,7 +90,95 @@ class SetBuffer:
         order = np.argsort(self._stamps[: self._size], kind="stable")
         return self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy()
 
+    def collected(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                                 NDArray[np.float64]]:
+        """Copies, in stamp order, of the stamps (N,) ns, raw sets (N, S, 3) T, currents (N, m) A, temperatures
+        (N, S) deg C and IMU (N, 7): orientation x, y, z, w and angular velocity rad/s (NaN: none at that set)."""
+        order = np.argsort(self._stamps[: self._size], kind="stable")
+        return (self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy(),
+                self._temperatures[order].copy(), self._imu[order].copy())
+
     @property
     def cells_visited(self) -> int:
         """Number of sphere cells holding at least one set."""
         return int(np.count_nonzero(self._counts))
+
+
+def collected_recording(names: Sequence[str], channels: Sequence[str], stamps: NDArray[np.int64],
+                        raw: NDArray[np.float64], currents: NDArray[np.float64], temperatures: NDArray[np.float64],
+                        imu: NDArray[np.float64], imu_frame_id: str = "") -> tuple[Recording, list[str]]:
+    """The collected sets (see :meth:`SetBuffer.collected`) as a :class:`Recording`, and notes for users.
+
+    The temperatures and the IMU come with the sets when any set has them: then sets collected
+    without them (before the first temperature or IMU sample arrived) are left out, and a note
+    says how many; when no set has them, the recording has none.
+    """
+    rec = Recording(tuple(names), stamps, raw, tuple(channels), currents)
+    notes = []
+    have_t = np.all(np.isfinite(temperatures), axis=1)
+    if np.any(have_t):
+        if not np.all(have_t):
+            notes.append(f"{int(np.sum(~have_t))} sets collected before every sensor's temperature arrived left out")
+        rec = rec.take(have_t).with_temperatures(temperatures[have_t])
+        imu = imu[have_t]
+    have_imu = np.any(np.isfinite(imu), axis=1)
+    if np.any(have_imu):
+        if not np.all(have_imu):
+            notes.append(f"{int(np.sum(~have_imu))} sets collected before the IMU arrived left out")
+        rec = rec.take(have_imu).with_imu(ImuSamples(imu[have_imu, :4], imu[have_imu, 4:], imu_frame_id))
+    return rec, notes
+
+
+class MissionWindow:
+    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents), at most
+    one set every ``spacing_ns`` (a set closer than that to the last one kept is skipped), so that
+    a long window at a high rate stays small."""
+
+    def __init__(self, seconds_ns: int, spacing_ns: int, sensors: int, channels: int = 0) -> None:
+        self.seconds_ns = max(int(seconds_ns), 1)
+        self.spacing_ns = max(int(spacing_ns), 0)
+        self.sensors = sensors
+        self.channels = channels
+        self._sets: deque[tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...]]] = deque()
+        self._next = -(2**62)
+        self.newest = 0
+        """Stamp (ns) of the newest set seen (kept or not): the mission's time."""
+
+    def __len__(self) -> int:
+        return len(self._sets)
+
+    def due(self, stamp_ns: int) -> bool:
+        """Whether a set stamped ``stamp_ns`` would be kept (the caller then fetches its currents). A stamp
+        more than the window before the newest means the source restarted: a new mission, the window
+        starts again."""
+        if stamp_ns < self.newest - self.seconds_ns:
+            self.clear()
+            self.newest = stamp_ns
+        elif stamp_ns > self.newest:
+            self.newest = stamp_ns
+        return stamp_ns >= self._next
+
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
+        """Keep one set (S raw vectors, T; the channels' currents, A) if :meth:`due`; forget sets older
+        than the window."""
+        if not self.due(stamp_ns):
+            return
+        self._sets.append((stamp_ns, tuple(values), tuple(currents)))
+        self._next = stamp_ns + self.spacing_ns
+        self.newest = max(self.newest, stamp_ns)
+        first = stamp_ns - self.seconds_ns
+        while self._sets and self._sets[0][0] < first:
+            self._sets.popleft()
+
+    def clear(self) -> None:
+        """Forget every set."""
+        self._sets.clear()
+        self._next = -(2**62)
+
+    def snapshot(self, since_ns: int | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Stamps (N,) ns, raw sets (N, S, 3) T and currents (N, m) A of the sets stamped ``since_ns`` or later."""
+        rows = [s for s in self._sets if since_ns is None or s[0] >= since_ns]
+        stamps = np.array([r[0] for r in rows], dtype=np.int64)
+        raw = np.array([r[1] for r in rows], dtype=float).reshape(len(rows), self.sensors, 3)
+        currents = np.array([r[2] for r in rows], dtype=float).reshape(len(rows), self.channels)
+        return stamps, raw, currents

@@ -42,6 +42,14 @@ next, in words) and ``prior``. ``/diagnostics`` (DiagnosticArray, same period): 
 health of the raw streams (silent or late sensors, drops, sets lost before the node, no
 complete set for ``output_timeout``, stale currents), as the correction node reports it.
 
+Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the node keeps a
+rolling window of the mission's sets and watches the correction node's calibration health on
+``/diagnostics``. When it names a drift, with ``auto_recalibrate`` the sets flown since
+(``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
+(what changed determined, the held-out sets fitted) and pushed and saved, at most once per
+``recalibrate_interval``; without it, ``~/progress`` and the status ``<node>: recalibration``
+say what to fly so that ``~/calibrate`` fixes it.
+
 Usage::
 
     ros2 run magcal_ros calibration_node --ros-args -p reference_field:=5.15e-5
@@ -59,6 +67,7 @@ import os
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -81,13 +90,15 @@ from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_field
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.interference import LatestCurrents
+from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, LatestImu
+from magcal_ros.core.interference import LatestCurrents, tolerance_of
+from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.recording import Recording
 from magcal_ros.core.observability import excitation
-from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
-from magcal_ros.methods import progress
+from magcal_ros.methods import progress, recalibration
 from magcal_ros.methods.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -95,18 +106,22 @@ from magcal_ros.methods.pipeline import (
     SolveOptions,
     calibrate_array,
 )
-from magcal_ros.nodes import common
-from magcal_ros.nodes.buffer import SetBuffer
-from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
+from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
 NODE_NAME = "magcal_calibration"
 DEFAULT_CALIBRATION_FILE = "~/.ros/magcal_calibration.yaml"
 WHAT_TO_DO = "call ~/start, turn the array through large angles about at least two axes, then call ~/calibrate"
 PRIORS: tuple[str, ...] = ("running", "none")
 """The ``prior`` settings besides a file path."""
-RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance",
-                                       *common.INTERFERENCE_PARAMETERS})
+RECONNECT: frozenset[str] = frozenset({"sensor_names", "positions", "max_samples", "sync_tolerance", "sync_mode",
+                                       "max_gap", *common.INTERFERENCE_PARAMETERS, "temperature_tolerance",
+                                       "imu_topic", "imu_tolerance"})
 """Parameters whose change drops the collected sets and subscribes afresh."""
+BAD_SAMPLES: tuple[str, ...] = ("nonfinite", "out_of_range", "out_of_order", "duplicate", "zero_stamp",
+                                "negative_stamp")
+"""The synchronizer counters ``~/progress`` sums as ``bad_samples``: messages refused for what they hold."""
 
 
 class CallFailed(Exception):
@@ -145,6 +160,8 @@ class CalibrationNode(Node):
         """(generation, prior, what it is) the progress analysis uses for that collection."""
         self._analyser: ProcessPoolExecutor | None = None
         """The process the progress analyses run in (started with the first one)."""
+        self._changed: set[str] = set()
+        """Parameters the update being applied changes."""
         self._declare_parameters()
         self._limits = common.declare_health(self)
         try:
@@ -157,6 +174,15 @@ class CalibrationNode(Node):
         self._calibrate_group = ReentrantCallbackGroup()
         self._wake = self.create_guard_condition(lambda: None)
         self._subs: list[Any] = []
+        window_ns = int(float(self.get_parameter("recalibrate_window").value) * 1e9)
+        self._watch = recalibration.DriftWatch(window_ns, self._interval_ns())
+        self._recalibration: dict[str, str] = {"recalibrations": "0", "last_recalibration": "", "last_attempt": ""}
+        """What the mission recalibration did last (values of its status)."""
+        self._advice: tuple[int, str] | None = None
+        """(mission time, text) of the latest advice on what to fly to fix a drift."""
+        self._drift_worker: threading.Thread | None = None
+        self._health_seen = ""
+        """The latest calibration health message of the correction node ('' before the first)."""
         self._connect(self._geometry)
         self._progress_pub = self.create_publisher(DiagnosticStatus, "~/progress", 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
@@ -166,10 +192,13 @@ class CalibrationNode(Node):
         self._target_clients: dict[str, tuple[Any, Any]] = {}
         self._service_clients()
         self._drops = common.DropReporter(self.get_logger())
+        self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
         self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
+        self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._drift_tick)
+        self.create_subscription(DiagnosticArray, common.DIAGNOSTICS_TOPIC, self._on_diagnostics, 10)
         channels = self._inputs.channels
         self.get_logger().info(
             f"listening to {', '.join(topics.raw(n) for n in self._geometry.names)}"
@@ -189,8 +218,8 @@ class CalibrationNode(Node):
               "(methods ml and paired only), or from site", constraints="0, or 1e-7 .. 1e-3 T", numbers=True,
               floats=(0.0, 1e-3)),
         )
-        self.declare_parameter(
-            "site", None,
+        common.declare_list(
+            self, "site", Parameter.Type.DOUBLE_ARRAY,
             d("where the manoeuvre is flown, for the reference intensity from the World Magnetic Model: [lat_deg, "
               "lon_deg] or [lat_deg, lon_deg, alt_m] (north and east positive, altitude above sea level, negative "
               "under water); not set or [] = not used. Excludes reference_field > 0",
@@ -239,10 +268,20 @@ class CalibrationNode(Node):
         )
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
-            d("largest spread (s) of header stamps within one set; capped at half the sample period",
-              constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
+            d("exact matching: largest spread (s) of header stamps within one set; capped at half the sample "
+              "period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
+        common.declare_sync(self)
         common.declare_currents(self)
+        common.declare_temperature_tolerance(self)
+        self.declare_parameter(
+            "imu_topic", topics.IMU,
+            d("the vehicle's IMU (sensor_msgs/Imu: orientation IMU frame -> world ENU, angular velocity rad/s), "
+              "collected with every set once heard, interpolated to the set's instant, so that the fit can use it"))
+        self.declare_parameter(
+            "imu_tolerance", DEFAULT_IMU_TOLERANCE,
+            d("a set needs an IMU sample stamped at most this (s) before it, and waits at most this long for the "
+              "sample after it to interpolate between them", numbers=True, floats=(0.0, 60.0)))
         self.declare_parameter("autostart", False, d("collect from start-up without calling ~/start", read_only=True))
         self.declare_parameter(
             "service_timeout", 5.0, d("how long (s) to wait for the correction node's services", numbers=True,
@@ -258,6 +297,25 @@ class CalibrationNode(Node):
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
+        self.declare_parameter(
+            "auto_recalibrate", False,
+            d("when the correction node's calibration health names a drift: true = recalibrate from the sets "
+              "flown since (running calibration as the prior, checked on held-out sets), push and save it; false = "
+              "advise on /diagnostics and ~/progress what to fly so that ~/calibrate can fix it"))
+        self.declare_parameter(
+            "recalibrate_window", 60.0,
+            d("seconds of the mission's sets (flown after the drift was named) a recalibration during the mission "
+              "fits and checks (at most max_samples sets, evenly in time)", read_only=True, numbers=True,
+              floats=(10.0, 3600.0)))
+        self.declare_parameter(
+            "recalibrate_interval", 600.0,
+            d("shortest time (s, of the sets' stamps) between two recalibrations pushed by auto_recalibrate",
+              numbers=True, floats=(0.0, 86400.0)))
+
+    def _numeric(self, name: str) -> bool:
+        """Whether parameter ``name`` holds numbers."""
+        return name in ("positions", "site") or (self.has_parameter(name) and self.get_parameter(name).type_ in (
+            Parameter.Type.DOUBLE, Parameter.Type.INTEGER, *common.NUMBER_ARRAYS))
 
     def _value(self, name: str, updates: dict[str, Any]) -> Any:
         return updates[name] if name in updates else self.get_parameter_or(name).value  # unset: None
@@ -286,12 +344,32 @@ class CalibrationNode(Node):
         if int(self._value("max_samples", updates)) < 20:
             raise InputError("max_samples must be at least 20")
         common.tolerance_ns(self._number("sync_tolerance", updates))
+        common.sync_settings({n: self._value(n, updates) for n in ("sync_mode", "max_gap")})
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
-        if not str(self._value("correction_node", updates)).strip("/"):
+        target = str(self._value("correction_node", updates)).strip()
+        if not target.strip("/"):
             raise InputError("correction_node must name a node")
+        common.check_node_name("correction_node", target)
         common.current_inputs({n: self._value(n, updates) for n in common.INTERFERENCE_PARAMETERS})
+        common.temperature_tolerance_ns(self._value("temperature_tolerance", updates))
+        self._imu_topic(updates)
+        tolerance = self._value("imu_tolerance", updates)
+        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
+            raise InputError(f"imu_tolerance must be a positive number of seconds, got {tolerance!r}")
         return geo
+
+    def _imu_topic(self, updates: dict[str, Any]) -> str:
+        """The IMU topic; :class:`InputError` for a name that is not a topic."""
+        from rclpy.exceptions import InvalidTopicNameException
+        from rclpy.validate_topic_name import validate_topic_name
+
+        topic = str(self._value("imu_topic", updates) or "").strip()
+        try:
+            validate_topic_name(topic)
+        except InvalidTopicNameException as exc:
+            raise InputError(f"imu_topic: {str(exc).splitlines()[0]}: {topic!r}") from None
+        return topic
 
     def _site(self, updates: dict[str, Any]) -> SiteField | None:
         """The model's field at ``site`` on ``date`` (None when site is not set); :class:`InputError` with the
@@ -326,12 +404,13 @@ class CalibrationNode(Node):
                 return SetParametersResult(successful=False, reason=why)
         try:
             self._validate({p.name: p.value for p in params})
-        except (InputError, TypeError, ValueError) as exc:
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             return SetParametersResult(successful=False, reason=str(exc))
+        self._changed = {p.name for p in params if self.get_parameter_or(p.name).value != p.value}
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
-        names = {p.name for p in params}
+        names = {p.name for p in params} & self._changed  # a value set again as it was changes nothing
         if "correction_node" in names:
             self._service_clients()
         if names & RECONNECT:
@@ -345,14 +424,22 @@ class CalibrationNode(Node):
         if names & {"prior", "correction_node", "reference_field", "site", "date"}:
             with self._lock:
                 self._generation += 1  # the progress analysis starts afresh with the new settings
+        if "recalibrate_interval" in names:
+            with self._lock:
+                self._watch.interval_ns = self._interval_ns()
 
     # -- collecting -----------------------------------------------------------------
     def _connect(self, geo: ArrayGeometry) -> None:
         inputs = common.current_inputs({n: self._value(n, {}) for n in common.INTERFERENCE_PARAMETERS})
         self._inputs = inputs
-        self._sync = SetSynchronizer(geo.size, common.tolerance_ns(self.get_parameter("sync_tolerance").value))
+        mode, gap = common.sync_settings({n: self._value(n, {}) for n in ("sync_mode", "max_gap")})
+        self._sync = common.synchronizer(geo.names, common.tolerance_ns(self.get_parameter("sync_tolerance").value),
+                                         mode, gap)
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
+        window_ns = self._watch.window_ns
+        self._mission = MissionWindow(2 * window_ns, window_ns // int(self.get_parameter("max_samples").value),
+                                      geo.size, len(inputs.channels))
         self._generation += 1
         self._subs = [
             self.create_subscription(
@@ -364,7 +451,52 @@ class CalibrationNode(Node):
         self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
                                              inputs.tolerance_ns)
         clock = common.clock_reader(self)
+        self._receipt_clock = clock
         self._subs += common.subscribe_currents(self, inputs, self._currents, self._raw_qos, lambda: clock())
+        self._connect_temperature_and_imu(geo, clock)
+
+    def _connect_temperature_and_imu(self, geo: ArrayGeometry, clock: Any) -> None:
+        """Subscribe ``<name>/temperature`` and the IMU; their values are collected with the sets once heard."""
+        from sensor_msgs.msg import Imu
+
+        temp_tol = common.temperature_tolerance_ns(self.get_parameter("temperature_tolerance").value)
+        self._temperatures = LatestValues(geo.size, temp_tol)
+        self._temperature_health = TemperatureHealth(
+            geo.names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in geo.names), temp_tol)
+        self._subs += common.subscribe_temperatures(self, geo.names, self._temperatures, self._raw_qos,
+                                                    lambda: clock())
+        topic = self._imu_topic({})
+        imu_tol = tolerance_of(float(self.get_parameter("imu_tolerance").value), "IMU")
+        self._imu = LatestImu(imu_tol)
+        self._imu_health = ImuHealth(("imu",), (self.resolve_topic_name(topic),), imu_tol)
+        self._pending: deque[tuple[int, Any, list[float], list[float] | None]] = deque()
+        """Sets waiting for the IMU's next sample: (stamp, raw values, currents, temperatures)."""
+        self._newest_set = 0
+        unknown = -1.0
+
+        def on_imu(msg: Any) -> None:
+            o, w = msg.orientation, msg.angular_velocity
+            q = [o.x, o.y, o.z, o.w]
+            if msg.orientation_covariance[0] == unknown or not any(q):
+                q = [float("nan")] * 4
+            rate = [w.x, w.y, w.z]
+            if msg.angular_velocity_covariance[0] == unknown:
+                rate = [float("nan")] * 3
+            with self._lock:
+                self._imu.add(common.stamp_ns(msg.header.stamp) or clock(), q, rate, msg.header.frame_id)
+                self._flush_pending(force=False)
+
+        self._subs.append(self.create_subscription(Imu, topic, on_imu, self._raw_qos))
+
+    def _flush_pending(self, force: bool) -> None:
+        """Collect the sets waiting for the IMU whose sample after them arrived or that waited long enough
+        (all of them with ``force``); a set without an IMU sample near it is not collected. Lock held."""
+        imu, pending = self._imu, self._pending
+        while pending and (force or imu.ready(pending[0][0], self._newest_set)):
+            stamp, values, currents, temperatures = pending.popleft()
+            q, w, fresh = imu.at(stamp)
+            if self._imu_health.count([fresh]):
+                self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
 
     def _disconnect(self) -> None:
         for s in self._subs:
@@ -378,21 +510,36 @@ class CalibrationNode(Node):
             stamp = common.stamp_ns(st)
             with self._lock:
                 self._health.seen(index, stamp)
-                synced = self._sync.add(index, stamp, f.x, f.y, f.z)
-                if synced is None or not self._collecting:
-                    return
-                currents: list[float] = []
-                if self._inputs.channels:
-                    currents, fresh = self._currents.at(synced.stamp)
-                    if not self._current_health.count(fresh):
-                        return  # a set without a fresh current of every channel is not collected
-                self._buffer.add(synced.stamp, synced.values, currents)
+                for synced in self._sync.add(index, stamp, f.x, f.y, f.z, self._receipt_clock()):
+                    if self._mission.due(synced.stamp):  # the mission's rolling window, for a recalibration at sea
+                        values, fresh = self._currents.at(synced.stamp) if self._inputs.channels else ([], [])
+                        if all(fresh):
+                            self._mission.add(synced.stamp, synced.values, values)
+                    if not self._collecting:
+                        continue
+                    currents: list[float] = []
+                    if self._inputs.channels:
+                        currents, fresh = self._currents.at(synced.stamp)
+                        if not self._current_health.count(fresh):
+                            continue  # a set without a fresh current of every channel is not collected
+                    temperatures = None
+                    if any(self._temperatures.received):  # once heard, every set needs them
+                        temperatures, fresh = self._temperatures.at(synced.stamp)
+                        if not self._temperature_health.count(fresh):
+                            continue
+                    self._newest_set = max(self._newest_set, synced.stamp)
+                    if self._imu.received:  # wait for the IMU's sample after the set
+                        self._pending.append((synced.stamp, synced.values, currents, temperatures))
+                        self._flush_pending(force=False)
+                    else:
+                        self._buffer.add(synced.stamp, synced.values, currents, temperatures)
 
         return callback
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             self._buffer.clear()
+            self._pending.clear()
             self._collecting = True
             self._generation += 1
         response.success = True
@@ -407,6 +554,7 @@ class CalibrationNode(Node):
         with self._lock:
             dropped = len(self._buffer)
             self._buffer.clear()
+            self._pending.clear()
             self._collecting = False
             self._generation += 1
         response.success = True
@@ -443,14 +591,8 @@ class CalibrationNode(Node):
                 cached = self._progress_prior = (key[0], prior, note)
             _, prior, note = cached
             reference, site = self._reference()
-            spawn = self._analyser is None
-            if spawn:
-                self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
-            with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
-                job = self._analyser.submit(progress.assess, raw, geo, reference, prior, stamps,
-                                            currents if channels else None, channels,
-                                            inclination_deg=site.inclination_deg if site is not None else None)
-            result = job.result()
+            result = self._analyse(raw, geo, reference, prior, stamps, currents if channels else None, channels,
+                                   inclination_deg=site.inclination_deg if site is not None else None)
         except Stopping:
             return
         except Exception as exc:  # noqa: BLE001 - progress must never stop the node
@@ -464,9 +606,19 @@ class CalibrationNode(Node):
             if key[0] == self._generation:
                 self._assessment = (*key, result, note)
 
+    def _analyse(self, *args: Any, **kwargs: Any) -> progress.Assessment:
+        """:func:`magcal_ros.methods.progress.assess` in the analysis process (started with the first one)."""
+        spawn = self._analyser is None
+        if spawn:
+            self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
+        with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
+            job = self._analyser.submit(progress.assess, *args, **kwargs)  # type: ignore[union-attr]
+        return job.result()
+
     def _publish_progress(self) -> None:
         now = common.now_ns(self)
         with self._lock:
+            self._flush_pending(force=False)
             _, raw = self._buffer.snapshot()
             collecting, offered, capacity = self._collecting, self._buffer.offered, self._buffer.capacity
             stats = self._sync.stats.as_dict()
@@ -475,8 +627,15 @@ class CalibrationNode(Node):
             store = self._currents
             stale, current_values = self._current_health.assess(
                 store.received, [store.latest(j) for j in range(store.channels)], "not collected")
+            temps = self._temperatures
+            stale_t, temperature_values = self._temperature_health.assess(
+                temps.received, [temps.latest(j) for j in range(temps.channels)], "not collected")
+            stale_i, imu_values = self._imu_health.assess([self._imu.received], [None], "not collected")
+            stale = "; ".join(x for x in (stale, stale_t, stale_i) if x) or None
             health = self._health.assess(now, stats, "complete sets", stale)
             health.values.update(current_values)
+            health.values.update(temperature_values)
+            health.values.update(imu_values)
             latest = self._assessment if self._assessment and self._assessment[0] == self._generation else None
         self._drops.update(stats, f"{stats['sets']} complete sets")
         for line in health.notices:
@@ -498,7 +657,7 @@ class CalibrationNode(Node):
             "ready": str(problem is None and len(raw) > 0).lower(),
             "problem": problem or "",
             "unmatched": str(stats["unmatched"]),
-            "bad_samples": str(stats["nonfinite"] + stats["out_of_order"] + stats["duplicate"] + stats["zero_stamp"]),
+            "bad_samples": str(sum(stats[k] for k in BAD_SAMPLES)),
             "assessed": str(assessed.samples if assessed is not None else 0),
             "envelope": _envelope_text(assessed),
             "envelope_pitch_deg": f"{assessed.envelope.pitch_deg:g}" if assessed and assessed.envelope else "",
@@ -506,6 +665,11 @@ class CalibrationNode(Node):
             "undetermined": ", ".join(assessed.undetermined) if assessed is not None else "",
             "advice": assessed.advice if assessed is not None else "",
             "prior": latest[3] if latest is not None else "",
+        }
+        recal = self._recalibration_status()
+        values |= {
+            "calibration_health": self._watch.health if self._watch.since is not None else self._health_seen,
+            "recalibration": recal.message,
         }
         if not collecting and not len(raw):
             message = "idle: call ~/start to collect"
@@ -525,7 +689,142 @@ class CalibrationNode(Node):
         health.values.update(collecting=values["collecting"], samples=values["samples"])
         sensors = ",".join(self._geometry.names)
         self._diagnostics_pub.publish(common.diagnostic_array(
-            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health)]))
+            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health), recal]))
+
+    # -- recalibration during the mission -------------------------------------------
+    def _interval_ns(self) -> int:
+        return int(float(self.get_parameter("recalibrate_interval").value) * 1e9)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """The correction node's calibration health: a drift named starts the mission recalibration's clock."""
+        target = self._target_name()
+        for status in msg.status:
+            if status.name != target + drift.STATUS_SUFFIX:
+                continue
+            drifted = any(kv.key == "drifted" and kv.value == "true" for kv in status.values)
+            with self._lock:
+                self._health_seen = status.message
+                named = self._watch.report(drifted, status.message, self._mission.newest)
+            if named:
+                auto = bool(self.get_parameter("auto_recalibrate").value)
+                window = self._watch.window_ns / 1e9
+                self.get_logger().warn(
+                    f"{target}: {status.message}; " + (
+                        f"auto_recalibrate: recalibrating from the next {window:.0f} s of sets" if auto else
+                        "auto_recalibrate is off: ~/progress and /diagnostics say what to fly, then call ~/calibrate"))
+
+    def _drift_tick(self) -> None:
+        """While a drift is named: recalibrate (auto_recalibrate) or advise, in a worker thread."""
+        if self._stopping.is_set() or (self._drift_worker is not None and self._drift_worker.is_alive()):
+            return
+        with self._lock:
+            now = self._mission.newest
+            due, _ = self._watch.due(now)
+            if self._watch.since is None:
+                return
+            start = self._watch.window_start(now)
+        if bool(self.get_parameter("auto_recalibrate").value):
+            if not due or not self._solve_lock.acquire(blocking=False):
+                return
+            with self._lock:
+                window = self._mission.snapshot(start)
+            target, args = self._auto_recalibrate, (now, window)
+        else:
+            if now - start < self._watch.window_ns // 3 or (self._advice is not None and self._advice[0] == now):
+                return
+            with self._lock:
+                window = self._mission.snapshot(start)
+            target, args = self._advise, (now, window)
+        self._drift_worker = threading.Thread(target=target, args=args, name="magcal-recalibrate", daemon=True)
+        self._drift_worker.start()
+
+    def _auto_recalibrate(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Fit the sets flown since the drift was named (held-out sets aside), check, push and save (worker thread)."""
+        pushed = False
+        with self._lock:
+            health = self._watch.health  # what named the drift (a push makes the next report say otherwise)
+        try:
+            stamps, raw, currents = window
+            fit, held = recalibration.split(stamps)
+            seen: dict[str, Any] = {}
+
+            def check(result: CalibrationResult, prior: ArrayCalibration | None) -> str | None:
+                why, figures = recalibration.verdict(result, prior, raw[fit], raw[held], currents[fit], currents[held])
+                seen.update(result=result, prior=prior, held=figures)
+                return why
+
+            fallback = self._running_intensity() if self._reference()[0] is None else None
+            pushed, message = self._calibrate((stamps[fit], raw[fit], currents[fit]), check, fallback)
+            if pushed:
+                figures = seen["held"]
+                message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
+                           f"calibration health said: {health}): "
+                           f"{recalibration.changes(seen['prior'], seen['result'].calibration)}; "
+                           f"{figures.describe()}; {message}")
+                self.get_logger().info(message)
+                with self._lock:
+                    self._recalibration["recalibrations"] = str(int(self._recalibration["recalibrations"]) + 1)
+                    self._recalibration["last_recalibration"] = message
+                    self._recalibration["last_attempt"] = ""
+            else:
+                with self._lock:
+                    self._recalibration["last_attempt"] = message
+        except Stopping:
+            return
+        except Exception as exc:  # noqa: BLE001 - the mission goes on whatever happened here
+            if self._stopping.is_set():
+                return
+            self.get_logger().error(f"recalibration during the mission failed unexpectedly ({type(exc).__name__}: "
+                                    f"{exc}); nothing was changed")
+            with self._lock:
+                self._recalibration["last_attempt"] = f"failed unexpectedly: {exc}; nothing was changed"
+        finally:
+            with self._lock:
+                self._watch.attempted(now, pushed)
+            self._solve_lock.release()
+
+    def _running_intensity(self) -> float | None:
+        """The intensity (T) the correction node's calibration maps |B| to, when it says (else None)."""
+        try:
+            value = self._target_values(self._geometry.names).get(drift.INTENSITY)
+        except CallFailed:
+            return None
+        return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+    def _advise(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """What to fly so that ~/calibrate fixes the drift: the progress analysis of the sets flown since it was
+        named, with the running calibration as the prior (worker thread; the math in the analysis process)."""
+        stamps, raw, currents = window
+        try:
+            prior, _ = self._resolve_prior(self._geometry)
+            reference, site = self._reference()
+            channels = self._inputs.channels
+            assessed = self._analyse(raw, self._geometry, reference or self._running_intensity(), prior, stamps,
+                                     currents if channels else None, channels,
+                                     inclination_deg=site.inclination_deg if site is not None else None)
+            text = recalibration.advice(assessed, prior is not None, self._watch.window_ns / 1e9)
+        except Stopping:
+            return
+        except Exception as exc:  # noqa: BLE001 - advice must never stop the node
+            if self._stopping.is_set():
+                return
+            if isinstance(exc, BrokenProcessPool):
+                self._analyser = None
+            text = f"cannot analyse the sets flown since the drift was named: {exc}"
+        with self._lock:
+            self._advice = (now, text)
+
+    def _recalibration_status(self) -> DiagnosticStatus:
+        """``<node>: recalibration``: a drift named and what is done about it (WARN until fixed)."""
+        auto = bool(self.get_parameter("auto_recalibrate").value)
+        with self._lock:
+            advice = self._advice[1] if self._advice is not None else ""
+            warn, message, values = recalibration.status(self._target_name(), auto, self._watch, self._mission.newest,
+                                                         self._health_seen, advice, self._recalibration)
+        return DiagnosticStatus(level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
+                                name=self.get_fully_qualified_name() + ": recalibration", message=message,
+                                hardware_id=",".join(self._geometry.names),
+                                values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     # -- calibrating ----------------------------------------------------------------
     async def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -570,18 +869,25 @@ class CalibrationNode(Node):
             worker.join(2.0)
         if self._analyser is not None:
             self._analyser.shutdown(wait=False, cancel_futures=True)
-        assessor = self._assessor
-        if assessor is not None and assessor.is_alive():
-            assessor.join(2.0)
+        for thread in (self._assessor, self._drift_worker):
+            if thread is not None and thread.is_alive():
+                thread.join(2.0)
 
     def _check_stop(self) -> None:
         if self._stopping.is_set():
             raise Stopping()
 
-    def _fingerprint(self, raw: np.ndarray, currents: np.ndarray, geo: ArrayGeometry, settings: tuple[Any, ...]) -> str:
-        """Identifies a calibration: the collected sets and currents, geometry, settings and where it goes."""
+    def _fingerprint(self, raw: np.ndarray, currents: np.ndarray, geo: ArrayGeometry, settings: tuple[Any, ...],
+                     collected: Recording | None = None) -> str:
+        """Identifies a calibration: the collected sets, currents, temperatures and IMU, geometry, settings and
+        where it goes."""
         h = hashlib.sha256(np.ascontiguousarray(raw).tobytes())
         h.update(np.ascontiguousarray(currents).tobytes())
+        if collected is not None and collected.temperatures is not None:
+            h.update(np.ascontiguousarray(collected.temperatures).tobytes())
+        if collected is not None and collected.imu is not None:
+            h.update(np.ascontiguousarray(collected.imu.orientation).tobytes())
+            h.update(np.ascontiguousarray(collected.imu.angular_velocity).tobytes())
         where = (self._target_name(), self._calibration_path())
         h.update(repr((geo.names, geo.positions.tolist(), settings, where)).encode())
         return h.hexdigest()
@@ -609,10 +915,28 @@ class CalibrationNode(Node):
         prior = calfile.read(path, self._target_name().lstrip("/"))
         return prior, f"the calibration file {path}"
 
-    def _calibrate(self) -> tuple[bool, str]:
+    def _collected(self) -> tuple[Recording, list[str]]:
+        """The collected sets with their currents, temperatures and IMU (lock held)."""
+        self._flush_pending(force=True)
+        stamps, raw, currents, temperatures, imu = self._buffer.collected()
+        return collected_recording(self._geometry.names, self._inputs.channels, stamps, raw, currents, temperatures,
+                                   imu, self._imu.frame_id)
+
+    def _calibrate(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, check: Any = None,
+                   reference_fallback: float | None = None) -> tuple[bool, str]:
+        """Solve, save and push (the ~/calibrate service; a recalibration during the mission).
+
+        ``window``: (stamps, raw, currents) to fit instead of the collected sets; ``check(result, prior)``:
+        why the result must not be applied (or None), asked before anything changes;
+        ``reference_fallback``: the intensity (T) when neither reference_field nor site gives one."""
         with self._lock:
-            stamps, raw, currents = self._buffer.snapshot_all()
+            if window is None:
+                collected, collect_notes = self._collected()
+            else:
+                collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
+                collect_notes = []
             geo, inputs = self._geometry, self._inputs
+        stamps, raw, currents = collected.stamps, collected.vectors, collected.currents
         channels = inputs.channels
         if len(raw) == 0:
             return self._fail("no synchronized sets collected" + ("" if self._collecting else " (not collecting)")
@@ -622,11 +946,12 @@ class CalibrationNode(Node):
             reference, site = self._reference()
         except InputError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed")
+        reference = reference or reference_fallback
         residual = float(self.get_parameter("max_residual").value) or None
         setting = str(self.get_parameter("prior").value).strip()
         settings = (method, reference, residual, setting, channels)
-        fingerprint = self._fingerprint(raw, currents, geo, settings)
-        if self._last_solved is not None and self._last_solved[0] == fingerprint:
+        fingerprint = self._fingerprint(raw, currents, geo, settings, collected)
+        if window is None and self._last_solved is not None and self._last_solved[0] == fingerprint:
             message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
                        f"so nothing was solved, applied or written again; call ~/start to collect new sets "
                        f"(last result: {self._last_solved[1]})")
@@ -646,6 +971,9 @@ class CalibrationNode(Node):
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()
+        why = check(result, prior) if check is not None else None
+        if why:
+            return self._fail(f"not recalibrated: {why}; nothing was changed (prior: {prior_note})")
         cal = result.calibration
         if site is not None:
             cal.metadata.update(site.provenance())
@@ -658,6 +986,8 @@ class CalibrationNode(Node):
         params.update(_channel_parameters(inputs, cal.channels))  # no channels: the node's earlier ones must go too
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
+            params[name].setdefault("time_offset", 0.0)  # and any time offset
+        params.update(_neutral_terms(params, cal.geometry.names))  # nor temperature terms or a rotation
         keep = int(self.get_parameter("backups").value)
         staged = calfile.replace(path, cal, self._target_name(), keep) if path else contextlib.nullcontext()
         try:
@@ -681,15 +1011,19 @@ class CalibrationNode(Node):
                 except CallFailed as again:
                     undo += f"; could NOT set the previous calibration again on the correction node ({again})"
             return self._fail(f"solved but not applied: {exc}; {undo}")
+        if window is not None:  # the calibration in force changed: a ~/calibrate is never "unchanged" now
+            self._last_solved = None
+            return True, self._success_message(result, path, prior_note, site)
         with self._lock:
             self._collecting = False
             self._generation += 1
-        message = self._success_message(result, path, prior_note, site)
+        message = self._success_message(result, path, prior_note, site, collect_notes)
         self._last_solved = (fingerprint, message)
         self.get_logger().info(message)
         return True, message
 
-    def _success_message(self, result: CalibrationResult, path: str, prior_note: str, site: SiteField | None) -> str:
+    def _success_message(self, result: CalibrationResult, path: str, prior_note: str, site: SiteField | None,
+                         notes: Sequence[str] = ()) -> str:
         where = f"applied to {self._target_name()}" + (f", written {path}" if path else ", no file written")
         parts = [result.summary()]
         if not int(result.outliers.sum()):
@@ -701,7 +1035,7 @@ class CalibrationNode(Node):
         if result.calibration.channels:
             parts.append(f"interference of {', '.join(result.calibration.channels)} solved")
         parts.extend(w for w in result.warnings if not w.startswith(result.envelope.describe()))  # said already
-        return "; ".join(parts + [where])
+        return "; ".join(parts + list(notes) + [where])
 
     def _fail(self, message: str) -> tuple[bool, str]:
         self.get_logger().warn(message)
@@ -757,8 +1091,10 @@ class CalibrationNode(Node):
     @staticmethod
     def _wanted(names: Sequence[str]) -> list[str]:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
-        per_sensor = [f"{n}.{s}" for n in names for s in ("matrix", "offset", "covariance", "interference")]
-        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3]] + per_sensor
+        per_sensor = [f"{n}.{s}" for n in names
+                      for s in ("matrix", "offset", "covariance", "interference", "noise", *common.TEMPERATURE_SUFFIXES)]
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], *common.CALIBRATION_FRAME_PARAMETERS,
+                "frame_id", "calibration_intensity"] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
         """ParameterValue messages of the correction node's parameters ``names`` that are set.
@@ -784,6 +1120,10 @@ class CalibrationNode(Node):
         for name in common.INTERFERENCE_PARAMETERS[:3]:  # none before: none again on restore
             if name not in found:
                 out.append(common.parameter_message(name, []))
+        neutral = _neutral_terms({}, names)  # no temperature terms or rotation before: none again
+        for name, value in common.flatten_parameters(neutral).items():
+            if name not in found:
+                out.append(common.parameter_message(name, value))
         return out
 
     def _target_values(self, names: Sequence[str]) -> dict[str, Any]:
@@ -808,6 +1148,20 @@ def _unset(param: Parameter) -> bool:
     if param.type_ == Parameter.Type.NOT_SET:
         return True
     return param.type_.name.endswith("_ARRAY") and len(param.value) == 0
+
+
+def _neutral_terms(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any]:
+    """Zero temperature terms and an identity output rotation where ``params`` (nested) has none: pushed with a
+    calibration, so terms of an earlier one never outlive it on the correction node."""
+    out: dict[str, Any] = {}
+    for name in names:
+        block = dict(params.get(name) or {})
+        block.setdefault("offset_per_kelvin", [0.0] * 3)
+        block.setdefault("matrix_per_kelvin", [0.0] * 9)
+        out[name] = block
+    if "output_rotation" not in params:
+        out["output_rotation"] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    return out
 
 
 def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:

@@ -24,7 +24,9 @@ from magcal_ros.core.interference import (
     LatestCurrents,
     tolerance_of,
 )
-from magcal_ros.core.units import NS_PER_S
+from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
+from magcal_ros.core.units import MAX_READING, NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes.entry import quiet_signals
 from magcal_ros.nodes.health import Assessment, HealthLimits
@@ -137,11 +139,66 @@ def clock_reader(node: Any) -> Callable[[], int]:
 NUMBER_ARRAYS = (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY)
 
 
+def is_empty_list(param: Parameter) -> bool:
+    """An empty list of any element type: how ``[]`` comes from a params file or ``ros2 param load``
+    (which give it no element type, or booleans)."""
+    return param.type_.name.endswith("_ARRAY") and len(param.value) == 0
+
+
 def check_number_array(param: Parameter) -> str | None:
-    """Why ``param`` is not a list of numbers, or None if it is."""
-    if param.type_ not in NUMBER_ARRAYS:
+    """Why ``param`` is not a list of numbers (an empty list of any type counts), or None if it is."""
+    if param.type_ not in NUMBER_ARRAYS and not is_empty_list(param):
         return f"{param.name} must be a list of numbers, got {param.type_.name.lower()}"
     return None
+
+
+def declare_list(node: Any, name: str, kind: Parameter.Type, descriptor: ParameterDescriptor) -> Any:
+    """Declare a list parameter whose "none" is the empty list, so that it always has a value
+    (``ros2 param get`` and ``dump`` fail on a parameter without one). Dynamically typed: an empty
+    list comes back from a params file without an element type (rcl) or as booleans (``ros2 param
+    load``); the node reads an empty list of any type as none."""
+    descriptor.dynamic_typing = True
+    node.declare_parameter(name, None, descriptor)
+    if node.get_parameter(name).type_ == Parameter.Type.NOT_SET:
+        node.set_parameters([Parameter(name, kind, [])])  # before the nodes add their set callbacks
+    return node.get_parameter(name).value
+
+
+def number_text(text: str) -> float | list[float] | None:
+    """A number or list of numbers that ``ros2 param load`` passed on as text, or None.
+
+    rclpy re-reads each value of a params file with YAML 1.1, to which ``5e-08`` (no decimal
+    point) is a string: ``[5e-08, 1.0]`` arrives as the string ``"[5e-08, 1.0]"``, and
+    ``[5e-08, 1e-07]`` as a list of strings."""
+    body = text.strip()
+    try:
+        if body.startswith("[") and body.endswith("]"):
+            inner = body[1:-1].strip()
+            return [float(t) for t in inner.split(",")] if inner else []
+        return float(body)
+    except ValueError:
+        return None
+
+
+def numbers_from_text(numeric: Callable[[str], bool]) -> Callable[[list[Parameter]], list[Parameter]]:
+    """A pre-set parameters callback: a string value of a parameter that holds numbers (``numeric(name)``)
+    that reads as numbers is turned into them (see :func:`number_text`); everything else passes as it is."""
+    def convert(params: list[Parameter]) -> list[Parameter]:
+        out = []
+        for p in params:
+            value = None
+            if p.type_ == Parameter.Type.STRING and numeric(p.name):
+                value = number_text(p.value)
+            elif p.type_ == Parameter.Type.STRING_ARRAY and p.value and numeric(p.name):
+                value = number_text("[" + ",".join(p.value) + "]")
+            if isinstance(value, list):
+                p = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, value)
+            elif value is not None:
+                p = Parameter(p.name, Parameter.Type.DOUBLE, value)
+            out.append(p)
+        return out
+
+    return convert
 
 
 def raw_qos(reliability: str, depth: int) -> QoSProfile:
@@ -180,6 +237,52 @@ def tolerance_ns(seconds_value: Any) -> int:
     return sync.tolerance_ns(t)
 
 
+SYNC_MODE_DOC = (
+    "how raw messages become sets: exact (header stamps that coincide within sync_tolerance: sensors sampled "
+    "together and stamped alike), interpolate (at each sample instant of the first sensor, the others "
+    "interpolated between their samples: sensors sampled apart or stamped on receipt), auto (chosen from the "
+    "first stamps of every sensor)"
+)
+MAX_GAP_DOC = (
+    "interpolation: a set whose neighbouring samples of a sensor are further apart (s) is dropped and counted "
+    "(gap); 0 = 3.5 sample periods of that sensor (two lost samples in a row are bridged)"
+)
+MAX_GAP_RANGE: tuple[float, float] = (0.0, 60.0)
+
+
+def declare_sync(node: Any) -> None:
+    """Declare ``sync_mode`` and ``max_gap``, shared by both nodes (``sync_tolerance`` is declared beside)."""
+    node.declare_parameter("sync_mode", sync.DEFAULT_SYNC_MODE,
+                           describe(SYNC_MODE_DOC, constraints=" | ".join(sync.SYNC_MODES)))
+    node.declare_parameter("max_gap", sync.DEFAULT_MAX_GAP,
+                           describe(MAX_GAP_DOC, constraints="0 <= t < 60", numbers=True, floats=MAX_GAP_RANGE))
+
+
+def sync_settings(values: dict[str, Any]) -> tuple[str, int]:
+    """``sync_mode`` and ``max_gap`` (ns) from parameter values; :class:`InputError` naming a bad one."""
+    mode = values.get("sync_mode", sync.DEFAULT_SYNC_MODE)
+    if mode not in sync.SYNC_MODES:
+        raise InputError(f"sync_mode must be one of {', '.join(sync.SYNC_MODES)}, got {mode!r}")
+    gap = values.get("max_gap", sync.DEFAULT_MAX_GAP)
+    if isinstance(gap, bool) or not isinstance(gap, (int, float)):
+        raise InputError(f"max_gap must be a number of seconds, got {gap!r}")
+    try:
+        return str(mode), sync.max_gap_ns(gap)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def synchronizer(names: Sequence[str], tolerance: int, mode: str, max_gap: int,
+                 time_offsets: Sequence[float] | None = None,
+                 stats: sync.SyncStats | None = None) -> sync.StreamSynchronizer:
+    """The set synchroniser of a node: ``tolerance`` and ``max_gap`` in ns, ``time_offsets`` in s per
+    sensor (None: zeros); ``stats`` to keep counting into (a reconfiguration). Live readings beyond
+    :data:`~magcal_ros.core.units.MAX_READING` are dropped and counted (``out_of_range``)."""
+    offsets = {n: float(t) for n, t in zip(names, time_offsets if time_offsets is not None else []) if t}
+    return sync.stream_synchronizer(list(names), tolerance / NS_PER_S, mode, max_gap / NS_PER_S, offsets,
+                                    stats=stats, max_reading=MAX_READING)
+
+
 def default_positions(count: int) -> list[float] | None:
     """The positions a node assumes for ``count`` sensors: the default cross for 4, the origin for
     1, none otherwise (they must be given)."""
@@ -191,6 +294,23 @@ def declare_geometry(node: Any) -> list[str]:
     names = node.declare_parameter("sensor_names", DEFAULT_SENSOR_NAMES, describe(SENSOR_NAMES_DOC)).value
     node.declare_parameter("positions", default_positions(len(names)), describe(POSITIONS_DOC, numbers=True))
     return list(names)
+
+
+def check_node_name(parameter: str, name: str) -> None:
+    """:class:`InputError` unless ``name`` is a valid ROS node name, optionally with a namespace
+    (``magcal_correction``, ``array1/magcal_correction``, ``/array1/magcal_correction``)."""
+    from rclpy.exceptions import InvalidNamespaceException, InvalidNodeNameException
+    from rclpy.validate_namespace import validate_namespace
+    from rclpy.validate_node_name import validate_node_name
+
+    namespace, _, base = name.rpartition("/")
+    try:
+        validate_node_name(base)
+        if namespace:
+            validate_namespace("/" + namespace.lstrip("/"))
+    except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+        reason = str(exc).strip().splitlines()[0].rstrip(": ")
+        raise InputError(f"{parameter} {name!r} is not a valid ROS node name ({reason})") from None
 
 
 def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGeometry:
@@ -282,15 +402,16 @@ INTERFERENCE_PARAMETERS: tuple[str, ...] = (
 def declare_currents(node: Any) -> None:
     """Declare the interference channel parameters both nodes share (no channels by default)."""
     d = describe
-    node.declare_parameter(
-        "interference_channels", Parameter.Type.STRING_ARRAY,
+    strings = Parameter.Type.STRING_ARRAY
+    declare_list(
+        node, "interference_channels", strings,
         d("current channels whose interference is subtracted (correction node) or estimated (calibration node), "
-          "e.g. [thruster1/battery]; none = no current interference"))
-    node.declare_parameter(
-        "interference_topics", Parameter.Type.STRING_ARRAY,
-        d("topic of each channel's current, in interference_channels order; default: the channel name (relative)"))
-    node.declare_parameter(
-        "interference_types", Parameter.Type.STRING_ARRAY,
+          "e.g. [thruster1/battery]; [] = no current interference"))
+    declare_list(
+        node, "interference_topics", strings,
+        d("topic of each channel's current, in interference_channels order; [] = the channel names (relative)"))
+    declare_list(
+        node, "interference_types", strings,
         d(f"message type of each channel's topic: {BATTERY_STATE} (current, A, header stamp, or receipt time when "
           f"it is zero; default) or "
           f"{FLOAT64} (data, A, stamped on receipt)", constraints=" | ".join(CURRENT_TYPES)))
@@ -323,6 +444,48 @@ def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, 
     return subs
 
 
+# -- the sensors' temperatures and the output frame (both nodes) -----------------------------------
+TEMPERATURE = "sensor_msgs/msg/Temperature"
+TEMPERATURE_SUFFIXES: tuple[str, ...] = ("offset_per_kelvin", "matrix_per_kelvin")
+"""Per-sensor temperature terms of a calibration (``<name>.offset_per_kelvin``: 3 T/K, ``<name>.matrix_per_kelvin``:
+9 1/K row-major)."""
+CALIBRATION_FRAME_PARAMETERS: tuple[str, ...] = ("temperature_reference", "output_rotation")
+"""Array-wide calibration parameters of the temperature terms and the output frame."""
+
+
+def declare_temperature_tolerance(node: Any) -> None:
+    """Declare ``temperature_tolerance`` (s): how old a sensor's latest temperature may be at a set."""
+    node.declare_parameter(
+        "temperature_tolerance", DEFAULT_TEMPERATURE_TOLERANCE,
+        describe("a sensor's latest temperature (<name>/temperature) stamped more than this (s) before a set is "
+                 "stale: the set is not used (temperatures change slowly; their sensors publish at 0.1-10 Hz)",
+                 numbers=True, floats=(0.0, 3600.0)))
+
+
+def temperature_tolerance_ns(value: Any) -> int:
+    """``temperature_tolerance`` (s) as ns; :class:`InputError` unless a positive number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise InputError(f"temperature_tolerance must be a positive number of seconds, got {value!r}")
+    return tolerance_of(float(value), "temperature")
+
+
+def subscribe_temperatures(node: Any, names: Sequence[str], store: LatestValues, qos: QoSProfile,
+                           clock: Callable[[], int]) -> list[Any]:
+    """Subscribe ``<name>/temperature`` (sensor_msgs/Temperature, deg C) of every sensor, feeding ``store``
+    (stream ``i`` = sensor ``i``) at the header stamp, or at ``clock()`` ns on receipt when that is zero."""
+    from sensor_msgs.msg import Temperature
+
+    from magcal_ros.io import topics
+
+    subs = []
+    for i, name in enumerate(names):
+        def on_temperature(msg: Any, i: int = i) -> None:
+            store.add(i, stamp_ns(msg.header.stamp) or clock(), float(msg.temperature))
+
+        subs.append(node.create_subscription(Temperature, topics.temperature(name), on_temperature, qos))
+    return subs
+
+
 def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tuple[Any, str]:
     """The calibration a correction node runs for ``geometry``'s sensors, from its parameter values
     (Python values by dotted name, unset ones absent), or ``(None, why not)``.
@@ -350,6 +513,14 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
         params[n] = {"matrix": list(values[f"{n}.matrix"]), "offset": list(values[f"{n}.offset"])}
         if channels and f"{n}.interference" in values:
             params[n]["interference"] = list(values[f"{n}.interference"])
+        for suffix in TEMPERATURE_SUFFIXES:  # temperature terms and output frame, when it runs them
+            if f"{n}.{suffix}" in values:
+                params[n][suffix] = list(values[f"{n}.{suffix}"])
+    for key in CALIBRATION_FRAME_PARAMETERS:
+        if key in values:
+            params[key] = values[key]
+    if "output_rotation" in values and "frame_id" in values:  # the frame the running calibration outputs in
+        params["frame_id"] = values["frame_id"]
     try:
         return ArrayCalibration.from_parameters(params), ""
     except InputError as exc:
@@ -381,7 +552,7 @@ def flatten_parameters(params: dict[str, Any], prefix: str = "") -> dict[str, An
     return out
 
 
-DROP_COUNTERS: tuple[str, ...] = tuple(k for k in sync.SyncStats().as_dict() if k != "sets")
+DROP_COUNTERS: tuple[str, ...] = (*sync.DROP_FIELDS, "restarts")
 LOG_PERIOD: float = 5.0
 """Shortest interval (s) between two drop reports in the log."""
 
@@ -473,7 +644,7 @@ def unmatched_calibrations(files: Sequence[str], fully_qualified_name: str) -> l
         try:
             with open(path, encoding="utf-8") as fh:
                 doc = yaml.safe_load(fh)
-        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError):
             continue  # rcl already refused or read it; nothing to compare
         for key, params in _node_blocks(doc):
             if _has_sensor_calibration(params) and not key_matches(key, fully_qualified_name):

@@ -1,8 +1,9 @@
 """Live correction node: raw sensor vectors in, corrected vectors, centre field and gradient out.
 
 Subscribes ``<name>/raw`` (sensor_msgs/MagneticField, T) for every name in
-``sensor_names``, groups the messages into synchronized sets by header stamp and, per
-set, publishes ``<name>/corrected`` (``matrix @ (raw - offset) - interference @ u``,
+``sensor_names``, groups the messages into sets (:mod:`magcal_ros.core.sync`, ``sync_mode``:
+stamps that coincide, or every sensor interpolated at the first sensor's sample instants,
+with each sensor's ``<name>.time_offset``) and, per set, publishes ``<name>/corrected`` (``matrix @ (raw - offset) - interference @ u``,
 platform frame, with ``<name>.covariance``), ``field`` (centre field, T, covariance of the
 mean) and the gradient the positions determine:
 
@@ -29,6 +30,15 @@ BatteryState or Float64), keeps the values of the last seconds and subtracts
 a current of every channel is not published (counted per channel as ``stale_current``,
 a WARN on ``/diagnostics`` naming the channel), never corrected with a stale current.
 
+Temperature: a calibration with temperature terms (``temperature_reference``,
+``<name>.offset_per_kelvin``, ``<name>.matrix_per_kelvin``) makes the node subscribe every
+``<name>/temperature`` (sensor_msgs/Temperature, deg C) and correct each set with each
+sensor's latest temperature stamped at most ``temperature_tolerance`` before it; a set
+without one is withheld like a set without a current (``<name>.stale_temperature``). Without
+temperature terms nothing is subscribed and no set waits for a temperature. An
+``output_rotation`` turns every output into the calibration's frame (``frame_id``, e.g. the
+IMU's).
+
 A sensor whose matrix and offset were never given (params file, ``-p`` or a parameter
 update) is not calibrated: the node warns, naming it, and publishes neither ``field`` nor
 the tensor (nor that sensor's corrected vector) until it is, unless the sensor is listed
@@ -39,10 +49,17 @@ status on ``/diagnostics`` (DiagnosticArray): level, message (what is wrong, nam
 sensors) and values: per sensor ``received``, ``lost`` (estimated from gaps in its stamp
 sequence: lost before reaching the node), ``gaps``, ``period_ms``; the synchroniser's
 counters (``sets``, ``unmatched``, ``nonfinite``, ``duplicate``, ``out_of_order``,
-``zero_stamp``, ``malformed``, ``restarts``), ``published``, ``withheld`` (sets not
-published for want of a calibration), ``pending``, ``sync_window_ms`` and, when sets were
+``zero_stamp``, ``malformed``, ``restarts``, ``glitch``, ``gap``, ``used``), ``published``,
+``withheld`` (sets not published for want of a calibration), ``pending``, ``sync_mode``,
+``sync_window_ms`` and, when sets were
 published, ``age_ms_p50/p99/max``: node clock at publication minus the set's stamp (a
 latency when the sensors stamp with the same clock; simulated time with use_sim_time).
+
+The calibration health (:mod:`magcal_ros.core.calibration_health`) goes on ``/diagnostics`` as
+its own status, ``<node>: calibration``, in the same array: whether the running calibration
+still fits, judged from the corrected sets over ``health_window`` s against the noise the
+calibration stored (``<name>.noise``, ``calibration_intensity``); WARN or ERROR naming the
+drifted sensors above ``health_warn_factor`` / ``health_error_factor`` times that noise.
 
 Usage::
 
@@ -69,22 +86,31 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import CalibrationHealth
 from magcal_ros.core.interference import LatestCurrents
-from magcal_ros.core.sync import SetSynchronizer, SyncedSet
+from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
-from magcal_ros.nodes import common
-from magcal_ros.nodes.health import ArrayHealth, CurrentHealth
+from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
-    "sensor_names", "positions", "frame_id", "sync_tolerance", "gradient_method", "uncorrected_sensors",
-    *common.INTERFERENCE_PARAMETERS,
+    "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
+    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
+    "temperature_tolerance", drift.INTENSITY,
 )
-SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference")
+SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset",
+                                    *common.TEMPERATURE_SUFFIXES)
+ARRAY_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", *common.TEMPERATURE_SUFFIXES)
+"""Per-sensor parameters that are lists of numbers (``time_offset`` is one number)."""
+NUMERIC_PARAMETERS: frozenset[str] = frozenset({"positions", "sync_tolerance", "current_tolerance", "max_gap",
+                                                "temperature_reference", "output_rotation", "temperature_tolerance"})
+"""Parameters that hold numbers besides the per-sensor ones (text that reads as numbers is taken as them)."""
 GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
     "tensor": (topics.GRADIENT, topics.GRADIENT_STAMPED), "baseline": (topics.BASELINE_GRADIENT,), "none": (),
 }
@@ -108,6 +134,23 @@ class CorrectionState:
     """Covariance of the centre field (the mean of the sensors): sum / S^2, or unknown."""
     currents: common.CurrentInputs = common.CurrentInputs()
     """The interference channels' current topics (the calibration's ``channels``)."""
+    noise: tuple[float, ...] = ()
+    """Per sensor, the noise per axis at calibration (T; 0 unknown): the calibration health's reference."""
+    intensity: float = 0.0
+    """The intensity (T) the calibration maps ``|B|`` to (0 unknown)."""
+    sync_mode: str = sync.DEFAULT_SYNC_MODE
+    max_gap_ns: int = 0
+    temperature_tolerance_ns: int = 0
+    """Largest age of a sensor's temperature at a set (used when the calibration has temperature terms)."""
+
+    def sync_settings(self) -> tuple[Any, ...]:
+        """What the set synchroniser is built from (a change rebuilds it)."""
+        return (self.names, self.sync_mode, self.max_gap_ns, tuple(self.calibration.time_offsets.tolist()))  # type: ignore[union-attr]
+
+    @property
+    def temperatures(self) -> bool:
+        """True when every set needs the sensors' temperatures (the calibration has temperature terms)."""
+        return self.calibration.has_temperature_terms
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -149,14 +192,15 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     ``given``: names of the parameters set from outside (params file, ``-p``, updates);
     None means every per-sensor value counts as given. Raises :class:`InputError`
     naming what is wrong: sensor names or positions, a matrix, offset or covariance, the
-    gradient method, the tolerance, the frame or ``uncorrected_sensors``.
+    gradient method, the tolerance, ``sync_mode``, ``max_gap``, a ``time_offset``, the frame or
+    ``uncorrected_sensors``.
     """
     names = values.get("sensor_names")
     if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
         raise InputError("sensor_names must be a list of strings")
     geo = common.geometry(names, values.get("positions"))
     uncorrected = values.get("uncorrected_sensors") or []
-    if not all(isinstance(n, str) for n in uncorrected):
+    if not isinstance(uncorrected, (list, tuple)) or not all(isinstance(n, str) for n in uncorrected):
         raise InputError("uncorrected_sensors must be a list of sensor names")
     strangers = sorted(set(uncorrected) - set(geo.names))
     if strangers:
@@ -168,14 +212,21 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         params[name] = {
             "matrix": values.get(f"{name}.matrix") or common.IDENTITY,
             "offset": values.get(f"{name}.offset") or common.ZEROS,
+            "time_offset": values.get(f"{name}.time_offset") or 0.0,
         }
         if currents.channels:
-            gains = values.get(f"{name}.interference")
+            gains = values.get(f"{name}.interference") or None  # [] is none
             if gains is None and name not in uncorrected:
                 raise InputError(f"interference_channels is set ({', '.join(currents.channels)}) but {name}.interference "
                                  f"is not: give 3 x {len(currents.channels)} numbers (row-major, T/A) for every sensor")
             if gains is not None:
                 params[name]["interference"] = list(gains)
+        for suffix in common.TEMPERATURE_SUFFIXES:
+            if values.get(f"{name}.{suffix}") is not None:
+                params[name][suffix] = list(values[f"{name}.{suffix}"])
+    for key in common.CALIBRATION_FRAME_PARAMETERS:
+        params[key] = values.get(key)
+    temperature_tolerance = common.temperature_tolerance_ns(values.get("temperature_tolerance"))
     cal = ArrayCalibration.from_parameters(params)
     missing = tuple(
         n for n in geo.names
@@ -190,8 +241,38 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
     frame = values.get("frame_id")
     if not isinstance(frame, str) or not frame.strip():
         raise InputError("frame_id must be a non-empty string")
-    return CorrectionState(cal, method, frame, common.tolerance_ns(values.get("sync_tolerance")), missing,
-                           covariances, field_covariance, currents)
+    tolerance = common.tolerance_ns(values.get("sync_tolerance"))
+    mode, gap = common.sync_settings(values)
+    if mode == "exact" and np.any(cal.time_offsets):  # type: ignore[arg-type]
+        lagging = ", ".join(f"{n}.time_offset" for n, t in zip(geo.names, cal.time_offsets) if t)  # type: ignore[arg-type]
+        verb = "needs" if lagging.count(",") == 0 else "need"
+        raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
+    noise, intensity = drift.reference(values, geo.names)
+    return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, noise,
+                           intensity, mode, gap, temperature_tolerance)
+
+
+def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
+    """How the sets are formed, in words (for the log)."""
+    if synchronizer.mode == "interpolate":
+        return (f"{synchronizer.names[0]}'s sample instants, the other sensors interpolated (sync_mode "
+                f"{synchronizer.requested}: {synchronizer.reason})")
+    return f"exact matching of the header stamps (sync_mode {synchronizer.requested}: {synchronizer.reason})"
+
+
+def _differs(old: Any, new: Any) -> bool:
+    """Whether a parameter value changes (lists compared element by element, any number type)."""
+    if isinstance(old, (list, tuple)) and isinstance(new, (list, tuple)):
+        return list(old) != list(new)
+    return bool(old != new)
+
+
+def _as_default(name: str, value: Any) -> bool:
+    """Whether a per-sensor ``matrix`` or ``offset`` given at start-up is the default (identity, zero): as
+    a dump of a node with that sensor not calibrated holds it, so it does not calibrate the sensor."""
+    suffix = name.rpartition(".")[2]
+    default = {"matrix": common.IDENTITY, "offset": common.ZEROS}.get(suffix)
+    return default is not None and isinstance(value, (list, tuple)) and not _differs(default, value)
 
 
 def _gradient_message() -> Float64MultiArray:
@@ -212,7 +293,7 @@ class CorrectionNode(Node):
     def __init__(self, node_name: str = NODE_NAME, argv: Sequence[str] = (), **kwargs: Any) -> None:
         super().__init__(node_name, allow_undeclared_parameters=True, **kwargs)
         self._declare_parameters()
-        self._given: set[str] = set(self._parameter_overrides)
+        self._given: set[str] = {n for n, p in self._parameter_overrides.items() if not _as_default(n, p.value)}
         self._state = build_state(self._current_values(), self._given)
         self._pending: CorrectionState | None = None
         self._pending_names: set[str] = set()
@@ -221,6 +302,7 @@ class CorrectionNode(Node):
         self._corrected_msgs: list[MagneticField] = []
         self._gradient_pubs: dict[str, Any] = {}
         self._current_subs: list[Any] = []
+        self._temperature_subs: list[Any] = []
         self._msg_state: CorrectionState | None = None
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
@@ -238,17 +320,21 @@ class CorrectionNode(Node):
         self._withheld = 0
         self._ages: list[int] = []
         self._drops = common.DropReporter(self.get_logger())
+        self._drift_thresholds = drift.declare_thresholds(self)
+        self._calibration_health(self._state)
         self._connect(self._state)
         self._gradient_outputs(self._state.gradient_kind)
         self._connect_currents(self._state.currents)
+        self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
+        self._connect_temperatures(self._state)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
         self.create_timer(max(period, 0.05), self._report)
         self.get_logger().info(
             f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
-            f"{self.get_namespace()}, frame {self._state.frame_id}, sync tolerance "
-            f"{self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
+            f"{self.get_namespace()}, frame {self._state.frame_id}, sync_mode {self._state.sync_mode}, sync "
+            f"tolerance {self._state.tolerance_ns / 1e6:g} ms; {self._describe(self._state)}"
         )
         self._warn_missing(self._state)
         self._warn_unmatched_files(argv)
@@ -275,24 +361,61 @@ class CorrectionNode(Node):
                   "published in its magnetic_field_covariance; -1.0 first = unknown",
                   constraints="symmetric positive semi-definite, or -1.0 first", numbers=True),
             )
-            self.declare_parameter(
-                f"{name}.interference", None,
+            common.declare_list(
+                self, f"{name}.interference", Parameter.Type.DOUBLE_ARRAY,
                 d(f"current interference of {name}: 3 x m numbers row-major (T/A, platform frame), one column per "
-                  "channel of interference_channels; B = matrix (raw - offset) - interference @ u",
+                  "channel of interference_channels; B = matrix (raw - offset) - interference @ u; [] = none",
                   constraints="finite; needed for every sensor when interference_channels is set", numbers=True),
             )
-        self.declare_parameter(
-            "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
+            self.declare_parameter(
+                f"{name}.time_offset", 0.0,
+                d(f"lag of {name} (s): its reading stamped t is the field at t - time_offset (positive: it reads "
+                  "late); its stamps are shifted and it is interpolated to the sets' instants (sync_mode "
+                  "interpolate or auto)", constraints=f"finite, |t| <= {sync.MAX_TIME_OFFSET:g}", numbers=True,
+                  floats=(-sync.MAX_TIME_OFFSET, sync.MAX_TIME_OFFSET)),
+            )
+            common.declare_list(
+                self, f"{name}.offset_per_kelvin", Parameter.Type.DOUBLE_ARRAY,
+                d(f"offset temperature coefficient of {name}, 3 numbers (T/K, sensor axes): the offset at temperature T "
+                  "is offset + (T - temperature_reference) offset_per_kelvin; [] = 0",
+                  constraints="finite, |value| <= 1e-6 T/K", numbers=True),
+            )
+            common.declare_list(
+                self, f"{name}.matrix_per_kelvin", Parameter.Type.DOUBLE_ARRAY,
+                d(f"matrix temperature coefficient of {name}, 9 numbers row-major (1/K): the matrix at temperature T is "
+                  "matrix + (T - temperature_reference) matrix_per_kelvin; [] = 0",
+                  constraints="finite, |value| <= 1e-2 per K", numbers=True),
+            )
+        common.declare_list(
+            self, "temperature_reference", Parameter.Type.DOUBLE_ARRAY,
+            d("temperature (deg C) at which matrix and offset hold; with non-zero <name>.offset_per_kelvin or "
+              "<name>.matrix_per_kelvin the node subscribes <name>/temperature (sensor_msgs/Temperature) and corrects "
+              "every set for each sensor's temperature; [] = no temperature terms",
+              constraints="-60 .. 150 deg C, or [] for none", numbers=True),
+        )
+        common.declare_temperature_tolerance(self)
+        common.declare_list(
+            self, "output_rotation", Parameter.Type.DOUBLE_ARRAY,
+            d("rotation from the array frame to the output frame (frame_id; e.g. the IMU's), 9 numbers row-major: "
+              "vectors and field R v, tensor R G R^T, baseline gradient R g; [] = identity",
+              constraints="a rotation matrix (orthonormal, determinant +1), or []", numbers=True),
+        )
+        common.declare_list(
+            self, "uncorrected_sensors", Parameter.Type.STRING_ARRAY,
             d("sensors used without a calibration on purpose (raw readings); any other sensor without "
-              "matrix and offset stops field and gradient output"),
+              "matrix and offset stops field and gradient output; [] = none"),
         )
         common.declare_currents(self)
-        self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID, d("frame of all outputs (platform frame)"))
+        drift.declare_reference(self, names)
+        self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID,
+                               d("frame of all outputs: the platform (array) frame, or the frame output_rotation "
+                                 "turns them into (a calibration file made with an IMU sets it to the IMU's)"))
         self.declare_parameter(
             "sync_tolerance", sync.DEFAULT_SYNC_TOLERANCE,
-            d("largest spread (s) of header stamps within one synchronized set; capped at half the sample "
-              "period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
+            d("exact matching: largest spread (s) of header stamps within one synchronized set; capped at half "
+              "the sample period", constraints="0 < t < 1", numbers=True, floats=common.TOLERANCE_RANGE),
         )
+        common.declare_sync(self)
         self.declare_parameter(
             "gradient_method", "difference",
             d("tensor formula: difference (planar cross) or least_squares (any geometry with 3 or more sensors "
@@ -308,11 +431,18 @@ class CorrectionNode(Node):
         names = self.list_parameters([], 0).names
         return {n: self.get_parameter_or(n).value for n in names}  # unset parameters: None
 
+    def _numeric(self, name: str) -> bool:
+        """Whether parameter ``name`` holds numbers (a known one, or a per-sensor calibration value)."""
+        if name in NUMERIC_PARAMETERS or name.endswith(tuple(f".{s}" for s in SENSOR_SUFFIXES)):
+            return True
+        return self.has_parameter(name) and self.get_parameter(name).type_ in (
+            Parameter.Type.DOUBLE, Parameter.Type.INTEGER, *common.NUMBER_ARRAYS)
+
     def _known(self, name: str, names: Sequence[str]) -> bool:
         if name in CORE_PARAMETERS:
             return True
         stem, _, suffix = name.rpartition(".")
-        return suffix in SENSOR_SUFFIXES and stem in names
+        return suffix in (*SENSOR_SUFFIXES, drift.SENSOR_SUFFIX) and stem in names
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate the combined new state; stash it for :meth:`_after_set_parameters`."""
@@ -328,22 +458,32 @@ class CorrectionNode(Node):
                 return SetParametersResult(
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
-                    f"<name>.offset, <name>.covariance and <name>.interference for a name in sensor_names",
+                    f"<name>.offset, <name>.covariance, <name>.interference, <name>.time_offset, "
+                    f"<name>.offset_per_kelvin and <name>.matrix_per_kelvin for a name in sensor_names (ros2 param "
+                    f"load also offers a calibration file's magcal_provenance block, which is not for this node: "
+                    f"ignored)",
                 )
-            if known and (p.name == "positions" or p.name.endswith(SENSOR_SUFFIXES)):
+            if known and p.name.endswith(".time_offset") and p.type_ not in (Parameter.Type.DOUBLE,
+                                                                             Parameter.Type.INTEGER):
+                return SetParametersResult(successful=False,
+                                           reason=f"{p.name} must be a number of seconds, got {p.type_.name.lower()}")
+            if known and (p.name in ("positions", "output_rotation") or p.name.rpartition(".")[2] in ARRAY_SUFFIXES):
                 why = common.check_number_array(p)
                 if why:
                     return SetParametersResult(successful=False, reason=why)
         if not any(self._known(n, new_names) for n in updates):
             self._pending = None
             return SetParametersResult(successful=True)
+        before = self._current_values()
+        changed = {n for n, v in updates.items() if n not in before or _differs(before[n], v)}
         try:
-            self._pending = build_state(values, self._given | set(updates))
-            self._pending_names = set(updates)
-        except InputError as exc:
+            self._pending = build_state(values, self._given | changed)
+            self._pending_names = changed  # a value set again as it was (ros2 param load of a dump) gives nothing
+        except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             self._pending = None
-            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {exc}")
-            return SetParametersResult(successful=False, reason=str(exc))
+            reason = str(exc) if isinstance(exc, InputError) else f"invalid value ({exc})"
+            self.get_logger().warn(f"rejected parameter update ({', '.join(updates)}): {reason}")
+            return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
@@ -363,6 +503,8 @@ class CorrectionNode(Node):
             self._state = new
             if new.tolerance_ns != old.tolerance_ns:
                 self._sync.tolerance_ns = new.tolerance_ns
+            if new.sync_settings() != old.sync_settings():
+                self._resync(new)
         if new.gradient_kind != old.gradient_kind:
             self._gradient_outputs(new.gradient_kind)
         if new.currents.sources() != old.currents.sources():
@@ -370,12 +512,28 @@ class CorrectionNode(Node):
         elif new.currents.tolerance_ns != old.currents.tolerance_ns:
             self._currents.tolerance_ns = new.currents.tolerance_ns
             self._current_health.tolerance_ns = new.currents.tolerance_ns
+        if (new.names, new.temperatures, new.temperature_tolerance_ns) != \
+                (old.names, old.temperatures, old.temperature_tolerance_ns):
+            self._connect_temperatures(new)
         self.get_logger().info(
             f"parameters updated ({', '.join(p.name for p in params)}): {self._describe(new)}"
             + (f"; now publishing {self._outputs_text(new)}" if new.gradient_kind != old.gradient_kind else "")
         )
         if new.missing != old.missing:
             self._warn_missing(new)
+        self._calibration_health(new)
+
+    def _calibration_health(self, state: CorrectionState) -> None:
+        """Judge the calibration of ``state`` afresh (its sets only), or say why it is not judged."""
+        self._drifted = False
+        uncalibrated = [n for n in state.names if not {f"{n}.matrix", f"{n}.offset"} <= self._given]
+        if uncalibrated:
+            self._health_cal: CalibrationHealth | None = None
+            self._not_judged = drift.not_assessed(f"{', '.join(uncalibrated)} not calibrated")
+            return
+        noise = [v if v > 0 else float("nan") for v in state.noise]
+        self._health_cal = CalibrationHealth(state.calibration.geometry, noise, state.intensity or None,
+                                             self._drift_thresholds)
 
     @staticmethod
     def _outputs_text(state: CorrectionState) -> str:
@@ -392,9 +550,18 @@ class CorrectionNode(Node):
         parts = [f"calibrated sensors: {', '.join(calibrated)}" if calibrated else "no calibration loaded"]
         if raw:
             parts.append(f"uncorrected on purpose: {', '.join(raw)}")
+        lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(names, state.calibration.time_offsets) if t]  # type: ignore[arg-type]
+        if lags:
+            parts.append("time offsets " + ", ".join(lags))
         if state.currents.channels:
             parts.append("subtracting current interference of " + ", ".join(
                 f"{c} ({t}, {k.rsplit('/', 1)[-1]})" for c, t, k in state.currents.sources()))
+        cal = state.calibration
+        if state.temperatures:
+            parts.append(f"correcting for temperature about {cal.temperature_reference:g} deg C "
+                         f"(<name>/temperature within {state.temperature_tolerance_ns / 1e9:g} s)")
+        if cal.rotated:
+            parts.append(f"outputs turned by output_rotation into {state.frame_id}")
         return "; ".join(parts)
 
     def _warn_missing(self, state: CorrectionState) -> None:
@@ -421,8 +588,23 @@ class CorrectionNode(Node):
             )
 
     # -- topics ---------------------------------------------------------------------
+    def _synchronizer(self, state: CorrectionState, stats: sync.SyncStats | None = None) -> StreamSynchronizer:
+        return common.synchronizer(state.names, state.tolerance_ns, state.sync_mode, state.max_gap_ns,
+                                   state.calibration.time_offsets.tolist(), stats)  # type: ignore[union-attr]
+
+    def _resync(self, state: CorrectionState) -> None:
+        """A new synchroniser for changed sync settings or time offsets (what was queued is dropped, counted)."""
+        old = self._sync
+        old.reset()
+        self._sync = self._synchronizer(state, old.stats)
+        self._sync.set_pause(self._limits.silent_after_ns)
+        self._health.sync = self._sync
+        self._sync_reason = ""
+        self.get_logger().info("set synchroniser restarted for the new sync settings or time offsets")
+
     def _connect(self, state: CorrectionState) -> None:
-        self._sync = SetSynchronizer(len(state.names), state.tolerance_ns)
+        self._sync = self._synchronizer(state)
+        self._sync_reason = ""
         self._health = ArrayHealth(state.names, self._sync, self._limits, common.now_ns(self))
         self._drops.reset()
         self._corrected_pubs = [
@@ -462,19 +644,30 @@ class CorrectionNode(Node):
         self._current_subs = common.subscribe_currents(self, inputs, self._currents, self._raw_qos,
                                                        lambda: self._now())
 
+    def _connect_temperatures(self, state: CorrectionState) -> None:
+        """Subscribe every ``<name>/temperature`` afresh when the calibration has temperature terms (else none)."""
+        for s in self._temperature_subs:
+            self.destroy_subscription(s)
+        names = state.names if state.temperatures else ()
+        self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns,
+                                          keep_ns=max(2 * state.temperature_tolerance_ns, 2 * 10**9))
+        self._temperature_health = TemperatureHealth(
+            names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in names), state.temperature_tolerance_ns)
+        self._temperature_subs = common.subscribe_temperatures(self, names, self._temperatures, self._raw_qos,
+                                                               lambda: self._now())
+
     def _raw_callback(self, index: int) -> Any:
-        add, decode, seen = self._sync.add, decode_magnetic_field, self._health.seen
+        decode, publish = decode_magnetic_field, self._publish
 
         def callback(data: bytes) -> None:
             try:
-                sample = decode(data)
+                stamp, x, y, z = decode(data)
             except (InputError, struct.error):
                 self._sync.stats.malformed += 1
                 return
-            seen(index, sample[0])
-            synced = add(index, *sample)
-            if synced is not None:
-                self._publish(synced)
+            self._health.seen(index, stamp)
+            for synced in self._sync.add(index, stamp, x, y, z, self._now()):
+                publish(synced)
 
         return callback
 
@@ -490,15 +683,24 @@ class CorrectionNode(Node):
         state = self._state
         if state is not self._msg_state:
             self._apply_covariances(state)
-        currents = None
+        currents = temperatures = None
+        stale = False
         if state.currents.channels:
             values, fresh = self._currents.at(synced.stamp)
-            if not self._current_health.count(fresh):
-                self._withheld += 1  # never corrected with a stale current
-                return
+            stale = not self._current_health.count(fresh)
             currents = np.array([values])
+        if state.temperatures:
+            celsius, fresh = self._temperatures.at(synced.stamp)
+            stale = not self._temperature_health.count(fresh) or stale
+            temperatures = np.array([celsius])
+        if stale:
+            self._withheld += 1  # never corrected with a stale current or temperature
+            return
         raw = np.array(synced.values, dtype=float).reshape(1, -1, 3)
-        out = state.calibration.outputs(raw, state.gradient_method, currents)
+        out = state.calibration.outputs(raw, state.gradient_method, currents, temperatures)
+        if self._health_cal is not None:  # judged in the array frame, where the positions are
+            rotation = state.calibration.output_rotation
+            self._health_cal.add(synced.stamp, out.vectors[0] if rotation is None else out.vectors[0] @ rotation)
         frame = state.frame_id
         missing = state.missing
         for name, msg, pub, stamp, v in zip(state.names, self._corrected_msgs, self._corrected_pubs, synced.stamps,
@@ -548,6 +750,9 @@ class CorrectionNode(Node):
 
     def _report(self) -> None:
         """Publish ~/status and /diagnostics; log (throttled) what was dropped."""
+        if self._sync.reason and self._sync.reason != self._sync_reason:
+            self._sync_reason = self._sync.reason
+            self.get_logger().info(f"sets: {sync_mode_line(self._sync)}")
         counters = self._counters()
         self._drops.update(counters, f"{counters['published']} sets published in total")
         now = common.now_ns(self)
@@ -559,8 +764,14 @@ class CorrectionNode(Node):
             store.received, [store.latest(j) for j in range(store.channels)], "withheld")
         if stale:
             extras.append(stale)
+        temps = self._temperatures
+        stale, temperature_values = self._temperature_health.assess(
+            temps.received, [temps.latest(j) for j in range(temps.channels)], "withheld")
+        if stale:
+            extras.append(stale)
         assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)
         assessment.values.update(current_values)
+        assessment.values.update(temperature_values)
         for line in assessment.notices:
             self.get_logger().warn(line)
         ages, self._ages = self._ages, []
@@ -569,7 +780,19 @@ class CorrectionNode(Node):
             assessment.values.update(age_ms_p50=f"{p50:.3f}", age_ms_p99=f"{p99:.3f}", age_ms_max=f"{pmax:.3f}")
         status = common.diagnostic_status(self.get_fully_qualified_name(), state.frame_id, assessment)
         self._status_pub.publish(status)
-        self._diagnostics_pub.publish(common.diagnostic_array(self, [status]))
+        calibration = self._report_calibration(state)
+        self._diagnostics_pub.publish(common.diagnostic_array(self, [status, calibration]))
+
+    def _report_calibration(self, state: CorrectionState) -> DiagnosticStatus:
+        """The calibration health's status; a drift (and its end) is logged once."""
+        report = self._health_cal.assess() if self._health_cal is not None else self._not_judged
+        if report.drifted != self._drifted:
+            self._drifted = report.drifted
+            if report.drifted:
+                self.get_logger().warn(report.message)
+            else:
+                self.get_logger().info(f"calibration health back to normal: {report.message}")
+        return drift.status(self.get_fully_qualified_name(), ",".join(state.names), report)
 
 
 def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:

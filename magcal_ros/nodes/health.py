@@ -1,14 +1,14 @@
 """Health of a live sensor array, as the nodes report it on ``/diagnostics`` (no ROS import).
 
-Per sensor: messages received, the last stamp and losses before the node: a stamp
-interval longer than 1.5 sample periods means ``round(interval / period) - 1`` messages
-never arrived (DDS queue overflow, a lossy link). The period is the smallest of the
-synchroniser's per-sensor estimates (median of the last intervals) since the sensor
-started: losses only lengthen intervals, so a stretch where every other message is lost
-cannot pass for a slower sensor. A jump longer than ``silent_after_ns`` is a pause of the
-sensor (reported as silent while it lasts), not a loss; after it (and at the start) the
-period is learnt afresh from the next :data:`~magcal_ros.core.sync.PERIOD_WINDOW`
-intervals, so a sensor that comes back at another rate is not miscounted. Every ``assess`` (the status period) turns the counters into a level and a message:
+Per sensor: messages received, the last stamp, its sample period and the samples lost
+before the node, both from the synchroniser's sample clock of the sensor
+(:mod:`magcal_ros.core.sample_clock`: a line fitted to many stamps, never a period from one
+pair of stamps): every sample index the stamps skip is a sample lost (DDS queue overflow,
+a lossy link), in runs counted as gaps. A silence longer than ``silent_after_ns`` is a
+pause of the sensor (reported as silent while it lasts), not a loss; after it (and after a
+restart) the clock is learnt afresh, so a sensor that comes back at another rate is not
+miscounted. Every ``assess`` (the status period) turns the counters into a level and a
+message:
 
 - ERROR: no output (set published or collected) for ``stale_after_ns``;
 - WARN: a sensor silent (no message for ``silent_after_ns``) or late (its newest stamp
@@ -24,13 +24,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer
+from typing import Any
+
+from magcal_ros.core.sync import DROP_FIELDS
 from magcal_ros.core.units import NS_PER_S
 
 OK, WARN, ERROR = 0, 1, 2
 """Levels, as diagnostic_msgs/DiagnosticStatus numbers them."""
-GAP_FACTOR_2: int = 3
-"""A stamp interval above GAP_FACTOR_2 / 2 = 1.5 sample periods is a gap."""
+
 
 
 @dataclass(frozen=True)
@@ -58,54 +59,43 @@ def _ms(ns: float) -> str:
 
 
 class ArrayHealth:
-    """Per-sensor counters for one synchroniser; ``seen`` is the hot path, ``assess`` the report."""
+    """Per-sensor counters for one synchroniser; ``seen`` is the hot path, ``assess`` the report.
 
-    def __init__(self, names: tuple[str, ...], sync: SetSynchronizer, limits: HealthLimits, now_ns: int) -> None:
+    ``sync``: a :class:`~magcal_ros.core.sync.StreamSynchronizer` (or an exact
+    :class:`~magcal_ros.core.sync.SetSynchronizer`): its per-sensor periods and losses.
+    """
+
+    def __init__(self, names: tuple[str, ...], sync: Any, limits: HealthLimits, now_ns: int) -> None:
         self.names = names
         self.sync = sync
         self.limits = limits
+        sync.set_pause(limits.silent_after_ns)
         n = len(names)
         self.received = [0] * n
-        self.lost = [0] * n
-        """Messages estimated lost before reaching the node (stamp gaps)."""
-        self.gaps = [0] * n
         self._last = [0] * n
-        self._period = [0] * n
-        """Nominal sample period (ns) used for gaps; 0 while learning."""
-        self._learning = [PERIOD_WINDOW] * n
-        """Intervals still to see before the period estimate reflects only the current run."""
-        self._counted = [0] * n
         self._heard = [now_ns] * n
+        self._counted = [0] * n
         self._last_output = now_ns
         self._outputs = 0
         self._window: dict[str, int] = {"offered": 0, "dropped": 0}
         self._capped = False
 
+    @property
+    def lost(self) -> list[int]:
+        """Samples lost before the node, per sensor (skipped sample indices)."""
+        return [self.sync.lost(k) for k in range(len(self.names))]
+
+    @property
+    def gaps(self) -> list[int]:
+        """Runs of lost samples, per sensor."""
+        return [self.sync.gaps(k) for k in range(len(self.names))]
+
     def seen(self, index: int, stamp_ns: int) -> None:
         """Count one message of sensor ``index`` (call before the synchroniser sees it)."""
         self.received[index] += 1
         last = self._last[index]
-        if stamp_ns > last:
-            if last:
-                interval = stamp_ns - last
-                if interval > self.limits.silent_after_ns:  # a pause: learn the period again
-                    self._learning[index], self._period[index] = PERIOD_WINDOW, 0
-                elif self._learning[index]:
-                    self._learning[index] -= 1
-                else:
-                    estimate = self.sync.period_ns(index)
-                    period = self._period[index]
-                    if estimate and (not period or estimate < period):
-                        period = self._period[index] = estimate
-                    if period and 2 * interval > GAP_FACTOR_2 * period:
-                        missing = (interval + period // 2) // period - 1
-                        if missing > 0:
-                            self.gaps[index] += 1
-                            self.lost[index] += missing
-            self._last[index] = stamp_ns
-        elif stamp_ns and last - stamp_ns > self.sync.restart_ns:  # the source restarted: a new sequence
-            self._last[index] = stamp_ns
-            self._learning[index], self._period[index] = PERIOD_WINDOW, 0
+        if stamp_ns > last or (stamp_ns and last - stamp_ns > self.sync.restart_ns):
+            self._last[index] = stamp_ns  # newest stamp (a restart starts a new sequence)
 
     def output(self, count: int, now_ns: int) -> None:
         """Outputs so far (sets published or collected), at node time ``now_ns``."""
@@ -134,6 +124,7 @@ class ArrayHealth:
         problems: list[tuple[int, str]] = []
         values: dict[str, str] = {}
         silent, late = [], []
+        lost_by = self.lost
         newest = max(self._last) if any(self._last) else 0
         for k, name in enumerate(self.names):
             if self.received[k] != self._counted[k]:
@@ -143,10 +134,10 @@ class ArrayHealth:
                 silent.append(f"{name} ({quiet / NS_PER_S:.1f} s)")
             elif self._last[k] and newest - self._last[k] > lim.silent_after_ns:
                 late.append(f"{name} ({(newest - self._last[k]) / NS_PER_S:.1f} s behind)")
-            period = self._period[k] or self.sync.period_ns(k)
+            period = self.sync.period_ns(k)
             values[f"{name}.received"] = str(self.received[k])
-            values[f"{name}.lost"] = str(self.lost[k])
-            values[f"{name}.gaps"] = str(self.gaps[k])
+            values[f"{name}.lost"] = str(lost_by[k])
+            values[f"{name}.gaps"] = str(self.sync.gaps(k))
             values[f"{name}.period_ms"] = _ms(period) if period else ""
         if now_ns - self._last_output > lim.stale_after_ns:
             what = f"no {output_what} for {(now_ns - self._last_output) / NS_PER_S:.1f} s"
@@ -157,17 +148,18 @@ class ArrayHealth:
             problems.append((WARN, "silent: " + ", ".join(silent)))
         if late:
             problems.append((WARN, "late: " + ", ".join(late)))
-        lost = sum(self.lost)
-        dropped = sum(counters.get(k, 0) for k in ("unmatched", "nonfinite", "duplicate", "out_of_order",
-                                                    "zero_stamp", "malformed"))
-        offered = sum(self.received) + lost
+        lost = sum(lost_by)
+        dropped = sum(counters.get(k, 0) for k in DROP_FIELDS)
+        offered = sum(self.received) + counters.get("malformed", 0) + lost
         window_offered = offered - self._window["offered"]
         window_dropped = dropped + lost - self._window["dropped"]
         self._window = {"offered": offered, "dropped": dropped + lost}
-        if window_offered and window_dropped > lim.max_drop_fraction * window_offered:
-            lost_by = [f"{n} {c}" for n, c in zip(self.names, self.lost) if c]
-            problems.append((WARN, f"dropping {window_dropped / window_offered:.1%} of messages"
-                             + (f" (lost before the node, total: {', '.join(lost_by)})" if lost_by else "")))
+        if window_offered > 0 and window_dropped > lim.max_drop_fraction * window_offered:
+            named = [f"{n} {c}" for n, c in zip(self.names, lost_by) if c]
+            # Drops are decided a little after their messages arrive: never more than what came.
+            fraction = min(window_dropped, window_offered) / window_offered
+            problems.append((WARN, f"dropping {fraction:.1%} of messages"
+                             + (f" (lost before the node, total: {', '.join(named)})" if named else "")))
         cap, line = self._cap()
         if cap:
             problems.append((WARN, cap))
@@ -175,25 +167,38 @@ class ArrayHealth:
         values["lost"] = str(lost)
         values["sync_tolerance_ms"] = _ms(self.sync.tolerance_ns)
         values["sync_window_ms"] = _ms(self.sync.effective_tolerance_ns)
+        values["sync_mode"] = str(getattr(self.sync, "mode", "exact") or "choosing")
         level = max((lv for lv, _ in problems), default=OK)
         message = "; ".join(text for _, text in problems) if problems else "ok"
         return Assessment(level, message, values, [line] if line else [])
 
 
-class CurrentHealth:
-    """Sets met without a fresh current, per interference channel (see
-    :class:`~magcal_ros.core.interference.LatestCurrents`): counted, shown as
-    ``<channel>.stale_current`` and a WARN naming the channel in the period it happens."""
+def _duration(ns: int) -> str:
+    """``500 ms`` below a second, ``10 s`` from a second on."""
+    return f"{_ms(ns)} ms" if ns < NS_PER_S else f"{ns / NS_PER_S:.3g} s"
 
-    def __init__(self, channels: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
-        self.channels = channels
+
+class StreamHealth:
+    """Sets met without a fresh value of a side stream (a current channel, a sensor's temperature, the
+    IMU; see :mod:`magcal_ros.core.matching`): counted per stream, shown as ``<name>.stale_<noun>``
+    and a WARN naming the stream and its topic in the period it happens."""
+
+    NOUN = "value"
+    """What the stream carries, in keys and messages."""
+    UNIT = ""
+    """Suffix of the key of the newest value (``<name>.<noun>_<unit>``); empty: no such key."""
+    STALE_KEY = "{name}.stale_{noun}"
+    RECEIVED_KEY = "{name}.{noun}_received"
+
+    def __init__(self, names: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
+        self.channels = names
         self.topics = topics
         self.tolerance_ns = tolerance_ns
-        self.stale = [0] * len(channels)
-        self._reported = [0] * len(channels)
+        self.stale = [0] * len(names)
+        self._reported = [0] * len(names)
 
     def count(self, fresh: list[bool]) -> bool:
-        """Count one set (``fresh`` per channel); True when every channel is fresh."""
+        """Count one set (``fresh`` per stream); True when every stream is fresh."""
         ok = True
         for j, f in enumerate(fresh):
             if not f:
@@ -202,16 +207,18 @@ class CurrentHealth:
         return ok
 
     def assess(self, received: list[int], latest: list[float | None], what: str) -> tuple[str | None, dict[str, str]]:
-        """(WARN text naming the channels that were stale since the last call, or None; values).
+        """(WARN text naming the streams that were stale since the last call, or None; values).
 
-        ``received``: values received per channel; ``latest``: newest value (A) or None;
+        ``received``: values received per stream; ``latest``: newest value or None;
         ``what``: what happened to such sets (``withheld``, ``not collected``)."""
         values: dict[str, str] = {}
         late = []
+        noun = self.NOUN
         for j, name in enumerate(self.channels):
-            values[f"{name}.stale_current"] = str(self.stale[j])
-            values[f"{name}.current_received"] = str(received[j])
-            values[f"{name}.current_A"] = "" if latest[j] is None else f"{latest[j]:.6g}"
+            values[self.STALE_KEY.format(name=name, noun=noun)] = str(self.stale[j])
+            values[self.RECEIVED_KEY.format(name=name, noun=noun)] = str(received[j])
+            if self.UNIT:
+                values[f"{name}.{noun}_{self.UNIT}"] = "" if latest[j] is None else f"{latest[j]:.6g}"
             new = self.stale[j] - self._reported[j]
             if new:
                 never = " (none received yet)" if not received[j] else ""
@@ -219,5 +226,32 @@ class CurrentHealth:
         self._reported = list(self.stale)
         if not late:
             return None, values
-        return (f"stale current (no value within {_ms(self.tolerance_ns)} ms before the set), sets {what}: "
+        return (f"stale {noun} (no value within {_duration(self.tolerance_ns)} before the set), sets {what}: "
                 + ", ".join(late)), values
+
+
+class CurrentHealth(StreamHealth):
+    """Sets met without a fresh current, per interference channel (see
+    :class:`~magcal_ros.core.interference.LatestCurrents`): counted, shown as
+    ``<channel>.stale_current`` (``current_received``, ``current_A``) and a WARN naming the channel
+    in the period it happens."""
+
+    NOUN = "current"
+    UNIT = "A"
+
+
+class TemperatureHealth(StreamHealth):
+    """Sets met without a fresh temperature, per sensor: ``<name>.stale_temperature``
+    (``temperature_received``, ``temperature_C``) and a WARN naming the sensor and its topic."""
+
+    NOUN = "temperature"
+    UNIT = "C"
+
+
+class ImuHealth(StreamHealth):
+    """Sets met without an IMU sample (the stream named ``imu``): ``imu.stale``, ``imu.received`` and a WARN
+    naming the topic."""
+
+    NOUN = "IMU"
+    STALE_KEY = "{name}.stale"
+    RECEIVED_KEY = "{name}.received"

@@ -2,13 +2,22 @@
 
 Every schedule returns (N, 3, 3) rotation matrices ``R_k`` from the platform frame to
 the world frame, so the platform-frame field is ``B_k = R_k^T B_world``.
+
+Some schedules are a path flown in time (:data:`CONTINUOUS_SCHEDULES`: consecutive
+attitudes a few degrees apart); sampled at the set instants they become a continuous
+attitude (:class:`AttitudePath`), whose angular velocity is what a gyro measures. The grids
+and random attitudes jump from one attitude to the next: no vehicle flies them, and they
+have no angular velocity.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
-from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation, RotationSpline
 
 Array = NDArray[np.float64]
 
@@ -121,3 +130,30 @@ SCHEDULES = {
     "sea": lambda n, rng: sea_manoeuvre(n, rng=rng),
 }
 """Schedules by name: ``f(count, rng) -> (N, 3, 3)``; grids ignore ``count``."""
+
+CONTINUOUS_SCHEDULES: tuple[str, ...] = ("single-axis", "sea", "tumble")
+"""Schedules that are a path in time (consecutive attitudes close): a gyro sees their turn rate."""
+
+
+@dataclass(frozen=True)
+class AttitudePath:
+    """A continuous attitude through ``attitudes`` (N, 3, 3) platform to world at ``times`` (N,) s: a
+    cubic spline on rotations (continuous angular velocity and acceleration, exactly the given
+    attitude at each given time)."""
+
+    times: NDArray[np.float64]
+    spline: Any
+
+    @classmethod
+    def through(cls, attitudes: ArrayLike, times: ArrayLike) -> "AttitudePath":
+        """The path through ``attitudes`` at increasing ``times`` (s)."""
+        t = np.asarray(times, dtype=float)
+        return cls(t, RotationSpline(t, Rotation.from_matrix(np.asarray(attitudes, dtype=float))))
+
+    def attitude(self, times: ArrayLike) -> Array:
+        """Platform-to-world rotations (n, 3, 3) at ``times`` (s, within the path's span)."""
+        return self.spline(np.asarray(times, dtype=float)).as_matrix()  # type: ignore[no-any-return]
+
+    def angular_velocity(self, times: ArrayLike) -> Array:
+        """Angular velocity (n, 3) rad/s in the platform frame (``dR/dt = R [w]x``) at ``times`` (s)."""
+        return np.asarray(self.spline(np.asarray(times, dtype=float), 1), dtype=float).reshape(-1, 3)

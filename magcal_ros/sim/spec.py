@@ -10,6 +10,14 @@ each, the thrusters stepping like an odometer (thruster 1 changes level every
 ``step_sets`` sets, thruster 2 every ``step_sets * L`` sets, ...) so that no two move in
 lockstep. Thruster ``j`` (from 1) is channel ``thrusterj/battery``: in a bag its current is
 the ``sensor_msgs/msg/BatteryState`` topic ``/thrusterj/battery``.
+
+Temperature (:mod:`magcal_ros.sim.temperature`): a profile (``temperatures`` steps,
+``temperature_ramp`` or ``thermocline``) and the sensors' tempcos, drawn per sensor and axis
+from their spreads and the seed alone (the same sensors with and without them). IMU
+(:mod:`magcal_ros.sim.imu`): ``imu`` with its mounting (roll, pitch, yaw in deg: the rotation
+``Rz(yaw) Ry(pitch) Rx(roll)`` from the array frame to the IMU frame), noise, bias and rate; a
+gyro only for schedules flown in time (:data:`~magcal_ros.sim.attitudes.CONTINUOUS_SCHEDULES`).
+``world_gradient``: a constant gradient over the array in the world frame (NED).
 """
 
 from __future__ import annotations
@@ -24,12 +32,14 @@ from magcal_ros.core.recording import Recording
 from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError
 from magcal_ros.sim import attitudes
+from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
 from magcal_ros.sim.simulator import (
     ArraySimulation,
     Thruster,
     Truth,
     random_sensor_errors,
 )
+from magcal_ros.sim.temperature import draw_tempcos, temperature_profile
 
 SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "li2018", "coaxial2022", "three-axes", "random", "sea", "tumble")
 SCHEDULE_ALIASES: dict[str, str] = {"paper000": "li2018", "paper004": "coaxial2022"}
@@ -112,6 +122,38 @@ class SimulationSpec:
     """Sets each level of ``steps:`` is held."""
     still: bool = False
     """The vehicle does not move: every set takes the schedule's first attitude."""
+    # -- temperature -------------------------------------------------------------------------------
+    temperatures: tuple[float, ...] = ()
+    """Profile ``steps``: equal consecutive blocks of sets at these temperatures (deg C)."""
+    temperature_ramp: tuple[float, ...] = ()
+    """Profile ``ramp``: from T0 to T1 (deg C) over the recording."""
+    thermocline: tuple[float, ...] = ()
+    """Profile ``thermocline``: surface and deep temperatures (deg C) and optionally the dives."""
+    temperature_reference: float = 20.0
+    """Temperature (deg C) at which the sensors have their drawn errors."""
+    tempco_offset: float = 0.0
+    """Spread (1-sigma, T/K) of the offset tempcos, per sensor and axis."""
+    tempco_gain: float = 0.0
+    """Spread (1-sigma, 1/K) of the gain tempcos, per sensor and axis."""
+    temperature_noise: float = 0.0
+    """1-sigma (K) of the recorded temperatures' noise."""
+    # -- IMU and site --------------------------------------------------------------------------------
+    imu: bool = False
+    """Simulate the vehicle's IMU (orientation; gyro for schedules flown in time)."""
+    imu_mounting: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Roll, pitch, yaw (deg) of the rotation array frame -> IMU frame."""
+    imu_orientation_noise: float = 0.0
+    """1-sigma per axis (deg) of the measured orientation."""
+    imu_gyro_noise: float = 0.0
+    """1-sigma per axis (rad/s) of the gyro's white noise."""
+    imu_gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The gyro's constant bias (rad/s, IMU frame)."""
+    imu_rate: float = 0.0
+    """Samples per second of the IMU's own topic in a bag (0: one at each set's stamp)."""
+    imu_frame_id: str = DEFAULT_IMU_FRAME_ID
+    world_gradient: tuple[float, ...] = ()
+    """A constant gradient over the array (T/m, world frame NED): 5 numbers xx, xy, xz, yy, yz
+    (symmetric and traceless) or all 9 row-major."""
 
     @property
     def channels(self) -> tuple[str, ...]:
@@ -141,6 +183,63 @@ class SimulationSpec:
             if len(d) != 6 or not np.all(np.isfinite(d)):
                 raise InputError("--thruster needs 6 numbers: x,y,z (m) and mx,my,mz (A m^2 per A), platform frame")
         current_schedule(self.thruster_current, 1, 1, self.step_sets, np.random.default_rng(0))
+        self.temperature_profile()
+        draw_tempcos(np.random.default_rng(0), 1, self.tempco_offset, self.tempco_gain)
+        if (self.tempco_offset or self.tempco_gain) and self.temperature_profile() is None:
+            raise InputError("--tempco-offset/--tempco-gain need a temperature profile: --temperatures, "
+                             "--temperature-ramp or --thermocline")
+        if not (np.isfinite(self.temperature_reference) and np.isfinite(self.temperature_noise)
+                and self.temperature_noise >= 0):
+            raise InputError("--temperature-reference must be finite and --temperature-noise finite and >= 0")
+        if not self.imu and (any(self.imu_mounting) or self.imu_orientation_noise or self.imu_gyro_noise
+                             or any(self.imu_gyro_bias) or self.imu_rate):
+            raise InputError("the --imu-* options need --imu")
+        if len(self.imu_mounting) != 3 or len(self.imu_gyro_bias) != 3:
+            raise InputError("--imu-mounting needs ROLL,PITCH,YAW (deg) and --imu-gyro-bias 3 numbers (rad/s)")
+        if self.imu:
+            self.imu_model()
+            if self.imu_rate and not self.continuous:
+                raise InputError("--imu-rate needs a schedule flown in time: "
+                                 + ", ".join(attitudes.CONTINUOUS_SCHEDULES) + " (or --still)")
+        self.world_gradient_matrix()
+
+    def temperature_profile(self) -> tuple[str, tuple[float, ...]] | None:
+        """The temperature profile ``(kind, values)``, None without one; :class:`InputError` for two."""
+        given = [(k, v) for k, v in (("steps", self.temperatures), ("ramp", self.temperature_ramp),
+                                     ("thermocline", self.thermocline)) if v]
+        if len(given) > 1:
+            raise InputError("give one temperature profile: --temperatures, --temperature-ramp or --thermocline")
+        if given:
+            temperature_profile(given[0][0], given[0][1], 1)  # checks the values
+        return given[0] if given else None
+
+    @property
+    def continuous(self) -> bool:
+        """The attitudes are a path flown in time (or the vehicle is still): a gyro sees them."""
+        return self.still or schedule_name(self.schedule) in attitudes.CONTINUOUS_SCHEDULES
+
+    def imu_model(self) -> ImuModel:
+        """The simulated IMU of this spec."""
+        roll, pitch, yaw = self.imu_mounting
+        mounting = attitudes.yaw_pitch_roll(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
+        return ImuModel(mounting, np.radians(self.imu_orientation_noise), self.imu_gyro_noise,
+                        np.asarray(self.imu_gyro_bias, dtype=float), self.imu_rate, self.imu_frame_id)
+
+    def world_gradient_matrix(self) -> np.ndarray | None:
+        """The world gradient (3, 3) T/m (NED), None without one."""
+        g = np.asarray(self.world_gradient, dtype=float)
+        if not g.size:
+            return None
+        if g.size == 5:
+            xx, xy, xz, yy, yz = g
+            g = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, -xx - yy]])
+        elif g.size != 9:
+            raise InputError("--world-gradient needs 5 numbers XX,XY,XZ,YY,YZ or 9 (T/m, world frame NED)")
+        g = g.reshape(3, 3)
+        if not np.all(np.isfinite(g)) or np.max(np.abs(g - g.T)) > 1e-9 * np.max(np.abs(g)) or \
+                abs(np.trace(g)) > 1e-9 * np.max(np.abs(g)):
+            raise InputError("--world-gradient must be symmetric and traceless (T/m)")
+        return g
 
 
 def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
@@ -153,6 +252,10 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
                              spec.hard_iron_sd, spec.soft_iron_sd)
         for _ in geometry.names
     )
+    offset_tempco = gain_tempco = None
+    if spec.tempco_offset or spec.tempco_gain:
+        offset_tempco, gain_tempco = draw_tempcos(np.random.default_rng([spec.seed, 4]), geometry.size,
+                                                  spec.tempco_offset, spec.tempco_gain)
     sim = ArraySimulation(
         geometry=geometry,
         sensors=sensors,
@@ -164,6 +267,12 @@ def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
         position=np.asarray(spec.position, dtype=float),
         thrusters=tuple(Thruster(c, np.asarray(d[:3], float), np.asarray(d[3:], float))
                         for c, d in zip(spec.channels, spec.thrusters)),
+        world_gradient=spec.world_gradient_matrix(),
+        temperature_reference=spec.temperature_reference,
+        offset_tempco=offset_tempco,
+        gain_tempco=gain_tempco,
+        temperature_noise=spec.temperature_noise,
+        imu=spec.imu_model() if spec.imu else None,
     )
     att_rng = np.random.default_rng([spec.seed, 1])
     if spec.schedule == "single-axis":
@@ -185,6 +294,8 @@ def run(spec: SimulationSpec) -> tuple[Recording, Truth, ArraySimulation]:
     sim, rot = build(spec)
     currents = current_schedule(spec.thruster_current, len(rot), len(sim.thrusters), spec.step_sets,
                                 np.random.default_rng([spec.seed, 3]))
+    profile = spec.temperature_profile()
+    temperatures = None if profile is None else temperature_profile(profile[0], profile[1], len(rot))
     rec, truth = sim.run(rot, np.random.default_rng([spec.seed, 2]), rate=spec.rate, start=spec.start_time,
-                         currents=currents)
+                         currents=currents, temperatures=temperatures, continuous=spec.continuous)
     return rec, truth, sim

@@ -1,0 +1,490 @@
+"""``magcal batch``: a campaign's recordings corrected at once on Dask, with a campaign report.
+
+Each recording is one Dask task (:func:`~magcal_ros.app.batch_task.run_job`) that runs
+``magcal correct`` on it, so the rules of a single run hold per recording. By default the
+tasks run on a local cluster of worker processes (``--workers N``, one thread each);
+``--scheduler ADDRESS`` sends them to an existing Dask cluster whose workers see the same
+paths. Dask is imported here only when a batch runs, so the other commands do not pay for it.
+
+What is planned, skipped and how recordings are named: :mod:`magcal_ros.app.campaign`;
+the report: :mod:`magcal_ros.app.batch_report`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from magcal_ros.errors import InputError, MagcalError
+
+if TYPE_CHECKING:
+    from magcal_ros.app.campaign import Job, Outcome
+    from magcal_ros.app.progress import ProgressBar
+
+EPILOG_BATCH = """examples:
+  magcal batch campaign/ -c cal.yaml -o corrected/               # every bag and CSV below campaign/
+  magcal batch a_bag b_bag c.csv -c cal.yaml -o out/ --workers 2
+  magcal batch @missions.txt -c calibrations.yaml -o out/        # a list file and a mapping file
+  magcal batch campaign/ -c cal.yaml -o out/ --scheduler tcp://10.0.0.5:8786   # an existing Dask cluster
+  magcal batch campaign/ -c cal.yaml -o out/ --force             # redo recordings already done
+  magcal batch campaign/ -c prior.yaml -o out/ --calibrate --reference-field 5.15e-5
+
+inputs: rosbag2 directories (a metadata.yaml, or .db3/.mcap files) and .csv files; any other
+directory is walked: every recording below it (hidden entries and OUTDIR left out), its output
+at OUTDIR/<path relative to the walked directory>. A recording named directly goes to
+OUTDIR/<its name>. @FILE or --list FILE: one path per line (# comments; relative to FILE).
+
+calibration (-c): one calibration file for every recording, or a mapping file:
+  magcal_batch:
+    calibrations:                       # the first entry that matches wins
+      - {vehicle: auv1, calibration: auv1.yaml}
+      - {match: "glider*/2025-*", calibration: glider_2025.yaml}
+      - {calibration: default.yaml}     # no condition: any recording
+  vehicle: glob over the recording's vehicle; match: glob over its name under OUTDIR or its
+  absolute path ('*' crosses '/'); paths relative to the mapping file. A recording no entry
+  covers fails with that reason.
+vehicle: the directory holding the recording (campaign/auv1/m1_bag: auv1), or with
+  --vehicle-pattern REGEX the group 'vehicle' (else group 1, else the match) of the pattern's
+  first match in the recording's absolute path.
+--calibrate: calibrate each recording from its own manoeuvre first (magcal calibrate, with the
+  mapped calibration as --prior when there is one), written to OUTDIR/<name>.calibration.yaml,
+  then correct with it; a recording whose manoeuvre is refused fails with the reason.
+
+per recording: exactly 'magcal correct' (same outputs, stamps, refusals, atomic writes). A
+recording that fails is reported by name with its one-line reason; the others go on. Done
+recordings are recorded in OUTDIR/.magcal_batch/; a re-run skips those whose input, output,
+calibration and options are unchanged (--force redoes them).
+
+report: OUTDIR/report.csv and OUTDIR/report.html (self-contained: inline SVG, no external
+files): per recording sets, drops, time span, TMI residual | |B| - F | (median, 95th
+percentile, and both over the calibration's noise), tensor noise, the calibration used; per
+vehicle their trend over time.
+
+exit codes: 0 every recording done (corrected now or skipped); 1 some failed (the report names
+them); 2 the batch refused (bad option, calibration, mapping or scheduler; nothing run);
+130, 143, 129 stopped by SIGINT, SIGTERM, SIGHUP."""
+
+
+WORKER_START_TIMEOUT = 300.0
+"""Seconds the local cluster's workers may take to start (imports on a loaded machine)."""
+
+
+def _workers(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError("at least 1 worker")
+    return n
+
+
+def default_workers() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
+    """Add ``magcal batch`` to ``sub``; ``make`` is the CLI's subcommand factory."""
+    from magcal_ros.app import cli
+
+    p = make(
+        sub, "batch", "correct a campaign's recordings at once (Dask), with a campaign report",
+        "Correct many recordings (bags and CSVs, directories walked, list files) each with its calibration, "
+        "one Dask task per recording on a local cluster or an existing one, and write a campaign report.",
+        EPILOG_BATCH,
+    )
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="recordings (rosbag2 directory or .csv), directories to walk, or @LISTFILE")
+    p.add_argument("-c", "--calibration", required=True, metavar="CAL.yaml",
+                   help="calibration file for every recording, or a mapping file (magcal_batch: calibrations: ...)")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output directory (created)")
+    p.add_argument("--list", action="append", metavar="FILE", help="a list file: one recording or directory per line")
+    g = p.add_argument_group("Dask")
+    g.add_argument("--workers", type=_workers, metavar="N",
+                   help=f"worker processes of the local cluster, one thread each (default: the cores, {default_workers()})")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on an existing Dask cluster (e.g. tcp://host:8786) whose workers see the same paths")
+    g = p.add_argument_group("campaign")
+    g.add_argument("--force", action="store_true", help="redo recordings a previous run finished")
+    g.add_argument("--vehicle-pattern", metavar="REGEX",
+                   help="find each recording's vehicle in its absolute path (group 'vehicle', else group 1, else the "
+                   "match); default: the directory holding the recording")
+    g.add_argument("--calibrate", action="store_true",
+                   help="calibrate each recording from its own manoeuvre first (the mapped calibration as prior)")
+    g.add_argument("--reference-field", type=float, default=None, metavar="TESLA",
+                   help="total intensity F (T): for --calibrate, and the F of the report's TMI residual "
+                   "(default: the calibration's)")
+    g.add_argument("--site", metavar="LAT,LON[,ALT_M]", help="--calibrate: F from the World Magnetic Model at this site")
+    g.add_argument("--date", metavar="YYYY-MM-DD", help="--calibrate: date for --site (default today, UTC)")
+    g = p.add_argument_group("correction (as magcal correct)")
+    g.add_argument("--uncorrected", metavar="NAME[,NAME]", help="sensors the calibration may lack a block for")
+    g.add_argument("--storage", choices=["sqlite3", "mcap"], help="output storage of bag inputs (default: the input's)")
+    g.add_argument("--frame-id", default=None, help="platform frame of the outputs (default magcal_array)")
+    g.add_argument("--gradient-method", default=None, choices=["difference", "least_squares"],
+                   help="as magcal correct (default: difference for the cross, least_squares otherwise)")
+    copy = g.add_mutually_exclusive_group()
+    copy.add_argument("--copy-topics", metavar="T1,T2", help="bag inputs: also copy these topics unchanged")
+    copy.add_argument("--copy-all", action="store_true", help="bag inputs: also copy every topic unchanged")
+    cli.add_sync_options(g)
+    cli.add_current_options(g)
+    cli.add_common_options(p)
+    p.set_defaults(func=cmd_batch)
+
+
+def _options(args: argparse.Namespace, bag: bool) -> tuple[list[str], list[str]]:
+    """``magcal correct`` and ``magcal calibrate`` options of one recording (only those given)."""
+    from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE
+
+    common: list[str] = []
+    if args.sync_tolerance != DEFAULT_SYNC_TOLERANCE:
+        common += ["--sync-tolerance", repr(args.sync_tolerance)]
+    if args.drop_nonfinite:
+        common.append("--drop-nonfinite")
+    if bag and args.currents:
+        common += ["--currents", args.currents, "--current-tolerance", repr(args.current_tolerance)]
+    correct = list(common)
+    if args.uncorrected:
+        correct += ["--uncorrected", args.uncorrected]
+    if args.frame_id is not None:
+        correct += ["--frame-id", args.frame_id]
+    if args.gradient_method is not None:
+        correct += ["--gradient-method", args.gradient_method]
+    if bag and args.storage:
+        correct += ["--storage", args.storage]
+    if bag and args.copy_topics:
+        correct += ["--copy-topics", args.copy_topics]
+    if bag and args.copy_all:
+        correct.append("--copy-all")
+    calibrate = list(common)
+    if args.reference_field is not None:
+        calibrate += ["--reference-field", repr(args.reference_field)]
+    if args.site is not None:
+        calibrate += [f"--site={args.site}"] + (["--date", args.date] if args.date else [])
+    return correct, calibrate
+
+
+def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
+    """The batch's jobs (in input order) and notes; :class:`InputError` when the batch is refused."""
+    from magcal_ros.app import campaign as cp
+
+    if args.scheduler and args.workers:
+        raise InputError("--workers sizes the local cluster; with --scheduler the cluster's own workers run the tasks")
+    if (args.site or args.date) and not args.calibrate:
+        raise InputError("--site and --date apply to --calibrate")
+    if args.site and args.reference_field is not None:
+        raise InputError("give either --reference-field or --site, not both")
+    if args.reference_field is not None and not (1e-7 <= args.reference_field <= 1e-3):
+        raise InputError(f"--reference-field {args.reference_field:g} T is not Earth-like (1e-7 .. 1e-3 T)")
+    outdir = Path(args.output).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(f"output {args.output} exists and is not a directory")
+    found, notes = cp.find_recordings(args.inputs, args.list or [], outdir.resolve())
+    unique: list[tuple[str, Path]] = []
+    seen: set[tuple[str, Path]] = set()
+    for name, path in found:
+        if (name, path.resolve()) not in seen:
+            seen.add((name, path.resolve()))
+            unique.append((name, path))
+    clash = cp.duplicates(unique)
+    if clash:
+        more = f" (and {len(clash) - 3} more)" if len(clash) > 3 else ""
+        raise InputError("; ".join(clash[:3]) + more + ": give their parent directory instead (a walk keeps "
+                         "relative names)")
+    if not unique:
+        raise InputError(f"no recordings in {' '.join(args.inputs + (args.list or []))} (rosbag2 directories or .csv files)")
+    bad = [n for n, _ in unique if cp.reserved(n)]
+    if bad:
+        raise InputError(f"recording {bad[0]} would write over the batch's own {bad[0]} in OUTDIR: rename it")
+    cmap = cp.load_calibrations(args.calibration)
+    pattern = cp.vehicle_pattern(args.vehicle_pattern)
+    uncorrected = tuple(n.strip() for n in (args.uncorrected or "").split(",") if n.strip())
+    jobs = []
+    for name, path in unique:
+        vehicle = cp.vehicle_of(path, pattern)
+        cal = cmap.lookup(name, path, vehicle)
+        output = outdir / name
+        if output.resolve() == path.resolve():
+            raise InputError(f"output {output} would overwrite the input {path}: choose another OUTDIR")
+        problem = ""
+        if not path.exists():
+            problem = f"{path} does not exist"
+        elif not (cp.is_bag_dir(path) or cp.is_csv_path(path) or path.suffix in cp.STORAGE_SUFFIXES):
+            problem = f"{path}: not a recording: give a rosbag2 directory or a .csv file"
+        elif cal is None and not args.calibrate:
+            problem = cmap.missing(name, vehicle)
+        bag = not cp.is_csv_path(path)
+        correct, calibrate = _options(args, bag)
+        jobs.append(cp.Job(
+            name=name, input=str(path.absolute()), output=str(output), vehicle=vehicle,
+            calibration=str(cal.absolute()) if cal is not None else "", record=str(cp.record_path(outdir, name)),
+            correct_args=tuple(correct), calibrate_args=tuple(calibrate) if args.calibrate else None,
+            calibration_out=str(outdir / f"{name}.calibration.yaml") if args.calibrate else "",
+            reference_field=args.reference_field, uncorrected=uncorrected, problem=problem,
+        ))
+    _check_calibrations(jobs, uncorrected)
+    return jobs, notes
+
+
+def _check_calibrations(jobs: Sequence[Job], uncorrected: tuple[str, ...]) -> None:
+    """Refuse the batch when a calibration file it would use cannot be read (one line naming it)."""
+    from magcal_ros.io import calibration_file as calfile
+
+    for path in sorted({j.calibration for j in jobs if j.calibration and not j.problem}):
+        try:
+            calfile.read(path, uncorrected=uncorrected)
+        except InputError as exc:
+            raise InputError(exc if path in str(exc) else f"{path}: {exc}") from None
+
+
+class Console:
+    """Per-recording lines and the batch's progress bar on one terminal."""
+
+    def __init__(self, bar: ProgressBar, quiet: bool) -> None:
+        self.bar = bar
+        self.quiet = quiet
+
+    def line(self, text: str, error: bool = False) -> None:
+        stream = sys.stderr if error else sys.stdout
+        self.bar.clear()
+        if error or not self.quiet:
+            print(text, file=stream, flush=True)
+
+    def done(self, o: Outcome) -> None:
+        from magcal_ros.core.units import NT
+
+        if o.status == "failed":
+            self.line(f"  FAILED {o.name}: {o.reason}", error=True)
+            return
+        tmi = (f", TMI median {o.tmi_median / NT:.3g} nT" + (f" ({o.ratio(o.tmi_median):.2g}x noise)" if o.noise else "")
+               if o.tmi_median is not None else "")
+        tensor = f", tensor noise {o.tensor_noise / NT:.3g} nT/m" if o.tensor_noise is not None else ""
+        took = f", {o.seconds:.1f} s" if o.seconds is not None and o.status == "corrected" else ""
+        self.line(f"  {o.status} {o.name}: {o.sets} sets, {o.drops} dropped{tmi}{tensor}{took}")
+
+
+def failure_reason(exc: BaseException) -> str:
+    """One line for a task's exception (a refusal's own reason; a lost worker said as such)."""
+    from magcal_ros.app.batch_task import RecordingFailed
+
+    if isinstance(exc, RecordingFailed):
+        return str(exc)
+    kind = type(exc).__name__
+    if kind == "KilledWorker":
+        return "the worker running it died (killed, or out of memory) every time it was tried"
+    text = str(exc).strip().splitlines()
+    return f"{kind}: {text[0]}" if text else kind
+
+
+class StopSignals:
+    """While a batch runs, a stop signal (SIGINT, SIGTERM, SIGHUP) only sets a flag; :meth:`check`
+    raises it as the CLI's ``Stopped`` at a point where the cluster can be closed cleanly
+    (raising inside Dask's own waits leaves its state broken)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "StopSignals":
+        from magcal_ros.io.atomic import STOP_SIGNALS
+
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {s: signal.signal(s, self._note) for s in STOP_SIGNALS}
+        return self
+
+    def _note(self, signum: int, frame: object) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+    def check(self) -> None:
+        """Raise ``Stopped`` if a stop signal came."""
+        if self.signum is not None:
+            from magcal_ros.app.cli import Stopped
+
+            raise Stopped(self.signum)
+
+    def __exit__(self, *exc: object) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+
+
+def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
+    """A ``LocalCluster`` of ``n`` single-threaded worker processes and its client.
+
+    The worker processes are spawned with SIGINT ignored (a disposition they inherit and
+    Python keeps), so a terminal's Ctrl-C, sent to the whole process group, stops only this
+    process, which then closes them; this process ignores SIGINT too only until the
+    processes exist (a fraction of a second), not during their start-up.
+    """
+    import logging
+    import multiprocessing
+
+    from distributed import Client, LocalCluster
+
+    main = threading.current_thread() is threading.main_thread()
+    held = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    cluster = None
+    try:
+        try:
+            # The scheduler's HTTP server on a free local port (the default 8787 may be taken: a warning).
+            cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+                                   silence_logs=logging.CRITICAL)  # a failed task is reported by name instead
+            cluster.scale(n)
+            deadline = time.monotonic() + WORKER_START_TIMEOUT
+            while len(multiprocessing.active_children()) < n and time.monotonic() < deadline:
+                time.sleep(0.02)
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, held)
+        client = Client(cluster)
+        deadline = time.monotonic() + WORKER_START_TIMEOUT
+        while len(client.scheduler_info(n_workers=-1).get("workers", {})) < n:
+            stop.check()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"not up within {WORKER_START_TIMEOUT:.0f} s")
+            time.sleep(0.1)
+    except (OSError, RuntimeError, TimeoutError) as exc:
+        if cluster is not None:
+            cluster.close()
+        raise MagcalError(f"cannot start a local Dask cluster of {n} workers: {exc}") from None
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
+    return cluster, client
+
+
+def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
+                on_done: Callable[[Outcome], None]) -> str:
+    """Run ``jobs`` as Dask tasks, calling ``on_done`` with each outcome as it finishes; returns
+    where they ran (for the summary). :class:`InputError` when the scheduler cannot be reached;
+    a stop signal closes the cluster and raises the CLI's ``Stopped``."""
+    from distributed import Client, as_completed
+
+    from magcal_ros.app.batch_task import run_job
+
+    cluster: Any = None
+    with StopSignals() as stop:
+        try:
+            if scheduler:
+                try:
+                    client = Client(scheduler, timeout="20s")
+                except (OSError, TimeoutError, ValueError) as exc:
+                    raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+                where = f"the Dask cluster at {scheduler} ({len(client.scheduler_info().get('workers', {}))} workers)"
+            else:
+                n = workers or default_workers()
+                cluster, client = _local_cluster(n, stop)
+                where = f"{n} local worker process{'es' if n != 1 else ''}"
+            with client:
+                stop.check()
+                tag = uuid.uuid4().hex[:8]
+                keys = [f"magcal-batch-{tag}-{i}-{job.name}" for i, job in enumerate(jobs)]
+                futures = client.map(run_job, list(jobs), key=keys, pure=False, retries=0)
+                by_key = dict(zip(keys, jobs))
+                done = as_completed(futures)
+                while not done.is_empty():
+                    stop.check()
+                    finished = done.next_batch(block=False)
+                    if not finished:
+                        time.sleep(0.1)
+                    for fut in finished:
+                        job = by_key[fut.key]
+                        if fut.status == "finished":
+                            outcome = fut.result()
+                        else:
+                            try:
+                                exc = fut.exception()
+                            except BaseException as cancelled:  # a cancelled future raises instead
+                                exc = cancelled
+                            outcome = job.outcome("failed", reason=failure_reason(exc))
+                        fut.release()
+                        on_done(outcome)
+                        stop.check()
+        finally:
+            if cluster is not None:
+                cluster.close()
+    return where
+
+
+def _clean_unfinished(jobs: Sequence[Job]) -> None:
+    """Remove what stopped tasks left beside their outputs (their worker processes are gone;
+    a task still running elsewhere keeps its partial output, which its next run cleans up)."""
+    from magcal_ros.io.atomic import recover
+
+    for job in jobs:
+        for target in (job.output, job.calibration_out):
+            if target:
+                recover(target)
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Plan, skip what is done, run the rest on Dask, write the report; exit 1 if any recording failed."""
+    from magcal_ros.app import batch_report, campaign
+    from magcal_ros.app.campaign import Outcome, digest, finished
+    from magcal_ros.app.progress import ProgressBar
+
+    t0 = time.perf_counter()
+    jobs, notes = plan(args)
+    for note in notes:
+        print(f"  note: {note}", file=sys.stderr)
+    outdir = Path(args.output).absolute()
+    outcomes: dict[str, Outcome] = {}
+    pending = []
+    digests: dict[str, str] = {}
+    for job in jobs:
+        if job.problem:
+            outcomes[job.name] = job.outcome("failed", reason=job.problem)
+            continue
+        if not args.force:
+            key = digests.setdefault(job.calibration, digest(job.calibration) if job.calibration else "")
+            earlier = finished(job, key)
+            if earlier is not None:
+                outcomes[job.name] = replace(earlier, status="skipped", reason="")
+                continue
+        pending.append(job)
+    skipped = sum(o.status == "skipped" for o in outcomes.values())
+    bar = ProgressBar(len(pending), "batch", unit="rec", enabled=False if args.quiet else None)
+    console = Console(bar, args.quiet)
+    for o in outcomes.values():
+        if o.status == "failed":
+            console.done(o)
+    if skipped:
+        console.line(f"  {skipped} recording{'s' if skipped != 1 else ''} already done, unchanged: skipped "
+                     "(--force redoes them)")
+    where = "nothing to run"
+    if pending:
+        def on_done(o: Outcome) -> None:
+            outcomes[o.name] = o
+            console.done(o)
+            bar(1)
+
+        try:
+            with bar:
+                where = run_on_dask(pending, args.workers, args.scheduler, on_done)
+        except KeyboardInterrupt:
+            _clean_unfinished([j for j in pending if j.name not in outcomes])
+            raise
+    ordered = [outcomes[j.name] for j in jobs]
+    outdir.mkdir(parents=True, exist_ok=True)
+    batch_report.write_csv(outdir / campaign.REPORT_CSV, ordered)
+    batch_report.write_html(outdir / campaign.REPORT_HTML, ordered, str(outdir))
+    failed = [o for o in ordered if o.status == "failed"]
+    corrected = sum(o.status == "corrected" for o in ordered)
+    names = ", ".join(o.name for o in failed[:5]) + (f" and {len(failed) - 5} more" if len(failed) > 5 else "")
+    print(f"batch: {len(ordered)} recordings: {corrected} corrected, {skipped} skipped, {len(failed)} failed"
+          + (f" ({names})" if failed else "") + f"; {time.perf_counter() - t0:.1f} s on {where}")
+    print(f"  report {outdir / campaign.REPORT_HTML} and {outdir / campaign.REPORT_CSV}")
+    return 1 if failed else 0

@@ -1,0 +1,188 @@
+"""The demo's mission: a drift mid-run, seen and fixed, over DDS (used by the demo, a test and a benchmark).
+
+With both nodes running and the correction node calibrated, a survey mission at ``RATE`` sets/s
+is replayed into them (with the thrusters' currents, when there are thrusters): yaw turns
+with +-5 deg of wobble, a magnetic target passed in the clean phase (the calibration health
+must stay OK), then the hard iron of every sensor jumps by 300-800 nT. The demo waits for the
+correction node's ``<node>: calibration`` status on ``/diagnostics`` to name the drift, for
+the calibration node (``auto_recalibrate`` false) to advise what to fly while leaving the
+calibration untouched, then sets ``auto_recalibrate`` true and waits for the recalibration
+to be pushed; finally it replays fresh turns and measures the live tensor against the floor.
+
+Mission time is the sets' stamps; ``speed`` > 1 replays it faster than real time (the nodes
+judge by stamps, so only the wall-clock waits shrink).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from magcal_ros.core.metrics import tensor_floor, tensor_rms
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.stamps import parse_seconds
+from magcal_ros.core.units import NS_PER_S, NT
+from magcal_ros.sim.mission import Leg, Target, mission
+from magcal_ros.sim.simulator import ArraySimulation, hard_iron_moved
+
+RATE = 100.0
+"""Sets per second of the mission."""
+YAW_RATE = 6.0
+"""deg/s of the yaw turns."""
+CHUNK = 5.0
+"""Seconds of mission replayed between two looks at the statuses."""
+TARGET = Target(15.0, 4.0, (0.0, 0.0, 80.0))
+"""A dipole of 80 A m^2 passed 4 m below the track (about 250 nT at the array)."""
+
+
+@dataclass
+class DriftOutcome:
+    """What the mission showed (times in mission seconds, tensor figures in T/m)."""
+
+    clean_levels: list[int] = field(default_factory=list)
+    """Levels of the calibration status judged during the clean phase."""
+    named_after: float | None = None
+    """Seconds of sets after the jump that the health had judged when it named the drift."""
+    named: str = ""
+    advice: str = ""
+    untouched: bool = False
+    """The correction node's calibration was the same after the advice as before the jump."""
+    recalibrated_after: float | None = None
+    """Seconds after auto_recalibrate was set true at which the push was seen."""
+    recalibrated: str = ""
+    tensor_drifted: float = float("nan")
+    tensor_recalibrated: float = float("nan")
+    floor: float = float("nan")
+    final_health: str = ""
+
+
+def _values(status: Any) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values} if status is not None else {}
+
+
+def _calibration_values(driver: Any, node: str, names: tuple[str, ...]) -> dict[str, Any]:
+    wanted = [f"{n}.{k}" for n in names for k in ("matrix", "offset")]
+    return driver.get_parameters(node, wanted)
+
+
+def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generator, say: Callable[[str], None],
+                      speed: float = 1.0, clean: float = 40.0, longest: float = 400.0, target_at: float = 15.0,
+                      correction: str = "/magcal_correction", calibration: str = "/magcal_calibration",
+                      max_current: float = 20.0, fresh: float = 40.0, patience: float = 120.0) -> DriftOutcome:
+    """The mission (see the module docstring); ``clean`` s before the jump (the target passed at
+    ``target_at`` s), at most ``longest`` s after it. Times are taken from the stamps the nodes judged
+    (the health's ``newest_stamp``), so a node that lags the replay does not change them; ``patience``
+    (s of wall time) is how long to wait for a node to catch up at the end of the clean phase."""
+    out = DriftOutcome(floor=tensor_floor(sim.noise, 0.4))
+    driver.watch_diagnostics()
+    health_name, recal_name = correction + ": calibration", calibration + ": recalibration"
+    m = len(sim.thrusters)
+    seconds = clean + longest
+    count = int(seconds * RATE)
+    currents = rng.uniform(0.0, max_current, (count, m)) if m else None
+    moved = hard_iron_moved(sim, rng)
+    target = replace(TARGET, seconds=target_at)
+    # The mission starts a health window after whatever the correction node saw last (the driver's probe
+    # sets, stamped now, all sensors reading one constant vector): judged by stamps, they are out of it.
+    window = float(driver.get_parameters(correction, ["health_window"]).get("health_window") or 60.0)
+    rec, _ = mission(sim, [Leg(seconds, YAW_RATE)], rng, rate=RATE, targets=[target], step=moved, step_at=clean,
+                     start=time.time() + window + 1.0, currents=currents)
+    jump_ns = int(rec.stamps[0]) + int(clean * NS_PER_S)
+    say(f"mission: yaw turns at {YAW_RATE:g} deg/s with +-5 deg wobble, {RATE:g} sets/s, replayed at {speed:g}x real "
+        f"time; a target ({np.linalg.norm(target.moment):.0f} A m^2, {target.distance:g} m below) passed at "
+        f"{target.seconds:g} s; every sensor's hard iron jumps by 300-800 nT at {clean:g} s")
+    before = _calibration_values(driver, correction, sim.geometry.names)
+
+    def judged() -> tuple[Any, dict[str, str], float]:
+        """The health status, its values and the mission time (s since the jump) of the newest set it judged."""
+        status = driver.status(health_name)
+        values = _values(status)
+        newest = values.get("newest_stamp")
+        return status, values, (parse_seconds(newest) - jump_ns) / NS_PER_S if newest else float("-inf")
+
+    def level(status: Any) -> int:
+        return int(status.level[0]) if isinstance(status.level, bytes) else int(status.level)
+
+    k = 0
+    phase = "clean"
+    auto_at: float | None = None
+    drifted_stamps: list[int] = []
+    chunk = int(CHUNK * RATE)
+    while k < len(rec):
+        part = rec.take(np.arange(k, min(k + chunk, len(rec))))
+        _replay(driver, part, speed)
+        k += len(part)
+        t = (int(part.stamps[-1]) - jump_ns) / NS_PER_S  # mission time since the jump, as published
+        health, hv, seen = judged()
+        if phase == "clean":
+            if health is not None and hv.get("figure") and seen < 0:
+                out.clean_levels.append(level(health))
+            if t >= 0:
+                deadline = time.monotonic() + patience
+                while seen < -CHUNK and time.monotonic() < deadline:  # let the node judge the clean phase
+                    time.sleep(0.2)
+                    health, hv, seen = judged()
+                    if health is not None and hv.get("figure") and seen < 0:
+                        out.clean_levels.append(level(health))
+                say(f"clean phase over ({clean:g} s, target passed): {health.message if health else 'no status'}")
+                phase = "drifting"
+        elif phase == "drifting":
+            if hv.get("drifted") == "true" and seen >= 0:
+                out.named_after, out.named = seen, health.message
+                say(f"{seen:.0f} s after the jump (of sets judged) /diagnostics says: {health.message}")
+                phase = "advising"
+        elif phase == "advising":
+            drifted_stamps.extend(int(s) for s in part.stamps)
+            rv = _values(driver.status(recal_name))
+            if rv.get("advice"):
+                out.advice = rv["advice"]
+                out.untouched = _calibration_values(driver, correction, sim.geometry.names) == before
+                say(f"auto_recalibrate false: the calibration node advises: {out.advice}; the running calibration "
+                    f"{'is untouched' if out.untouched else 'CHANGED'}")
+                (ok, reason), = driver.set_parameters(calibration, {"auto_recalibrate": True})
+                if not ok:
+                    raise RuntimeError(f"the calibration node refused auto_recalibrate: {reason}")
+                auto_at = t
+                say("set auto_recalibrate true")
+                phase = "recalibrating"
+        elif phase == "recalibrating":
+            rv = _values(driver.status(recal_name))
+            if int(rv.get("recalibrations", "0") or 0) >= 1:
+                out.recalibrated_after = t - (auto_at or t)
+                out.recalibrated = rv.get("last_recalibration", "")
+                say(f"{out.recalibrated_after:.0f} s later: {out.recalibrated}")
+                break
+    if drifted_stamps:
+        g = driver.gradients(drifted_stamps)
+        out.tensor_drifted = tensor_rms(np.stack(list(g.values()))) if g else float("nan")
+    if not out.recalibrated:
+        return out
+    # fresh turns with the new calibration: the live tensor against the floor
+    count = int(fresh * RATE)
+    check, _ = mission(moved, [Leg(fresh, YAW_RATE)], rng, rate=RATE,
+                       start=(int(rec.stamps[k - 1]) + NS_PER_S) / NS_PER_S,
+                       currents=rng.uniform(0.0, max_current, (count, m)) if m else None)
+    driver.clear_outputs()
+    _replay(driver, check, speed)
+    stamps = [int(s) for s in check.stamps]
+    driver.wait_for_outputs(stamps, timeout=60.0)
+    g = driver.gradients(stamps[int(RATE):])  # the first second may still meet the push
+    out.tensor_recalibrated = tensor_rms(np.stack(list(g.values()))) if g else float("nan")
+    health = driver.status(health_name)
+    out.final_health = health.message if health is not None else ""
+    say(f"{len(g)} fresh sets after the recalibration: tensor RMS {out.tensor_recalibrated / NT:.2f} nT/m "
+        f"({out.tensor_recalibrated / out.floor:.2f}x the floor); calibration health: {out.final_health}")
+    return out
+
+
+def _replay(driver: Any, rec: Recording, speed: float) -> None:
+    """Publish ``rec`` with its own stamps at ``speed`` times its rate (with its currents)."""
+    from magcal_ros.app.ros_driver import recording_messages
+
+    messages = recording_messages(rec.names, rec.stamps, rec.vectors)
+    driver.replay(messages, rate=RATE * speed, restamp=False,
+                  currents=rec.currents if rec.channels else None)

@@ -1,0 +1,174 @@
+"""Side streams matched to sets: the one rule for currents, temperatures and the IMU.
+
+A set stamped ``t`` takes a stream's latest value stamped in ``[t - tolerance, t]``: never a
+value newer than the set, of equal stamps the one recorded last, non-finite values are no
+values. A set without such a value is *stale* for that stream; what happens to it (dropped
+offline, withheld or not collected live) is counted per stream (:class:`MatchStats`).
+The IMU refines the rule where it matters (:mod:`magcal_ros.core.imu`): a fast-turning
+vehicle's attitude is interpolated to the set instant when samples bracket it.
+
+Offline (bags) the streams' samples are matched in batches (:func:`latest_before`,
+:func:`match_latest`); live nodes keep the last seconds of each stream and match one set
+at a time with the same rule (:class:`LatestValues`). Stamps are int64 nanoseconds.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magcal_ros.core.units import NS_PER_S
+
+Array = NDArray[np.float64]
+
+
+class Samples(Protocol):
+    """A stream of scalar values: ``stamps`` (n,) int64 ns and ``values`` (n,)."""
+
+    stamps: NDArray[np.int64]
+    values: Array
+
+
+def latest_before(
+    sample_stamps: ArrayLike, set_stamps: ArrayLike, tolerance_ns: int
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """For each set, the index of the latest sample stamped in ``[t - tolerance_ns, t]``.
+
+    ``sample_stamps`` (n,) must be sorted (ties: the sample recorded last comes last).
+    Returns ``(index (N,), fresh (N,))``; ``index`` is clipped to 0 where ``fresh`` is False.
+    """
+    st = np.asarray(sample_stamps, dtype=np.int64).reshape(-1)
+    t = np.asarray(set_stamps).astype(np.int64).reshape(-1)
+    if not len(st):
+        return np.zeros(len(t), np.int64), np.zeros(len(t), bool)
+    idx = np.searchsorted(st, t, side="right") - 1
+    at = np.maximum(idx, 0)
+    fresh = (idx >= 0) & (t - st[at] <= tolerance_ns)
+    return at, fresh
+
+
+def finite_sorted(stamps: ArrayLike, values: ArrayLike) -> tuple[NDArray[np.int64], Array]:
+    """The samples with finite values (every component), in stable stamp order."""
+    st = np.asarray(stamps, dtype=np.int64).reshape(-1)
+    v = np.asarray(values, dtype=float)
+    ok = np.all(np.isfinite(v.reshape(len(st), -1)), axis=1)
+    order = np.argsort(st[ok], kind="stable")
+    return st[ok][order], v[ok][order]
+
+
+def match_latest(set_stamps: ArrayLike, samples: Sequence[Samples], tolerance_ns: int) -> tuple[Array, NDArray[np.bool_]]:
+    """Every stream's value at every set: ``(values (N, m), fresh (N, m))`` by the module's rule.
+
+    A stale set's value is 0 (and ``fresh`` False).
+    """
+    t = np.asarray(set_stamps).astype(np.int64).reshape(-1)
+    out = np.zeros((len(t), len(samples)))
+    fresh = np.zeros((len(t), len(samples)), bool)
+    for j, s in enumerate(samples):
+        st, val = finite_sorted(s.stamps, s.values)
+        if not len(st):
+            continue
+        at, fresh[:, j] = latest_before(st, t, tolerance_ns)
+        out[:, j] = np.where(fresh[:, j], val[at], 0.0)
+    return out, fresh
+
+
+@dataclass
+class MatchStats:
+    """Sets dropped because a stream had no fresh value (one line for users).
+
+    ``streams`` name the streams (channels, sensors); subclasses say what they carry.
+    """
+
+    NOUN: ClassVar[str] = "value"
+    """What one stream carries, in the one-line description (``current``, ``temperature``)."""
+    OWNER: ClassVar[str] = ""
+    """What the streams belong to (``channel``, ``sensor``); empty for a single stream."""
+
+    streams: tuple[str, ...]
+    tolerance_ns: int
+    sets: int = 0
+    """Sets looked at."""
+    dropped: int = 0
+    """Sets without a fresh value of every stream."""
+    stale: list[int] = field(default_factory=list)
+    """Per stream: sets at which it had no fresh value."""
+
+    def keep(self, fresh: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Count ``fresh`` (N, m) (e.g. from :func:`match_latest`); the sets to keep (N,)."""
+        f = np.asarray(fresh, bool).reshape(len(fresh), -1)
+        if not self.stale:
+            self.stale = [0] * len(self.streams)
+        ok = np.all(f, axis=1)
+        self.sets += len(ok)
+        self.dropped += int(np.sum(~ok))
+        for j, n in enumerate(np.sum(~f, axis=0)):
+            self.stale[j] += int(n)
+        return ok
+
+    def describe(self) -> str:
+        """``12 of 900 sets dropped without a current of every channel within 0.5 s before the set (a: 12)``."""
+        per = ", ".join(f"{c}: {n}" for c, n in zip(self.streams, self.stale) if n)
+        article = "an" if self.NOUN[:1].lower() in "aeiou" else "a"
+        every = f" of every {self.OWNER}" if self.OWNER else ""
+        return (f"{self.dropped} of {self.sets} sets dropped without {article} {self.NOUN}{every} within "
+                f"{self.tolerance_ns / NS_PER_S:g} s before the set ({per})")
+
+
+class LatestValues:
+    """Scalar streams as a live node receives them, matched to each set by the module's rule: a
+    stream's value at a set stamped ``t`` is its latest value stamped in ``[t - tolerance_ns, t]``.
+
+    Values may arrive in any order, before or after the set; each stream keeps those of the
+    last ``keep_ns`` (behind its newest stamp) and at most ``most`` of them. Non-finite values
+    are no values. Stamps are int ns.
+    """
+
+    def __init__(self, streams: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096) -> None:
+        self.tolerance_ns = int(tolerance_ns)
+        self.keep_ns = max(int(keep_ns), 2 * self.tolerance_ns)
+        self.most = most
+        self._stamps: list[list[int]] = [[] for _ in range(streams)]
+        self._values: list[list[float]] = [[] for _ in range(streams)]
+        self.received = [0] * streams
+        """Values received per stream (finite ones)."""
+
+    @property
+    def channels(self) -> int:
+        """Number of streams."""
+        return len(self._stamps)
+
+    def add(self, stream: int, stamp_ns: int, value: float) -> None:
+        """Keep one value of ``stream`` stamped ``stamp_ns``."""
+        if not np.isfinite(value):
+            return
+        st, val = self._stamps[stream], self._values[stream]
+        k = bisect.bisect_right(st, stamp_ns)  # after equal stamps: the one received last wins
+        st.insert(k, int(stamp_ns))
+        val.insert(k, float(value))
+        self.received[stream] += 1
+        old = bisect.bisect_left(st, st[-1] - self.keep_ns)
+        old = max(old, len(st) - self.most)
+        if old > 0:
+            del st[:old], val[:old]
+
+    def latest(self, stream: int) -> float | None:
+        """The newest value of ``stream``, or None."""
+        val = self._values[stream]
+        return val[-1] if val else None
+
+    def at(self, stamp_ns: int) -> tuple[list[float], list[bool]]:
+        """Every stream's value at a set stamped ``stamp_ns`` and whether it is fresh (a value
+        stamped in ``[t - tolerance, t]``); a stale stream's value is 0."""
+        values, fresh = [], []
+        for st, val in zip(self._stamps, self._values):
+            k = bisect.bisect_right(st, stamp_ns) - 1
+            ok = k >= 0 and stamp_ns - st[k] <= self.tolerance_ns
+            values.append(val[k] if ok else 0.0)
+            fresh.append(ok)
+        return values, fresh

@@ -1,0 +1,270 @@
+"""Recalibration during a mission: which sets to fit and which to hold out, whether a window of
+the mission determines what changed, and whether the new calibration holds on sets it did not
+fit (no ROS).
+
+The calibration node (``auto_recalibrate``) keeps a rolling window of the mission's sets;
+when the correction node's calibration health names a drift it fits the sets flown since,
+with the running calibration as the prior, exactly as ``~/calibrate`` does
+(:func:`~magcal_ros.methods.pipeline.calibrate_array`), and pushes the result only when
+
+1. the window **determines what changed**: a hard-iron change moves the offsets, so every
+   sensor's three offsets must be updated by the data (not kept at the prior) to within
+   :data:`OFFSET_SIGMA` times the sensor's noise (straight running leaves the offsets across
+   the track undetermined: such a window never pushes);
+2. the new calibration **holds on held-out sets**: every :data:`HOLD_OUT_EVERY`-th of
+   :data:`CHUNKS` stretches of the window in time is left out of the fit; on them each
+   sensor's TMI residual (``|B| - F``) and the sensors' disagreement beyond the gradient
+   must be within :data:`HOLD_OUT_RATIO` of what the fit left on its own sets (plus the
+   noise of so few sets), and the TMI residual must be smaller than the running
+   calibration's on the same sets.
+
+Units: T; stamps int64 ns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import residual_projector
+from magcal_ros.core.metrics import rms
+from magcal_ros.core.units import NT
+from magcal_ros.methods.pipeline import CalibrationResult
+from magcal_ros.methods.progress import Assessment
+
+Array = NDArray[np.float64]
+
+CHUNKS: int = 10
+"""Stretches of the window in time; every :data:`HOLD_OUT_EVERY`-th is held out."""
+HOLD_OUT_EVERY: int = 4
+"""Chunks 3 and 7 of 10 (0-based): a fifth of the window, between stretches that are fitted."""
+HOLD_OUT_RATIO: float = 1.5
+"""What the new calibration may leave on the held-out sets, against what it left on its own."""
+OFFSET_SIGMA: float = 3.0
+"""An offset counts as determined when its 1-sigma is below this many noise sd of its sensor."""
+
+
+def split(stamps: Sequence[int] | NDArray[np.int64]) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(fit, held out) masks of sets by time: the window cut into :data:`CHUNKS` equal stretches,
+    every :data:`HOLD_OUT_EVERY`-th (from the fourth) held out."""
+    t = np.asarray(stamps, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros(0, bool), np.zeros(0, bool)
+    span = max(int(t.max() - t.min()), 1)
+    chunk = np.minimum((t - t.min()) * CHUNKS // span, CHUNKS - 1)
+    held = chunk % HOLD_OUT_EVERY == HOLD_OUT_EVERY - 1
+    return ~held, held
+
+
+def undetermined_offsets(result: CalibrationResult) -> list[str]:
+    """``<sensor> offset <axis> (+- S nT)`` for every offset the window did not determine (see the module
+    docstring); empty when it determines them all."""
+    out = []
+    for i, name in enumerate(result.calibration.geometry.names):
+        noise = float(result.noise[i]) / NT
+        for q in result.identifiability.quantities:
+            if q.sensor == name and q.name.startswith("offset "):
+                if q.status == "kept" or q.sigma > OFFSET_SIGMA * max(noise, 1e-3):
+                    out.append(f"{name} {q.name} (+- {q.sigma:.3g} nT)")
+    return out
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """What the new and the running calibration leave on the held-out sets (T)."""
+
+    sets: int
+    tmi_new: Array
+    """(S,) RMS of ``|B| - F`` per sensor, new calibration."""
+    tmi_old: Array
+    """(S,) the same for the running calibration."""
+    tmi_fit: Array
+    """(S,) what the new calibration leaves on the sets it was fitted to."""
+    disagreement_new: float
+    """RMS over sets and components of the residual beyond field and gradient (NaN: none)."""
+    disagreement_fit: float
+    noise: Array
+    """(S,) noise per axis the fit found."""
+    names: tuple[str, ...]
+
+    def problem(self) -> str | None:
+        """Why the new calibration does not hold on the held-out sets, or None."""
+        if self.sets < 3:
+            return f"only {self.sets} held-out sets to check it on"
+        slack = 3.0 * self.noise / np.sqrt(self.sets)
+        bad = [i for i in range(len(self.names)) if self.tmi_new[i] > HOLD_OUT_RATIO * self.tmi_fit[i] + slack[i]]
+        if bad:
+            i = bad[0]
+            return (f"on {self.sets} held-out sets {self.names[i]}'s TMI residual is {self.tmi_new[i] / NT:.3g} nT, "
+                    f"more than {HOLD_OUT_RATIO:g}x the {self.tmi_fit[i] / NT:.3g} nT on the sets fitted")
+        worse = [i for i in range(len(self.names)) if self.tmi_new[i] >= self.tmi_old[i]]
+        if worse:
+            i = worse[0]
+            return (f"on {self.sets} held-out sets the new calibration is no better for {self.names[i]} "
+                    f"(TMI residual {self.tmi_new[i] / NT:.3g} nT against {self.tmi_old[i] / NT:.3g} nT running)")
+        if np.isfinite(self.disagreement_new) and self.disagreement_new > (
+                HOLD_OUT_RATIO * self.disagreement_fit + float(np.max(slack))):
+            return (f"on {self.sets} held-out sets the sensors disagree by {self.disagreement_new / NT:.3g} nT beyond "
+                    f"the gradient, more than {HOLD_OUT_RATIO:g}x the {self.disagreement_fit / NT:.3g} nT on the sets "
+                    f"fitted")
+        return None
+
+    def describe(self) -> str:
+        """``held-out sets (400): TMI RMS 312 -> 1.02 nT`` (worst sensor, running -> new)."""
+        i = int(np.argmax(self.tmi_old))
+        return (f"{self.sets} held-out sets: TMI RMS {self.tmi_old[i] / NT:.3g} -> {self.tmi_new[i] / NT:.3g} nT "
+                f"({self.names[i]}, running -> new)")
+
+
+def _disagreement(vectors: Array, projector: Array | None) -> float:
+    if projector is None or len(vectors) == 0:
+        return float("nan")
+    return float(rms(vectors.reshape(len(vectors), -1) @ projector.T))
+
+
+def held_out(result: CalibrationResult, running: ArrayCalibration, raw_fit: Array, raw_held: Array,
+             currents_fit: Array | None = None, currents_held: Array | None = None) -> HeldOut:
+    """Judge ``result`` (fitted to ``raw_fit``) against ``running`` on ``raw_held`` (N, S, 3) T."""
+    new = result.calibration
+    f = result.intensity
+    projector = residual_projector(new.geometry)
+    use = bool(new.channels)
+    b_new = new.apply(raw_held, currents_held if use else None)
+    b_fit = new.apply(raw_fit, currents_fit if use else None)
+    b_old = running.apply(raw_held, currents_held if running.channels else None)
+    tmi = lambda b: rms(np.linalg.norm(b, axis=2) - f, axis=0)  # noqa: E731
+    return HeldOut(len(raw_held), tmi(b_new), tmi(b_old), tmi(b_fit), _disagreement(b_new, projector),
+                   _disagreement(b_fit, projector), np.asarray(result.noise, dtype=float), new.geometry.names)
+
+
+def verdict(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
+            currents_fit: Array | None = None, currents_held: Array | None = None) -> tuple[str | None, HeldOut | None]:
+    """(why the new calibration must not be pushed, or None; the held-out figures)."""
+    if running is None:
+        return "there is no running calibration to start from (the prior): recalibrate with ~/calibrate", None
+    missing = undetermined_offsets(result)
+    if missing:
+        shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
+        return (f"the sets do not determine what changed ({shown}): turn through a full circle of heading, "
+                "with some pitch and roll"), None
+    check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
+    return check.problem(), check
+
+
+def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:
+    """What a recalibration changed, in words: how far each sensor's corrected field moved at zero
+    raw reading (the offset change seen through the matrix), nT: ``offsets moved: mag1 612 nT, ...``."""
+    moved = []
+    for i, name in enumerate(new.geometry.names):
+        j = old.geometry.names.index(name)
+        shift = new.matrices[i] @ new.offsets[i] - old.matrices[j] @ old.offsets[j]
+        moved.append(f"{name} {np.linalg.norm(shift) / NT:.0f} nT")
+    gains = max(float(np.max(np.abs(new.matrices[i] @ np.linalg.inv(old.matrices[old.geometry.names.index(n)])
+                                    - np.eye(3)))) for i, n in enumerate(new.geometry.names))
+    return f"offsets moved: {', '.join(moved)}; matrices changed by at most {gains * 1e6:.0f} ppm"
+
+
+@dataclass
+class DriftWatch:
+    """When the calibration node recalibrates (or advises), in mission time: the stamps (ns) of the sets.
+
+    A drift named by the calibration health starts the clock; the sets flown from then on make the
+    window (``window_ns`` of them are needed); an attempt that does not push is retried when half a
+    window of new sets came; a push is followed by no other within ``interval_ns``, and drift reports
+    are ignored until the health, judging the new calibration afresh, no longer says drifted.
+    """
+
+    window_ns: int
+    interval_ns: int
+    since: int | None = None
+    """Mission time the drift was first named (None: no drift named)."""
+    health: str = ""
+    """The latest health message that named it."""
+    last_push: int | None = None
+    last_attempt: int | None = None
+    settling: bool = False
+    """After a push: drift reports are stale until the health says the new calibration is not drifted."""
+
+    def report(self, drifted: bool, message: str, now: int) -> bool:
+        """A health report at mission time ``now``; True when it names a drift anew."""
+        if not drifted:
+            self.since, self.settling, self.health = None, False, ""
+            return False
+        if self.settling:
+            return False
+        self.health = message
+        if self.since is None:
+            self.since, self.last_attempt = now, None
+            return True
+        return False
+
+    def due(self, now: int) -> tuple[bool, str]:
+        """(attempt now, else what it waits for) at mission time ``now``."""
+        if self.since is None:
+            return False, ""
+        have = (now - self.since) / 1e9
+        need = self.window_ns / 1e9
+        if self.last_push is not None and now - self.last_push < self.interval_ns:
+            wait = (self.last_push + self.interval_ns - now) / 1e9
+            return False, (f"recalibrated {(now - self.last_push) / 1e9:.0f} s ago: no other recalibration for "
+                           f"{wait:.0f} s (recalibrate_interval); call ~/calibrate to fix it now")
+        if now - self.since < self.window_ns:
+            return False, f"collecting the sets flown since the drift was named: {have:.0f} of {need:.0f} s"
+        if self.last_attempt is not None and now - self.last_attempt < self.window_ns // 2:
+            return False, f"trying again in {(self.last_attempt + self.window_ns // 2 - now) / 1e9:.0f} s"
+        return True, ""
+
+    def window_start(self, now: int) -> int:
+        """The first stamp (ns) of the window to fit at ``now``: the drift's naming, or a window back."""
+        return max(self.since or now, now - self.window_ns)
+
+    def attempted(self, now: int, pushed: bool) -> None:
+        """An attempt at mission time ``now`` ended; ``pushed``: a new calibration is in force."""
+        self.last_attempt = now
+        if pushed:
+            self.last_push = now
+            self.since, self.settling = None, True
+
+
+def advice(assessed: Assessment, with_prior: bool, window_s: float) -> str:
+    """What to fly so that ``~/calibrate`` (from the running calibration) fixes a drift, from the
+    progress analysis of the sets flown since it was named, in words."""
+    if not with_prior:
+        return ("there is no running calibration to start from: call ~/start, turn through large angles about at "
+                "least two axes, then call ~/calibrate")
+    offsets = [q for q in assessed.undetermined if q.startswith("offset ")]
+    if assessed.ready and not offsets:
+        return (f"what is being flown determines what changed (the offsets): call ~/start, keep flying it for "
+                f"{window_s:.0f} s, then call ~/calibrate")
+    return (f"the sets flown since do not determine {', '.join(offsets) or 'what changed'}: call ~/start, turn "
+            f"through a full circle of heading with some pitch and roll, then call ~/calibrate")
+
+
+def status(target: str, auto: bool, watch: DriftWatch, now: int, health: str, advice: str,
+           record: dict[str, str]) -> tuple[bool, str, dict[str, str]]:
+    """The calibration node's ``<node>: recalibration`` status: (WARN, message, values).
+
+    ``health``: the correction node's latest calibration health message; ``advice``: what to fly
+    (auto_recalibrate off); ``record``: ``recalibrations``, ``last_recalibration``, ``last_attempt``."""
+    _, waiting = watch.due(now)
+    since = watch.since
+    values = {"auto_recalibrate": str(auto).lower(), "drifted": str(since is not None).lower(),
+              "health": watch.health or health, "advice": advice if since is not None else "",
+              "since_drift_s": f"{(now - since) / 1e9:.0f}" if since is not None else "", **record}
+    if since is None:
+        judged = health and not health.startswith(("collecting", "not assessed"))
+        message = f"calibration of {target} fits" if judged else f"calibration health of {target}: {health or 'none yet'}"
+        if record.get("last_recalibration"):
+            message += f"; last: {record['last_recalibration']}"
+        return False, message, values
+    if auto:
+        doing = "auto_recalibrate: " + (waiting or "recalibrating")
+        if record.get("last_attempt"):
+            doing += f"; last attempt: {record['last_attempt']}"
+    else:
+        doing = f"to fix it: {advice}" if advice else "analysing the sets flown since the drift was named"
+    return True, f"calibration of {target} drifted ({watch.health}); {doing}", values

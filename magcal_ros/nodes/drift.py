@@ -1,0 +1,123 @@
+"""Calibration health on ``/diagnostics`` for the correction node: its parameters and its status
+(the judgement itself is :mod:`magcal_ros.core.calibration_health`).
+
+Parameters: per sensor ``<name>.noise`` (T, 1-sigma per axis at calibration; 0 = unknown) and
+``calibration_intensity`` (T, the intensity the calibration maps ``|B|`` to; 0 = unknown), both
+written by ``magcal calibrate`` and the calibration node into the calibration file and pushed
+with every calibration; ``health_window`` (s), ``health_warn_factor`` and ``health_error_factor``.
+The status is named ``<node>: calibration``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+from magcal_ros.core.calibration_health import (
+    DEFAULT_ERROR_FACTOR,
+    DEFAULT_WARN_FACTOR,
+    DEFAULT_WINDOW,
+    MIN_BLOCKS,
+    BLOCKS,
+    OK,
+    DriftReport,
+    DriftThresholds,
+)
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S
+from magcal_ros.errors import InputError
+from magcal_ros.nodes import common
+
+SENSOR_SUFFIX = "noise"
+"""Per-sensor parameter ``<name>.noise``."""
+INTENSITY = "calibration_intensity"
+WINDOW_RANGE: tuple[float, float] = (10.0, 3600.0)
+FACTOR_RANGE: tuple[float, float] = (1.0, 1e6)
+MAX_NOISE: float = 1e-3
+STATUS_SUFFIX = ": calibration"
+"""The health status is named ``<node full name>: calibration``."""
+
+
+def declare_reference(node: Any, names: Sequence[str]) -> None:
+    """Declare ``<name>.noise`` for ``names`` and ``calibration_intensity`` (what the calibration stored)."""
+    d = common.describe
+    for name in names:
+        node.declare_parameter(
+            f"{name}.{SENSOR_SUFFIX}", 0.0,
+            d(f"noise of {name} per axis at calibration (T, 1-sigma; the calibration file has it): the calibration "
+              "health compares its figures with it; 0 = unknown (the noise seen live is used)",
+              constraints=f"0 .. {MAX_NOISE:g} T", numbers=True),
+        )
+    node.declare_parameter(
+        INTENSITY, 0.0,
+        d("total intensity (T) the calibration maps |B| to (the calibration file has it): the calibration health "
+          "shows how far each sensor's |B| strays from it (<name>.tmi_offset_nT); a recalibration from the running "
+          "calibration starts from it; 0 = unknown", constraints="0, or 1e-7 .. 1e-3 T", numbers=True),
+    )
+
+
+def declare_thresholds(node: Any) -> DriftThresholds:
+    """Declare ``health_window``, ``health_warn_factor``, ``health_error_factor``; the thresholds they give.
+
+    :class:`InputError` when the error factor is below the warning factor."""
+    d = common.describe
+    window = float(node.declare_parameter(
+        "health_window", DEFAULT_WINDOW,
+        d("seconds of corrected sets the calibration health judges at once (a sliding window, long enough to "
+          "span attitude changes; judged once half full; a drift is named about half a window after it happens)",
+          read_only=True, numbers=True, floats=WINDOW_RANGE)).value)
+    warn = float(node.declare_parameter(
+        "health_warn_factor", DEFAULT_WARN_FACTOR,
+        d("the calibration health is a WARN (drifted: recalibrate) when a sensor's TMI residual or its "
+          "disagreement beyond the gradient exceeds this many times its noise at calibration (and is "
+          "significant against the window's scatter)", read_only=True, numbers=True, floats=FACTOR_RANGE)).value)
+    error = float(node.declare_parameter(
+        "health_error_factor", DEFAULT_ERROR_FACTOR,
+        d("... and an ERROR above this many times the noise (>= health_warn_factor)", read_only=True,
+          numbers=True, floats=FACTOR_RANGE)).value)
+    if error < warn:
+        raise InputError(f"health_error_factor {error:g} is below health_warn_factor {warn:g}")
+    return DriftThresholds(int(window * NS_PER_S), warn, error)
+
+
+def reference(values: dict[str, Any], names: Sequence[str]) -> tuple[tuple[float, ...], float]:
+    """The noise per sensor (T, 0 unknown) and the intensity (T, 0 unknown) in parameter ``values``;
+    :class:`InputError` naming a bad one."""
+    noise = []
+    for name in names:
+        value = values.get(f"{name}.{SENSOR_SUFFIX}")
+        v = _number(f"{name}.{SENSOR_SUFFIX}", 0.0 if value is None else value)
+        if not 0.0 <= v <= MAX_NOISE:
+            raise InputError(f"{name}.{SENSOR_SUFFIX} must be 0 (unknown) or a noise in T up to {MAX_NOISE:g}, got {v:g}")
+        noise.append(v)
+    value = values.get(INTENSITY)
+    f = _number(INTENSITY, 0.0 if value is None else value)
+    low, high = EARTH_FIELD_RANGE
+    if not (f == 0.0 or low <= f <= high):
+        raise InputError(f"{INTENSITY} {f:g} T is not Earth-like ({low:g} .. {high:g} T, or 0 for unknown)")
+    return tuple(noise), f
+
+
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        raise InputError(f"{name} must be a finite number (T), got {value!r}")
+    return float(value)
+
+
+def not_assessed(why: str) -> DriftReport:
+    """A report saying why the calibration is not judged (nothing calibrated, a sensor uncorrected)."""
+    return DriftReport(OK, f"not assessed: {why}", False, values={"drifted": "false", "figure": ""})
+
+
+def status(node_name: str, hardware_id: str, report: DriftReport) -> DiagnosticStatus:
+    """The calibration health as its own DiagnosticStatus (``<node>: calibration``)."""
+    return DiagnosticStatus(level=bytes([report.level]), name=node_name + STATUS_SUFFIX, message=report.message,
+                            hardware_id=hardware_id,
+                            values=[KeyValue(key=k, value=v) for k, v in report.values.items()])
+
+
+def judged_after(thresholds: DriftThresholds) -> float:
+    """Seconds of sets before the first judgement (half the window)."""
+    return thresholds.window_ns / NS_PER_S * MIN_BLOCKS / BLOCKS

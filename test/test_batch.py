@@ -1,0 +1,433 @@
+"""``magcal batch``: a campaign on Dask, outputs identical to ``magcal correct``, failures by name,
+re-runs that skip finished work, and the report checked in a real browser.
+
+A real Dask scheduler and two workers run as separate processes on localhost (ports chosen
+by the operating system, found through the scheduler file); the batch runs as a user runs
+it, ``python -m magcal_ros.app.cli batch ...`` in a subprocess. Recordings are small (300
+sets) so the tests stay light on CPU.
+"""
+
+from __future__ import annotations
+
+import csv
+import html.parser
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag2 import Reader
+
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.stamps import format_seconds, parse_seconds
+from magcal_ros.core.units import NT
+from magcal_ros.io import cdr
+from magcal_ros.io.bag_writer import write_recording_bag
+from magcal_ros.io.csv_recording import write_csv
+from magcal_ros.sim.spec import SimulationSpec, run
+
+ROOT = Path(__file__).resolve().parents[1]
+NAMES = ("mag1", "mag2", "mag3", "mag4")
+F = 5.5e-5  # the simulator's default intensity (T)
+NOISE = 1.0 * NT
+SEED = 5
+SETS = 300
+T0 = 1_700_000_000.0
+DAY = 86_400.0
+DRIFT = 20 * NT
+"""A hard-iron change between two missions of auv1: every sensor's raw x reads DRIFT more."""
+GOOD = ("auv1/m1_bag", "auv1/m2_bag", "auv2/m1.csv")
+CORRUPT = "auv2/corrupt_bag"
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync")
+
+
+def magcal(*args: object, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """``python -m magcal_ros.app.cli ARGS`` in a subprocess."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run([sys.executable, "-m", "magcal_ros.app.cli", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+def ok(proc: subprocess.CompletedProcess[str]) -> subprocess.CompletedProcess[str]:
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc
+
+
+def recording(start: float, count: int = SETS) -> Recording:
+    """Raw sets of the simulated array (same sensors for every ``SEED``), stamps from ``start``."""
+    rec, _, _ = run(SimulationSpec(count=count, seed=SEED, start_time=start, noise=NOISE))
+    return rec
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """campaign/auv1/{m1_bag (sqlite3), m2_bag (mcap, hard iron drifted)}, campaign/auv2/{m1.csv (one
+    repeated row), corrupt_bag (storage cut in half)} and the calibration from a separate manoeuvre."""
+    d = tmp_path_factory.mktemp("batch")
+    rotation = d / "rotation.csv"
+    write_csv(rotation, recording(T0 - DAY, 500))
+    cal = d / "cal.yaml"
+    ok(magcal("calibrate", rotation, "-o", cal, "--reference-field", F))
+    camp = d / "campaign"
+    (camp / "auv1").mkdir(parents=True)
+    (camp / "auv2").mkdir()
+    write_recording_bag(camp / "auv1" / "m1_bag", recording(T0), "sqlite3")
+    drifted = recording(T0 + 2 * DAY)
+    drifted.vectors[:, :, 0] += DRIFT
+    write_recording_bag(camp / "auv1" / "m2_bag", drifted, "mcap")
+    write_csv(camp / "auv2" / "m1.csv", recording(T0 + DAY))
+    lines = (camp / "auv2" / "m1.csv").read_text().splitlines(keepends=True)
+    (camp / "auv2" / "m1.csv").write_text("".join(lines[:50] + [lines[49]] + lines[50:]))  # a repeated stamp
+    write_recording_bag(camp / "auv2" / "corrupt_bag", recording(T0 + 3 * DAY), "sqlite3")
+    storage = next((camp / "auv2" / "corrupt_bag").glob("*.db3"))
+    storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])
+    return {"dir": d, "campaign": camp, "cal": cal, "rotation": rotation}
+
+
+class DaskCluster:
+    """A scheduler and two single-threaded workers, each its own process, on localhost."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.log = open(folder / "dask.log", "wb")
+        env = dict(os.environ)
+        env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+        scheduler_file = folder / "scheduler.json"
+        self._start([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+                     "--no-dashboard", "--scheduler-file", str(scheduler_file)], env)
+        deadline = time.monotonic() + 120
+        while not scheduler_file.exists():
+            assert time.monotonic() < deadline, "the Dask scheduler did not start: " + self.logs()
+            assert self.procs[0].poll() is None, "the Dask scheduler exited: " + self.logs()
+            time.sleep(0.2)
+        self.address = json.loads(scheduler_file.read_text())["address"]
+        for i in range(2):
+            self._start([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file", str(scheduler_file),
+                         "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1", "--name", f"w{i}",
+                         "--local-directory", str(folder / f"w{i}")], env)
+        from distributed import Client
+
+        with Client(self.address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+            self.worker_pids = set(client.run(os.getpid).values())
+
+    def _start(self, argv: list[str], env: dict[str, str]) -> None:
+        self.procs.append(subprocess.Popen(argv, stdout=self.log, stderr=self.log, env=env, cwd=self.folder))
+
+    def logs(self) -> str:
+        self.log.flush()
+        return (self.folder / "dask.log").read_text(errors="replace")[-3000:]
+
+    def close(self) -> None:
+        for p in reversed(self.procs):
+            if p.poll() is None:
+                p.terminate()
+        for p in reversed(self.procs):
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        self.log.close()
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    cluster = DaskCluster(tmp_path_factory.mktemp("dask"))
+    try:
+        yield cluster
+    finally:
+        cluster.close()
+
+
+@pytest.fixture(scope="module")
+def cluster_run(campaign: dict[str, Path], dask_cluster: DaskCluster) -> dict[str, Any]:
+    """The campaign corrected through --scheduler on the cluster above."""
+    out = campaign["dir"] / "out"
+    proc = magcal("batch", campaign["campaign"], "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address)
+    return {"out": out, "proc": proc}
+
+
+def messages(bag: Path) -> list[tuple[str, str, int, bytes]]:
+    """Every message of a bag, in order: topic, type, bag time, serialized bytes."""
+    with Reader(bag) as reader:
+        return [(c.topic, c.msgtype, t, bytes(d)) for c, t, d in reader.messages()]
+
+
+def storage_of(bag: Path) -> str:
+    return "mcap" if any(bag.glob("*.mcap")) else "sqlite3"
+
+
+def test_a_campaign_on_a_dask_cluster_is_magcal_correct_per_recording(
+        campaign: dict[str, Path], dask_cluster: DaskCluster, cluster_run: dict[str, Any], tmp_path: Path) -> None:
+    proc, out = cluster_run["proc"], cluster_run["out"]
+    assert proc.returncode == 1, "a failed recording makes the exit code non-zero: " + proc.stdout + proc.stderr
+    # The corrupt recording is named, with the reason 'magcal correct' gives for it alone.
+    alone = magcal("correct", campaign["campaign"] / CORRUPT, "-c", campaign["cal"], "-o", tmp_path / "corrupt_out")
+    assert alone.returncode == 2
+    reason = alone.stderr.strip().removeprefix("magcal correct: error: ")
+    assert "corrupt" in reason or "truncated" in reason, reason
+    assert f"  FAILED {CORRUPT}: {reason}" in proc.stderr.splitlines(), proc.stderr
+    assert "3 corrected, 0 skipped, 1 failed (auv2/corrupt_bag)" in proc.stdout
+    assert not (out / CORRUPT).exists()
+    assert not [p for p in (out / "auv2").iterdir() if p.name.startswith(".")], "nothing partial left"
+    # The others: identical to 'magcal correct' run on each alone.
+    for name in GOOD:
+        target = tmp_path / "alone" / name
+        ok(magcal("correct", campaign["campaign"] / name, "-c", campaign["cal"], "-o", target))
+        if name.endswith(".csv"):
+            assert target.read_bytes() == (out / name).read_bytes()
+        else:
+            assert storage_of(out / name) == storage_of(campaign["campaign"] / name)
+            got, want = messages(out / name), messages(target)
+            assert len(got) == 6 * SETS and got == want
+    # Every task ran on the cluster's own worker processes.
+    with open(out / "report.csv", newline="") as fh:
+        rows = {r["recording"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {*GOOD, CORRUPT}
+    pids = {int(rows[n]["worker"].rsplit(":", 1)[1]) for n in GOOD}
+    assert pids <= dask_cluster.worker_pids, (pids, dask_cluster.worker_pids)
+    assert rows[CORRUPT]["status"] == "failed" and rows[CORRUPT]["reason"] == reason
+
+
+class DomTables(html.parser.HTMLParser):
+    """The rendered page's recording rows, chart points and the root's data-ready."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ready: str | None = None
+        self.rows: dict[str, dict[str, str]] = {}
+        self.points: dict[str, dict[str, float]] = {}
+        self.vehicles: dict[str, dict[str, str]] = {}
+        self._row: dict[str, str] | None = None
+        self._chart = ""
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = {k: v or "" for k, v in attrs}
+        if tag == "html":
+            self.ready = a.get("data-ready")
+        elif tag == "tr" and "data-name" in a:
+            self._row = self.rows.setdefault(a["data-name"], {})
+        elif tag == "tr" and "data-vehicle" in a:
+            self._row = self.vehicles.setdefault(a["data-vehicle"], {})
+        elif tag == "td" and self._row is not None and "data-key" in a:
+            self._row[a["data-key"]] = a.get("data-value", "")
+        elif tag == "svg":
+            self._chart = a.get("data-title", "")
+            self.points.setdefault(self._chart, {})
+        elif tag == "circle" and "data-recording" in a:
+            self.points[self._chart][a["data-recording"]] = float(a["data-value"])
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == "tr":
+            self._row = None
+
+
+def chromium_dom(page: Path) -> str:
+    """The page's DOM after its script ran, from headless Chromium."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        message = "chromium is not installed (scripts/setup_env.sh installs Debian's package as root)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    with tempfile.TemporaryDirectory() as profile:
+        proc = subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--dump-dom", page.as_uri()],
+                              capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0 and "<html" in proc.stdout, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def expected_from_output(path: Path, cal: Path) -> dict[str, float]:
+    """The report's numbers computed here from the corrected output itself (rosbags' own decoder)."""
+    if path.suffix == ".csv":
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+        header, data = rows[0], np.array([r[1:] for r in rows[1:]], float)
+        col = {c: i - 1 for i, c in enumerate(header)}
+        stamps = [parse_seconds(r[0]) for r in rows[1:]]
+        vectors = np.stack([data[:, [col[f"{n}.{a}"] for a in "xyz"]] for n in NAMES], axis=1)
+        g = data[:, [col[f"gradient.{i}{j}"] for i in "xyz" for j in "xyz"]]
+    else:
+        ts = cdr.typestore()
+        with Reader(path) as reader:
+            msgs = [(c.topic, t, ts.deserialize_cdr(d, c.msgtype)) for c, t, d in reader.messages()]
+        stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for topic, _, m in msgs if topic == "/field"]
+        vectors = np.stack([np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z]
+                                      for topic, _, m in msgs if topic == f"/{n}/corrected"]) for n in NAMES], axis=1)
+        g = np.array([m.data for topic, _, m in msgs if topic == "/gradient"])
+    prov = yaml.safe_load(cal.read_text())["magcal_provenance"]["ros__parameters"]
+    noise = float(np.sqrt(np.mean(np.square(prov["noise"]))))
+    residual = np.abs(np.linalg.norm(vectors, axis=2) - F).reshape(-1)
+    d = np.diff(g[:, :6], axis=0)
+    return {
+        "sets": len(stamps), "start": stamps[0], "end": stamps[-1], "noise": noise,
+        "median": float(np.quantile(residual, 0.5, method="inverted_cdf")),
+        "p95": float(np.quantile(residual, 0.95, method="inverted_cdf")),
+        "tensor": float(np.sqrt(np.mean(d * d) / 2)),
+    }
+
+
+def test_the_report_renders_in_a_browser_with_the_outputs_numbers(
+        campaign: dict[str, Path], cluster_run: dict[str, Any]) -> None:
+    out = cluster_run["out"]
+    page = out / "report.html"
+    text = page.read_text()
+    assert "src=" not in text and "href=" not in text and "@import" not in text, "self-contained: no external asset"
+    dom = DomTables()
+    dom.feed(chromium_dom(page))
+    assert dom.ready == str(len(GOOD) + 1), "the page's script ran over every recording row"
+    with open(out / "report.csv", newline="") as fh:
+        rows = {r["recording"]: r for r in csv.DictReader(fh)}
+    medians = dom.points["TMI residual, median"]
+    for name in GOOD:
+        want = expected_from_output(out / name, campaign["cal"])
+        got = dom.rows[name]
+        assert got["status"] == "corrected"
+        assert int(got["sets"]) == want["sets"] == SETS
+        assert int(got["start"]) == want["start"]
+        assert float(got["duration_s"]) == pytest.approx((want["end"] - want["start"]) * 1e-9, rel=1e-12)
+        assert rows[name]["start"] == format_seconds(want["start"]) and rows[name]["end"] == format_seconds(want["end"])
+        assert float(got["noise_T"]) == pytest.approx(want["noise"], rel=1e-12)
+        # Quantiles from the log histogram: within its 0.1 % bins.
+        assert float(got["tmi_median_T"]) == pytest.approx(want["median"], rel=1.5e-3)
+        assert float(got["tmi_p95_T"]) == pytest.approx(want["p95"], rel=1.5e-3)
+        assert float(got["tmi_median_noise"]) == pytest.approx(want["median"] / want["noise"], rel=1.5e-3)
+        assert float(got["tensor_noise_T_per_m"]) == pytest.approx(want["tensor"], rel=1e-9)
+        assert float(rows[name]["tmi_median_T"]) == pytest.approx(float(got["tmi_median_T"]), rel=1e-8)
+        assert medians[name] == pytest.approx(float(got["tmi_median_noise"]), rel=1e-12)
+        assert rows[name]["calibration"] == str(campaign["cal"])
+    assert int(dom.rows["auv2/m1.csv"]["drops"]) == 1, "the repeated CSV row is a drop"
+    assert "4 repeated stamps dropped" in rows["auv2/m1.csv"]["notes"], "its note: one message per sensor"
+    assert int(dom.rows["auv1/m1_bag"]["drops"]) == 0
+    # Against the truth: a calibration that holds leaves Gaussian noise, |x| median 0.674 sigma; a hard-iron
+    # change of DRIFT leaves |DRIFT cos(angle)|, angle uniform over the sphere: median DRIFT/2, p95 0.95 DRIFT.
+    for name in ("auv1/m1_bag", "auv2/m1.csv"):
+        assert float(dom.rows[name]["tmi_median_noise"]) == pytest.approx(0.674, rel=0.15)
+    assert float(dom.rows["auv1/m2_bag"]["tmi_median_T"]) == pytest.approx(DRIFT / 2, rel=0.2)
+    assert float(dom.rows["auv1/m2_bag"]["tmi_p95_T"]) == pytest.approx(0.95 * DRIFT, rel=0.1)
+    # The drift shows in auv1's trend: first -> last median in noise units grows over tenfold.
+    assert float(dom.vehicles["auv1"]["tmi_median_noise"]) > 10
+    assert dom.rows[CORRUPT]["status"] == "failed" and CORRUPT not in medians
+
+
+def test_a_rerun_skips_finished_work(campaign: dict[str, Path], dask_cluster: DaskCluster, tmp_path: Path) -> None:
+    camp = tmp_path / "campaign"
+    for name in ("auv1/m1_bag", "auv2/m1.csv"):
+        src = campaign["campaign"] / name
+        (camp / name).parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, camp / name)
+    out = tmp_path / "out"
+    import socket
+
+    with socket.socket() as taken:  # Dask's default HTTP port in use elsewhere must not matter (nor warn)
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            taken.bind(("0.0.0.0", 8787))
+            taken.listen()
+        except OSError:
+            pass  # already taken: the same situation
+        first = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--workers", "2"))  # the local cluster
+    assert "2 corrected, 0 skipped, 0 failed" in first.stdout
+    assert first.stderr == "", first.stderr
+
+    def state() -> dict[str, tuple[int, int]]:
+        return {str(p.relative_to(out)): (p.stat().st_ino, p.stat().st_mtime_ns)
+                for p in out.rglob("*") if p.is_file() and not p.name.startswith("report.")}
+
+    before = state()
+    second = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    assert "0 corrected, 2 skipped, 0 failed" in second.stdout and "--force" in second.stdout
+    assert state() == before, "nothing rewritten"
+    with open(out / "report.csv", newline="") as fh:
+        rows = {r["recording"]: r for r in csv.DictReader(fh)}
+    assert {r["status"] for r in rows.values()} == {"skipped"} and all(int(r["sets"]) > 0 for r in rows.values())
+    # An input newer than its output is done again; the other is still skipped.
+    csv_in = camp / "auv2" / "m1.csv"
+    st = csv_in.stat()
+    os.utime(csv_in, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    third = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    assert "1 corrected, 1 skipped, 0 failed" in third.stdout
+    assert "corrected auv2/m1.csv" in third.stdout
+    # An output removed (or damaged) is done again.
+    shutil.rmtree(out / "auv1" / "m1_bag")
+    fourth = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    assert "1 corrected, 1 skipped, 0 failed" in fourth.stdout and "corrected auv1/m1_bag" in fourth.stdout
+    # --force redoes everything.
+    fifth = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address, "--force"))
+    assert "2 corrected, 0 skipped, 0 failed" in fifth.stdout
+
+
+def test_calibrate_first_from_each_recordings_own_manoeuvre(
+        campaign: dict[str, Path], dask_cluster: DaskCluster, tmp_path: Path) -> None:
+    camp = tmp_path / "in"
+    camp.mkdir()
+    shutil.copy2(campaign["rotation"], camp / "rotation.csv")
+    out = tmp_path / "out"
+    proc = ok(magcal("batch", camp, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address,
+                     "--calibrate", "--reference-field", F))
+    own = out / "rotation.csv.calibration.yaml"
+    assert own.is_file() and "corrected rotation.csv" in proc.stdout
+    ok(magcal("correct", camp / "rotation.csv", "-c", own, "-o", tmp_path / "alone.csv"))
+    assert (out / "rotation.csv").read_bytes() == (tmp_path / "alone.csv").read_bytes()
+    with open(out / "report.csv", newline="") as fh:
+        row = next(csv.DictReader(fh))
+    assert row["calibration"] == str(own)
+    assert float(row["tmi_median_noise"]) == pytest.approx(0.674, rel=0.15), "its own calibration holds"
+
+
+def test_ctrl_c_stops_the_batch_closes_its_workers_and_leaves_no_partial_output(
+        campaign: dict[str, Path], tmp_path: Path) -> None:
+    import signal
+
+    import psutil
+
+    camp = tmp_path / "in"
+    write_recording_bag(camp / "long_bag", recording(T0, 60_000), "sqlite3")
+    write_recording_bag(camp / "long2_bag", recording(T0 + DAY, 60_000), "sqlite3")
+    out = tmp_path / "out"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "magcal_ros.app.cli", "batch", str(camp), "-c", str(campaign["cal"]),
+                             "-o", str(out), "--workers", "2"], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not (out.exists() and any(p.name.endswith(".partial") for p in out.iterdir())):
+            assert proc.poll() is None and time.monotonic() < deadline, "no task started writing"
+            time.sleep(0.02)
+        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["magcal batch: stopped by SIGINT; unfinished output removed"], err
+    assert not [p for p in out.rglob("*") if ".partial" in p.name], "no partial output left"
+    assert not (out / "long_bag").exists() or (out / ".magcal_batch" / "long_bag.json").exists()
+    deadline = time.monotonic() + 30
+    while True:
+        left = [p for p in psutil.process_iter(["pid", "status"])
+                if _session(p.pid) == proc.pid and p.info["status"] != psutil.STATUS_ZOMBIE]
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    assert left == [], f"worker processes left running: {left}"
+
+
+def _session(pid: int) -> int | None:
+    try:
+        return os.getsid(pid)
+    except OSError:
+        return None

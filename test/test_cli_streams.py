@@ -1,0 +1,94 @@
+"""``magcal`` with real sensor streams: ``simulate`` writes them, ``correct`` applies the calibration's time
+offsets, ``--sync-mode``/``--max-gap`` choose the rule (subprocesses, as a user runs them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_offline import magcal, ok
+
+from magcal_ros.core.metrics import tensor_floor
+from magcal_ros.core.units import NT
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io.csv_recording import TENSOR_COLUMNS
+from magcal_ros.io.truth_file import load_truth
+
+FLOOR = tensor_floor(1 * NT, 0.4)
+TURN = ("--schedule", "single-axis", "--axis", "y", "--count", "2000", "--rate", "100")
+"""Ten seconds of a turn at 2 pi 100 / 2000 = 0.31 rad/s (16,000 nT/s) about y."""
+
+
+def tensor_rms(csv: Path) -> tuple[int, float]:
+    """Sets and tensor RMS against the floor of a corrected CSV."""
+    data = np.genfromtxt(csv, delimiter=",", names=True)
+    g = np.stack([data[c.replace(".", "")] for c in TENSOR_COLUMNS], axis=1)
+    return len(data), float(np.sqrt(np.mean(g**2)) / FLOOR)
+
+
+def test_a_lag_is_simulated_and_corrected_with_its_time_offset(tmp_path: Path) -> None:
+    """mag3 reads 5 ms late on sensors sampled 2.5 ms apart and stamped on receipt: the truth YAML
+    carries it as mag3.time_offset, and 'magcal correct' with it keeps the tensor at the floor;
+    without it (the same calibration, offset removed) the tensor is many times the floor."""
+    bag = tmp_path / "streams"
+    out = ok(magcal("simulate", bag, *TURN, "--phases", "0,0.0025,0.005,0.0075", "--receipt-jitter", "0.0002",
+                    "--lags", "0,0,0.005,0", "--glitch", "mag2,4,2", "--restart", "6,60,mag4")).stdout
+    assert "mag3 5 ms" in out
+    truth = calfile.read(f"{bag}.truth.yaml")
+    assert truth.time_offsets.tolist() == [0.0, 0.0, 0.005, 0.0]
+    arrays = load_truth(bag)
+    assert len(arrays["stamps_mag4"]) == len(arrays["instants_mag4"]) and arrays["stamps_mag4"][-1] < arrays["instants_mag4"][-1]
+    csv = tmp_path / "corrected.csv"
+    proc = ok(magcal("correct", bag, "-c", f"{bag}.truth.yaml", "-o", csv))
+    assert "1 messages with a stamp far off" in proc.stderr and "1 source restarts" in proc.stderr
+    sets, rms = tensor_rms(csv)
+    assert sets >= 0.98 * len(arrays["stamps_mag1"]) and rms < 1.3
+    no_lag = tmp_path / "no_lag.yaml"
+    no_lag.write_text(Path(f"{bag}.truth.yaml").read_text().replace("time_offset: 0.005", "time_offset: 0.0"))
+    ok(magcal("correct", bag, "-c", no_lag, "-o", tmp_path / "wrong.csv"))
+    assert tensor_rms(tmp_path / "wrong.csv")[1] > 3
+
+
+def test_sync_mode_and_max_gap_options(tmp_path: Path) -> None:
+    """Sensors sampled apart: auto interpolates (every set kept); forced exact keeps none and says so;
+    time offsets with --sync-mode exact are refused; a bad --max-gap is a usage error."""
+    bag = tmp_path / "phased"
+    ok(magcal("simulate", bag, *TURN, "--phases", "0,0.0025,0.005,0.0075", "--lags", "0,0,0.001,0"))
+    csv = tmp_path / "c.csv"
+    ok(magcal("correct", bag, "-c", f"{bag}.truth.yaml", "-o", csv, "--max-gap", "0.05"))
+    assert tensor_rms(csv)[1] < 1.3
+    refused = magcal("correct", bag, "-c", f"{bag}.truth.yaml", "-o", tmp_path / "x.csv", "--sync-mode", "exact")
+    assert refused.returncode == 2 and "mag3 1 ms" in refused.stderr and "interpolate" in refused.stderr
+    exact = magcal("calibrate", bag, "-o", tmp_path / "cal.yaml", "--sync-mode", "exact")
+    assert exact.returncode == 2 and "no complete synchronized sets" in exact.stderr
+    bad = magcal("correct", bag, "-c", f"{bag}.truth.yaml", "-o", tmp_path / "y.csv", "--max-gap", "-1")
+    assert bad.returncode == 2 and "max_gap" in bad.stderr
+
+
+def test_csv_columns_are_shifted_by_their_time_offsets(tmp_path: Path) -> None:
+    """A CSV recording (one stamp per row) corrected with a calibration that has a time offset: that
+    sensor's column is shifted and interpolated to the first sensor's instants."""
+    raw = tmp_path / "r.csv"
+    ok(magcal("simulate", raw, *TURN))
+    cal = calfile.read(f"{raw}.truth.yaml")
+    lagging = calfile.dumps(cal).replace("    mag2:\n", "    mag2:\n      time_offset: 0.02\n")
+    (tmp_path / "lag.yaml").write_text(lagging)
+    plain, shifted = tmp_path / "plain.csv", tmp_path / "shifted.csv"
+    ok(magcal("correct", raw, "-c", f"{raw}.truth.yaml", "-o", plain))
+    ok(magcal("correct", raw, "-c", tmp_path / "lag.yaml", "-o", shifted))
+    a = np.genfromtxt(plain, delimiter=",", names=True)
+    b = np.genfromtxt(shifted, delimiter=",", names=True)
+    # mag2's reading at a row's instant is the field 20 ms (two rows) later: its column moved two rows.
+    at = {t: i for i, t in enumerate(a["stamp"])}
+    rows = [(at[t], i) for i, t in enumerate(b["stamp"]) if t in at and at[t] + 2 < len(a)]
+    assert len(rows) > 1900
+    ia, ib = np.array(rows).T
+    assert np.allclose(b["mag2x"][ib], a["mag2x"][ia + 2], atol=1e-12)
+    assert np.array_equal(b["mag1x"][ib], a["mag1x"][ia])
+
+
+@pytest.mark.parametrize("option", ["--phases", "--lags"])
+def test_stream_options_need_a_bag(tmp_path: Path, option: str) -> None:
+    proc = magcal("simulate", tmp_path / "s.csv", option, "0,0,0.001,0")
+    assert proc.returncode == 2 and "rosbag2" in proc.stderr

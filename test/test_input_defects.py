@@ -1,0 +1,236 @@
+"""Files that used to exit 0 but be wrong, or end in a traceback: each is refused with one line, or its
+bad readings are dropped and counted, and what is written can always be read back.
+
+Commands run as subprocesses, as a user would (``magcal`` of :mod:`test_offline`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import stat
+import struct
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_offline import magcal, ok
+
+from magcal_ros.core.acceptance import reading_fault
+from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.core.units import MAX_READING
+from magcal_ros.io import calibration_file as calfile
+
+F = 5.15e-5
+MS = 1_000_000
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    d = tmp_path_factory.mktemp("defects")
+    csv = d / "rot.csv"
+    ok(magcal("simulate", csv, "--count", 300, "--seed", 5, "-q"))
+    lines = csv.read_text().splitlines()
+    return {"dir": d, "csv": csv, "lines": lines}
+
+
+def _variant(rec: dict[str, Any], name: str, edit: Any) -> Path:
+    lines = list(rec["lines"])
+    edit(lines)
+    path = rec["dir"] / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _set(lines: list[str], row: int, col: int, value: str) -> None:
+    cells = lines[row].split(",")
+    cells[col] = value
+    lines[row] = ",".join(cells)
+
+
+def one_line_error(proc: Any) -> str:
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("path", ["live", "batch"])
+def test_readings_beyond_a_magnetometer_and_negative_stamps_are_dropped_and_counted(path: str) -> None:
+    """The acceptance rule of real data: 1e30 T and a stamp before 1970 are refused and counted, like NaN."""
+    sync = SetSynchronizer(2, MS, max_reading=MAX_READING)
+    good = (2e-5, -1e-5, 4e-5)
+    items = [(0, 10 * MS, good), (1, 10 * MS, (1e30, 0.0, 0.0)),         # out of range: set 10 incomplete
+             (0, 20 * MS, good), (1, 20 * MS, good),                      # a set
+             (0, -5_000_000_000, good),                                   # sec = -5: a negative stamp
+             (0, 30 * MS, (1.9e-3, 0.0, 0.0)), (1, 30 * MS, good),        # within the limit: a set
+             (0, 40 * MS, (math.nan, 0.0, 0.0)), (1, 40 * MS, (0.0, 1.5e-3, 1.5e-3))]  # NaN; 2.1e-3 T
+    got = []
+    if path == "live":
+        for k, t, v in items:
+            s = sync.add(k, t, *v)
+            if s is not None:
+                got.append(s.stamp)
+    else:
+        for k in range(2):
+            mine = [(t, v) for j, t, v in items if j == k]
+            sync.add_batch(k, np.array([t for t, _ in mine]), np.array([v for _, v in mine]))
+        got = sync.pop(final=True).set_stamps.tolist()
+    assert got == [20 * MS, 30 * MS]
+    st = sync.stats
+    assert (st.out_of_range, st.negative_stamp, st.nonfinite, st.zero_stamp) == (2, 1, 1, 0)
+    assert st.dropped() == st.out_of_range + st.negative_stamp + st.nonfinite + st.unmatched
+    assert "2 readings beyond any magnetometer's range dropped" in st.describe()
+    assert "1 negative (before 1970) stamps dropped" in st.describe()
+
+
+def test_the_reading_limit_is_an_earth_field_plus_the_largest_offset() -> None:
+    from magcal_ros.core.calibration import MAX_OFFSET
+    from magcal_ros.core.units import EARTH_FIELD_RANGE
+
+    assert MAX_READING == EARTH_FIELD_RANGE[1] + MAX_OFFSET
+    assert reading_fault(0.0, 0.0, 0.0) is None  # an offset may cancel the field: no lower bound
+    assert reading_fault(1e200, 0.0, 0.0) == "out_of_range" and reading_fault(-math.inf, 0, 0) == "nonfinite"
+
+
+def test_a_huge_reading_in_a_csv_is_dropped_and_never_reaches_an_output(rec: dict[str, Any]) -> None:
+    def corrupt(lines: list[str]) -> None:
+        _set(lines, 10, 2, "1e300")
+        _set(lines, 40, 7, "-1e30")
+
+    bad = _variant(rec, "huge.csv", corrupt)
+    cal = rec["dir"] / "huge.yaml"
+    proc = ok(magcal("calibrate", bad, "-o", cal, "--reference-field", F))
+    assert "inf" not in proc.stdout and "nan" not in proc.stdout, proc.stdout
+    assert "2 readings beyond any magnetometer's range dropped" in proc.stderr
+    loaded = calfile.read(cal)  # a written calibration loads
+    assert np.all(np.isfinite(loaded.matrices)) and np.all(np.isfinite(loaded.offsets))
+    text = cal.read_text()
+    assert not re.search(r"\b(inf|nan)\b", text.split("magcal_provenance")[1].lower())
+    assert loaded.metadata["samples"] == 298
+    out = rec["dir"] / "huge_corrected.csv"
+    ok(magcal("correct", bad, "-c", cal, "-o", out))
+    values = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:]
+    assert len(values) == 298 and np.all(np.abs(values) < 1e-3)
+
+
+@pytest.mark.parametrize("name", ["mag 1", "../../evil", "mag1.x", "/abs"])
+def test_csv_sensor_names_must_be_ros_names(rec: dict[str, Any], name: str) -> None:
+    bad = _variant(rec, "names.csv", lambda lines: lines.__setitem__(0, lines[0].replace("mag1.", f"{name}.")))
+    line = one_line_error(magcal("calibrate", bad, "-o", rec["dir"] / "n.yaml", "--reference-field", F))
+    assert f"sensor name '{name}' is not a valid relative ROS name" in line
+    assert not (rec["dir"] / "n.yaml").exists()
+    out = rec["dir"] / "n_bag"
+    one_line_error(magcal("correct", bad, "-c", rec["dir"] / "none.yaml", "-o", out))
+    assert not out.exists()
+
+
+def test_cr_only_line_endings_read_like_lf(rec: dict[str, Any]) -> None:
+    cr = rec["dir"] / "cr.csv"
+    cr.write_bytes(("\r".join(rec["lines"]) + "\r").encode())
+    a, b = rec["dir"] / "cr.yaml", rec["dir"] / "lf.yaml"
+    ok(magcal("calibrate", cr, "-o", a, "--reference-field", F, "-q"))
+    ok(magcal("calibrate", rec["csv"], "-o", b, "--reference-field", F, "-q"))
+    np.testing.assert_array_equal(calfile.read(a).matrices, calfile.read(b).matrices)
+
+
+def test_a_stamp_beyond_int64_nanoseconds_is_one_line(rec: dict[str, Any]) -> None:
+    bad = _variant(rec, "stamp.csv", lambda lines: _set(lines, 6, 0, "1e300"))
+    line = one_line_error(magcal("calibrate", bad, "-o", rec["dir"] / "s.yaml", "--reference-field", F))
+    assert "line 7" in line and "1e300 s is out of range" in line
+
+
+def test_a_calibration_nested_100000_deep_is_one_line(rec: dict[str, Any]) -> None:
+    deep = rec["dir"] / "deep.yaml"
+    deep.write_text("[" * 100_000 + "]" * 100_000 + "\n")
+    line = one_line_error(magcal("correct", rec["csv"], "-c", deep, "-o", rec["dir"] / "d.csv"))
+    assert "nested too deeply" in line
+
+
+def test_sync_stats_keep_one_vocabulary() -> None:
+    """Every counter counts as dropped but sets, restarts (events, not messages) and used (messages in sets)."""
+    stats = SyncStats(**{k: 1 for k in SyncStats().as_dict()})
+    assert stats.dropped() == len(stats.as_dict()) - 3
+    assert "negative_stamp" in SyncStats().as_dict() and "out_of_range" in SyncStats().as_dict()
+
+
+def _mcap_chunks(path: Path) -> list[tuple[int, bytes]]:
+    """(uncompressed_crc, uncompressed records) of every Chunk record of an MCAP file, read by hand
+    from the format (magic, then records: opcode u8, length u64, body; Chunk = 0x06, uncompressed)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89MCAP0\r\n"
+    chunks, at = [], 8
+    while at < len(data) - 8:
+        op, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        body = data[at + 9 : at + 9 + length]
+        if op == 0x06:
+            crc = struct.unpack_from("<I", body, 24)[0]
+            n = struct.unpack_from("<I", body, 28)[0]
+            assert body[32 : 32 + n] == b""  # not compressed
+            size = struct.unpack_from("<Q", body, 32 + n)[0]
+            chunks.append((crc, body[40 + n : 40 + n + size]))
+        at += 9 + length
+    return chunks
+
+
+def test_mcap_chunks_carry_their_crc(rec: dict[str, Any]) -> None:
+    bag = rec["dir"] / "crc_bag"
+    ok(magcal("simulate", bag, "--storage", "mcap", "--count", 200, "--seed", 2, "-q"))
+    out = rec["dir"] / "crc_corrected"
+    cal = rec["dir"] / "crc.yaml"
+    ok(magcal("calibrate", bag, "-o", cal, "--reference-field", F, "-q"))
+    ok(magcal("correct", bag, "-c", cal, "-o", out, "--storage", "mcap"))
+    for folder in (bag, out):
+        chunks = [c for f in sorted(folder.glob("*.mcap")) for c in _mcap_chunks(f)]
+        assert chunks and all(crc == zlib.crc32(records) and crc != 0 for crc, records in chunks)
+
+
+def test_an_output_inside_the_input_bag_is_refused(rec: dict[str, Any]) -> None:
+    bag = rec["dir"] / "in_bag"
+    ok(magcal("simulate", bag, "--count", 100, "--seed", 2, "-q"))
+    before = sorted(p.name for p in bag.iterdir())
+    line = one_line_error(magcal("calibrate", bag, "-o", bag / "x.db3", "--reference-field", F))
+    assert "inside the input bag" in line
+    cal = rec["dir"] / "in.yaml"
+    ok(magcal("calibrate", bag, "-o", cal, "--reference-field", F, "-q"))
+    assert "inside the input bag" in one_line_error(magcal("correct", bag, "-c", cal, "-o", bag / "sub" / "out.csv"))
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
+def test_writing_through_a_symlink_updates_its_target_and_keeps_the_mode(rec: dict[str, Any], tmp_path: Path) -> None:
+    real = tmp_path / "store" / "cal.yaml"
+    real.parent.mkdir()
+    link = tmp_path / "link.yaml"
+    link.symlink_to(real)
+    ok(magcal("calibrate", rec["csv"], "-o", link, "--reference-field", F, "-q"))
+    assert link.is_symlink() and real.is_file()
+    os.chmod(real, 0o600)
+    first = real.read_text()
+    ok(magcal("calibrate", rec["csv"], "-o", link, "--reference-field", 5.0e-5, "-q"))
+    assert link.is_symlink() and real.read_text() != first
+    assert stat.S_IMODE(real.stat().st_mode) == 0o600
+    backups = calfile.backups(real)
+    assert len(backups) == 1 and backups[0].read_text() == first
+    assert stat.S_IMODE(backups[0].stat().st_mode) == 0o600
+    out = tmp_path / "c.csv"
+    out.write_text("old\n")
+    os.chmod(out, 0o640)
+    ok(magcal("correct", rec["csv"], "-c", link, "-o", out))
+    assert stat.S_IMODE(out.stat().st_mode) == 0o640 and out.read_text().startswith("stamp,")
+
+
+def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
+    """--positions -0.2,... (the cross listed from -x) is a value, not an option."""
+    cal = rec["dir"] / "neg.yaml"
+    cross = "0.2,0,0,0,0.2,0,-0.2,0,0,0,-0.2,0"
+    ok(magcal("calibrate", rec["csv"], "-o", cal, "--reference-field", F, "-q", "--positions", cross))
+    assert calfile.read(cal).geometry.positions.reshape(-1).tolist() == [float(v) for v in cross.split(",")]
+    mirrored = "-0.2,0,0,0,-0.2,0,0.2,0,0,0,0.2,0"
+    proc = magcal("calibrate", rec["csv"], "-o", rec["dir"] / "neg2.yaml", "--reference-field", F, "-q",
+                  "--positions", mirrored, "--gradient-method", "least_squares")
+    assert "expected one argument" not in proc.stderr, proc.stderr
+    ok(proc)
+    assert calfile.read(rec["dir"] / "neg2.yaml").geometry.positions[0].tolist() == [-0.2, 0.0, 0.0]

@@ -1,0 +1,166 @@
+"""Recalibration during the mission (no middleware): what a window of the mission determines,
+the held-out check, when the node recalibrates, and the rolling window of sets."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.field import earth_field
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.metrics import tensor_floor, tensor_rms
+from magcal_ros.core.units import NS_PER_S, NT
+from magcal_ros.methods import recalibration
+from magcal_ros.methods.pipeline import calibrate_array
+from magcal_ros.methods.progress import Assessment
+from magcal_ros.nodes.buffer import MissionWindow
+from magcal_ros.sim.attitudes import uniform_random
+from magcal_ros.sim.mission import Leg, mission
+from magcal_ros.sim.simulator import ArraySimulation, hard_iron_moved, random_sensor_errors
+
+INTENSITY = 51_500 * NT
+NOISE = 1.0 * NT
+S = NS_PER_S
+
+
+@pytest.fixture(scope="module")
+def drifted() -> tuple[ArraySimulation, ArraySimulation, ArrayCalibration, np.random.Generator]:
+    """An array, the same after its hard iron moved by 300-800 nT, and the calibration that ran before."""
+    rng = np.random.default_rng(21)
+    geo = ArrayGeometry.cross()
+    sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names), earth_field(INTENSITY, 60.0, 5.0),
+                          noise=NOISE)
+    running = replace(sim.true_calibration(), metadata={"intensity": INTENSITY})
+    return sim, hard_iron_moved(sim, rng), running, rng
+
+
+def _window(sim: ArraySimulation, legs: list[Leg], rng: np.random.Generator, wobble: float = 5.0,
+            sets: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    rec, _ = mission(sim, legs, rng, rate=100.0, wobble_deg=wobble)
+    keep = np.unique(np.linspace(0, len(rec) - 1, sets).round().astype(int))
+    return rec.stamps[keep], rec.vectors[keep]
+
+
+def _solve(stamps: np.ndarray, raw: np.ndarray, running: ArrayCalibration) -> tuple:
+    fit, held = recalibration.split(stamps)
+    result = calibrate_array(raw[fit], running.geometry, None, "ml", None, running, None, (), stamps[fit])
+    return result, fit, held
+
+
+def test_a_minute_of_turns_after_the_jump_recalibrates_to_the_floor(drifted: tuple) -> None:
+    """The window determines every offset, holds on its held-out fifth, and on fresh attitudes the
+    tensor is within 1.2x the floor sqrt(2) sigma / d (the drifted calibration: hundreds of times)."""
+    sim, moved, running, rng = drifted
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    result, fit, held = _solve(stamps, raw, running)
+    assert 0.15 < held.mean() < 0.25 and not np.any(fit & held)
+    why, figures = recalibration.verdict(result, running, raw[fit], raw[held])
+    assert why is None, why
+    assert figures is not None and figures.sets == held.sum()
+    assert np.all(figures.tmi_new < 1.2 * NOISE) and np.all(figures.tmi_old > 100 * NOISE)
+    assert figures.describe().startswith(f"{held.sum()} held-out sets: TMI RMS ")
+    floor = tensor_floor(NOISE, 0.4)
+    for fresh in (mission(moved, [Leg(60.0, 6.0)], rng, rate=20.0)[0], moved.run(uniform_random(1000, rng), rng)[0]):
+        g = result.calibration.field_and_gradient(fresh.vectors)[2]
+        g_old = running.field_and_gradient(fresh.vectors)[2]
+        assert tensor_rms(g) < 1.2 * floor and tensor_rms(g_old) > 100 * floor
+    moved_by = [np.linalg.norm(m.hard_iron - s.hard_iron) / NT for m, s in zip(moved.sensors, sim.sensors)]
+    text = recalibration.changes(running, result.calibration)
+    shown = [float(part.split()[-2]) for part in text.split(": ", 1)[1].split(";")[0].split(", ")]
+    assert np.allclose(shown, moved_by, rtol=0.05), (text, moved_by)
+
+
+def test_a_window_without_attitude_change_never_pushes(drifted: tuple) -> None:
+    """Straight and level, +-0.3 deg of wobble: the offsets across the track are not determined to a few
+    times the noise; the verdict refuses, naming them, and what to fly."""
+    _, moved, running, rng = drifted
+    stamps, raw = _window(moved, [Leg(60.0, 0.0)], rng, wobble=0.3)
+    result, fit, held = _solve(stamps, raw, running)
+    why, figures = recalibration.verdict(result, running, raw[fit], raw[held])
+    assert why is not None and figures is None
+    assert why.startswith("the sets do not determine what changed (mag1 offset x (+- ")
+    assert "turn through a full circle of heading" in why
+    assert recalibration.undetermined_offsets(result)
+
+
+def test_a_calibration_that_does_not_hold_on_held_out_sets_is_refused(drifted: tuple) -> None:
+    """Fitted before the jump, checked on sets after it (as when the window straddles a second change):
+    the held-out TMI residual is far above the fit's, and nothing may be pushed."""
+    sim, moved, running, rng = drifted
+    stamps, raw = _window(sim, [Leg(60.0, 6.0)], rng)
+    result, fit, _ = _solve(stamps, raw, running)
+    _, after = _window(moved, [Leg(20.0, 6.0)], rng, sets=300)
+    why, figures = recalibration.verdict(result, running, raw[fit], after)
+    assert why is not None and "held-out sets" in why and "more than 1.5x" in why
+    # no better than the running calibration on its own held-out sets: refused too
+    _, held = recalibration.split(stamps)
+    why, _ = recalibration.verdict(replace(result, calibration=running), running, raw[fit], raw[held])
+    assert why is not None and "no better" in why
+    assert recalibration.verdict(result, None, raw[fit], raw[held])[0].startswith("there is no running calibration")
+
+
+def test_advice_says_what_to_fly() -> None:
+    ready = Assessment(800, True, None, ("scale z",), "enough to recalibrate from the prior: ...")
+    assert recalibration.advice(ready, True, 60.0) == (
+        "what is being flown determines what changed (the offsets): call ~/start, keep flying it for 60 s, then "
+        "call ~/calibrate")
+    straight = Assessment(800, True, None, ("offset x", "offset y", "scale z"), "enough to recalibrate ...")
+    assert recalibration.advice(straight, True, 60.0).startswith(
+        "the sets flown since do not determine offset x, offset y: call ~/start, turn through a full circle")
+    assert "no running calibration" in recalibration.advice(straight, False, 60.0)
+
+
+def test_the_watch_recalibrates_once_per_interval_and_ignores_stale_reports() -> None:
+    watch = recalibration.DriftWatch(window_ns=60 * S, interval_ns=600 * S)
+    assert watch.due(100 * S) == (False, "")
+    assert watch.report(True, "mag1 calibration drifted: ...", 100 * S)
+    assert not watch.report(True, "mag1 calibration drifted: again", 110 * S)  # named once
+    due, why = watch.due(130 * S)
+    assert not due and why == "collecting the sets flown since the drift was named: 30 of 60 s"
+    assert watch.due(160 * S)[0] and watch.window_start(170 * S) == 110 * S
+    watch.attempted(160 * S, pushed=False)
+    assert watch.due(175 * S) == (False, "trying again in 15 s") and watch.due(190 * S)[0]
+    watch.attempted(190 * S, pushed=True)
+    assert watch.since is None and watch.settling
+    assert not watch.report(True, "stale: judged on the old calibration", 191 * S) and watch.since is None
+    watch.report(False, "collecting: ...", 195 * S)  # the health judges the new calibration afresh
+    assert watch.report(True, "drifted again", 300 * S)
+    due, why = watch.due(400 * S)
+    assert not due and why.startswith("recalibrated 210 s ago: no other recalibration for 390 s")
+    assert watch.due(790 * S)[0]
+
+
+def test_the_mission_window_keeps_the_latest_seconds_evenly() -> None:
+    window = MissionWindow(seconds_ns=10 * S, spacing_ns=S // 20, sensors=2, channels=1)
+    for k in range(3000):  # 30 s at 100 Hz
+        t = 1000 * S + k * (S // 100)
+        if window.due(t):
+            window.add(t, ((1e-5, 0.0, 0.0), (0.0, 1e-5, 0.0)), (float(k),))
+    stamps, raw, currents = window.snapshot()
+    assert window.newest == 1000 * S + 2999 * (S // 100)
+    assert len(stamps) == 201 and np.all(np.diff(stamps) == S // 20)  # 10 s at 20 Hz
+    assert raw.shape == (201, 2, 3) and currents.shape == (201, 1) and currents[-1, 0] == 2995.0
+    assert len(window.snapshot(stamps[-1] - 2 * S)[0]) == 41
+    window.add(5 * S, ((1e-5, 0.0, 0.0), (0.0, 1e-5, 0.0)), (0.0,))  # the source restarted
+    assert len(window) == 1
+
+
+def test_the_recalibration_status_says_what_is_done() -> None:
+    record = {"recalibrations": "0", "last_recalibration": "", "last_attempt": ""}
+    watch = recalibration.DriftWatch(window_ns=60 * S, interval_ns=600 * S)
+    warn, text, values = recalibration.status("/magcal_correction", False, watch, 10 * S, "calibration fits: ...", "",
+                                              record)
+    assert not warn and text == "calibration of /magcal_correction fits" and values["drifted"] == "false"
+    watch.report(True, "mag2 calibration drifted: TMI residual 40 nT against 1 nT at calibration: recalibrate", 20 * S)
+    warn, text, values = recalibration.status("/magcal_correction", False, watch, 30 * S, "", "call ~/start, ...",
+                                              record)
+    assert warn and text == ("calibration of /magcal_correction drifted (mag2 calibration drifted: TMI residual 40 nT "
+                             "against 1 nT at calibration: recalibrate); to fix it: call ~/start, ...")
+    assert values["advice"] == "call ~/start, ..." and values["since_drift_s"] == "10"
+    warn, text, _ = recalibration.status("/magcal_correction", True, watch, 30 * S, "", "",
+                                         {**record, "last_attempt": "not recalibrated: ..."})
+    assert warn and text.endswith("; auto_recalibrate: collecting the sets flown since the drift was named: 10 of 60 s; "
+                                  "last attempt: not recalibrated: ...")
