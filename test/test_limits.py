@@ -348,12 +348,15 @@ def _health(stamps: list[int], now: int = 0) -> ArrayHealth:
     return health
 
 
-def test_a_stamp_interval_beyond_1_5_periods_is_a_gap() -> None:
+def test_a_sample_index_the_stamps_skip_is_a_sample_lost() -> None:
+    """The sample clock (a line through many stamps) numbers the samples: a stamp one period after the
+    last is the next sample, two periods after it skips one (lost, one gap), whatever came before."""
     period = 10 * MS
-    stamps = [1000 * MS + k * period for k in range(40)]
-    exact = stamps + [stamps[-1] + 3 * period // 2]
-    beyond = stamps + [stamps[-1] + 3 * period // 2 + 1]
-    assert _health(exact).gaps == [0] and _health(beyond).gaps == [1] and _health(beyond).lost == [1]
+    stamps = [1000 * MS + k * period for k in range(60)]
+    regular = stamps + [stamps[-1] + period + k * period for k in range(10)]
+    skipped = stamps + [stamps[-1] + 2 * period + k * period for k in range(10)]
+    assert _health(regular).lost == [0] and _health(regular).gaps == [0]
+    assert _health(skipped).lost == [1] and _health(skipped).gaps == [1]
 
 
 def test_a_sensor_is_silent_after_sensor_timeout_and_the_node_in_error_after_output_timeout() -> None:

@@ -146,8 +146,39 @@ class CalibrationResult:
             parts.append(f"{int(self.outliers.sum())} outlying readings excluded")
         if self.extras.get("uniformity") is not None and self.extras["uniformity"].detected:
             parts.append(f"NOT uniform: {self.extras['uniformity'].gradient / NT:.3g} nT/m across the array")
+        parts += self.block_notes()
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
+
+    def lags(self) -> list[str]:
+        """``mag3 reads 5.00 +- 0.01 ms late`` for each sensor whose lag behind the first is significant
+        (beyond :data:`LAG_SIGMAS` sigma and :data:`MIN_LAG` s)."""
+        out = []
+        for q in self.identifiability.quantities:
+            if q.name == "time offset" and q.status != "held" and abs(q.value) > max(LAG_SIGMAS * q.sigma,
+                                                                                      MIN_LAG * 1e3):
+                side = "late" if q.value > 0 else "early"
+                out.append(f"{q.sensor} reads {abs(q.value):.2f} +- {q.sigma:.2g} ms {side}")
+        return out
+
+    def block_notes(self) -> list[str]:
+        """What the temperature and lag blocks found, in words, for the summary."""
+        notes = []
+        lags = self.lags()
+        if lags:
+            first = self.calibration.geometry.names[0]
+            notes.append(f"time offsets (relative to {first}, applied by correct and the correction node): "
+                         + "; ".join(lags))
+        span = self.extras.get("temperature_range")
+        if span is not None:
+            notes.append(f"temperature terms fitted over {span[0]:.1f}..{span[1]:.1f} C (reference "
+                         f"{self.calibration.temperature_reference:.1f} C)")
+        held = self.identifiability.held()
+        if held:
+            notes.append("not determined, held at zero: " + ", ".join(f"{q.sensor} {q.name}" for q in held[:8])
+                         + (" ..." if len(held) > 8 else ""))
+        notes += list(self.extras.get("block_notes", ()))
+        return notes
 
 
 def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
@@ -274,6 +305,10 @@ temperature block is left out (and the summary says why)."""
 MAX_LAG_STEP: float = 0.05
 """The lag block needs a continuous motion: the field direction may change by at most this
 (rad, median) between consecutive sets."""
+LAG_SIGMAS: float = 3.0
+"""A sensor's lag is reported when it exceeds this many of its 1-sigma ..."""
+MIN_LAG: float = 5e-5
+"""... and this (s): 0.05 ms moves the field by 2.5 nT at 1 rad/s."""
 HOLD_ROUNDS: int = 3
 """Refits at most, each holding at zero the temperature and lag quantities still undetermined."""
 
@@ -745,7 +780,9 @@ def calibrate_array(
         seconds=time.perf_counter() - t0,
         prior=prior is not None,
         inflation=cov.inflation,
-        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field},
+        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field,
+                "temperature_range": None if temps is None else (float(temps.min()), float(temps.max())),
+                "block_notes": blocks.notes},
     )
     object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
     return replace(result, seconds=time.perf_counter() - t0)
@@ -792,6 +829,12 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         meta["kept"] = [f"{q.sensor} {q.name}" for q in ana.kept()] or ["nothing"]
     if result.extras.get("uniformity") is not None:
         meta.update(result.extras["uniformity"].provenance())
+    if ana.held():
+        meta["held"] = [f"{q.sensor} {q.name}" for q in ana.held()]
+    if result.extras.get("temperature_range") is not None:
+        meta["temperature_range"] = [float(t) for t in result.extras["temperature_range"]]
+    if result.lags():
+        meta["lags"] = result.lags()
     if result.warnings:
         meta["warnings"] = list(result.warnings)
     return meta
