@@ -525,7 +525,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
     )
     result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps,
-                             currents=rec.currents if rec.channels else None, channels=rec.channels)
+                             currents=rec.currents if rec.channels else None, channels=rec.channels,
+                             temperatures=rec.temperatures)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:

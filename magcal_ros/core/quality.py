@@ -158,6 +158,108 @@ def longest_runs(mask: Array) -> float:
     return float(lengths[lengths >= MIN_RUN].sum() / m.sum())
 
 
+DRIFT_EXPLAINED: float = 0.3
+"""A smooth function of time explaining this much of a sensor's residual variance ..."""
+DRIFT_NOISE: float = 5.0
+"""... changing by this many white-noise sd over the recording ..."""
+DRIFT_OVER_ATTITUDE: float = 2.0
+"""... and this many times what a function of the attitude explains: the offsets drifted in time."""
+TIMING_EXPLAINED: float = 0.3
+"""The field's rate of change explaining this much of a residual: the reading is not taken at its stamp."""
+STEP_MARGIN: float = 0.05
+"""A drift must explain this much more than a single step (else the field changed at one time)."""
+DRIFT_DEGREE: int = 3
+"""Degree of the polynomial in time that stands for a drift."""
+
+
+@dataclass(frozen=True)
+class ResidualShape:
+    """What a sensor's residual follows, beyond its white noise."""
+
+    drift: float
+    """Change (T) over the recording of the part that follows time (0: none found)."""
+    duration: float
+    """s the recording spans."""
+    time_explained: float
+    """Fraction of the residual variance an offset and a gain that follow time smoothly explain."""
+    attitude_explained: float
+    """Fraction a quadratic function of the field direction explains."""
+    rate_explained: float
+    """Fraction a linear function of the field's rate of change explains (timing)."""
+    step_explained: float
+    """Fraction the best single step of offset and gain in time explains (a sudden change)."""
+
+    @property
+    def drifts(self) -> bool:
+        """The residual follows time, smoothly, rather than attitude (offsets that wander: temperature)."""
+        return self.drift > 0 and self.time_explained > DRIFT_EXPLAINED and (
+            self.time_explained > DRIFT_OVER_ATTITUDE * self.attitude_explained) and (
+            self.time_explained > self.step_explained + STEP_MARGIN)
+
+    @property
+    def timing(self) -> bool:
+        """The residual follows the turn rate: readings not taken at their stamps (a lag)."""
+        return self.rate_explained > TIMING_EXPLAINED and self.rate_explained > self.time_explained
+
+
+def _explained(y: Array, x: Array) -> float:
+    """Fraction of the variance of ``y`` (N, 3) a least-squares fit on the columns of ``x`` (N, K) explains."""
+    total = float(np.sum((y - y.mean(axis=0)) ** 2))
+    if total <= 0 or len(y) <= x.shape[1] + 3:
+        return 0.0
+    design = np.column_stack([np.ones(len(y)), x])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    return float(1.0 - np.sum((y - design @ coef) ** 2) / total)
+
+
+def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: Array, directions: Array,
+                   rates: Array | None, noise: float) -> ResidualShape:
+    """How one sensor's residual follows time (``times`` (N,) s), the field direction
+    (``directions`` (N, 3)) and its rate of change (``rates`` (N, 3) 1/s, or None), against its
+    white ``noise`` (T); all in time order.
+
+    Time against attitude is read off the TMI residual ``tmi`` (N,) T (corrected norm minus F, every
+    reading: excluded readings are where a drift shows most): an offset and a gain that follow time
+    smoothly (polynomials in time, alone and times the direction) against a quadratic function of the
+    direction. The rate from the vector residual ``residual`` (N, 3) T of the ``used`` readings (a
+    reading late by ``tau`` is off by ``tau`` times the rate, across the field: the norm hides it).
+    """
+    y = np.asarray(tmi, dtype=float).reshape(-1, 1)
+    t = np.asarray(times, dtype=float)
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    if len(y) < 4 * (DRIFT_DEGREE + 10) or span <= 0:
+        return ResidualShape(0.0, span, 0.0, 0.0, 0.0, 0.0)
+    x = (t - t[0]) / span * 2.0 - 1.0
+    poly = np.column_stack([np.polynomial.legendre.legval(x, np.eye(DRIFT_DEGREE + 1)[k])
+                            for k in range(1, DRIFT_DEGREE + 1)])
+    d = np.asarray(directions, dtype=float)
+    timed = np.column_stack([poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
+    time_part = _explained(y, timed)
+    quad = np.column_stack([d, d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]]])
+    attitude_part = _explained(y, quad)
+    # A sudden change (iron moved) is a step, not a drift: the best single split, offset and gain.
+    step_part = max(_explained(y, np.column_stack([h, h[:, None] * d, d]))
+                    for h in ((np.arange(len(y)) >= k).astype(float) for k in
+                              np.linspace(len(y) * 0.05, len(y) * 0.95, 37).astype(int)))
+    rate_part = 0.0
+    if rates is not None and used.sum() > 20:
+        rate_part = _explained(np.asarray(residual, dtype=float)[used], np.asarray(rates, dtype=float)[used])
+    design = np.column_stack([np.ones(len(y)), timed])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    drifting = np.column_stack([np.ones(len(y)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1)])
+    trend = drifting @ coef[: drifting.shape[1]]
+    change = float(np.ptp(trend))
+    drift = change if change > DRIFT_NOISE * noise else 0.0
+    return ResidualShape(drift, span, time_part, attitude_part, rate_part, step_part)
+
+
+def drift_warning(name: str, shape: ResidualShape) -> str:
+    """``mag1's offsets drift with time: about 60 nT over 200 s; ...`` (what to do)."""
+    return (f"{name}'s offsets drift with time: about {shape.drift / NT:.0f} nT over {shape.duration:.0f} s; "
+            "record the sensors' temperature (temperature.<name> columns, <name>/temperature topics) or calibrate "
+            "over a shorter time")
+
+
 @dataclass
 class Verdict:
     """What the gates decided: a refusal (``cause``) or None, and warnings either way."""
@@ -170,6 +272,8 @@ class Verdict:
     """(S,) fit residual per axis per sensor (T)."""
     excluded: Array | None = None
     """(S,) readings excluded as outliers per sensor."""
+    drift: list[str] = field(default_factory=list)
+    """``mag1 46 nT over 200 s`` for each sensor whose offsets drift with time."""
 
 
 def saturated(name: str, fraction: float) -> str:
@@ -228,6 +332,7 @@ def judge(
     intensity: float | None = None,
     directions: Array | None = None,
     clipped: NDArray[np.bool_] | None = None,
+    rates: Array | None = None,
 ) -> Verdict:
     """Apply the gates to a fit.
 
@@ -235,7 +340,8 @@ def judge(
     (corrected norm minus F, all readings); ``raw`` (N, S, 3) T; all in time order.
     ``implied_gain``: the sensors' mean gain when a reference intensity was given;
     ``intensity`` F (T); ``directions`` (N, 3) unit field directions (smoothness);
-    ``clipped`` (N, S) the readings at full scale (default: from :func:`saturation`).
+    ``clipped`` (N, S) the readings at full scale (default: from :func:`saturation`); ``rates``
+    (N, 3) the field direction's rate of change (1/s), to tell a timing error.
     """
     s = len(names)
     verdict = Verdict(excluded=np.sum(weights == 0, axis=0).astype(float))
@@ -254,12 +360,21 @@ def judge(
 
     if clipped is None:
         clipped = saturation(names, raw)[0]
+    smooth = directions is not None and in_time_order(directions)
+    shapes: list[ResidualShape | None] = [None] * s
+    if smooth and stamps_ns is not None:
+        shapes = [residual_shape(tmi_residuals[:, i], residuals[:, i], weights[:, i] > 0, t, directions,  # type: ignore[arg-type]
+                                 rates, noise[i]) for i in range(s)]
     for i, name in enumerate(names):
         n = len(weights)
         frac = verdict.excluded[i] / n
         if frac > MAX_OUTLIER_FRACTION:
+            shape = shapes[i]
             if clipped[:, i].sum() > 0.5 * verdict.excluded[i]:
                 verdict.cause = saturated(name, float(clipped[:, i].mean()))
+            elif shape is not None and shape.drifts:
+                verdict.cause = (f"{drift_warning(name, shape)} ({frac:.0%} of its readings no longer fit one "
+                                 "calibration)")
             elif longest_runs(weights[:, i] == 0) > 0.5:
                 step = best_step(tmi_residuals[:, i])
                 verdict.cause = (
@@ -273,7 +388,6 @@ def judge(
                     f"(more than {MAX_OUTLIER_FRACTION:.0%}); check the sensor, its cable and nearby switching loads"
                 )
             return verdict
-    smooth = directions is not None and in_time_order(directions)
     for i, name in enumerate(names):
         used = weights[:, i] > 0
         step = best_step(tmi_residuals[used, i])
@@ -298,8 +412,16 @@ def judge(
                     "cannot be read from them)")
         else:
             continue
+        shape = shapes[i]
         if not np.isfinite(resid[i]) or not np.isfinite(limit) or resid[i] <= limit:
-            if smooth and max_residual is None and resid[i] > WARN_RATIO * noise[i]:
+            if shape is not None and shape.drifts:
+                verdict.warnings.append(drift_warning(name, shape))
+                verdict.drift.append(f"{name} {shape.drift / NT:.0f} nT over {shape.duration:.0f} s")
+            elif shape is not None and shape.timing:
+                verdict.warnings.append(
+                    f"{name}'s residual follows the turn rate: its readings are not taken at their stamps (a lag or "
+                    "a clock error); give the sensors' own streams so that their lags are estimated")
+            elif smooth and max_residual is None and resid[i] > WARN_RATIO * noise[i]:
                 verdict.warnings.append(
                     f"{name}'s residual ({resid[i] / NT:.3g} nT) is {resid[i] / noise[i]:.1f}x the white noise the "
                     "data show: time-correlated noise, or a field that is not quite uniform")
@@ -310,6 +432,14 @@ def judge(
             index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
             why = (f"the field was not constant during the manoeuvre: it changed by about {step.size / NT:+.0f} nT "
                    f"{at(index)} (moving iron, a passing vehicle, an anomaly)")
+        elif shape is not None and shape.drifts:
+            why = drift_warning(name, shape).split(": ", 1)[0].replace(f"{name}'s offsets", "the offsets") + (
+                f" (about {shape.drift / NT:.0f} nT over {shape.duration:.0f} s): record the sensors' temperature or "
+                "calibrate over a shorter time")
+        elif shape is not None and shape.timing:
+            why = ("the residual follows the turn rate: the readings are not taken at their stamps (a lag, a clock "
+                   "error, sensors not sampled together); give the sensors' own streams (a bag) so that the sets are "
+                   "formed at one instant and the lags estimated")
         else:
             why = ("the field was not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving "
                    "through a gradient, drift), or the sensor is faulty")

@@ -30,6 +30,7 @@ from magcal_ros.core import quality
 from magcal_ros.core.array_fit import (
     JointSolution,
     ParameterPrior,
+    direction_rates,
     fit_array,
     fix_rotation_gauge,
 )
@@ -146,6 +147,9 @@ class CalibrationResult:
             parts.append(f"{int(self.outliers.sum())} outlying readings excluded")
         if self.extras.get("uniformity") is not None and self.extras["uniformity"].detected:
             parts.append(f"NOT uniform: {self.extras['uniformity'].gradient / NT:.3g} nT/m across the array")
+        if self.extras.get("drift"):
+            parts.append(f"offsets drift with time ({', '.join(self.extras['drift'])}): record the sensors' "
+                         "temperature or calibrate over a shorter time")
         parts += self.block_notes()
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
@@ -302,7 +306,7 @@ def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float,
 MIN_TEMPERATURE_SPAN: float = 1.0
 """Sensor temperatures spanning less than this (K) determine no temperature coefficient: the
 temperature block is left out (and the summary says why)."""
-MAX_LAG_STEP: float = 0.05
+MAX_LAG_STEP: float = 0.15
 """The lag block needs a continuous motion: the field direction may change by at most this
 (rad, median) between consecutive sets."""
 LAG_SIGMAS: float = 3.0
@@ -739,9 +743,13 @@ def calibrate_array(
     if field is not None and field.refused and opts.max_residual is None:
         raise CalibrationFailed(f"{field.describe()}; to accept it anyway give a max residual (magcal "
                                 "--max-residual, the calibration node's max_residual)")
+    rates = sol.rates
+    if rates is None and stamps is not None:
+        rates = direction_rates(sol.directions, np.asarray(stamps, dtype=float) / NS_PER_S)
     verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
                             None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
-                            implied, sol.intensity, sol.directions[order], clipped[order])
+                            implied, sol.intensity, sol.directions[order], clipped[order],
+                            None if rates is None else rates[order])
     if verdict.cause:
         raise CalibrationFailed(verdict.cause)
     warnings = list(verdict.warnings) + ([field.describe()] if field is not None and field.detected else [])
@@ -782,7 +790,7 @@ def calibrate_array(
         inflation=cov.inflation,
         extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field,
                 "temperature_range": None if temps is None else (float(temps.min()), float(temps.max())),
-                "block_notes": blocks.notes},
+                "block_notes": blocks.notes, "drift": verdict.drift},
     )
     object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
     return replace(result, seconds=time.perf_counter() - t0)
@@ -835,6 +843,8 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         meta["temperature_range"] = [float(t) for t in result.extras["temperature_range"]]
     if result.lags():
         meta["lags"] = result.lags()
+    if result.extras.get("drift"):
+        meta["drift"] = list(result.extras["drift"])
     if result.warnings:
         meta["warnings"] = list(result.warnings)
     return meta

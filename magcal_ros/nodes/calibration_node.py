@@ -967,7 +967,7 @@ class CalibrationNode(Node):
         opts = SolveOptions(max_residual=residual, inclination_deg=site.inclination_deg if site is not None else None)
         try:
             result = calibrate_array(raw, geo, reference, method, opts, prior, currents if channels else None,
-                                     channels, stamps)
+                                     channels, stamps, collected.temperatures)
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()
