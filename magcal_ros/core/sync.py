@@ -88,6 +88,9 @@ DECIDE_AFTER: int = 32
 """Stamps of every sensor mode ``auto`` looks at before choosing ..."""
 DECIDE_EARLY: tuple[int, int] = (8, NS_PER_S)
 """... or at least 8 stamps of every sensor spanning 1 s (slow sensors)."""
+MAX_INTERPOLATION_STEP: float = 0.2
+"""Mode ``auto`` does not interpolate for a systematic stamp offset when the reference sensor's field
+turns by more than this (rad, median) from one reading to the next: the samples do not resolve the motion."""
 EXACT_FRACTION: float = 0.9
 """Mode ``auto`` matches exactly when the exact window holds at least this fraction of the sets
 (:func:`choose_mode`)."""
@@ -434,7 +437,7 @@ def clean_stamps(stamps: Sequence[int]) -> list[int]:
 
 
 def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence[str] | None = None,
-                offsets: Sequence[int] | None = None) -> tuple[str, str]:
+                offsets: Sequence[int] | None = None, coarse: bool = False) -> tuple[str, str]:
     """``exact`` or ``interpolate`` for sensors whose first stamps are ``stamps`` (ns, per sensor,
     increasing), and why, in words.
 
@@ -443,7 +446,10 @@ def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence
     least :data:`EXACT_FRACTION` have all of them within the window (``tolerance``, capped
     at half the shortest period), and no sensor's stamps sit off the reference's by more
     than a quarter of the window in the median: the sensors are sampled together and
-    stamped alike. Interpolate otherwise, and always with time offsets.
+    stamped alike. Interpolate otherwise, and always with time offsets. ``coarse``: the field
+    jumps between consecutive samples (independent attitudes, a motion far faster than the
+    sampling): interpolating between samples would make fields no sensor saw, so stamps that
+    coincide within the window are matched exactly even when one sensor's sit off the others'.
     """
     names = list(names) if names is not None else [f"sensor {k + 1}" for k in range(len(stamps))]
     if offsets is not None and any(offsets):
@@ -477,7 +483,7 @@ def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence
                                f"{1 - matched / present:.0%} of the sets")
     for k in range(1, len(stamps)):
         middle = _median(offsets_by[k])
-        if abs(middle) > window / 4:
+        if abs(middle) > window / 4 and not coarse:
             return "interpolate", f"{names[k]} is sampled {middle / 1e6:.3g} ms after {names[0]} (median)"
     return "exact", f"the stamps of {', '.join(names)} coincide within {window / 1e6:.3g} ms"
 
@@ -627,8 +633,23 @@ class StreamSynchronizer:
         return all(len(c) >= DECIDE_AFTER or (len(c) >= DECIDE_EARLY[0] and c[-1] - c[0] >= DECIDE_EARLY[1])
                    for c in candidates)
 
+    def _coarse(self) -> bool:
+        """Whether the reference sensor's field jumps between consecutive readings (median angle beyond
+        :data:`MAX_INTERPOLATION_STEP`): a motion its samples do not resolve."""
+        rows = [m[1:4] for m in self._held[0]]
+        vectors = np.array(rows, dtype=float).reshape(-1, 3)
+        for _, v, _ in self._held_batches[0]:
+            vectors = np.concatenate([vectors, v[: 4 * DECIDE_AFTER]])
+        vectors = vectors[np.all(np.isfinite(vectors), axis=1)][: 4 * DECIDE_AFTER]
+        if len(vectors) < 4:
+            return False
+        unit = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-300)
+        steps = np.arccos(np.clip(np.sum(unit[1:] * unit[:-1], axis=1), -1.0, 1.0))
+        return bool(np.median(steps) > MAX_INTERPOLATION_STEP)
+
     def _decide(self) -> None:
-        mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns)
+        mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns,
+                                coarse=self._coarse())
         self._start(mode, why)
 
     def _replay(self) -> list[SyncedSet]:
