@@ -22,6 +22,7 @@ from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, IMU_FRAMES
 from magcal_ros.core.interference import DEFAULT_CURRENT_TOLERANCE, tolerance_of
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.scalar_fit import LOSSES
+from magcal_ros.core.set_reduction import solve_budget
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.sync import (
     DEFAULT_MAX_GAP,
@@ -519,14 +520,25 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         mounting = yaw_pitch_roll(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
     if args.max_residual is not None and not (np.isfinite(args.max_residual) and args.max_residual > 0):
         raise InputError("--max-residual must be a positive number of Tesla")
-    opts = SolveOptions(
-        loss=args.loss, gradient_method=args.gradient_method or "difference", seed=args.seed,
-        max_residual=args.max_residual,
-        mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
-    )
-    result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior, stamps=rec.stamps,
-                             currents=rec.currents if rec.channels else None, channels=rec.channels,
-                             temperatures=rec.temperatures)
+    if args.max_solve_sets is not None and args.max_solve_sets < 0:
+        raise InputError("--max-solve-sets must be 0 (every set) or a positive number of sets")
+    with _progress(args, "solve") as bar:
+        bar.unit = "stages"
+        bar.set_total(4 if len(rec) > solve_budget(len(rec.names), args.max_solve_sets) > 0 else 3)
+
+        def stage(name: str) -> None:
+            bar.label = f"solve ({name})"
+            bar(1)
+
+        opts = SolveOptions(
+            loss=args.loss, gradient_method=args.gradient_method or "difference", seed=args.seed,
+            max_residual=args.max_residual,
+            mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
+            max_solve_sets=args.max_solve_sets, progress=stage,
+        )
+        result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior,
+                                 stamps=rec.stamps, currents=rec.currents if rec.channels else None,
+                                 channels=rec.channels, temperatures=rec.temperatures)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:
@@ -855,6 +867,10 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--prior", metavar="CAL.yaml",
                    help="the previous calibration: recalibrate what this manoeuvre determines (e.g. the offsets "
                    "from a yaw circle after the hard iron moved) and keep the rest; method ml")
+    p.add_argument("--max-solve-sets", type=int, metavar="N", default=None,
+                   help="sets the expensive stages use at most (default 1000 per sensor): a longer recording "
+                   "is solved on a subset keeping its attitude coverage and time span, then refined in one "
+                   "pass over every set (the summary says so); 0: every set in every stage")
     p.add_argument("--max-residual", type=float, metavar="TESLA",
                    help="accept a residual (per axis) up to this, instead of the noise-aware rule (17x the "
                    "noise the data show, or 5%% of F for sets in no time order)")

@@ -244,10 +244,10 @@ class _Eval:
             dl = np.broadcast_to(d[:, None, :], (n, s, 3))
             d_tau = None
             dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
-        kd = np.einsum("sab,nsb->nsa", k, dl)
+        kd = np.matmul(k, dl[..., None])[..., 0]
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
-        self.pred = gain * kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], psi)
+        self.pred = gain * kd + np.matmul(w[:, :, 3:], psi[..., None])[..., 0]
         self.e = self.pred - x
         jac = np.zeros((n, s, 3, p))
         for a in range(3):
@@ -257,18 +257,18 @@ class _Eval:
             for a in range(3):
                 jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
         if model.lag_index is not None and d_tau is not None:
-            jac[:, :, :, model.lag_index] = gain * np.einsum("sab,nsb->nsa", k, d_tau)
+            jac[:, :, :, model.lag_index] = gain * np.matmul(k, d_tau[..., None])[..., 0]
         self.jac = jac
-        self.m = gain[..., None] * np.einsum("sab,nsbc->nsac", k, dir_jac)  # (N, S, 3, 2) d pred / d direction
+        self.m = gain[..., None] * np.matmul(k, dir_jac)  # (N, S, 3, 2) d pred / d direction
         ws = weights / sigma[None, :] ** 2
         self.ws = ws
         wj = jac * ws[:, :, None, None]
         self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])  # (S, P, P)
-        self.g_theta = np.einsum("nsap,nsa->sp", wj, self.e)  # (S, P)
-        self.b = np.einsum("nsap,nsac->nspc", wj, self.m).reshape(n, s * p, 2)
+        self.g_theta = np.matmul(self.e[:, :, None, :], wj)[:, :, 0, :].sum(axis=0)  # (S, P)
+        self.b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
         wm = ws[:, :, None, None] * self.m
-        self.c = np.einsum("nsab,nsac->nbc", wm, self.m)  # (N, 2, 2)
-        self.g_d = np.einsum("nsab,nsa->nb", wm, self.e)  # (N, 2)
+        self.c = np.matmul(wm.transpose(0, 1, 3, 2), self.m).sum(axis=1)  # (N, 2, 2)
+        self.g_d = np.matmul(self.e[:, :, None, :], wm)[:, :, 0, :].sum(axis=1)  # (N, 2)
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
 
@@ -282,7 +282,8 @@ class _Eval:
         noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
         """
         s, p = self.shape
-        g = np.einsum("nsap,nsa->nsp", self.jac * self.ws[:, :, None, None], self.e).reshape(len(self.e), s * p)
+        g = np.matmul(self.e[:, :, None, :], self.jac)[:, :, 0, :] * self.ws[:, :, None]
+        g = g.reshape(len(self.e), s * p)
         corr = np.matmul(self.b, np.matmul(_inv2(self.c), self.g_d[:, :, None]))[:, :, 0]
         return g - corr
 
@@ -314,10 +315,10 @@ def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: Se
     set's instant (lag removed to first order): what each sensor says the set's field was."""
     s = x.shape[1]
     w, g, tau = model.split(theta)
-    rest = x - np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
+    rest = x - np.matmul(w[:, :, 3:], inputs.rest_features(s)[..., None])[..., 0]
     if g is not None and inputs.temperatures is not None:
         rest = rest * (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
-    b = np.einsum("sab,nsb->nsa", np.linalg.inv(w[:, :, :3]), rest)
+    b = np.matmul(np.linalg.inv(w[:, :, :3]), rest[..., None])[..., 0]
     if tau is not None and rates is not None:
         b = b + tau[None, :, None] * rates[:, None, :] * np.linalg.norm(b, axis=2, keepdims=True)
     return b
@@ -326,7 +327,11 @@ def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: Se
 def _directions(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
                 weights: Array) -> Array:
     """Field direction per set from the current corrections (weighted mean of the sensors)."""
-    b = corrected_directions(model, theta, x, inputs, rates)
+    return _mean_direction(corrected_directions(model, theta, x, inputs, rates), weights)
+
+
+def _mean_direction(b: Array, weights: Array) -> Array:
+    """(N, 3) unit weighted mean of the sensors' corrected readings ``b`` (N, S, 3)."""
     wsum = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
     mean = np.einsum("ns,nsa->na", weights, b) / wsum
     norm = np.linalg.norm(mean, axis=1, keepdims=True)
@@ -347,10 +352,10 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
         dl /= np.linalg.norm(dl, axis=2, keepdims=True)
     else:
         dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
-    kd = np.einsum("sab,nsb->nsa", w[:, :, :3], dl)
+    kd = np.matmul(w[:, :, :3], dl[..., None])[..., 0]
     if g is not None and inputs.temperatures is not None:
         kd = kd / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
-    return kd + np.einsum("sac,nsc->nsa", w[:, :, 3:], inputs.rest_features(s))
+    return kd + np.matmul(w[:, :, 3:], inputs.rest_features(s)[..., None])[..., 0]
 
 
 def _cost(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
@@ -662,3 +667,217 @@ def information_at(w: Array, directions: Array, sigma: Array, model: ForwardMode
     x = _prediction(model, theta, directions, inputs, rates)
     return _Eval(model, theta, directions, x, inputs, rates, np.ones((n, s)), sigma).information()
 
+
+
+SMALL_STEP: float = 1e-3
+"""A refinement step no larger than this in every parameter (units of F: a gain of 0.1 %, an
+offset of F / 1000) is taken without checking the cost again: the model's second-order
+terms over such a step are below 1e-6 F, far below any fluxgate's noise."""
+REFINE_CHUNK: int = 20_000
+"""Sets per chunk of :func:`refine_on_all` (bounds its memory: about 2 kB per set and sensor)."""
+
+
+def _fit_prior(solution: JointSolution, prior: ParameterPrior | None) -> tuple[Array, Array]:
+    """Flat mean and precision of the prior a fit used (the weak prior where ``prior`` is silent)."""
+    s, p = solution.theta.shape
+    given = (weak_prior(solution.theta) if prior is None else prior).fitted_to(solution.model)
+    sig = np.asarray(given.sigma, dtype=float).reshape(s, -1)
+    mean = np.where(np.isfinite(sig), given.flat_mean(), solution.theta).reshape(-1)
+    return mean, np.where(np.isfinite(sig), 1.0 / np.maximum(sig, 1e-300) ** 2, 1.0).reshape(-1)
+
+
+def _free(solution: JointSolution) -> NDArray[np.bool_]:
+    """(S P,) the parameters the fit moved (not held, not the lag gauge)."""
+    fixed = solution.fixed if solution.fixed is not None else np.zeros(solution.theta.shape, bool)
+    return ~np.asarray(fixed, bool).reshape(-1)
+
+
+def _step_basis(free: NDArray[np.bool_], gauge: Array | None) -> Array:
+    """(S P, r) a basis of the steps that move only ``free`` parameters and keep the linear
+    ``gauge`` constraints (C, S P) (the frame's rotation when no prior fixes it)."""
+    basis = np.eye(len(free))[:, free]
+    if gauge is not None and len(gauge):
+        _, sv, vt = np.linalg.svd(np.asarray(gauge, dtype=float) @ basis)
+        rank = int(np.sum(sv > 1e-12 * sv[0]))
+        basis = basis @ vt[rank:].T
+    return basis
+
+
+def leave_out_estimates(solution: JointSolution, raw: Array, parts: list[NDArray[np.int64]],
+                        currents: Array | None = None, prior: ParameterPrior | None = None, *,
+                        temperatures: Array | None = None, times: Array | None = None,
+                        gauge: Array | None = None) -> Array:
+    """(K, S P) the parameters refitted without each of the ``parts`` (indices of sets of ``raw``,
+    the sets ``solution`` was fitted on), by one Gauss-Newton step from the solution: the fit
+    of the other sets moves by ``(H - H_k)^-1 g_k`` with ``H_k``, ``g_k`` the part's information
+    and gradient (the whole gradient is zero at the solution). ``gauge`` as in :func:`refine_on_all`.
+    """
+    model = solution.model
+    f = solution.intensity
+    r = np.asarray(raw, dtype=float)
+    n, s, _ = r.shape
+    u = np.zeros((n, model.channels)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+    _, prec = _fit_prior(solution, prior)
+    infos, grads = [], []
+    for idx in parts:
+        inputs = SetInputs(u[idx], None if temperatures is None else np.asarray(temperatures, dtype=float)[idx],
+                           None if times is None else np.asarray(times, dtype=float)[idx])
+        ev = _Eval(model, solution.theta, solution.directions[idx], r[idx] / f, inputs,
+                   None if solution.rates is None else solution.rates[idx], solution.weights[idx], solution.sigma / f)
+        infos.append(ev.information())
+        grads.append(ev.scores().sum(axis=0))
+    return _leave_out(solution.theta, solution.information + np.diag(prec), infos, grads,
+                      _step_basis(_free(solution), gauge))
+
+
+@dataclass(frozen=True)
+class _Pass:
+    """One pass of the normal equations over every set, chunked (units of F, whitened)."""
+
+    cost: float
+    """Data cost with each set's direction at its optimum (to second order)."""
+    information: Array
+    """Schur complement of the data (directions eliminated), (S P, S P)."""
+    gradient: Array
+    """Reduced gradient of the data cost / 2, (S P,)."""
+    weights: Array
+    """(N, S) the weights used (0: an outlier)."""
+    part_information: Array
+    """(K, S P, S P) the information of each part of the sets."""
+    part_gradient: Array
+    """(K, S P) the gradient of each part."""
+    vertical: Array
+    """(N,) the z component of each set's field direction."""
+
+
+def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
+               sigma: Array, chunk: int, parts: list[NDArray[np.int64]], weights: Array | None = None) -> _Pass:
+    """The normal equations at ``theta`` over every set (per part, ``chunk`` sets at a time);
+    outliers decided at the noise ``sigma`` (units of F) unless ``weights`` are given."""
+    s, p = theta.shape
+    infos = np.zeros((len(parts), s * p, s * p))
+    grads = np.zeros((len(parts), s * p))
+    cost = 0.0
+    used = np.empty((len(x), s)) if weights is None else weights
+    vertical = np.empty(len(x))
+    bound = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, 3.0 - 2.0 / s)  # per reading, its dof in the fit
+    for k, part in enumerate(parts):
+        for lo in range(0, len(part), chunk):
+            sl = part[lo : lo + chunk]
+            xc = x[sl]
+            inc = SetInputs(inputs.currents[sl], None if inputs.temperatures is None else inputs.temperatures[sl],
+                            None if inputs.times is None else inputs.times[sl])
+            rc = None if rates is None else rates[sl]
+            b = corrected_directions(model, theta, xc, inc, rc)
+            if weights is None:  # beyond the outlier bound at the fit's noise: out; large: weighs less
+                e = _prediction(model, theta, _mean_direction(b, np.ones((len(sl), s))), inc, rc) - xc
+                q = np.sum(e * e, axis=2) / sigma[None, :] ** 2
+                w = np.where(q > bound, 0.0, np.minimum(1.0, SOFT_BOUND / np.maximum(q, 1e-300)))
+                used[sl] = np.where(w < 0.5, 0.0, w)
+            w = used[sl]
+            d = _mean_direction(b, w)
+            vertical[sl] = d[:, 2]
+            ev = _Eval(model, theta, d, xc, inc, rc, w, sigma)
+            c_inv = _inv2(ev.c)
+            y = np.matmul(c_inv, ev.g_d[:, :, None])  # (N, 2, 1)
+            flat_b = ev.b.transpose(0, 2, 1).reshape(-1, s * p)  # (2 N, S P)
+            infos[k] += ev.a_matrix() - np.matmul(ev.b, c_inv).transpose(0, 2, 1).reshape(-1, s * p).T @ flat_b
+            grads[k] += ev.g_theta.reshape(-1) - y.reshape(-1) @ flat_b
+            cost += ev.cost - float(np.sum(ev.g_d * y[:, :, 0]))  # each direction at its optimum
+    infos = 0.5 * (infos + infos.transpose(0, 2, 1))
+    return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
+
+
+def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Array | list[Array],
+               basis: Array) -> Array:
+    """(K, S P) the solution without each part: ``theta + (H - H_k)^-1 g_k`` within ``basis``
+    (``total`` = H with the prior; the whole gradient is zero at ``theta``)."""
+    out = []
+    for h_k, g_k in zip(infos, grads):
+        h = basis.T @ (total - h_k) @ basis
+        try:
+            step = basis @ scipy.linalg.solve(h, basis.T @ g_k, assume_a="sym")
+        except (np.linalg.LinAlgError, ValueError):
+            step = np.zeros(len(total))
+        out.append(theta.reshape(-1) + step)
+    return np.array(out)
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """What :func:`refine_on_all` found over every set."""
+
+    solution: JointSolution
+    """The refined parameters with the information of every set (residuals, weights, scores
+    and directions stay the subset's)."""
+    excluded: Array
+    """(S,) readings excluded as outliers over every set."""
+    leave_out: Array
+    """(K, S P) the parameters without each of the given parts (a delete-one-part jackknife)."""
+    vertical: Array
+    """(N,) the z component of every set's field direction (platform frame)."""
+
+
+def refine_on_all(solution: JointSolution, raw: Array, currents: Array | None = None,
+                  prior: ParameterPrior | None = None, *, temperatures: Array | None = None,
+                  times: Array | None = None, gauge: Array | None = None,
+                  parts: list[NDArray[np.int64]] | None = None, chunk: int = REFINE_CHUNK) -> Refinement:
+    """One Gauss-Newton step of ``solution`` (fitted on a subset) over every set of ``raw``
+    (N, S, 3) T, chunked so that memory does not grow with N.
+
+    Outliers are re-decided at the subset's noise; the directions are eliminated as in the
+    fit. The step is kept only when it lowers the full cost (at the same weights), unless it
+    is below :data:`SMALL_STEP`. ``gauge`` (C, S P): linear constraints the step keeps (the
+    frame's rotation when no prior fixes it). ``parts``: index arrays of the sets (default:
+    one part), for the leave-one-part-out estimates.
+    """
+    model = solution.model
+    f = solution.intensity
+    r = np.asarray(raw, dtype=float)
+    n, s, _ = r.shape
+    x = r / f
+    u = np.zeros((n, 0)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+    inputs = SetInputs(u, None if temperatures is None else np.asarray(temperatures, dtype=float).reshape(n, s),
+                       None if times is None else np.asarray(times, dtype=float).reshape(n))
+    parts = [np.arange(n)] if parts is None else [np.asarray(pt, dtype=np.int64) for pt in parts]
+    sigma = solution.sigma / f
+    theta = solution.theta
+    mean, prec = _fit_prior(solution, prior)
+    basis = _step_basis(_free(solution), gauge)
+
+    def rates_at(th: Array) -> Array | None:
+        if inputs.times is None or model.lag_index is None:
+            return None
+        d = np.concatenate([_directions(model, th, x[lo:lo + chunk], SetInputs(
+            u[lo:lo + chunk], None if inputs.temperatures is None else inputs.temperatures[lo:lo + chunk]),
+            None, np.ones((min(chunk, n - lo), s))) for lo in range(0, n, chunk)])
+        return direction_rates(d, inputs.times)
+
+    def total(ps: _Pass, th: Array) -> float:
+        diff = th.reshape(-1) - mean
+        return ps.cost + float(np.sum(prec * diff * diff))
+
+    first = _full_pass(model, theta, x, inputs, rates_at(theta), sigma, chunk, parts)
+    h_all = first.information + np.diag(prec)
+    try:
+        step = -basis @ scipy.linalg.solve(basis.T @ h_all @ basis,
+                                           basis.T @ (first.gradient + prec * (theta.reshape(-1) - mean)),
+                                           assume_a="sym")
+    except (np.linalg.LinAlgError, ValueError):
+        step = np.zeros(s * model.size)
+    best, best_pass = theta, first
+    grads = first.part_gradient  # each part's gradient at the solution kept (linear in the step)
+    if np.any(step) and np.all(np.isfinite(step)) and np.max(np.abs(step)) <= SMALL_STEP:
+        best = theta + step.reshape(s, model.size)  # linear to far below the noise: no second pass
+        grads = first.part_gradient + np.einsum("kpq,q->kp", first.part_information, step)
+    elif np.any(step) and np.all(np.isfinite(step)):
+        t_new = theta + step.reshape(s, model.size)
+        if np.all(np.abs(np.linalg.det(model.split(t_new)[0][:, :, :3])) > 1e-12):
+            second = _full_pass(model, t_new, x, inputs, rates_at(t_new), sigma, chunk, parts, first.weights)
+            if total(second, t_new) <= total(first, theta):
+                best, best_pass, grads = t_new, second, second.part_gradient
+    out = _solution(model, best, solution.directions, solution.weights, solution.sigma, solution.residuals,
+                    best_pass.information, solution.scores, f, solution.rates, solution.fixed)
+    leave = _leave_out(best, best_pass.information + np.diag(prec), best_pass.part_information, grads, basis) \
+        if len(parts) > 1 else np.zeros((0, s * model.size))
+    return Refinement(out, np.sum(best_pass.weights == 0, axis=0).astype(float), leave, best_pass.vertical)

@@ -69,6 +69,18 @@ class Covariance:
     """Newey-West bandwidth in sets (0: white)."""
     inflation: float
     """How much the time correlation widened the uncertainty (ratio of traces, >= ~1)."""
+    jackknife: float = 1.0
+    """The block jackknife's share of :attr:`inflation` (1: not applied)."""
+
+
+def _gauge_inverse(h_post: Array, gauge_constraints: Array | None) -> Array:
+    """Inverse of ``h_post`` on the null space of the constraints (pseudo-inverse without)."""
+    if gauge_constraints is not None and len(gauge_constraints):
+        _, sv, vt = np.linalg.svd(gauge_constraints)
+        rank = int(np.sum(sv > 1e-12 * sv[0]))
+        basis = vt[rank:].T  # null space of the constraints
+        return basis @ np.linalg.pinv(basis.T @ h_post @ basis, hermitian=True) @ basis.T
+    return np.linalg.pinv(h_post, hermitian=True)
 
 
 def covariance(
@@ -77,16 +89,24 @@ def covariance(
     series: Array,
     prior_precision: Array | None = None,
     gauge_constraints: Array | None = None,
+    like: Covariance | None = None,
 ) -> Covariance:
     """Sandwich covariance of the fitted parameters.
 
     ``information`` (P, P) and ``scores`` (N, P) whitened, from the fit; ``series`` (N, ...)
     residuals in time order (for the bandwidth); ``prior_precision`` (P,) diagonal or None;
     ``gauge_constraints`` (C, P): linear constraints fixing the frame when the prior does not.
+    ``like``: a covariance found on a subset of the same recording whose widening (time
+    correlation, jackknife) applies to this information as a whole (``scores`` and ``series``
+    are then not used).
     """
     h = np.asarray(information, dtype=float)
     p = len(h)
     prec = np.zeros(p) if prior_precision is None else np.asarray(prior_precision, dtype=float)
+    if like is not None:
+        inv = _gauge_inverse(h + np.diag(prec), gauge_constraints)
+        plain = inv @ (h + np.diag(prec)) @ inv
+        return Covariance(0.5 * (plain + plain.T) * like.inflation, like.bandwidth, like.inflation, like.jackknife)
     lags = bandwidth(series)
     white = scores.T @ scores
     correlated = meat(scores, lags)
@@ -94,14 +114,7 @@ def covariance(
     # fitted part, which the information accounts for; only the time structure is taken.
     scale = np.trace(h) / max(np.trace(white), 1e-300)
     m_data = correlated * scale
-    h_post = h + np.diag(prec)
-    if gauge_constraints is not None and len(gauge_constraints):
-        _, sv, vt = np.linalg.svd(gauge_constraints)
-        rank = int(np.sum(sv > 1e-12 * sv[0]))
-        basis = vt[rank:].T  # null space of the constraints
-        inv = basis @ np.linalg.pinv(basis.T @ h_post @ basis, hermitian=True) @ basis.T
-    else:
-        inv = np.linalg.pinv(h_post, hermitian=True)
+    inv = _gauge_inverse(h + np.diag(prec), gauge_constraints)
     cov = inv @ (m_data + np.diag(prec)) @ inv
     cov = 0.5 * (cov + cov.T)
     plain = inv @ (h + np.diag(prec)) @ inv

@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -45,7 +46,7 @@ from magcal_ros.core.acceptance import reading_faults
 from magcal_ros.core.geometry import check_names
 from magcal_ros.core.imu import imu_frame, ned_to_enu
 from magcal_ros.core.recording import ImuSamples, Recording
-from magcal_ros.core.stamps import format_seconds_column, parse_seconds
+from magcal_ros.core.stamps import format_seconds_column, parse_seconds, parse_seconds_column
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
 from magcal_ros.core.temperature import check_temperatures
 from magcal_ros.core.units import MAX_READING, check_tesla
@@ -204,6 +205,56 @@ def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
         raise InputError(f"{path} is not a text CSV file") from None
 
 
+def _plain_table(text: str) -> tuple[list[str], str] | None:
+    """The header cells and the body (the lines after the header) of a CSV without quoting or
+    blank lines (what ``magcal`` and most loggers write), or None when it needs the full CSV reader."""
+    text = text.strip("\n")
+    if '"' in text or "\r" in text or "\n\n" in text or not text.strip(" \t,"):
+        return None
+    header, _, body = text.partition("\n")
+    if not header.strip(" \t,"):
+        return None
+    return header.split(","), body
+
+
+def _fast_columns(body: str, width: int, checked: list[int], nonfinite: NonFinite,
+                  optional: set[int]) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
+    """Stamps (N,) ns and values (N, width - 1) of body lines that are all regular (the right
+    number of cells, every value a number, finite where ``nonfinite`` is "error"), parsed at
+    once; None when any line is not (the row-by-row reader then names it). An empty cell of
+    an ``optional`` column (the IMU's) is NaN."""
+    if not body:
+        return None
+    rows = body.count("\n") + 1
+    if not optional:  # every cell a number: parsed in C, the stamps exactly from their text
+        try:
+            flat = np.fromstring(body.replace("\n", ","), sep=",")
+            stamps = parse_seconds_column(re.findall(r"^[^,\n]*", body, re.M))
+        except (ValueError, InputError):
+            return None
+        if flat.size != rows * width or len(stamps) != rows:
+            return None
+        data = flat.reshape(rows, width)[:, 1:]
+        if nonfinite == "error" and not np.all(np.isfinite(data)):
+            return None
+        return stamps, data
+    cells = body.replace("\n", ",").split(",")
+    if len(cells) != rows * width:
+        return None
+    table = np.array(cells, dtype=object).reshape(rows, width)
+    for k in optional:
+        col = np.char.strip(table[:, k].astype(str))
+        table[:, k] = np.where(col == "", "nan", col)
+    try:
+        data = table[:, 1:].astype(str).astype(float)
+        stamps = parse_seconds_column(table[:, 0].tolist())
+    except (ValueError, InputError):
+        return None
+    if nonfinite == "error" and not np.all(np.isfinite(data[:, [k - 1 for k in checked]])):
+        return None
+    return stamps, data
+
+
 def _rows(text: str) -> list[list[str]]:
     """Non-blank rows; LF, CRLF and CR-only (classic Mac) line endings alike."""
     text = text.replace("\r\n", "\n").replace("\r", "\n")
@@ -242,10 +293,15 @@ def read_csv(
     """
     frame = imu_frame(imu_orientation_frame)
     text = _read_text(path)
-    try:
-        rows = _rows(text)
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
+    parsed = _plain_table(text)
+    if parsed is not None:
+        rows = [parsed[0]]
+    else:
+        try:
+            rows = _rows(text)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+    del text
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     try:
@@ -254,13 +310,20 @@ def read_csv(
         raise InputError(f"{path}: {exc}") from None
     names, channels = layout.names, layout.channels
     width = 1 + 3 * len(names) + len(layout.extra)
-    if len(rows) == 1:
-        raise InputError(f"{path} has a header but no data rows")
     imu_cols = {1 + 3 * len(names) + k for k, c in enumerate(layout.extra) if _extra_kind(c) == "IMU"}
     checked = [k for k in range(1, width) if k not in imu_cols]
-    stamps = np.empty(len(rows) - 1, np.int64)
-    data = np.empty((len(rows) - 1, width - 1))
-    for i, row in enumerate(rows[1:], start=2):
+    fast = None if parsed is None else _fast_columns(parsed[1], width, checked, nonfinite, imu_cols)
+    parsed = None if parsed is None else (parsed[0], "")  # the body's text is no longer needed
+    if fast is not None:
+        stamps, data = fast
+    elif parsed is not None:  # irregular somewhere: the row-by-row reading finds and names it
+        rows = _rows(_read_text(path))
+    if fast is None and len(rows) == 1:
+        raise InputError(f"{path} has a header but no data rows")
+    if fast is None:
+        stamps = np.empty(len(rows) - 1, np.int64)
+        data = np.empty((len(rows) - 1, width - 1))
+    for i, row in enumerate(rows[1:] if fast is None else [], start=2):
         if len(row) != width:
             raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
         try:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,7 +32,10 @@ from magcal_ros.core.array_fit import (
     ParameterPrior,
     direction_rates,
     fit_array,
+    Refinement,
     fix_rotation_gauge,
+    leave_out_estimates,
+    refine_on_all,
 )
 from magcal_ros.core.calibration import ArrayCalibration, check_sensor
 from magcal_ros.core.forward_model import ForwardModel
@@ -47,8 +50,9 @@ from magcal_ros.core.observability import (
 )
 from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
+from magcal_ros.core.set_reduction import choose_sets, direction_proxy, solve_budget
 from magcal_ros.core.tensor import baseline_gradient, gradient
-from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
+from magcal_ros.core.uncertainty import Covariance, centre_gauge_constraints, covariance
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S, NT, check_tesla
 from magcal_ros.errors import (
     CalibrationFailed,
@@ -84,6 +88,12 @@ class SolveOptions:
     """Field inclination for the validity envelope (None: from the data, assuming level on average)."""
     mounting: Array | None = None
     """(3, 3) sensor-to-platform rotation of a single sensor (None: its own axes made orthogonal)."""
+    max_solve_sets: int | None = None
+    """Sets the expensive stages use at most (a subset keeping the attitude coverage and the time
+    order; one pass over every set then refines the result), so that long recordings cost
+    little more than this many sets. None: 1000 per sensor; 0: every set in every stage."""
+    progress: Callable[[str], None] | None = None
+    """Called with the name of each stage of a long solve as it starts (a progress display)."""
 
 
 @dataclass(frozen=True)
@@ -151,6 +161,10 @@ class CalibrationResult:
             parts.append(f"offsets drift with time ({', '.join(self.extras['drift'])}): record the sensors' "
                          "temperature or calibrate over a shorter time")
         parts += self.block_notes()
+        if self.extras.get("solved_on"):
+            used, total, refined = self.extras["solved_on"]
+            parts.append(f"solved on {used} of {total} sets (runs of consecutive sets chosen to keep the attitude "
+                         f"coverage and the time span){', refined on all' if refined else ''}")
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
 
@@ -401,19 +415,20 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
     Real recordings change slowly (temperature, motion, coverage from one minute to the
     next); the block-to-block scatter of the solution shows what the residuals' own
     correlation cannot. Median of the per-parameter variance ratios, parameters the data
-    determine only.
+    determine only. Each block's refit is one Gauss-Newton step from the solution
+    (:func:`~magcal_ros.core.array_fit.leave_out_estimates`).
     """
-    n = len(order)
-    est = []
-    for block in np.array_split(order, JACKKNIFE_BLOCKS):
-        keep = np.ones(n, bool)
-        keep[block] = False
-        part = fit_array(raw[keep], sol.matrices, sol.offsets, sol.intensity, currents[keep], None, prior,
-                         sol.weights[keep], robust=False, iterations=15, start=sol.theta, **blocks.fit_options(keep))
-        if prior is None:
-            part = fix_rotation_gauge(part)
-        est.append(part.theta.reshape(-1))
-    est = np.array(est)
+    options = blocks.fit_options()
+    est = leave_out_estimates(sol, raw, list(np.array_split(order, JACKKNIFE_BLOCKS)),
+                              currents if sol.model.channels else None, prior,
+                              temperatures=options["temperatures"], times=options["times"],
+                              gauge=centre_gauge_constraints(sol.w, sol.model.size) if prior is None else None)
+    return _jackknife_factor(est, cov, prior)
+
+
+def _jackknife_factor(est: Array, cov: Array, prior: ParameterPrior | None) -> float:
+    """The median ratio of the delete-one-block scatter of the estimates ``est`` (K, P) to the
+    variances of ``cov``, over the parameters the data determine (>= 1)."""
     var_jack = (len(est) - 1) / len(est) * np.sum((est - est.mean(axis=0)) ** 2, axis=0)
     var_model = np.diag(cov)
     good = (var_model > 0) & (var_jack > 0)
@@ -425,12 +440,49 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
     return float(max(1.0, np.median(var_jack[good] / var_model[good])))
 
 
+@dataclass(frozen=True)
+class _AllSets:
+    """Every set of a long recording whose expensive stages ran on a subset."""
+
+    raw: Array
+    currents: Array
+    stamps: Array | None
+    temperatures: ArrayLike | None
+
+    @property
+    def count(self) -> int:
+        return len(self.raw)
+
+
+def _refine(sol: JointSolution, full: _AllSets, prior: ParameterPrior | None, blocks: BlockInputs,
+            with_channels: bool, gauge: bool) -> Refinement:
+    """The subset's solution refined by one pass over every set (same blocks, same held
+    quantities), with the delete-one-block jackknife of every set in time order."""
+    n, s = full.raw.shape[:2]
+    temps = None
+    if blocks.temperatures is not None and full.temperatures is not None:
+        t = np.asarray(full.temperatures, dtype=float)
+        temps = (np.repeat(t[:, None], s, axis=1) if t.ndim == 1 else t) - blocks.reference
+    times = None
+    if blocks.times is not None and full.stamps is not None:
+        st = full.stamps.astype(np.int64)
+        times = (st - st.min()).astype(float) / NS_PER_S
+    parts = np.array_split(_order(full.stamps, n), JACKKNIFE_BLOCKS)
+    out = refine_on_all(sol, full.raw, full.currents if with_channels else None, prior, temperatures=temps,
+                        times=times, gauge=centre_gauge_constraints(sol.w, sol.model.size) if gauge else None,
+                        parts=parts)
+    return replace(out, solution=fix_rotation_gauge(out.solution)) if gauge else out
+
+
 def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDArray[np.int64],
              prior: ParameterPrior | None, channels: tuple[str, ...], currents: Array,
-             jackknife: bool = True, blocks: BlockInputs | None = None) -> tuple[ident.Identifiability, Any]:
+             jackknife: bool = True, blocks: BlockInputs | None = None,
+             like: Covariance | None = None, leave_out: Array | None = None) -> tuple[ident.Identifiability, Any]:
     """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution.
 
     ``jackknife``: for a recording in time order, widen the covariance by the block jackknife.
+    ``like``: the covariance of the subset this solution was refined from: its widening for the
+    time correlation applies, and the jackknife is ``leave_out`` (K, P) (every set's, in time order).
     Parameters the fit kept fixed (held at zero, the lag gauge) get no variance.
     """
     blocks = blocks or BlockInputs()
@@ -441,10 +493,17 @@ def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDA
     if sol.fixed is not None and sol.fixed.any():
         rows.append(np.eye(model.sensors * model.size)[sol.fixed.reshape(-1)])
     constraints = np.concatenate(rows) if rows else None
-    cov = covariance(sol.information, sol.scores[order], series, prec, constraints)
+    if like is not None:
+        like = replace(like, inflation=like.inflation / like.jackknife, jackknife=1.0)
+    cov = covariance(sol.information, sol.scores[order], series, prec, constraints, like)
+    factor = 1.0
     if jackknife and len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
-        factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix, blocks)
-        cov = replace(cov, matrix=cov.matrix * factor, inflation=cov.inflation * factor)
+        if like is None:
+            factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix, blocks)
+        elif leave_out is not None and len(leave_out) > 1:
+            factor = _jackknife_factor(leave_out, cov.matrix, prior)
+    if factor != 1.0:
+        cov = replace(cov, matrix=cov.matrix * factor, inflation=cov.inflation * factor, jackknife=factor)
     prior_cov = None if prec is None else np.diag(np.where(prec > 0, 1.0 / np.maximum(prec, 1e-300), 1e30))
     scales = ident.EffectScales(
         np.sqrt(np.mean(currents**2, axis=0)) if currents.size else None,
@@ -546,11 +605,12 @@ def _without_channels(unsolved: list[int], raw: ArrayLike, geometry: ArrayGeomet
     return result
 
 
-def _inclination(opts: SolveOptions, directions: Array) -> float:
-    """Field inclination (rad) for the envelope: given, or from the data assuming level on average."""
+def _inclination(opts: SolveOptions, vertical: Array) -> float:
+    """Field inclination (rad) for the envelope: given, or from the data assuming level on average
+    (``vertical`` (N,): the z component of each set's field direction, platform frame)."""
     if opts.inclination_deg is not None:
         return float(np.radians(opts.inclination_deg))
-    return float(np.median(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0))))
+    return float(np.median(np.arcsin(np.clip(vertical, -1.0, 1.0))))
 
 
 def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
@@ -637,6 +697,18 @@ def calibrate_array(
     clipped, saturated = quality.saturation(geometry.names, r)
     if saturated:
         raise CalibrationFailed(saturated)
+    stage = opts.progress or (lambda name: None)
+    full: _AllSets | None = None
+    budget = solve_budget(s, opts.max_solve_sets)
+    if budget and n > budget:  # long recording: the expensive stages on a subset
+        keep = choose_sets(direction_proxy(r), order, budget)
+        full = _AllSets(r, u, None if stamps is None else np.asarray(stamps), temperatures)
+        r, u, clipped = r[keep], u[keep], clipped[keep]
+        stamps = None if stamps is None else np.asarray(stamps)[keep]
+        temperatures = None if temperatures is None else np.asarray(temperatures, dtype=float)[keep]
+        n = len(keep)
+        order = _order(stamps, n)
+    stage("start")
 
     # 2. spikes and the start
     clean_reading = np.ones((n, s), bool)
@@ -672,6 +744,7 @@ def calibrate_array(
                            **blocks.fit_options())
         return fix_rotation_gauge(fitted) if prior is None else fitted
 
+    stage("joint fit")
     if joint or start_failed is not None:
         sol = solve(matrices, offsets, intensity, start_interference)
     else:  # the method's own solution, evaluated (its frame is the method's)
@@ -695,14 +768,24 @@ def calibrate_array(
         if _plausible(retry, geometry) and (False, len(ana2.undetermined())) < badness:
             sol, ana, cov, start_failed = retry, ana2, cov2, None
     if prior is None and ana.undetermined():
-        env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
+        env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity,
+                             _inclination(opts, sol.directions[:, 2]))
         raise ObservabilityError(_refusal(ana, sol, env))
+    stage("uncertainty")
     ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks)
+    excluded = None
+    vertical = sol.directions[:, 2]
+    if full is not None and (joint or start_failed is not None):  # the subset's result, refined on every set
+        stage(f"refine on all {full.count} sets")
+        refined = _refine(sol, full, param_prior, blocks, bool(channels), prior is None)
+        sol, excluded, vertical = refined.solution, refined.excluded, refined.vertical
+        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, like=cov,
+                            leave_out=refined.leave_out)
     unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
     if unsolved:
         return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
                                  temperatures)
-    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
+    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, vertical))
     if prior is None and ana.undetermined():
         raise ObservabilityError(_refusal(ana, sol, env))
     if start_failed is not None:
@@ -772,7 +855,7 @@ def calibrate_array(
     result = CalibrationResult(
         calibration=cal,
         method=method,
-        samples=n,
+        samples=n if full is None else full.count,
         intensity=sol.intensity,
         relative=f_ref is None,
         tmi_before=tmi_before,
@@ -783,14 +866,15 @@ def calibrate_array(
         identifiability=ana,
         envelope=env,
         noise=sol.sigma,
-        outliers=np.sum(~used, axis=0).astype(float),
+        outliers=np.sum(~used, axis=0).astype(float) if excluded is None else excluded,
         warnings=warnings,
         seconds=time.perf_counter() - t0,
         prior=prior is not None,
         inflation=cov.inflation,
         extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field,
                 "temperature_range": None if temps is None else (float(temps.min()), float(temps.max())),
-                "block_notes": blocks.notes, "drift": verdict.drift},
+                "block_notes": blocks.notes, "drift": verdict.drift,
+                "solved_on": None if full is None else (n, full.count, excluded is not None)},
     )
     object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
     return replace(result, seconds=time.perf_counter() - t0)

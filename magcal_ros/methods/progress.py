@@ -128,7 +128,7 @@ def assess(
     if prior is None:
         sol = fix_rotation_gauge(sol)
     ana, cov = _analyse(sol, r, geometry, np.arange(len(r)), param_prior, channels, u)
-    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions))
+    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, sol.directions[:, 2]))
     # What the data alone determine (the prior aside), with the information the time correlation
     # leaves (as the covariance has it): the advice on what to fly.
     data_only = ident.advise(geometry.names, sol.w, sol.intensity, sol.information / cov.inflation, sol.directions,
