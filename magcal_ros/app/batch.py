@@ -140,17 +140,27 @@ def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argpar
     copy.add_argument("--copy-all", action="store_true", help="bag inputs: also copy every topic unchanged")
     cli.add_sync_options(g)
     cli.add_current_options(g)
+    cli.add_temperature_options(g)
     cli.add_common_options(p)
     p.set_defaults(func=cmd_batch)
 
 
 def _options(args: argparse.Namespace, bag: bool) -> tuple[list[str], list[str]]:
     """``magcal correct`` and ``magcal calibrate`` options of one recording (only those given)."""
-    from magcal_ros.core.sync import DEFAULT_SYNC_TOLERANCE
+    from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE
+    from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 
     common: list[str] = []
     if args.sync_tolerance != DEFAULT_SYNC_TOLERANCE:
         common += ["--sync-tolerance", repr(args.sync_tolerance)]
+    if args.sync_mode != DEFAULT_SYNC_MODE:
+        common += ["--sync-mode", args.sync_mode]
+    if args.max_gap != DEFAULT_MAX_GAP:
+        common += ["--max-gap", repr(args.max_gap)]
+    if bag and args.temperature_topics:
+        common += ["--temperature-topics", args.temperature_topics]
+    if bag and args.temperature_tolerance != DEFAULT_TEMPERATURE_TOLERANCE:
+        common += ["--temperature-tolerance", repr(args.temperature_tolerance)]
     if args.drop_nonfinite:
         common.append("--drop-nonfinite")
     if bag and args.currents:
