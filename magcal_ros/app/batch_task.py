@@ -145,9 +145,9 @@ def reference_of(path: str, calibration: ArrayCalibration) -> tuple[float | None
     ``noise``), else for a simulation's truth file the simulated ``intensity`` and ``noise``."""
     intensity, noise = calibration_intensity(calibration), calibration_noise(calibration)
     if intensity is None or noise is None:
-        from magcal_ros.io.truth_file import simulation_parameters
+        from magcal_ros.io.truth_file import read_simulation_parameters
 
-        sim = simulation_parameters(path)
+        sim = read_simulation_parameters(path)
         intensity = intensity or _positive(sim.get("intensity"))
         noise = noise or _positive(sim.get("noise"))
     return intensity, noise

@@ -63,7 +63,7 @@ from magcal_ros.sim.streams import StreamRecording, StreamSpec, simulate_streams
 SIMULATION_NODE = "magcal_simulation"
 
 
-def simulation_parameters(path: str | os.PathLike[str]) -> dict[str, Any]:
+def read_simulation_parameters(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The ``magcal_simulation`` parameters of a truth file (``intensity`` T, ``noise`` T, ...);
     ``{}`` for any other file, or one that cannot be read."""
     try:
