@@ -172,11 +172,9 @@ class CalibrationResult:
         """``mag3 reads 5.00 +- 0.01 ms late`` for each sensor whose lag behind the first is significant
         (beyond :data:`LAG_SIGMAS` sigma and :data:`MIN_LAG` s)."""
         out = []
-        for q in self.identifiability.quantities:
-            if q.name == "time offset" and q.status != "held" and abs(q.value) > max(LAG_SIGMAS * q.sigma,
-                                                                                      MIN_LAG * 1e3):
-                side = "late" if q.value > 0 else "early"
-                out.append(f"{q.sensor} reads {abs(q.value):.2f} +- {q.sigma:.2g} ms {side}")
+        for q in significant_lags(self.identifiability):
+            side = "late" if q.value > 0 else "early"
+            out.append(f"{q.sensor} reads {abs(q.value):.2f} +- {q.sigma:.2g} ms {side}")
         return out
 
     def block_notes(self) -> list[str]:
@@ -188,9 +186,12 @@ class CalibrationResult:
             notes.append(f"time offsets (relative to {first}, applied by correct and the correction node): "
                          + "; ".join(lags))
         span = self.extras.get("temperature_range")
-        if span is not None:
+        if span is not None and self.calibration.temperature_reference is not None:
             notes.append(f"temperature terms fitted over {span[0]:.1f}..{span[1]:.1f} C (reference "
                          f"{self.calibration.temperature_reference:.1f} C)")
+        elif span is not None:
+            notes.append(f"no temperature term significant over {span[0]:.1f}..{span[1]:.1f} C (each within "
+                         f"{TEMPERATURE_SIGMAS:g} sigma of zero): none stored, so the sensors' temperatures are not needed")
         held = self.identifiability.held()
         if held:
             notes.append("not determined, held at zero: " + ", ".join(f"{q.sensor} {q.name}" for q in held[:8])
@@ -327,6 +328,36 @@ LAG_SIGMAS: float = 3.0
 """A sensor's lag is reported when it exceeds this many of its 1-sigma ..."""
 MIN_LAG: float = 5e-5
 """... and this (s): 0.05 ms moves the field by 2.5 nT at 1 rad/s."""
+
+
+def significant_lags(ana: ident.Identifiability) -> list[ident.Quantity]:
+    """The ``time offset`` quantities (ms) beyond :data:`LAG_SIGMAS` sigma and :data:`MIN_LAG`: the
+    lags a calibration stores and applies (the others are 0: a sensor read on time is synchronised
+    exactly, never interpolated for a lag that is only noise)."""
+    return [q for q in ana.quantities if q.name == "time offset" and q.status != "held"
+            and abs(q.value) > max(LAG_SIGMAS * q.sigma, MIN_LAG * 1e3)]
+
+
+TEMPERATURE_SIGMAS: float = 3.0
+"""Temperature terms are stored when at least one exceeds this many of its 1-sigma."""
+
+
+def significant_temperature_terms(ana: ident.Identifiability) -> bool:
+    """True when any offset or gain per kelvin is beyond :data:`TEMPERATURE_SIGMAS` sigma: the
+    calibration then carries the temperature terms (and needs the sensors' temperatures); else
+    none (a correction that waited for temperatures to apply terms that are only noise)."""
+    return any(q.name.startswith(("offset tempco", "gain tempco")) and q.status != "held"
+               and abs(q.value) > TEMPERATURE_SIGMAS * q.sigma for q in ana.quantities)
+
+
+def _stored_time_offsets(ana: ident.Identifiability, names: tuple[str, ...], offsets: Array | None) -> Array | None:
+    """(S,) s: the fitted lags where significant, else 0; None without a lag block."""
+    if offsets is None:
+        return None
+    keep = {q.sensor for q in significant_lags(ana)}
+    return np.array([t if n in keep else 0.0 for n, t in zip(names, offsets)])
+
+
 HOLD_ROUNDS: int = 3
 """Refits at most, each holding at zero the temperature and lag quantities still undetermined."""
 
@@ -804,14 +835,15 @@ def calibrate_array(
     vector_cov = _vector_covariances(sol, cov.matrix)
     if mounting is not None:
         vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
-    temps = None if blocks.temperatures is None else blocks.temperatures + blocks.reference
+    thermal = sol.model.temperature and significant_temperature_terms(ana)
+    temps = blocks.temperatures + blocks.reference if thermal else None
     try:
         cal = ArrayCalibration(
             geometry, matrices_out, sol.offsets, {}, vector_cov, channels, sol.interference if channels else None,
-            time_offsets=sol.time_offsets,
-            temperature_reference=blocks.reference if sol.model.temperature else None,
-            offset_tempco=sol.offset_tempco,
-            matrix_tempco=None if sol.gain_tempco is None else -matrices_out * sol.gain_tempco[:, None, :],
+            time_offsets=_stored_time_offsets(ana, geometry.names, sol.time_offsets),
+            temperature_reference=blocks.reference if thermal else None,
+            offset_tempco=sol.offset_tempco if thermal else None,
+            matrix_tempco=-matrices_out * sol.gain_tempco[:, None, :] if thermal else None,
         )
     except InputError as exc_cal:
         raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
@@ -872,7 +904,9 @@ def calibrate_array(
         prior=prior is not None,
         inflation=cov.inflation,
         extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field,
-                "temperature_range": None if temps is None else (float(temps.min()), float(temps.max())),
+                "temperature_range": None if blocks.temperatures is None else
+                (float(blocks.temperatures.min() + blocks.reference), float(blocks.temperatures.max() + blocks.reference)),
+                "temperature_stored": thermal,
                 "block_notes": blocks.notes, "drift": verdict.drift,
                 "solved_on": None if full is None else (n, full.count, excluded is not None)},
     )
