@@ -327,11 +327,12 @@ class _Eval:
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
             pa = att.precision
-            self.a_sg = np.einsum("nsap,nsag->spg", wj, jac_g)  # (S, P, G)
-            self.a_gg = np.einsum("nsag,nsah->gh", wjg, jac_g) + np.einsum("n,nag,nah->gh", pa, ja, ja)
-            per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea)
+            self.a_sg = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])  # (S, P, G)
+            self.a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
+                @ ja.reshape(-1, ng)
+            per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea, optimize=True)
             g_global = per_set_g.sum(axis=0)
-            b_g = np.einsum("nsag,nsac->ngc", wjg, self.m) + np.einsum("n,nag,nac->ngc", pa, ja, self.basis)
+            b_g = np.einsum("nsag,nsac->ngc", wjg, self.m) + np.einsum("n,nag,nac->ngc", pa, ja, self.basis, optimize=True)
             b = np.concatenate([b, b_g], axis=1)
             self.c = self.c + pa[:, None, None] * np.eye(2)[None]  # basis^T basis = I
             self.g_d = self.g_d + pa[:, None] * np.einsum("nac,na->nc", self.basis, ea)

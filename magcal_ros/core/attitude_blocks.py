@@ -199,7 +199,7 @@ def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     for g in range(model.field_groups):
         rows = att.groups == g
         t = tangent(state.fields[g])
-        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,ncb,cd->nad", at, att.rotations[rows], t)
+        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,ncb,cd->nad", at, att.rotations[rows], t, optimize=True)
     return jac
 
 
@@ -208,7 +208,7 @@ def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
     if att.positions is None:
         return None
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)  # array -> world
-    w = np.einsum("nba,bc,ncd->nad", ra, state.gradient, ra)
+    w = np.einsum("nba,bc,ncd->nad", ra, state.gradient, ra, optimize=True)
     h = np.einsum("nab,sb->nsa", w, att.positions)
     return np.where(att.known[:, None, None], h, 0.0)
 
@@ -222,10 +222,10 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
     rp = np.einsum("nab,sb->nsa", ra, att.positions)  # R p, world
     for j, e in enumerate(GRADIENT_BASIS):
-        jac[:, :, :, model.gradient_slice.start + j] = np.einsum("nba,bc,nsc->nsa", ra, e, rp)
+        jac[:, :, :, model.gradient_slice.start + j] = np.einsum("nba,bc,nsc->nsa", ra, e, rp, optimize=True)
     if model.mounting_slice is not None:
         # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
-        wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations)
+        wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations, optimize=True)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
         wap = np.einsum("nab,sb->nsa", wq, ap)
         inner = skew(wap) - np.einsum("nab,sbc->nsac", wq, skew(ap))
@@ -335,7 +335,7 @@ def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count:
     """Alternating Procrustes from ``a``: fields then mounting, ``rounds`` times; (A, fields, cost)."""
     fields = np.zeros((count, 3))
     for _ in range(rounds):
-        world = np.einsum("nab,bc,nc->na", rot, a, d)  # Q A d: should be f_g
+        world = np.einsum("nab,bc,nc->na", rot, a, d, optimize=True)  # Q A d: should be f_g
         for g in range(count):
             if field is not None:
                 fields[g] = field
@@ -344,7 +344,7 @@ def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count:
                 fields[g] = m / max(np.linalg.norm(m), 1e-300)
         target = np.einsum("nba,nb->na", rot, fields[groups])  # Q^T f: should be A d
         a = procrustes(d, target)
-    cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d) - fields[groups]) ** 2))
+    cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d, optimize=True) - fields[groups]) ** 2))
     return a, fields, cost
 
 

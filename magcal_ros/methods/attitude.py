@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as ab
 from magcal_ros.core.array_fit import JointSolution
+from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import NED_TO_ENU
 from magcal_ros.core.recording import ImuSamples
@@ -121,7 +122,10 @@ def global_covariance(sol: JointSolution, order: NDArray[np.int64], prior_precis
                             sol.attitude.fixed(model)])
     if fixed.any():
         rows.append(np.eye(sp + ng)[fixed])
-    series = sol.residuals[order].reshape(len(order), -1)
+    # the global parameters are determined by the attitude residuals: their time correlation (an
+    # IMU's slowly wandering error, the gyro's integrated noise) sets the bandwidth
+    series = sol.residuals[order].reshape(len(order), -1) if sol.attitude_residuals is None else \
+        sol.attitude_residuals[order][sol.attitude.known[order]]
     cov = covariance(sol.full_information, sol.full_scores[order], series, prec,
                      np.concatenate(rows) if rows else None)
     return cov.matrix[sp:, sp:]
@@ -141,9 +145,12 @@ def imu_report(sol: JointSolution, order: NDArray[np.int64], prior_precision: Ar
                      float(np.degrees(sol.attitude_sigma or 0.0)), att.frame_id)
 
 
-def output_frame(sol: JointSolution) -> dict[str, Any]:
-    """``ArrayCalibration`` keywords putting the outputs in the IMU frame ({} without an IMU)."""
+def output_frame(sol: JointSolution, prior: ArrayCalibration | None = None) -> dict[str, Any]:
+    """``ArrayCalibration`` keywords putting the outputs in the IMU frame; without an IMU a
+    recalibration from a ``prior`` (whose frame it keeps) keeps the prior's output frame, else {}."""
     if sol.globals is None or sol.attitude is None:
+        if prior is not None and (prior.rotated or prior.frame_id):
+            return {"output_rotation": prior.output_rotation, "frame_id": prior.frame_id}
         return {}
     return {"output_rotation": sol.globals.mounting, "frame_id": sol.attitude.frame_id or None}
 

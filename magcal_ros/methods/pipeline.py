@@ -750,7 +750,7 @@ def calibrate_array(
             temperature_reference=blocks.reference if sol.model.temperature else None,
             offset_tempco=sol.offset_tempco,
             matrix_tempco=None if sol.gain_tempco is None else -matrices_out * sol.gain_tempco[:, None, :],
-            **imu_blocks.output_frame(sol),
+            **imu_blocks.output_frame(sol, prior),
         )
     except InputError as exc_cal:
         raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
