@@ -41,11 +41,12 @@ def _fresh(seed: int):
 def _line(name: str, result, fresh, truth, sim, seconds: float) -> str:
     env = result.envelope
     out = result.calibration.outputs(fresh.vectors)
-    frame = sim.imu.mounting if result.calibration.rotated else np.eye(3)
-    err = rms(out.vectors - np.einsum("ab,nsb->nsa", frame, truth.field)) / NT
+    vectors = "vectors in the array frame (no IMU: no truth to compare)"
+    if result.calibration.rotated:
+        err = rms(out.vectors - np.einsum("ab,nsb->nsa", sim.imu.mounting, truth.field)) / NT
+        vectors = f"vectors {err:7.2f} nT/axis from the truth (IMU frame)"
     return (f"  {name:<12} {env.describe():<40} sphere {env.ratio_sphere:7.2f}x noise | fresh: TMI "
-            f"{np.max(tmi_rms(out.vectors, result.intensity)) / NT:7.2f} nT, vectors {err:7.2f} nT/axis "
-            f"({'IMU' if result.calibration.rotated else 'array'} frame), {seconds:5.1f} s")
+            f"{np.max(tmi_rms(out.vectors, result.intensity)) / NT:7.2f} nT, {vectors}, {seconds:5.1f} s")
 
 
 def yaw_wobble(seed: int = 7) -> None:
