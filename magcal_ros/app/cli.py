@@ -534,11 +534,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             loss=args.loss, gradient_method=args.gradient_method or "difference", seed=args.seed,
             max_residual=args.max_residual,
             mounting=mounting, inclination_deg=site.inclination_deg if site is not None else None,
+            site_field=site.vector if site is not None else None,
             max_solve_sets=args.max_solve_sets, progress=stage,
         )
         result = calibrate_array(rec.vectors, geometry, reference_field, args.method, opts, prior=prior,
                                  stamps=rec.stamps, currents=rec.currents if rec.channels else None,
-                                 channels=rec.channels, temperatures=rec.temperatures)
+                                 channels=rec.channels, temperatures=rec.temperatures, imu=rec.imu)
     if site is not None:
         result.calibration.metadata.update(site.provenance())
     if args.plot:

@@ -1,7 +1,7 @@
 """End-to-end demo: simulate a rotation manoeuvre, calibrate it live over ROS 2, show the gain.
 
     python -m magcal_ros.app.demo [--sets 1200] [--rate 400] [--relative] [--no-thrusters] [--no-drift]
-                                  [--speed 1] [--keep DIR]
+                                  [--speed 1] [--no-imu] [--keep DIR]
 
 1. simulates a four-fluxgate cross (0.4 m) with realistic per-sensor errors, 1 nT noise,
    turning through random attitudes in a uniform 51 500 nT field, with two thrusters 0.7 m
@@ -22,7 +22,10 @@
    the drift on ``/diagnostics``, the calibration node (``auto_recalibrate`` false) advises
    what to fly and changes nothing, then (set true) recalibrates from the sets flown since,
    and the live tensor on fresh turns is compared with the floor
-   (:mod:`magcal_ros.app.drift_demo`; about 3 minutes in real time).
+   (:mod:`magcal_ros.app.drift_demo`; about 3 minutes in real time);
+5. (unless ``--no-imu``) calibrates a tumble over a pier with the vehicle's IMU, offline
+   (:mod:`magcal_ros.app.imu_demo`): the array-to-IMU rotation and the pier's gradient with
+   their 1-sigma, and fresh attitudes corrected into the IMU's frame against the truth.
 """
 
 from __future__ import annotations
@@ -209,6 +212,11 @@ def run(args: argparse.Namespace) -> int:
                   f"{drift.recalibrated_after:.0f} s after auto_recalibrate was set true")
         print(f"  calibration file: {calibration_file}{kept}")
         print()
+        if not args.no_imu:
+            from magcal_ros.app.imu_demo import imu_step
+
+            print("\n".join(imu_step(args.seed)))
+            print()
         return 0
     except BaseException:
         for p in nodes:
@@ -239,6 +247,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="skip the mission with a hard-iron jump, seen and fixed (about 3 minutes in real time)")
     parser.add_argument("--speed", type=float, default=1.0,
                         help="replay the mission this many times faster than real time (default 1: 100 sets/s)")
+    parser.add_argument("--no-imu", action="store_true",
+                        help="skip the IMU step (a tumble over a pier calibrated with the vehicle's IMU, offline: "
+                        "outputs in the IMU frame, the pier's gradient fitted)")
     parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="mcap", help="bag storage (default mcap)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--keep", metavar="DIR", help="keep the bag, calibration file and node logs in DIR")

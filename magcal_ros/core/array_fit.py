@@ -22,12 +22,15 @@ the excluded readings settle.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.linalg
 import scipy.stats
 from numpy.typing import NDArray
 
+from magcal_ros.core import attitude_blocks as att_blocks
+from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.errors import CalibrationFailed, InputError
 
@@ -141,6 +144,29 @@ class JointSolution:
     """(N, 3) rate of change of the field direction (1/s) the lag block used; None without it."""
     fixed: Array | None = None
     """(S, P) parameters the fit kept at their start (held, or the lag gauge); None: none."""
+    globals: GlobalState | None = None
+    """The global blocks (IMU: mounting, field directions, site gradient); None without an IMU.
+    ``information`` and ``scores`` then have the global parameters eliminated (marginal on the
+    sensors' parameters); ``full_information`` and ``full_scores`` keep them (after the sensors')."""
+    full_information: Array | None = None
+    """(S P + G, S P + G) information with the global parameters (None without them)."""
+    full_scores: Array | None = None
+    """(N, S P + G) per-set scores with the global parameters (None without them)."""
+    attitude: AttitudeInputs | None = None
+    """The IMU's attitudes the global blocks used."""
+    attitude_sigma: float | None = None
+    """1-sigma (rad) per axis of the attitude residuals (the IMU's attitude error as the fit saw it)."""
+    attitude_residuals: Array | None = None
+    """(N, 3) rad: ``d_k - A^T Q_k^T f_g`` (zeros for sets without attitude)."""
+    attitude_weights: Array | None = None
+    """(N,) weight of each set's attitude residual (0: none, or excluded)."""
+
+    def site_field(self) -> Array | None:
+        """(N, S, 3) T, array frame: the site gradient's field at each sensor (None without the block)."""
+        if self.globals is None or self.attitude is None:
+            return None
+        h = att_blocks.gradient_field(self.attitude, self.globals)
+        return None if h is None else h * self.intensity
 
     @property
     def offset_tempco(self) -> Array | None:
@@ -218,14 +244,33 @@ def direction_rates(directions: Array, times: Array) -> Array:
     return out
 
 
+@dataclass(frozen=True)
+class _Att:
+    """The global blocks at one point: the IMU's attitudes, the state, the attitude residuals' precision."""
+
+    inputs: AttitudeInputs
+    state: GlobalState
+    precision: Array
+    """(N,) weight / sigma_att^2 of each set's attitude residual (0: none)."""
+
+    def h(self) -> Array | None:
+        """(N, S, 3) the site gradient's field at each sensor (units of F), None without the block."""
+        return att_blocks.gradient_field(self.inputs, self.state)
+
+    def moved(self, step: Array, model: ForwardModel) -> "_Att":
+        return _Att(self.inputs, self.state.moved(step, model), self.precision)
+
+
 class _Eval:
     """The model at one point: prediction, residuals, Jacobians and the whitened normal equations
     (directions eliminated by their 2 x 2 blocks)."""
 
     def __init__(self, model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
-                 weights: Array, sigma: Array) -> None:
+                 weights: Array, sigma: Array, att: _Att | None = None) -> None:
         n, s, _ = x.shape
         p, q = model.size, model.q
+        ng = model.global_size if att is not None else 0
+        h = None if att is None else att.h()
         w, g, tau = model.split(theta)
         k = w[:, :, :3]
         psi = inputs.rest_features(s)  # (N, S, q - 3)
@@ -244,14 +289,15 @@ class _Eval:
             dl = np.broadcast_to(d[:, None, :], (n, s, 3))
             d_tau = None
             dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
-        kd = np.matmul(k, dl[..., None])[..., 0]
+        seen = dl if h is None else dl + h  # the field each sensor saw, units of F
+        kd = np.matmul(k, seen[..., None])[..., 0]
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + np.matmul(w[:, :, 3:], psi[..., None])[..., 0]
         self.e = self.pred - x
         jac = np.zeros((n, s, 3, p))
         for a in range(3):
-            jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * dl if gain.shape[0] > 1 else dl
+            jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * seen if gain.shape[0] > 1 else seen
             jac[:, :, a, a * q + 3 : a * q + q] = psi
         if model.gain_slice is not None and inputs.temperatures is not None:
             for a in range(3):
@@ -264,28 +310,56 @@ class _Eval:
         self.ws = ws
         wj = jac * ws[:, :, None, None]
         self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])  # (S, P, P)
-        self.g_theta = np.matmul(self.e[:, :, None, :], wj)[:, :, 0, :].sum(axis=0)  # (S, P)
-        self.b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
+        g_theta = np.matmul(self.e[:, :, None, :], wj)[:, :, 0, :].sum(axis=0)  # (S, P)
+        b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
         wm = ws[:, :, None, None] * self.m
         self.c = np.matmul(wm.transpose(0, 1, 3, 2), self.m).sum(axis=1)  # (N, 2, 2)
         self.g_d = np.matmul(self.e[:, :, None, :], wm)[:, :, 0, :].sum(axis=1)  # (N, 2)
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
+        self.globals = ng
+        self.set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
+        if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
+            assert att is not None
+            gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
+            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.einsum("sab,nsbg->nsag", k, gj)
+            wjg = jac_g * ws[:, :, None, None]
+            ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
+            ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
+            pa = att.precision
+            self.a_sg = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])  # (S, P, G)
+            self.a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
+                @ ja.reshape(-1, ng)
+            per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea, optimize=True)
+            g_global = per_set_g.sum(axis=0)
+            b_g = np.einsum("nsag,nsac->ngc", wjg, self.m) + np.einsum("n,nag,nac->ngc", pa, ja, self.basis, optimize=True)
+            b = np.concatenate([b, b_g], axis=1)
+            self.c = self.c + pa[:, None, None] * np.eye(2)[None]  # basis^T basis = I
+            self.g_d = self.g_d + pa[:, None] * np.einsum("nac,na->nc", self.basis, ea)
+            self.cost += float(np.sum(pa[:, None] * ea * ea))
+            self.set_scores = np.concatenate([self.set_scores, per_set_g], axis=1)
+            self.g_theta = np.concatenate([g_theta.reshape(-1), g_global])
+        else:
+            self.g_theta = g_theta.reshape(-1)
+        self.b = b  # (N, S P + G, 2)
 
     def a_matrix(self) -> Array:
-        return scipy.linalg.block_diag(*self.a_blocks)
+        """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
+        a = scipy.linalg.block_diag(*self.a_blocks)
+        if not self.globals:
+            return a
+        s, p = self.shape
+        cross = self.a_sg.reshape(s * p, self.globals)
+        return np.block([[a, cross], [cross.T, self.a_gg]])
 
     def scores(self) -> Array:
-        """(N, S P) each set's contribution to the reduced gradient (directions eliminated, whitened).
+        """(N, S P + G) each set's contribution to the reduced gradient (directions eliminated, whitened).
 
         For white noise ``sum_k s_k s_k^T`` estimates :meth:`information`; with time-correlated
         noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
         """
-        s, p = self.shape
-        g = np.matmul(self.e[:, :, None, :], self.jac)[:, :, 0, :] * self.ws[:, :, None]
-        g = g.reshape(len(self.e), s * p)
         corr = np.matmul(self.b, np.matmul(_inv2(self.c), self.g_d[:, :, None]))[:, :, 0]
-        return g - corr
+        return self.set_scores - corr
 
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
@@ -310,24 +384,27 @@ def _inv2(c: Array) -> Array:
 
 
 def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs,
-                         rates: Array | None) -> Array:
+                         rates: Array | None, h: Array | None = None) -> Array:
     """(N, S, 3) each reading inverted through its sensor's model (units of F), brought back to the
-    set's instant (lag removed to first order): what each sensor says the set's field was."""
+    set's instant (lag removed to first order): what each sensor says the set's field was
+    (``h`` (N, S, 3), the site gradient's field at each sensor, taken off)."""
     s = x.shape[1]
     w, g, tau = model.split(theta)
     rest = x - np.matmul(w[:, :, 3:], inputs.rest_features(s)[..., None])[..., 0]
     if g is not None and inputs.temperatures is not None:
         rest = rest * (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
     b = np.matmul(np.linalg.inv(w[:, :, :3]), rest[..., None])[..., 0]
+    if h is not None:
+        b = b - h
     if tau is not None and rates is not None:
         b = b + tau[None, :, None] * rates[:, None, :] * np.linalg.norm(b, axis=2, keepdims=True)
     return b
 
 
 def _directions(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
-                weights: Array) -> Array:
+                weights: Array, h: Array | None = None) -> Array:
     """Field direction per set from the current corrections (weighted mean of the sensors)."""
-    return _mean_direction(corrected_directions(model, theta, x, inputs, rates), weights)
+    return _mean_direction(corrected_directions(model, theta, x, inputs, rates, h), weights)
 
 
 def _mean_direction(b: Array, weights: Array) -> Array:
@@ -343,8 +420,9 @@ def _mean_direction(b: Array, weights: Array) -> Array:
     return out
 
 
-def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, rates: Array | None) -> Array:
-    """(N, S, 3) predicted readings (units of F)."""
+def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, rates: Array | None,
+                h: Array | None = None) -> Array:
+    """(N, S, 3) predicted readings (units of F); ``h`` (N, S, 3) the site gradient's field at each sensor."""
     w, g, tau = model.split(theta)
     s = w.shape[0]
     if tau is not None and rates is not None:
@@ -352,6 +430,8 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
         dl /= np.linalg.norm(dl, axis=2, keepdims=True)
     else:
         dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
+    if h is not None:
+        dl = dl + h
     kd = np.matmul(w[:, :, :3], dl[..., None])[..., 0]
     if g is not None and inputs.temperatures is not None:
         kd = kd / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
@@ -359,39 +439,55 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
 
 
 def _cost(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
-          weights: Array, sigma: Array) -> float:
-    """The whitened data cost of ``theta`` with directions ``d`` (no prior)."""
-    e = _prediction(model, theta, d, inputs, rates) - x
-    return float(np.sum((weights / sigma[None, :] ** 2)[:, :, None] * e * e))
+          weights: Array, sigma: Array, att: _Att | None = None) -> float:
+    """The whitened data cost of ``theta`` with directions ``d`` (no prior), the attitude residuals included."""
+    e = _prediction(model, theta, d, inputs, rates, None if att is None else att.h()) - x
+    cost = float(np.sum((weights / sigma[None, :] ** 2)[:, :, None] * e * e))
+    if att is not None:
+        ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
+        cost += float(np.sum(att.precision[:, None] * ea * ea))
+    return cost
 
 
 def _solve_lm(
     model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
     sigma: Array, prior: ParameterPrior, iterations: int, tolerance: float, fixed: NDArray[np.bool_],
-) -> tuple[Array, Array, int]:
-    """Levenberg-Marquardt on the MAP cost with fixed weights, noise and rates; returns (theta, directions, steps).
+    att: _Att | None = None, global_start: GlobalState | None = None,
+) -> tuple[Array, Array, int, _Att | None]:
+    """Levenberg-Marquardt on the MAP cost with fixed weights, noise and rates; returns (theta, directions,
+    steps, global blocks).
 
     The directions are eliminated exactly (Schur complement, computed once per iteration) and
     the damping acts on the reduced system, so a rejected step costs one small solve. Parameters
-    marked ``fixed`` (S, P) keep their values.
+    marked ``fixed`` (S, P) keep their values. With the global blocks (``att``) their parameters
+    join the reduced system after the sensors'; a weak prior (:data:`~magcal_ros.core.attitude_blocks.
+    WEAK_GLOBAL_SIGMA`) about ``global_start`` keeps the directions the data leave free finite.
     """
     s, p = theta.shape
-    free = ~fixed.reshape(-1)
-    prec = prior.precision().reshape(-1)
+    ng = model.global_size if att is not None else 0
+    free = np.concatenate([~fixed.reshape(-1), ~att.inputs.fixed(model) if att is not None else np.zeros(0, bool)])
+    prec = np.concatenate([prior.precision().reshape(-1), np.full(ng, att_blocks.WEAK_GLOBAL_SIGMA ** -2.0)])
     mean = prior.flat_mean().reshape(-1)
-    d = _directions(model, theta, x, inputs, rates, weights)
+    g_start = global_start if global_start is not None else (None if att is None else att.state)
+    d = _directions(model, theta, x, inputs, rates, weights, None if att is None else att.h())
     lam = 1e-4
     steps = 0
 
-    def prior_cost(tv: Array) -> float:
-        diff = tv.reshape(-1) - mean
+    def deviation(tv: Array, a: _Att | None) -> Array:
+        dev = tv.reshape(-1) - mean
+        if a is None or g_start is None:
+            return dev
+        return np.concatenate([dev, a.state.deviation(g_start, model)])
+
+    def prior_cost(tv: Array, a: _Att | None) -> float:
+        diff = deviation(tv, a)
         return float(np.sum(prec * diff * diff))
 
     def invertible(tv: Array) -> bool:
         return bool(np.all(np.isfinite(tv)) and np.all(np.abs(np.linalg.det(model.split(tv)[0][:, :, :3])) > 1e-12))
 
-    cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
-    cost = cur.cost + prior_cost(theta)
+    cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
+    cost = cur.cost + prior_cost(theta, att)
     done = False
     for steps in range(1, iterations + 1):
         c_inv = _inv2(cur.c)
@@ -399,42 +495,42 @@ def _solve_lm(
         flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
         schur = (cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T)[np.ix_(free, free)]
-        rhs = (cur.g_theta.reshape(-1) + prec * (theta.reshape(-1) - mean)
-               - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2)))[free]
+        rhs = (cur.g_theta + prec * deviation(theta, att) - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2)))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
         diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
         improved = False
         while lam < 1e10:
-            step = np.zeros(s * p)
+            step = np.zeros(s * p + ng)
             try:
                 step[free] = -scipy.linalg.solve(schur + lam * diag, rhs, assume_a="sym")
             except (np.linalg.LinAlgError, ValueError):
                 lam *= 10
                 continue
             dd = -np.matmul(c_inv, (cur.g_d + cur.b.transpose(0, 2, 1) @ step)[:, :, None])[:, :, 0]
-            t_new = theta + step.reshape(s, p)
+            t_new = theta + step[: s * p].reshape(s, p)
+            a_new = None if att is None else att.moved(step[s * p :], model)
             d_new = d + np.matmul(cur.basis, dd[:, :, None])[:, :, 0]
             d_new /= np.linalg.norm(d_new, axis=1, keepdims=True)
             if not invertible(t_new):
                 lam *= 10
                 continue
-            new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma) + prior_cost(t_new)
+            new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)
             if new_cost <= cost:
                 lam = max(lam / 10, 1e-12)
                 done = cost - new_cost <= tolerance * max(cost, 1e-300)
-                theta, d, cost = t_new, d_new, new_cost
-                cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+                theta, d, cost, att = t_new, d_new, new_cost, a_new
+                cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
                 improved = True
                 break
             lam *= 10
         if not improved or done:
             break
-    return theta, d, steps
+    return theta, d, steps, att
 
 
 def _outliers(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
-              weights: Array) -> Array:
+              weights: Array, h: Array | None = None) -> Array:
     """(N, S) True for readings that disagree with the other sensors of their set or with F.
 
     Each reading's corrected vector is compared with the mean of the set's other used
@@ -442,7 +538,7 @@ def _outliers(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, ra
     the chi-square bound of its sensor's robust scale flags it.
     """
     n, s, _ = x.shape
-    b = corrected_directions(model, theta, x, inputs, rates)
+    b = corrected_directions(model, theta, x, inputs, rates, h)
     flags = np.zeros((n, s), bool)
     tests = [((np.linalg.norm(b, axis=2) - 1.0) ** 2, 1.0)]
     if s >= 3:
@@ -515,6 +611,8 @@ def fit_array(
     times: Array | None = None,
     start: Array | None = None,
     held: NDArray[np.bool_] | None = None,
+    attitude: AttitudeInputs | None = None,
+    attitude_start: GlobalState | None = None,
 ) -> JointSolution:
     """Joint MAP fit of every sensor from raw sets ``raw`` (N, S, 3) T, starting at
     ``matrices`` (S, 3, 3) / ``offsets`` (S, 3) T / ``interference`` (S, 3, m) T/A.
@@ -523,7 +621,9 @@ def fit_array(
     block; ``times`` (N,) s: fit the lag block (two or more sensors; the sets must follow a
     continuous motion); ``start`` (S, P): a full start of every parameter (overrides the
     matrices, offsets and interference); ``held`` (S, P): parameters kept at their start (see
-    :func:`fixed_parameters`); ``prior`` on the parameters in units of F (default: a weak prior
+    :func:`fixed_parameters`); ``attitude``: the IMU's attitudes at the sets, fit the global blocks
+    (:mod:`magcal_ros.core.attitude_blocks`) from ``attitude_start`` (default: their closed-form
+    start from the sensors' directions); ``prior`` on the parameters in units of F (default: a weak prior
     around the start that only keeps undetermined directions finite; parameters it does not
     cover get the weak prior); ``weights`` (N, S) 0/1 to exclude readings from the start;
     ``robust`` re-decides outliers until they settle.
@@ -536,7 +636,10 @@ def fit_array(
         raise InputError(f"intensity must be a positive number of T, got {intensity}")
     temps = None if temperatures is None else np.asarray(temperatures, dtype=float).reshape(n, s)
     t = None if times is None or s < 2 else np.asarray(times, dtype=float).reshape(n)
-    model = ForwardModel(s, u.shape[1], temps is not None, t is not None)
+    if attitude is not None and len(attitude.groups) != n:
+        raise InputError(f"the IMU has {len(attitude.groups)} sets, the readings {n}")
+    model = (ForwardModel(s, u.shape[1], temps is not None, t is not None) if attitude is None
+             else attitude.model(s, u.shape[1], temps is not None, t is not None))
     inputs = SetInputs(u, temps, t)
     if start is not None:
         theta = np.asarray(start, dtype=float).reshape(s, model.size).copy()
@@ -564,13 +667,26 @@ def fit_array(
         return None if t is None else direction_rates(_directions(model, th, x, inputs, None, weights), t)
 
     rates = rates_of(theta)
-    pred = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights), inputs, rates)
+    att = None
+    if attitude is not None:
+        state = attitude_start or att_blocks.initial_state(attitude, _directions(model, theta, x, inputs, rates,
+                                                                                  weights))
+        att = _attitude_weights(_Att(attitude, state, attitude.known.astype(float)),
+                                _directions(model, theta, x, inputs, rates, weights), soft=False)
+    g_start = None if att is None else att.state
+
+    def h_of(a: _Att | None) -> Array | None:
+        return None if a is None else a.h()
+
+    pred = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h_of(att)), inputs, rates,
+                       h_of(att))
     sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
-        theta, d, _ = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance, fixed)
+        theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
+                                     fixed, att, g_start)
         if t is not None:
             rates = direction_rates(d, t)
-        e = _prediction(model, theta, d, inputs, rates) - x
+        e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
         sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
         if not robust:
             break
@@ -578,27 +694,66 @@ def fit_array(
         # spike not yet excluded cannot bend the fit (weights 1 for clean data).
         qq = np.sum(e * e, axis=2)
         soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(qq, 1e-300))
-        new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5)
-        if np.max(np.abs(new_weights - weights)) < 1e-3:
+        new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5, h_of(att))
+        moved = 0.0
+        if att is not None:
+            before = att.precision
+            att = _attitude_weights(att, d)
+            moved = float(np.max(np.abs(att.precision - before)) / max(float(np.max(before)), 1e-300))
+        if np.max(np.abs(new_weights - weights)) < 1e-3 and moved < 1e-2:
             break
         weights = new_weights
     else:
-        theta, d, _ = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance, fixed)
+        theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
+                                     fixed, att, g_start)
     if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
     # A reading the soft weighting has all but removed (beyond sqrt(2 SOFT_BOUND) noise sd: a
     # spike, a frozen sensor) is excluded, as the outlier tests already treat it: counted as an
     # outlier, and kept out of the residuals the quality gates judge.
     weights = np.where(weights < 0.5, 0.0, weights)
-    e = _prediction(model, theta, d, inputs, rates) - x
+    e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
     sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
-    final = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    final = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
     info, scores = final.information(), final.scores()
-    return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
+    if att is None:
+        return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
+    red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model))
+    ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
+    used = att.precision > 0
+    extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
+             "attitude_sigma": att_blocks.robust_sigma(ea, used), "attitude_residuals": ea,
+             "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0)}
+    return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
+
+
+def _attitude_weights(att: _Att, d: Array, soft: bool = True) -> _Att:
+    """The global blocks with the attitude residuals' precision from their robust 1-sigma at directions
+    ``d`` (N, 3), large residuals (an IMU glitch) down-weighted in proportion beyond 4 sigma."""
+    ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
+    known = att.inputs.known
+    sig = att_blocks.robust_sigma(ea, known)
+    weight = known.astype(float)
+    if soft:
+        qq = np.sum(ea * ea, axis=1) / 2.0
+        weight *= np.minimum(1.0, SOFT_BOUND * sig**2 / np.maximum(qq, 1e-300))
+    return _Att(att.inputs, att.state, weight / sig**2)
+
+
+def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """Information (S P, S P) and scores (N, S P) of the sensors' parameters with the global ones
+    eliminated (their weak prior included, fixed ones held): the marginal the sensors' analysis uses."""
+    keep = np.flatnonzero(~fixed) + sp
+    h_gg = info[np.ix_(keep, keep)] + np.eye(len(keep)) * att_blocks.WEAK_GLOBAL_SIGMA ** -2.0
+    h_sg = info[:sp][:, keep]
+    k = scipy.linalg.solve(h_gg, h_sg.T, assume_a="sym")  # H_gg^-1 H_gs
+    red = info[:sp, :sp] - h_sg @ k
+    return 0.5 * (red + red.T), scores[:, :sp] - scores[:, keep] @ k
 
 
 def _solution(model: ForwardModel, theta: Array, d: Array, weights: Array, sigma: Array, residuals: Array,
-              info: Array, scores: Array, f: float, rates: Array | None, fixed: Array | None) -> JointSolution:
+              info: Array, scores: Array, f: float, rates: Array | None, fixed: Array | None,
+              **extra: Any) -> JointSolution:
     w = model.split(theta)[0]
     mats = np.linalg.inv(w[:, :, :3])
     m = model.channels
@@ -618,6 +773,7 @@ def _solution(model: ForwardModel, theta: Array, d: Array, weights: Array, sigma
         theta=np.asarray(theta, dtype=float).copy(),
         rates=rates,
         fixed=fixed,
+        **extra,
     )
 
 
@@ -633,10 +789,19 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
     w[:, :, :3] = np.einsum("sij,kj->sik", k, qmat)  # K_i Q^T
     theta[:, : 3 * model.q] = w.reshape(model.sensors, -1)
     tinv = np.linalg.inv(rotation_map(qmat, model))
+    extra: dict[str, Any] = {}
+    if solution.globals is not None and solution.full_information is not None and solution.full_scores is not None:
+        # the global parameters do not turn with the frame (A's angles are about the IMU axes)
+        full = scipy.linalg.block_diag(tinv, np.eye(model.global_size))
+        extra = {"globals": solution.globals.rotated(qmat), "full_information": full.T @ solution.full_information @ full,
+                 "full_scores": solution.full_scores @ full, "attitude": solution.attitude,
+                 "attitude_sigma": solution.attitude_sigma,
+                 "attitude_residuals": None if solution.attitude_residuals is None else solution.attitude_residuals @ qmat.T,
+                 "attitude_weights": solution.attitude_weights}
     rotated = _solution(model, theta, solution.directions @ qmat.T, solution.weights, solution.sigma,
                         solution.residuals, tinv.T @ solution.information @ tinv, solution.scores @ tinv,
                         solution.intensity, None if solution.rates is None else solution.rates @ qmat.T,
-                        solution.fixed)
+                        solution.fixed, **extra)
     return rotated
 
 

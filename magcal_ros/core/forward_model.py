@@ -24,6 +24,28 @@ block            parameters (per sensor)                 enters when
                                                           first (reference) sensor is 0
 =============== ======================================= ==========================================
 
+and, when the vehicle's IMU is given, global blocks (one set of parameters for the whole array,
+after every sensor's; see :mod:`magcal_ros.core.attitude_blocks`)
+
+=================== =================================== ==========================================
+global block         parameters                          enters when
+=================== =================================== ==========================================
+``mounting``         ``A`` rotation array frame -> IMU   the IMU gives orientations, or angular
+                     frame (3 small angles about the     velocities the sets follow in time
+                     current estimate, IMU frame)
+``field direction``  ``f_g`` unit field direction (2     one per reference: the world frame ENU
+                     tangent parameters each)            (orientation), or each continuous
+                                                         gyro segment's first attitude
+``site gradient``    ``G_w`` (5: xx, xy, xz, yy, yz;     orientations are given: a constant
+                     symmetric, traceless, T/m, world    world-frame gradient over the array
+                     ENU, in units of F per m)
+=================== =================================== ==========================================
+
+Each set ``k`` with a known attitude ``Q_k`` (IMU frame -> its reference) adds the residual
+``(d_k - A^T Q_k^T f_g) / sigma_att`` that ties its free direction to the IMU, and with the
+gradient each sensor at ``p_i`` (array frame, about the centre) sees the extra field
+``F R_k^T Gamma R_k p_i`` with ``R_k = Q_k A`` (array -> world) and ``Gamma = G_w / F``.
+
 ``d~_ik = normalise(d_k - tau_i d'_k)`` is the direction the sensor saw, ``d'_k`` the rate of
 change of the field direction (1/s) at the set. A common lag of every sensor, like a common
 rotation of every ``K_i``, is absorbed by the directions: only lags relative to the reference
@@ -45,7 +67,9 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 
 BLOCKS: tuple[str, ...] = ("sensor", "interference", "temperature", "lag")
-"""The blocks of the forward model, in parameter order."""
+"""The per-sensor blocks of the forward model, in parameter order."""
+GLOBAL_BLOCKS: tuple[str, ...] = ("mounting", "field direction", "site gradient")
+"""The global blocks (one set of parameters for the array, after every sensor's), in order."""
 HOLDABLE: tuple[str, ...] = ("temperature", "lag")
 """Blocks whose quantities are held at zero (and named) when the data cannot determine them,
 instead of refusing the calibration: a recording without temperature span or without motion
@@ -61,6 +85,12 @@ class ForwardModel:
     """Current channels ``m`` (interference block when > 0)."""
     temperature: bool = False
     lag: bool = False
+    mounting: bool = False
+    """Global block: the rotation from the array frame to the IMU frame (3)."""
+    field_groups: int = 0
+    """Global block: field directions, one per attitude reference (2 each)."""
+    site_gradient: bool = False
+    """Global block: a constant world-frame gradient over the array (5)."""
 
     @property
     def q(self) -> int:
@@ -82,6 +112,36 @@ class ForwardModel:
         """The blocks that are on."""
         on = {"sensor": True, "interference": self.channels > 0, "temperature": self.temperature, "lag": self.lag}
         return tuple(b for b in BLOCKS if on[b])
+
+    @property
+    def global_size(self) -> int:
+        """Global parameters ``G`` after the ``S P`` per-sensor ones (0 without an IMU)."""
+        return 3 * int(self.mounting) + 2 * self.field_groups + 5 * int(self.site_gradient)
+
+    @property
+    def global_blocks(self) -> tuple[str, ...]:
+        """The global blocks that are on."""
+        on = {"mounting": self.mounting, "field direction": self.field_groups > 0,
+              "site gradient": self.site_gradient}
+        return tuple(b for b in GLOBAL_BLOCKS if on[b])
+
+    @property
+    def mounting_slice(self) -> slice | None:
+        """Slice of the global vector holding the mounting's small angles (rad, IMU frame)."""
+        return slice(0, 3) if self.mounting else None
+
+    def field_slice(self, group: int) -> slice:
+        """Slice of the global vector holding field direction ``group``'s 2 tangent parameters."""
+        start = 3 * int(self.mounting) + 2 * group
+        return slice(start, start + 2)
+
+    @property
+    def gradient_slice(self) -> slice | None:
+        """Slice of the global vector holding ``G_w / F`` (1/m): xx, xy, xz, yy, yz."""
+        if not self.site_gradient:
+            return None
+        start = 3 * int(self.mounting) + 2 * self.field_groups
+        return slice(start, start + 5)
 
     # -- where things are ------------------------------------------------------------------
     @property

@@ -37,6 +37,7 @@ from magcal_ros.core.array_fit import (
     leave_out_estimates,
     refine_on_all,
 )
+from magcal_ros.core.attitude_blocks import AttitudeInputs
 from magcal_ros.core.calibration import ArrayCalibration, check_sensor
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.geometry import ArrayGeometry
@@ -49,6 +50,7 @@ from magcal_ros.core.observability import (
     excitation,
 )
 from magcal_ros.core.prior import DriftModel
+from magcal_ros.core.recording import ImuSamples
 from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
 from magcal_ros.core.set_reduction import choose_sets, direction_proxy, solve_budget
 from magcal_ros.core.tensor import baseline_gradient, gradient
@@ -60,6 +62,7 @@ from magcal_ros.errors import (
     MagcalError,
     ObservabilityError,
 )
+from magcal_ros.methods import attitude as imu_blocks
 from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS, SensorFit
 
 Array = NDArray[np.float64]
@@ -94,6 +97,9 @@ class SolveOptions:
     little more than this many sets. None: 1000 per sensor; 0: every set in every stage."""
     progress: Callable[[str], None] | None = None
     """Called with the name of each stage of a long solve as it starts (a progress display)."""
+    site_field: Array | None = None
+    """(3,) the site's field (T, world NED, e.g. the WMM at --site): with the IMU's orientation its
+    direction is held instead of fitted; None: fitted."""
 
 
 @dataclass(frozen=True)
@@ -376,15 +382,21 @@ class BlockInputs:
     """(S, P) parameters held at zero (undetermined temperature or lag quantities)."""
     notes: tuple[str, ...] = ()
     """Why a block was left out, for the summary."""
+    attitude: AttitudeInputs | None = None
+    """The IMU's attitudes at the sets (the global blocks); None: no IMU."""
 
     def model(self, sensors: int, channels: int) -> ForwardModel:
         """The forward model these inputs switch on."""
-        return ForwardModel(sensors, channels, self.temperatures is not None, self.times is not None and sensors > 1)
+        temperature, lag = self.temperatures is not None, self.times is not None and sensors > 1
+        if self.attitude is not None:
+            return self.attitude.model(sensors, channels, temperature, lag)
+        return ForwardModel(sensors, channels, temperature, lag)
 
     def fit_options(self, keep: Any = slice(None)) -> dict[str, Any]:
         """Keyword arguments of :func:`~magcal_ros.core.array_fit.fit_array` for the sets ``keep``."""
         return {"temperatures": None if self.temperatures is None else self.temperatures[keep],
-                "times": None if self.times is None else self.times[keep], "held": self.held}
+                "times": None if self.times is None else self.times[keep], "held": self.held,
+                "attitude": None if self.attitude is None else self.attitude.take(keep)}
 
 
 def block_inputs(temperatures: ArrayLike | None, stamps: ArrayLike | None, directions: Array, sensors: int,
@@ -449,6 +461,19 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
     determine only. Each block's refit is one Gauss-Newton step from the solution
     (:func:`~magcal_ros.core.array_fit.leave_out_estimates`).
     """
+    if sol.globals is not None:  # the IMU's blocks: refit without each block
+        n = len(order)
+        est_list = []
+        for block in np.array_split(order, JACKKNIFE_BLOCKS):
+            keep = np.ones(n, bool)
+            keep[block] = False
+            part = fit_array(raw[keep], sol.matrices, sol.offsets, sol.intensity, currents[keep], None, prior,
+                             sol.weights[keep], robust=False, iterations=15, start=sol.theta,
+                             attitude_start=sol.globals, **blocks.fit_options(keep))
+            if prior is None:
+                part = fix_rotation_gauge(part)
+            est_list.append(part.theta.reshape(-1))
+        return _jackknife_factor(np.array(est_list), cov, prior)
     options = blocks.fit_options()
     est = leave_out_estimates(sol, raw, list(np.array_split(order, JACKKNIFE_BLOCKS)),
                               currents if sol.model.channels else None, prior,
@@ -620,14 +645,14 @@ def _undetermined_channels(ana: ident.Identifiability, directions: Array, u: Arr
 def _without_channels(unsolved: list[int], raw: ArrayLike, geometry: ArrayGeometry, reference_field: float | None,
                       method: str, options: SolveOptions | None, prior: ArrayCalibration | None, u: Array,
                       channels: tuple[str, ...], stamps: ArrayLike | None,
-                      temperatures: ArrayLike | None = None) -> CalibrationResult:
+                      temperatures: ArrayLike | None = None, imu: ImuSamples | None = None) -> CalibrationResult:
     """The calibration without the ``unsolved`` channels, with a warning naming them."""
     mask = np.isin(np.arange(len(channels)), unsolved)
     note = f"interference not solved (undetermined): {describe_undetermined(channels, u, mask)}"
     keep = [j for j in range(len(channels)) if not mask[j]]
     try:
         result = calibrate_array(raw, geometry, reference_field, method, options, prior, u[:, keep],
-                                 tuple(channels[j] for j in keep), stamps, temperatures)
+                                 tuple(channels[j] for j in keep), stamps, temperatures, imu)
     except MagcalError as exc:
         raise type(exc)(f"{note}; without them: {exc}") from None
     result.warnings.insert(0, note)
@@ -673,6 +698,7 @@ def calibrate_array(
     channels: tuple[str, ...] = (),
     stamps: ArrayLike | None = None,
     temperatures: ArrayLike | None = None,
+    imu: ImuSamples | None = None,
 ) -> CalibrationResult:
     """Solve the array calibration from raw sets (N, S, 3) in T of a uniform, constant field.
 
@@ -682,7 +708,10 @@ def calibrate_array(
     is estimated too. ``stamps`` (N,) int ns put the sets in time order (default: as given);
     when the sets follow a continuous motion, each sensor's lag relative to the first is
     estimated too. ``temperatures`` (N, S) or (N,) deg C: offsets and gains linear in each
-    sensor's temperature are estimated (when the temperatures span enough).
+    sensor's temperature are estimated (when the temperatures span enough). ``imu``: the
+    vehicle's IMU at each set (orientation and/or gyro): the array-to-IMU rotation, the field's
+    direction and (with orientations) a constant site gradient are fitted too
+    (:mod:`magcal_ros.methods.attitude`), and every output is in the IMU's frame.
     Raises :class:`ObservabilityError` when the manoeuvre cannot determine the calibration
     (naming what is missing and what to fly), :class:`InputError` for bad input and
     :class:`CalibrationFailed` when the result fails a quality gate (naming the cause).
@@ -730,7 +759,7 @@ def calibrate_array(
         raise CalibrationFailed(saturated)
     stage = opts.progress or (lambda name: None)
     full: _AllSets | None = None
-    budget = solve_budget(s, opts.max_solve_sets)
+    budget = solve_budget(s, opts.max_solve_sets) if imu is None else 0  # the IMU's blocks: every set
     if budget and n > budget:  # long recording: the expensive stages on a subset
         keep = choose_sets(direction_proxy(r), order, budget)
         full = _AllSets(r, u, None if stamps is None else np.asarray(stamps), temperatures)
@@ -768,6 +797,10 @@ def calibrate_array(
         blocks = block_inputs(temperatures, stamps, _start_directions(r, matrices, offsets), s, order)
     elif temperatures is not None:
         raise InputError(f"temperature terms need method 'ml', not {method!r}")
+    if imu is not None and (imu.has_orientation or imu.has_angular_velocity):
+        if not (joint or start_failed is not None):
+            raise InputError(f"calibrating with the IMU needs method 'ml', not {method!r}")
+        blocks = replace(blocks, attitude=imu_blocks.attitude_for(imu, stamps, geometry, n, opts.site_field))
     param_prior = _prior_of(prior, geometry, intensity, channels, opts, blocks)
 
     def solve(m0: Array, o0: Array, f0: float, interference0: Array | None, start: Array | None = None) -> JointSolution:
@@ -815,7 +848,7 @@ def calibrate_array(
     unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
     if unsolved:
         return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
-                                 temperatures)
+                                 temperatures, imu)
     env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, vertical))
     if prior is None and ana.undetermined():
         raise ObservabilityError(_refusal(ana, sol, env))
@@ -844,10 +877,12 @@ def calibrate_array(
             temperature_reference=blocks.reference if thermal else None,
             offset_tempco=sol.offset_tempco if thermal else None,
             matrix_tempco=-matrices_out * sol.gain_tempco[:, None, :] if thermal else None,
+            **imu_blocks.output_frame(sol, prior),
         )
     except InputError as exc_cal:
         raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
-    corrected = cal.apply(r, u if channels else None, temps)
+    # the gates judge the array frame, the site gradient's field (a block of the model) taken off
+    corrected = imu_blocks.without_site_field(cal.apply_array(r, u if channels else None, temps), sol)
     if sol.time_offsets is not None and sol.rates is not None:  # every sensor brought to the set's instant
         corrected = corrected + sol.intensity * sol.time_offsets[None, :, None] * sol.rates[:, None, :]
     tmi_res = np.linalg.norm(corrected, axis=2) - sol.intensity
@@ -880,6 +915,8 @@ def calibrate_array(
     if prior is not None and not reference_field:
         warnings.append(f"used the prior's intensity {sol.intensity / NT:.1f} nT: if the site changed, give the "
                         "new reference field")
+    imu_report = imu_blocks.imu_report(sol, order, None if param_prior is None else
+                                       param_prior.fitted_to(sol.model).precision().reshape(-1))
     used = sol.weights > 0
     tmi_after = np.array([rms(tmi_res[used[:, i], i]) for i in range(s)])
     tmi_before = tmi_rms(r, sol.intensity)
@@ -907,7 +944,8 @@ def calibrate_array(
                 "temperature_range": None if blocks.temperatures is None else
                 (float(blocks.temperatures.min() + blocks.reference), float(blocks.temperatures.max() + blocks.reference)),
                 "temperature_stored": thermal,
-                "block_notes": blocks.notes, "drift": verdict.drift,
+                "block_notes": blocks.notes + tuple(() if imu_report is None else imu_report.notes()),
+                "drift": verdict.drift, "imu": imu_report,
                 "solved_on": None if full is None else (n, full.count, excluded is not None)},
     )
     object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
@@ -963,6 +1001,8 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         meta["lags"] = result.lags()
     if result.extras.get("drift"):
         meta["drift"] = list(result.extras["drift"])
+    if result.extras.get("imu") is not None:
+        meta.update(result.extras["imu"].provenance())
     if result.warnings:
         meta["warnings"] = list(result.warnings)
     return meta

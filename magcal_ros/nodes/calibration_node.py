@@ -966,10 +966,11 @@ class CalibrationNode(Node):
                               "nothing was changed")
         self._check_stop()
         self.get_logger().info(f"solving from {len(raw)} sets (method {method}, prior: {prior_note})")
-        opts = SolveOptions(max_residual=residual, inclination_deg=site.inclination_deg if site is not None else None)
+        opts = SolveOptions(max_residual=residual, inclination_deg=site.inclination_deg if site is not None else None,
+                            site_field=site.vector if site is not None else None)
         try:
             result = calibrate_array(raw, geo, reference, method, opts, prior, currents if channels else None,
-                                     channels, stamps, collected.temperatures)
+                                     channels, stamps, collected.temperatures, collected.imu)
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()

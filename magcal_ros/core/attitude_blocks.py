@@ -1,0 +1,428 @@
+"""The IMU's blocks of the forward model: array-to-IMU rotation, field direction, site gradient.
+
+Frames (see :mod:`magcal_ros.core.imu`): ``A`` turns array (platform) vectors into the IMU
+frame, ``v_imu = A v_array``; a set's attitude ``Q_k`` turns IMU vectors into its reference
+frame: the world ENU when the IMU gives orientations, or the IMU frame at the first set of a
+continuous stretch of gyro readings (the angular velocity integrated between sets). The
+field's unit direction ``f_g`` in reference ``g`` then gives every set's direction in the
+array frame, ``d_k = A^T Q_k^T f_g``; the joint fit (:mod:`magcal_ros.core.array_fit`) adds
+``(d_k - A^T Q_k^T f_g) / sigma_att`` to its residuals, ``sigma_att`` (rad) the IMU's attitude
+error, estimated from those residuals (robust median) the way each sensor's noise is.
+
+With orientations a constant world-frame gradient ``G_w`` (T/m, symmetric, traceless, ENU,
+``G[i, j] = dB_j / dx_i``) adds ``R_k^T G_w R_k p_i`` (``R_k = Q_k A``, array to world) to the
+field at sensor ``i`` (``p_i`` about the array centre): a pier's or a ship's gradient is then
+part of the model instead of calibration error.
+
+Parameters are small increments about the current state (re-centred after every step):
+three angles (rad) rotating ``A`` on the left (about the IMU axes), two tangent coordinates
+per field direction, the five gradient entries ``xx, xy, xz, yy, yz`` in units of F per m.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core.forward_model import ForwardModel
+from magcal_ros.core.imu import quat_exp, quat_to_matrix
+from magcal_ros.core.rotation import procrustes
+from magcal_ros.core.units import NS_PER_S, NT
+from magcal_ros.errors import InputError
+
+Array = NDArray[np.float64]
+
+MIN_ATTITUDE_SIGMA: float = 1e-6
+"""Floor (rad) of the attitude residuals' 1-sigma (an IMU without error)."""
+GYRO_GAP: float = 5.0
+"""A stamp interval this many times the typical one ends a gyro segment (its integration)."""
+MIN_SEGMENT_SETS: int = 10
+"""A gyro segment shorter than this is not used (its field direction would be nearly free)."""
+WEAK_GLOBAL_SIGMA: float = 1.0
+"""1-sigma of the weak prior on every global parameter (rad, unit tangent, 1/m in units of F)."""
+GRADIENT_BASIS: Array = np.array([
+    [[1, 0, 0], [0, 0, 0], [0, 0, -1]],
+    [[0, 1, 0], [1, 0, 0], [0, 0, 0]],
+    [[0, 0, 1], [0, 0, 0], [1, 0, 0]],
+    [[0, 0, 0], [0, 1, 0], [0, 0, -1]],
+    [[0, 0, 0], [0, 0, 1], [0, 1, 0]],
+], dtype=float)
+"""Symmetric traceless 3x3 matrices of the gradient's parameters xx, xy, xz, yy, yz."""
+GRADIENT_NAMES: tuple[str, ...] = ("xx", "xy", "xz", "yy", "yz")
+
+
+def skew(v: Array) -> Array:
+    """(..., 3, 3) cross-product matrices ``[v]x`` of (..., 3) vectors."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def rotation_of(rotvec: Array) -> Array:
+    """(3, 3) rotation of a rotation vector (rad)."""
+    return quat_to_matrix(quat_exp(np.asarray(rotvec, dtype=float)))
+
+
+def tangent(u: Array) -> Array:
+    """(3, 2) orthonormal basis of the plane perpendicular to the unit vector ``u``."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.column_stack([e1, np.cross(u, e1)])
+
+
+def gradient_matrix(params: Array) -> Array:
+    """(3, 3) symmetric traceless matrix of the 5 parameters ``xx, xy, xz, yy, yz``."""
+    return np.einsum("j,jab->ab", np.asarray(params, dtype=float), GRADIENT_BASIS)
+
+
+def gradient_params(g: Array) -> Array:
+    """The 5 parameters ``xx, xy, xz, yy, yz`` of a symmetric traceless (3, 3) matrix."""
+    return np.array([g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2]], dtype=float)
+
+
+@dataclass(frozen=True)
+class AttitudeInputs:
+    """What the IMU gives each set, for the global blocks."""
+
+    rotations: Array
+    """(N, 3, 3) ``Q_k``: IMU frame -> the set's reference frame (identity where ``groups`` < 0)."""
+    groups: NDArray[np.int64]
+    """(N,) the set's reference (0 .. count - 1), -1: no attitude."""
+    count: int
+    """Number of references (field directions)."""
+    world: bool
+    """The references are the world frame ENU (one, from orientations); False: gyro segments."""
+    positions: Array | None = None
+    """(S, 3) m, sensor positions about the array centre (array frame): fit the site gradient
+    (orientations only); None: no gradient block."""
+    field: Array | None = None
+    """(3,) unit field direction in the world frame ENU to hold (the site's model); None: fitted."""
+    frame_id: str = ""
+    """The IMU's frame (the output frame of the calibration)."""
+
+    def __post_init__(self) -> None:
+        if self.positions is not None and not self.world:
+            raise InputError("the site gradient needs the IMU's orientation (a world frame)")
+        if self.field is not None and not self.world:
+            raise InputError("a given field direction needs the IMU's orientation (a world frame)")
+
+    @property
+    def known(self) -> NDArray[np.bool_]:
+        """(N,) sets with an attitude."""
+        return self.groups >= 0
+
+    def model(self, sensors: int, channels: int = 0, temperature: bool = False, lag: bool = False) -> ForwardModel:
+        """The forward model with these global blocks on."""
+        return ForwardModel(sensors, channels, temperature, lag, True, self.count, self.positions is not None)
+
+    def take(self, keep: NDArray[np.bool_] | NDArray[np.int64]) -> "AttitudeInputs":
+        """The sets selected by a mask or index array (every reference kept)."""
+        return replace(self, rotations=self.rotations[keep], groups=self.groups[keep])
+
+    def fixed(self, model: ForwardModel) -> NDArray[np.bool_]:
+        """(G,) global parameters kept at their start: a held field direction."""
+        out = np.zeros(model.global_size, bool)
+        if self.field is not None:
+            out[model.field_slice(0)] = True
+        return out
+
+
+@dataclass(frozen=True)
+class GlobalState:
+    """The global blocks' current values (frames and units of the module docstring)."""
+
+    mounting: Array
+    """(3, 3) ``A``: array frame -> IMU frame."""
+    fields: Array
+    """(count, 3) unit field direction of each reference."""
+    gradient: Array
+    """(3, 3) ``G_w / F`` (1/m), world ENU; zeros without the gradient block."""
+
+    def moved(self, step: Array, model: ForwardModel) -> "GlobalState":
+        """The state after a step of the global parameters (model layout)."""
+        a = self.mounting
+        if model.mounting_slice is not None:
+            a = rotation_of(step[model.mounting_slice]) @ a
+        fields = self.fields.copy()
+        for g in range(model.field_groups):
+            f = fields[g] + tangent(fields[g]) @ step[model.field_slice(g)]
+            fields[g] = f / np.linalg.norm(f)
+        grad = self.gradient
+        if model.gradient_slice is not None:
+            grad = grad + gradient_matrix(step[model.gradient_slice])
+        return GlobalState(a, fields, grad)
+
+    def deviation(self, start: "GlobalState", model: ForwardModel) -> Array:
+        """(G,) where this state lies from ``start`` in the global parameters (for the weak prior)."""
+        out = np.zeros(model.global_size)
+        if model.mounting_slice is not None:
+            r = self.mounting @ start.mounting.T
+            angle = np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))
+            axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+            out[model.mounting_slice] = 0.5 * axis * (angle / np.sin(angle) if angle > 1e-8 else 1.0)
+        for g in range(model.field_groups):
+            out[model.field_slice(g)] = tangent(self.fields[g]).T @ (self.fields[g] - start.fields[g])
+        if model.gradient_slice is not None:
+            out[model.gradient_slice] = gradient_params(self.gradient)
+        return out
+
+    def rotated(self, qmat: Array) -> "GlobalState":
+        """The state after the array frame turned by ``qmat`` (``d -> Q d``): ``A -> A Q^T``."""
+        return replace(self, mounting=self.mounting @ np.asarray(qmat).T)
+
+
+def reference_field(att: AttitudeInputs, state: GlobalState) -> Array:
+    """(N, 3) ``u_k = Q_k^T f_g``: each set's field direction in the IMU frame (zeros without attitude)."""
+    f = state.fields[np.maximum(att.groups, 0)]
+    u = np.einsum("nji,nj->ni", att.rotations, f)
+    return np.where(att.known[:, None], u, 0.0)
+
+
+def attitude_residuals(att: AttitudeInputs, state: GlobalState, d: Array) -> Array:
+    """(N, 3) ``d_k - A^T Q_k^T f_g`` (rad, small); zeros for sets without attitude."""
+    e = d - reference_field(att, state) @ state.mounting
+    return np.where(att.known[:, None], e, 0.0)
+
+
+def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardModel) -> Array:
+    """(N, 3, G) derivative of :func:`attitude_residuals` by the global parameters."""
+    n = len(att.groups)
+    jac = np.zeros((n, 3, model.global_size))
+    u = reference_field(att, state)
+    at = state.mounting.T
+    if model.mounting_slice is not None:
+        jac[:, :, model.mounting_slice] = -np.einsum("ab,nbc->nac", at, skew(u))
+    for g in range(model.field_groups):
+        rows = att.groups == g
+        t = tangent(state.fields[g])
+        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,ncb,cd->nad", at, att.rotations[rows], t, optimize=True)
+    return jac
+
+
+def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
+    """(N, S, 3) ``R_k^T Gamma R_k p_i`` (units of F, array frame), or None without the block."""
+    if att.positions is None:
+        return None
+    ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)  # array -> world
+    w = np.einsum("nba,bc,ncd->nad", ra, state.gradient, ra, optimize=True)
+    h = np.einsum("nab,sb->nsa", w, att.positions)
+    return np.where(att.known[:, None, None], h, 0.0)
+
+
+def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardModel) -> Array | None:
+    """(N, S, 3, G) derivative of :func:`gradient_field` by the global parameters (None without the block)."""
+    if att.positions is None or model.gradient_slice is None:
+        return None
+    n, s = len(att.groups), len(att.positions)
+    jac = np.zeros((n, s, 3, model.global_size))
+    ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
+    rp = np.einsum("nab,sb->nsa", ra, att.positions)  # R p, world
+    for j, e in enumerate(GRADIENT_BASIS):
+        jac[:, :, :, model.gradient_slice.start + j] = np.einsum("nba,bc,nsc->nsa", ra, e, rp, optimize=True)
+    if model.mounting_slice is not None:
+        # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
+        wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations, optimize=True)
+        ap = att.positions @ state.mounting.T  # (S, 3) A p
+        wap = np.einsum("nab,sb->nsa", wq, ap)
+        inner = skew(wap) - np.einsum("nab,sbc->nsac", wq, skew(ap))
+        jac[:, :, :, model.mounting_slice] = np.einsum("ba,nsbc->nsac", state.mounting, inner)
+    known = att.known[:, None, None, None]
+    return np.where(known, jac, 0.0)
+
+
+def robust_sigma(e: Array, weights: Array) -> float:
+    """1-sigma (rad) per tangent axis of attitude residuals (N, 3): the median of ``|e|^2`` over
+    the weighted sets, scaled for 2 degrees of freedom; floored at :data:`MIN_ATTITUDE_SIGMA`."""
+    sq = np.sum(e * e, axis=1)[weights > 0]
+    if not len(sq):
+        return 1.0
+    return float(max(np.sqrt(np.median(sq) / np.log(4.0)), MIN_ATTITUDE_SIGMA))  # chi2(2) median = 2 ln 2
+
+
+# -- from the IMU's samples ---------------------------------------------------------------------------
+def gyro_attitudes(angular_velocity: Array, times: Array) -> tuple[Array, NDArray[np.int64], int]:
+    """Relative attitudes from the gyro: ``(Q (N, 3, 3), groups (N,), count)``.
+
+    ``angular_velocity`` (N, 3) rad/s IMU frame (NaN: none) at the sets, ``times`` (N,) s in
+    time order. Consecutive sets with a gyro reading and no gap (:data:`GYRO_GAP`) form a
+    segment; ``Q_k`` turns IMU vectors at set ``k`` into the IMU frame at the segment's first
+    set (the rate taken constant between sets at the mean of the two readings). Segments of
+    fewer than :data:`MIN_SEGMENT_SETS` sets are dropped (group -1).
+    """
+    w = np.asarray(angular_velocity, dtype=float)
+    t = np.asarray(times, dtype=float)
+    n = len(t)
+    q = np.tile(np.eye(3), (n, 1, 1))
+    groups = np.full(n, -1, np.int64)
+    ok = np.all(np.isfinite(w), axis=1)
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    typical = float(np.median(positive)) if len(positive) else 1.0
+    count, start = 0, None
+    bounds = []
+    for k in range(n):
+        new = start is None or not ok[k] or not ok[k - 1] or not (0 < t[k] - t[k - 1] <= GYRO_GAP * typical)
+        if new:
+            if start is not None:
+                bounds.append((start, k))
+            start = k if ok[k] else None
+    if start is not None:
+        bounds.append((start, n))
+    for a, b in bounds:
+        if b - a < MIN_SEGMENT_SETS:
+            continue
+        for k in range(a + 1, b):
+            q[k] = q[k - 1] @ rotation_of(0.5 * (w[k - 1] + w[k]) * (t[k] - t[k - 1]))
+        groups[a:b] = count
+        count += 1
+    return q, groups, count
+
+
+def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, positions: Array | None,
+                    gradient: bool, field_world: Array | None = None, frame_id: str = "") -> AttitudeInputs | None:
+    """The global blocks' inputs from the IMU at each set (None when it gives nothing usable).
+
+    ``orientation`` (N, 4) quaternions IMU -> world ENU (NaN rows: none) and ``angular_velocity``
+    (N, 3) rad/s; ``stamps`` (N,) int ns. Orientations are used when the IMU gives any (with
+    ``gradient``, the site gradient block too, sensors at ``positions`` (S, 3) m); otherwise the
+    gyro, integrated in continuous segments. ``field_world`` (3,) the site's field (world ENU,
+    any units): its direction is held.
+    """
+    q = np.asarray(orientation, dtype=float)
+    known = np.all(np.isfinite(q), axis=1)
+    n = len(q)
+    field = None if field_world is None else np.asarray(field_world, dtype=float) / np.linalg.norm(field_world)
+    if known.sum() >= MIN_SEGMENT_SETS:
+        rot = np.tile(np.eye(3), (n, 1, 1))
+        rot[known] = quat_to_matrix(q[known])
+        centred = None
+        if gradient and positions is not None and len(positions) > 1:
+            p = np.asarray(positions, dtype=float)
+            centred = p - p.mean(axis=0)
+        return AttitudeInputs(rot, np.where(known, 0, -1).astype(np.int64), 1, True, centred, field, frame_id)
+    w = np.asarray(angular_velocity, dtype=float)
+    if np.sum(np.all(np.isfinite(w), axis=1)) < MIN_SEGMENT_SETS:
+        return None
+    st = np.asarray(stamps).astype(np.int64)
+    order = np.argsort(st, kind="stable")
+    rot_o, groups_o, count = gyro_attitudes(w[order], (st[order] - st.min()) / NS_PER_S)
+    if count == 0:
+        return None
+    rot, groups = np.empty_like(rot_o), np.empty_like(groups_o)
+    rot[order], groups[order] = rot_o, groups_o
+    return AttitudeInputs(rot, groups, count, False, None, None, frame_id)
+
+
+# -- the closed-form start ----------------------------------------------------------------------------
+def _axis_rotations() -> list[Array]:
+    """The 24 rotations that permute the axes (with signs): starts for the alternating fit."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return out
+
+
+def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count: int, field: Array | None,
+               rounds: int) -> tuple[Array, Array, float]:
+    """Alternating Procrustes from ``a``: fields then mounting, ``rounds`` times; (A, fields, cost)."""
+    fields = np.zeros((count, 3))
+    for _ in range(rounds):
+        world = np.einsum("nab,bc,nc->na", rot, a, d, optimize=True)  # Q A d: should be f_g
+        for g in range(count):
+            if field is not None:
+                fields[g] = field
+            else:
+                m = world[groups == g].sum(axis=0)
+                fields[g] = m / max(np.linalg.norm(m), 1e-300)
+        target = np.einsum("nba,nb->na", rot, fields[groups])  # Q^T f: should be A d
+        a = procrustes(d, target)
+    cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d, optimize=True) - fields[groups]) ** 2))
+    return a, fields, cost
+
+
+def initial_state(att: AttitudeInputs, directions: Array) -> GlobalState:
+    """A and the field directions in closed form from the calibrated directions (N, 3): alternating
+    Procrustes (Wahba's problem for ``A``, the mean for each ``f_g``) from each of the 24 axis
+    rotations, the best kept; the gradient at zero."""
+    known = att.known
+    d, rot, groups = directions[known], att.rotations[known], att.groups[known]
+    best = None
+    for a0 in _axis_rotations():
+        a, fields, cost = _alternate(a0, d, rot, groups, att.count, att.field, 8)
+        if best is None or cost < best[2]:
+            best = (a, fields, cost)
+    assert best is not None
+    a, fields, _ = _alternate(best[0], d, rot, groups, att.count, att.field, 200)
+    return GlobalState(a, fields, np.zeros((3, 3)))
+
+
+# -- in physical words --------------------------------------------------------------------------------
+def roll_pitch_yaw(a: Array) -> Array:
+    """(3,) deg: roll, pitch, yaw of ``A = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    pitch = -np.arcsin(np.clip(a[2, 0], -1.0, 1.0))
+    roll = np.arctan2(a[2, 1], a[2, 2])
+    yaw = np.arctan2(a[1, 0], a[0, 0])
+    return np.degrees(np.array([roll, pitch, yaw]))
+
+
+@dataclass(frozen=True)
+class GlobalQuantity:
+    """One global quantity with its 1-sigma, in the unit it is reported in."""
+
+    block: str
+    name: str
+    unit: str
+    value: float
+    sigma: float
+
+    def describe(self) -> str:
+        return f"{self.name} {self.value:.3f} +- {float(f'{self.sigma:.2g}'):g} {self.unit}"
+
+
+def global_quantities(state: GlobalState, cov: Array, model: ForwardModel, intensity: float,
+                      world: bool) -> list[GlobalQuantity]:
+    """The global blocks in physical words with 1-sigma from their covariance ``cov`` (G, G):
+    the mounting as roll, pitch, yaw (deg), each world field direction as declination and
+    inclination (deg, ENU: declination east of the world's north, inclination down), the
+    gradient's entries (nT/m, world ENU)."""
+    out: list[GlobalQuantity] = []
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if model.mounting_slice is not None:
+        sl = model.mounting_slice
+        base = roll_pitch_yaw(state.mounting)
+        jac = np.empty((3, 3))
+        for j in range(3):
+            h = np.zeros(3)
+            h[j] = 1e-6
+            jac[:, j] = (roll_pitch_yaw(rotation_of(h) @ state.mounting)
+                         - roll_pitch_yaw(rotation_of(-h) @ state.mounting)) / 2e-6
+        s = np.sqrt(np.clip(np.diag(jac @ cov[sl, sl] @ jac.T), 0.0, None))
+        for name, v, e in zip(("roll", "pitch", "yaw"), base, s):
+            out.append(GlobalQuantity("mounting", f"array to IMU {name}", "deg", float(v), float(e)))
+    if world and model.field_groups:
+        sl = model.field_slice(0)
+        f = state.fields[0]
+
+        def angles(v: Array) -> Array:
+            v = v / np.linalg.norm(v)
+            return np.degrees(np.array([np.arctan2(v[0], v[1]), -np.arcsin(np.clip(v[2], -1.0, 1.0))]))
+
+        t = tangent(f)
+        jac = np.column_stack([(angles(f + 1e-6 * t[:, j]) - angles(f - 1e-6 * t[:, j])) / 2e-6 for j in range(2)])
+        s = np.sqrt(np.clip(np.diag(jac @ cov[sl, sl] @ jac.T), 0.0, None))
+        for name, v, e in zip(("declination", "inclination"), angles(f), s):
+            out.append(GlobalQuantity("field direction", f"field {name}", "deg", float(v), float(e)))
+    if model.gradient_slice is not None:
+        sl = model.gradient_slice
+        values = gradient_params(state.gradient) * intensity / NT
+        for name, v, e in zip(GRADIENT_NAMES, values, sig[sl] * intensity / NT):
+            out.append(GlobalQuantity("site gradient", f"site gradient {name}", "nT/m", float(v), float(e)))
+    return out

@@ -1,0 +1,162 @@
+"""The IMU in the calibration pipeline: its blocks' inputs, their analysis in words, the output frame.
+
+The blocks themselves are part of the one forward model (:mod:`magcal_ros.core.attitude_blocks`,
+fitted by :func:`~magcal_ros.core.array_fit.fit_array`); this module prepares their inputs from
+the IMU at each set, reports what they found (the mounting as roll, pitch and yaw with their
+1-sigma, the field direction, the site gradient) and turns a calibration made with an IMU into
+the IMU's frame: ``output_rotation`` is the fitted array-to-IMU rotation, ``frame_id`` the IMU's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magcal_ros.core import attitude_blocks as ab
+from magcal_ros.core.array_fit import JointSolution
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.imu import NED_TO_ENU
+from magcal_ros.core.recording import ImuSamples
+from magcal_ros.core.uncertainty import centre_gauge_constraints, covariance
+from magcal_ros.errors import InputError
+
+Array = NDArray[np.float64]
+
+
+def attitude_for(imu: ImuSamples | None, stamps: Any, geometry: ArrayGeometry, count: int,
+                 site_field_ned: Array | None = None) -> ab.AttitudeInputs | None:
+    """The global blocks' inputs from the IMU at each of ``count`` sets (None without a usable IMU).
+
+    Orientations switch on the mounting, the world field direction (held at the site's model
+    ``site_field_ned`` (3,) T, NED, when given) and the site gradient (two or more sensors);
+    a gyro alone the mounting and one field direction per continuous segment (``stamps`` (N,)
+    int ns needed).
+    """
+    if imu is None:
+        return None
+    if len(imu) != count:
+        raise InputError(f"the IMU has {len(imu)} sets, the readings {count}")
+    if not imu.has_orientation and stamps is None:
+        if imu.has_angular_velocity:
+            raise InputError("the gyro needs the sets' stamps (to integrate the angular velocity between sets)")
+        return None
+    st = np.arange(count, dtype=np.int64) if stamps is None else np.asarray(stamps).astype(np.int64)
+    field = None if site_field_ned is None else NED_TO_ENU @ np.asarray(site_field_ned, dtype=float)
+    return ab.attitude_inputs(imu.orientation, imu.angular_velocity, st, geometry.positions, geometry.size > 1,
+                              field if imu.has_orientation else None, imu.frame_id)
+
+
+@dataclass(frozen=True)
+class ImuReport:
+    """What the global blocks found: the quantities with their 1-sigma, and how the IMU was used."""
+
+    quantities: list[ab.GlobalQuantity]
+    covariance: Array
+    """(G, G) covariance of the global parameters (model layout; rad, unit tangent, 1/m in units of F)."""
+    source: str
+    """``orientation`` or ``gyro``."""
+    sets: int
+    """Sets with an attitude."""
+    segments: int
+    """Gyro segments (1 for orientations)."""
+    attitude_sigma_deg: float
+    """The IMU's attitude error as the fit saw it (deg, 1-sigma per axis)."""
+    frame_id: str
+
+    def by_name(self, name: str) -> ab.GlobalQuantity:
+        """The quantity called ``name`` (e.g. ``array to IMU roll``)."""
+        return next(q for q in self.quantities if q.name == name)
+
+    def notes(self) -> list[str]:
+        """Summary lines: ``array to IMU: roll 2.00 +- 0.01 deg, ...``, the field, the gradient."""
+        out = []
+        mount = [q for q in self.quantities if q.block == "mounting"]
+        if mount:
+            where = f"outputs in the IMU frame {self.frame_id}" if self.frame_id else "outputs in the IMU frame"
+            out.append("array to IMU: " + ", ".join(f"{q.name.split()[-1]} {q.value:.2f} +- "
+                                                  f"{float(f'{q.sigma:.2g}'):g} deg" for q in mount)
+                       + f" ({where}; IMU {self.source} at {self.sets} sets"
+                       + (f" in {self.segments} segments" if self.source == "gyro" else "")
+                       + f", attitude error {self.attitude_sigma_deg:.3g} deg)")
+        field = [q for q in self.quantities if q.block == "field direction"]
+        if field:
+            out.append("field in the IMU's world frame: " + ", ".join(
+                f"{q.name.split()[-1]} {q.value:.2f} +- {float(f'{q.sigma:.2g}'):g} deg" for q in field))
+        grad = [q for q in self.quantities if q.block == "site gradient"]
+        if grad:
+            out.append("site gradient (world ENU, modelled, not calibration error): " + ", ".join(
+                f"{q.name.split()[-1]} {q.value:.1f} +- {float(f'{q.sigma:.2g}'):g} nT/m" for q in grad))
+        return out
+
+    def provenance(self) -> dict[str, Any]:
+        """Calibration-file provenance keys (``imu``: the blocks' values and 1-sigma)."""
+        values = {quantity_key(q.name): q.value for q in self.quantities}
+        sigmas = {quantity_key(q.name): q.sigma for q in self.quantities}
+        return {"imu": {"source": self.source, "sets": self.sets, "segments": self.segments,
+                        "attitude_sigma_deg": self.attitude_sigma_deg, "frame_id": self.frame_id,
+                        "values": values, "sigma": sigmas}}
+
+
+def quantity_key(name: str) -> str:
+    """A quantity name as a parameter key: ``array to IMU roll`` -> ``array_to_imu_roll_deg``."""
+    unit = "nT_per_m" if name.startswith("site gradient") else "deg"
+    return name.lower().replace(" ", "_") + "_" + unit
+
+
+def global_covariance(sol: JointSolution, order: NDArray[np.int64], prior_precision: Array | None) -> Array:
+    """(G, G) sandwich covariance of the global parameters (time-correlated noise, the frame's gauge
+    fixed as for the sensors, held ones at zero; ``prior_precision`` (S P,) of the sensors' prior)."""
+    assert sol.full_information is not None and sol.full_scores is not None and sol.attitude is not None
+    model = sol.model
+    sp, ng = model.sensors * model.size, model.global_size
+    prec = np.concatenate([np.zeros(sp) if prior_precision is None else prior_precision,
+                           np.full(ng, ab.WEAK_GLOBAL_SIGMA ** -2.0)])
+    rows = []
+    if prior_precision is None:
+        rows.append(np.concatenate([centre_gauge_constraints(sol.w, model.size), np.zeros((3, ng))], axis=1))
+    fixed = np.concatenate([np.zeros(sp, bool) if sol.fixed is None else sol.fixed.reshape(-1),
+                            sol.attitude.fixed(model)])
+    if fixed.any():
+        rows.append(np.eye(sp + ng)[fixed])
+    # the global parameters are determined by the attitude residuals: their time correlation (an
+    # IMU's slowly wandering error, the gyro's integrated noise) sets the bandwidth
+    series = sol.residuals[order].reshape(len(order), -1) if sol.attitude_residuals is None else \
+        sol.attitude_residuals[order][sol.attitude.known[order]]
+    cov = covariance(sol.full_information, sol.full_scores[order], series, prec,
+                     np.concatenate(rows) if rows else None)
+    return cov.matrix[sp:, sp:]
+
+
+def imu_report(sol: JointSolution, order: NDArray[np.int64], prior_precision: Array | None) -> ImuReport | None:
+    """The global blocks of a solution in physical words (None without them)."""
+    if sol.globals is None or sol.attitude is None:
+        return None
+    cov = global_covariance(sol, order, prior_precision)
+    att = sol.attitude
+    quantities = ab.global_quantities(sol.globals, cov, sol.model, sol.intensity, att.world)
+    if att.field is not None:  # held at the site's model: no 1-sigma of its own
+        quantities = [q if q.block != "field direction" else ab.GlobalQuantity(q.block, q.name, q.unit, q.value, 0.0)
+                      for q in quantities]
+    return ImuReport(quantities, cov, "orientation" if att.world else "gyro", int(att.known.sum()), att.count,
+                     float(np.degrees(sol.attitude_sigma or 0.0)), att.frame_id)
+
+
+def output_frame(sol: JointSolution, prior: ArrayCalibration | None = None) -> dict[str, Any]:
+    """``ArrayCalibration`` keywords putting the outputs in the IMU frame; without an IMU a
+    recalibration from a ``prior`` (whose frame it keeps) keeps the prior's output frame, else {}."""
+    if sol.globals is None or sol.attitude is None:
+        if prior is not None and (prior.rotated or prior.frame_id):
+            return {"output_rotation": prior.output_rotation, "frame_id": prior.frame_id}
+        return {}
+    return {"output_rotation": sol.globals.mounting, "frame_id": sol.attitude.frame_id or None}
+
+
+def without_site_field(corrected: Array, sol: JointSolution) -> Array:
+    """Corrected vectors (N, S, 3) T, array frame, with the fitted site gradient's field taken off:
+    what the quality gates judge (the field the manoeuvre's uniform part would give)."""
+    site = sol.site_field()
+    return corrected if site is None else corrected - site

@@ -1,0 +1,231 @@
+"""The IMU's blocks of the forward model against simulated truth: the array-to-IMU rotation, the
+field direction, a world-frame site gradient, the gyro's relative rotations; outputs in the IMU frame.
+
+Floors come from the simulator: 1 nT noise per axis, the tensor floor sqrt(2) sigma / d of the
+0.4 m cross; the mounting 2-3 deg off the array. The array frame is fixed by the gauge of
+:mod:`magcal_ros.core.uncertainty` (the virtual centre sensor's matrix upper triangular), so the
+true array-to-IMU rotation is the simulated mounting expressed in that frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from magcal_ros.core import attitude_blocks as ab
+from magcal_ros.core.imu import NED_TO_ENU, matrix_to_quat
+from magcal_ros.core.metrics import rms, tensor_floor, tensor_rms, tmi_rms
+from magcal_ros.core.recording import ImuSamples
+from magcal_ros.core.units import NT
+from magcal_ros.errors import ObservabilityError
+from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
+from magcal_ros.sim.spec import SimulationSpec, run
+
+NOISE = 1 * NT
+FLOOR = tensor_floor(NOISE, 0.4)
+MOUNTING = (2.0, -2.5, 3.0)  # roll, pitch, yaw (deg): array frame -> IMU frame
+GRADIENT_NED = (30e-9, 10e-9, -15e-9, -20e-9, 5e-9)  # xx, xy, xz, yy, yz (T/m): ||G|| about 50 nT/m
+
+
+def _fresh(seed: int):
+    """The same sensors (same seed) in a uniform field at other attitudes."""
+    rec, truth, sim = run(SimulationSpec(count=600, schedule="random", seed=seed, noise=NOISE, imu=True,
+                                         imu_mounting=MOUNTING))
+    return rec, truth, sim
+
+
+def _gauge_mounting(truth_cal, mounting: np.ndarray) -> np.ndarray:
+    """The true array-to-IMU rotation in the reported array frame (mean(K_i) upper triangular)."""
+    upper, q = scipy.linalg.rq(np.linalg.inv(truth_cal.matrices).mean(axis=0))
+    q = np.sign(np.diag(upper))[:, None] * q
+    return mounting @ q.T
+
+
+@pytest.fixture(scope="module")
+def tumble():
+    """A tumble with the IMU's orientation (0.02 deg error) and a fresh recording of the same sensors."""
+    spec = SimulationSpec(count=380, schedule="tumble", seed=11, noise=NOISE, imu=True, imu_mounting=MOUNTING,
+                          imu_orientation_noise=0.02)
+    rec, truth, sim = run(spec)
+    result = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps, imu=rec.imu)
+    return spec, rec, truth, sim, result
+
+
+def test_orientation_outputs_in_the_imu_frame_on_fresh_attitudes(tumble):
+    spec, _, _, sim, result = tumble
+    cal = result.calibration
+    assert cal.frame_id == "imu_link" and cal.rotated
+    rec, truth, _ = _fresh(spec.seed)
+    out = cal.outputs(rec.vectors)
+    true_imu = np.einsum("ab,nsb->nsa", sim.imu.mounting, truth.field)
+    per_axis = rms(out.vectors - true_imu)
+    assert per_axis < 2 * NT, per_axis / NT
+    assert np.max(tmi_rms(out.vectors, spec.intensity)) < 1.2 * NOISE
+    assert tensor_rms(out.tensor) < 1.2 * FLOOR
+    # the file stores the rotation and the frame
+    params = cal.to_parameters()
+    assert np.allclose(np.reshape(params["output_rotation"], (3, 3)), cal.output_rotation)
+    assert params["frame_id"] == "imu_link"
+
+
+def test_mounting_and_field_direction_within_three_sigma_of_truth(tumble):
+    spec, _, truth, sim, result = tumble
+    report = result.extras["imu"]
+    true_rpy = ab.roll_pitch_yaw(_gauge_mounting(truth.calibration, sim.imu.mounting))
+    for name, value in zip(("roll", "pitch", "yaw"), true_rpy):
+        q = report.by_name(f"array to IMU {name}")
+        assert 0 < q.sigma < 0.01, q
+        assert abs(q.value - value) < 3 * q.sigma + 1e-4, (q, value)
+    # declination and inclination of the simulated Earth field (ENU world of the IMU)
+    for name, value in (("declination", spec.declination), ("inclination", spec.inclination)):
+        q = report.by_name(f"field {name}")
+        assert abs(q.value - value) < 3 * q.sigma + 1e-4, (q, value)
+    assert "array to IMU: roll" in result.summary()
+    assert result.calibration.metadata["imu"]["sigma"]["array_to_imu_roll_deg"] == pytest.approx(
+        report.by_name("array to IMU roll").sigma)
+    # the sensors' own analysis is unchanged in kind: still whole-sphere
+    assert result.envelope.whole_sphere
+
+
+def test_site_gradient_is_modelled_not_calibration_error():
+    spec = SimulationSpec(count=380, schedule="tumble", seed=12, noise=NOISE, imu=True, imu_mounting=MOUNTING,
+                          imu_orientation_noise=0.02, world_gradient=GRADIENT_NED)
+    rec, truth, sim = run(spec)
+    result = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps, imu=rec.imu)
+    fresh, _, _ = run(SimulationSpec(count=600, schedule="random", seed=spec.seed, noise=NOISE))
+    out = result.calibration.outputs(fresh.vectors)
+    assert np.max(tmi_rms(out.vectors, spec.intensity)) < 1.2 * NOISE
+    assert tensor_rms(out.tensor) < 1.2 * FLOOR
+    g = NED_TO_ENU @ sim.world_gradient @ NED_TO_ENU.T
+    report = result.extras["imu"]
+    for name, value in zip(ab.GRADIENT_NAMES, ab.gradient_params(g) / NT):
+        q = report.by_name(f"site gradient {name}")
+        assert abs(q.value - value) < max(3 * q.sigma, 0.05), (q, value)
+        assert q.sigma < 1.0
+    # Without the IMU the same recording cannot separate the gradient from the calibration:
+    # accepted anyway, it becomes calibration error on the fresh attitudes.
+    plain = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps,
+                            options=SolveOptions(max_residual=100 * NT))
+    worse = plain.calibration.outputs(fresh.vectors)
+    assert tensor_rms(worse.tensor) > 1.5 * FLOOR
+
+
+def test_gyro_alone_turns_a_refused_yaw_manoeuvre_into_a_calibration():
+    """Yaw circles with +-5 deg of wobble, gyro only (no orientation): without the IMU scale z and
+    offset z are undetermined (refused); the gyro's relative rotations tie the sets' directions
+    together and the calibration holds within an envelope wider than the wobble."""
+    spec = SimulationSpec(count=390, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=2.0, seed=13,
+                          noise=NOISE, imu=True, imu_mounting=MOUNTING, imu_gyro_noise=1e-4)
+    rec, truth, sim = run(spec)
+    with pytest.raises(ObservabilityError, match="scale z"):
+        calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps)
+    gyro = ImuSamples(np.full((len(rec), 4), np.nan), rec.imu.angular_velocity, rec.imu.frame_id)
+    with_gyro = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps, imu=gyro)
+    report = with_gyro.extras["imu"]
+    assert report.source == "gyro" and report.segments == 1
+    assert with_gyro.envelope.pitch_deg > 5.0 and with_gyro.envelope.roll_deg > 5.0
+    assert with_gyro.envelope.ratio_sphere < 30.0
+    true_rpy = ab.roll_pitch_yaw(_gauge_mounting(truth.calibration, sim.imu.mounting))
+    for name, value in zip(("roll", "pitch", "yaw"), true_rpy):
+        q = report.by_name(f"array to IMU {name}")
+        # the gyro's integrated error wanders: the stated 1-sigma is a lower bound, 0.01 deg beside it
+        assert abs(q.value - value) < 3 * q.sigma + 0.01, (q, value)
+    assert with_gyro.calibration.frame_id == "imu_link"
+
+
+def test_without_an_imu_nothing_changes(tumble):
+    spec, rec, _, sim, _ = tumble
+    plain = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps)
+    blind = calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps,
+                            imu=ImuSamples.unknown(len(rec), "imu_link"))
+    for res in (plain, blind):
+        assert not res.calibration.rotated and res.calibration.frame_id is None
+        assert "imu" not in res.calibration.metadata and "array to IMU" not in res.summary()
+    assert np.array_equal(plain.calibration.matrices, blind.calibration.matrices)
+    assert np.array_equal(plain.calibration.offsets, blind.calibration.offsets)
+
+
+# -- the blocks' pieces -------------------------------------------------------------------------------
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.stack([ab.rotation_of(v) for v in rng.normal(0, 1.5, (n, 3))])
+
+
+def test_closed_form_start_recovers_mounting_and_field_from_exact_directions():
+    rng = np.random.default_rng(1)
+    q = _random_rotations(rng, 50)
+    a = ab.rotation_of(np.radians([2.0, -1.0, 93.0]))  # far from the identity: an IMU mounted sideways
+    f = np.array([0.1, 0.5, -0.86])
+    f /= np.linalg.norm(f)
+    d = np.einsum("ba,ncb,c->na", a, q, f)  # A^T Q^T f
+    att = ab.AttitudeInputs(q, np.zeros(50, np.int64), 1, True)
+    state = ab.initial_state(att, d)
+    assert np.allclose(state.mounting, a, atol=1e-9)
+    assert np.allclose(state.fields[0], f, atol=1e-9)
+    assert np.allclose(ab.attitude_residuals(att, state, d), 0.0, atol=1e-9)
+
+
+def test_gyro_integration_follows_a_constant_turn():
+    w = np.array([0.05, -0.02, 0.3])  # rad/s, IMU frame
+    t = np.arange(40) * 0.1
+    rot, groups, count = ab.gyro_attitudes(np.tile(w, (40, 1)), t)
+    assert count == 1 and np.all(groups == 0)
+    for k in (1, 17, 39):
+        assert np.allclose(rot[k], ab.rotation_of(w * t[k]), atol=1e-12)
+    # a gap splits the integration: two segments, each from its own first set
+    t2 = np.concatenate([t[:20], t[20:] + 5.0])
+    _, groups2, count2 = ab.gyro_attitudes(np.tile(w, (40, 1)), t2)
+    assert count2 == 2 and np.all(groups2[:20] == 0) and np.all(groups2[20:] == 1)
+
+
+def _finite_difference(fun, state: ab.GlobalState, model, size: int) -> np.ndarray:
+    cols = []
+    for j in range(size):
+        step = np.zeros(size)
+        step[j] = 1e-7
+        cols.append((fun(state.moved(step, model)) - fun(state.moved(-step, model))) / 2e-7)
+    return np.stack(cols, axis=-1)
+
+
+def test_jacobians_of_the_global_blocks_match_finite_differences():
+    rng = np.random.default_rng(2)
+    n = 6
+    q = _random_rotations(rng, n)
+    positions = rng.normal(0, 0.2, (4, 3))
+    att = ab.AttitudeInputs(q, np.array([0, 0, 0, 0, -1, 0]), 1, True, positions)
+    model = att.model(4)
+    state = ab.GlobalState(ab.rotation_of([0.03, -0.04, 1.2]), np.array([[0.2, 0.6, -0.77]]) / 1.0016,
+                           ab.gradient_matrix([3e-4, 1e-4, -2e-4, 5e-4, 1e-4]))
+    state = ab.GlobalState(state.mounting, state.fields / np.linalg.norm(state.fields), state.gradient)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = model.global_size
+    num = _finite_difference(lambda s: ab.attitude_residuals(att, s, d), state, model, g)
+    assert np.allclose(ab.attitude_jacobian(att, state, model), num, atol=1e-6)
+    num_h = _finite_difference(lambda s: ab.gradient_field(att, s), state, model, g)
+    assert np.allclose(ab.gradient_jacobian(att, state, model), num_h, atol=1e-9)
+    assert np.all(ab.gradient_field(att, state)[4] == 0)  # a set without attitude sees none
+
+
+def test_site_gradient_field_is_the_world_gradient_at_each_sensor():
+    """``R^T G R p`` is the world field change ``G^T (R p)`` seen in the array frame (``G[i, j] = dB_j/dx_i``)."""
+    rng = np.random.default_rng(3)
+    q = _random_rotations(rng, 3)
+    a = ab.rotation_of([0.02, 0.01, -0.03])
+    gw = ab.gradient_matrix([3e-4, 1e-4, -2e-4, 5e-4, 1e-4])
+    p = rng.normal(0, 0.2, (4, 3))
+    att = ab.AttitudeInputs(q, np.zeros(3, np.int64), 1, True, p)
+    h = ab.gradient_field(att, ab.GlobalState(a, np.array([[0.0, 1.0, 0.0]]), gw))
+    for k in range(3):
+        ra = q[k] @ a  # array -> world
+        world = (ra @ p.T).T @ gw  # B_j = sum_i x_i G_ij at x = R p
+        assert np.allclose(h[k], world @ ra, atol=1e-15)  # back into the array frame: R^T B
+
+
+def test_quaternion_orientation_enters_as_imu_to_world():
+    """The IMU's quaternion is IMU -> world ENU: the blocks see ``Q = R(q)`` (not its transpose)."""
+    rng = np.random.default_rng(4)
+    q = _random_rotations(rng, 20)
+    att = ab.attitude_inputs(matrix_to_quat(q), np.full((20, 3), np.nan), np.arange(20) * 10**8, None, False)
+    assert att is not None and att.world
+    assert np.allclose(att.rotations, q, atol=1e-12)
