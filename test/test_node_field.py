@@ -211,18 +211,20 @@ def _collect(driver: ArrayDriver, node: str, rec: Recording, currents: np.ndarra
     assert int(progress.get("samples", 0)) == len(rec), progress
 
 
-def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None) -> dict[int, int]:
+def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None,
+            lead: int = CURRENT_LEAD) -> dict[int, int]:
     mapping = driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
-                            currents=currents, current_lead=CURRENT_LEAD)
+                            currents=currents, current_lead=lead)
     driver.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
     return mapping
 
 
-def _fresh_outputs(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """(rows of ``rec`` that came back, corrected vectors, tensors, their currents)."""
+def _fresh_outputs(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None,
+                   lead: int = CURRENT_LEAD) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """(rows of ``rec`` that came back, corrected vectors, tensors, their currents; ``lead``: how many
+    sets ahead the currents go out)."""
     driver.clear_outputs()
-    mapping = _replay(driver, rec, currents)
+    mapping = _replay(driver, rec, currents, lead)
     back = {p: k for k, p in enumerate(mapping[int(t)] for t in rec.stamps)}
     g, c = driver.gradients(back), driver.corrected(back)
     stamps = sorted(t for t in g if t in c)
@@ -451,7 +453,9 @@ def test_float64_currents_are_stamped_on_arrival(world: h.RosRun, thr: ArrayDriv
         u = rec.currents.copy()
         u[:, 1] = 12.5
         _prime(d, replace(thruster_data, check=Recording(rec.names, rec.stamps, rec.vectors, rec.channels, u)))
-        rows, b, _, used = _fresh_outputs(d, rec, u)
+        # A Float64 is stamped when it arrives: sent CURRENT_LEAD (1 s) ahead it would be stale
+        # (older than the current tolerance) at its set; a few sets ahead it is the set's.
+        rows, b, _, used = _fresh_outputs(d, rec, u, lead=5)
         assert len(rows) == len(rec)
         expected = thruster_data.true.apply(rec.vectors[rows], _float32(used))
         np.testing.assert_allclose(b, expected, rtol=1e-9, atol=1e-18)
