@@ -72,11 +72,13 @@ def _calibration_values(driver: Any, node: str, names: tuple[str, ...]) -> dict[
 def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generator, say: Callable[[str], None],
                       speed: float = 1.0, clean: float = 40.0, longest: float = 400.0, target_at: float = 15.0,
                       correction: str = "/magcal_correction", calibration: str = "/magcal_calibration",
-                      max_current: float = 20.0, fresh: float = 40.0, patience: float = 120.0) -> DriftOutcome:
+                      max_current: float = 20.0, fresh: float = 40.0, patience: float = 120.0,
+                      target_depth: float | None = None) -> DriftOutcome:
     """The mission (see the module docstring); ``clean`` s before the jump (the target passed at
     ``target_at`` s), at most ``longest`` s after it. Times are taken from the stamps the nodes judged
     (the health's ``newest_stamp``), so a node that lags the replay does not change them; ``patience``
-    (s of wall time) is how long to wait for a node to catch up at the end of the clean phase."""
+    (s of wall time) is how long to wait for a node to catch up at the end of the clean phase;
+    ``target_depth`` m below the track (default the demo's target's)."""
     out = DriftOutcome(floor=tensor_floor(sim.noise, 0.4))
     driver.watch_diagnostics()
     health_name, recal_name = correction + ": calibration", calibration + ": recalibration"
@@ -85,7 +87,7 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     count = int(seconds * RATE)
     currents = rng.uniform(0.0, max_current, (count, m)) if m else None
     moved = hard_iron_moved(sim, rng)
-    target = replace(TARGET, seconds=target_at)
+    target = replace(TARGET, seconds=target_at, distance=target_depth or TARGET.distance)
     # The mission starts a health window after whatever the correction node saw last (the driver's probe
     # sets, stamped now, all sensors reading one constant vector): judged by stamps, they are out of it.
     window = float(driver.get_parameters(correction, ["health_window"]).get("health_window") or 60.0)
