@@ -682,7 +682,7 @@ class CorrectionNode(Node):
             self._withheld += 1  # never corrected with a stale current or temperature
             return
         listeners = self._listeners
-        listeners.tick(synced.stamp)
+        listeners.tick()
         health = self._health_cal
         if listeners.any or health is not None:
             cal = state.calibration

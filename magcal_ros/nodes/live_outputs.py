@@ -10,10 +10,9 @@ built, by deserializing its bytes with rclpy. The correction is the calibration'
 set); with temperature terms, :meth:`~magcal_ros.core.calibration.ArrayCalibration.outputs`.
 
 An output nobody subscribes costs nothing: :class:`Listeners` keeps, per publisher, whether it has
-subscribers (looked up every :data:`REFRESH_SETS` sets and after a pause: a new subscriber gets the
-outputs from at most that many sets later; matched events would add a waitable per publisher to
-every executor cycle, which costs more), and nothing is computed or packed for an output without
-one.
+subscribers (an output without them looked at every set, one with them every :data:`REFRESH_SETS`
+sets; matched events would add a waitable per publisher to every executor cycle, which costs more),
+and nothing is computed or packed for an output without one.
 """
 
 from __future__ import annotations
@@ -39,37 +38,43 @@ from magcal_ros.io.cdr import (
 from magcal_ros.io.csv_recording import TENSOR_COLUMNS
 
 REFRESH_SETS: int = 8
-"""Sets between two looks at the publishers' subscription counts (about 2 us a publisher)."""
-REFRESH_PAUSE_NS: int = 100_000_000
-"""A set stamped this much (ns) after the previous one is looked up afresh: after a pause the traffic
-may start with a new subscriber (a replay, a test)."""
+"""Sets between two looks at the subscription counts of the outputs that have subscribers (about 2 us
+a publisher); an output without one is looked at every set, so a new subscriber is served from the next
+set on, as DDS itself would."""
 _PROBE_NS = 1_700_000_123_456_789_012
 _PROBE = (1.25e-5, -3.5e-5, 4.0625e-5)
 
 
 class Listeners:
-    """Whether each of ``publishers`` has subscribers, looked up at the first set, then every
-    :data:`REFRESH_SETS` sets and after a pause (:data:`REFRESH_PAUSE_NS`)."""
+    """Whether each of ``publishers`` has subscribers: those without are looked at every set, those with
+    every :data:`REFRESH_SETS` sets (a subscriber that left is noticed a few sets late: harmless)."""
 
-    __slots__ = ("publishers", "listening", "any", "_countdown", "_last")
+    __slots__ = ("publishers", "listening", "any", "_countdown", "_idle")
 
     def __init__(self, publishers: Sequence[Any]) -> None:
         self.publishers = list(publishers)
-        self.listening: list[bool] = [True] * len(self.publishers)
-        self.any = True
+        self.listening: list[bool] = [False] * len(self.publishers)
+        self.any = False
         self._countdown = 0
-        self._last = 0
+        self._idle: list[Any] = []
+        """(index, publisher) of the outputs without subscribers at the last full look."""
 
-    def tick(self, stamp_ns: int) -> None:
-        """Count one set stamped ``stamp_ns``; look at the subscription counts when due."""
+    def tick(self) -> None:
+        """Before a set: bring the listening flags up to date."""
         self._countdown -= 1
-        pause = stamp_ns - self._last > REFRESH_PAUSE_NS
-        self._last = stamp_ns
-        if self._countdown > 0 and not pause:
+        if self._countdown <= 0:
+            self._countdown = REFRESH_SETS
+            self.listening = [p.get_subscription_count() > 0 for p in self.publishers]
+            self._idle = [(k, p) for k, p in enumerate(self.publishers) if not self.listening[k]]
+            self.any = len(self._idle) < len(self.publishers)
             return
-        self._countdown = REFRESH_SETS
-        self.listening = [p.get_subscription_count() > 0 for p in self.publishers]
-        self.any = any(self.listening)
+        if self._idle:
+            found = [(k, p) for k, p in self._idle if p.get_subscription_count() > 0]
+            if found:
+                for k, _ in found:
+                    self.listening[k] = True
+                self._idle = [(k, p) for k, p in self._idle if not self.listening[k]]
+                self.any = True
 
 
 def _check(data: bytes, kind: type, expected: Callable[[Any], bool], what: str) -> None:
