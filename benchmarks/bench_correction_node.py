@@ -241,9 +241,11 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
     rclpy.init(context=context, domain_id=domain)
     watcher = rclpy.create_node("magcal_bench_watcher", context=context)
     published = [0]
+    status: dict[str, str] = {}
 
     def on_status(msg: DiagnosticStatus) -> None:
-        published[0] = int(status_values(msg).get("published", 0))
+        status.update(status_values(msg))
+        published[0] = int(status.get("published", 0))
 
     watcher.create_subscription(DiagnosticStatus, "/magcal_correction/status", on_status, 10)
     executor = SingleThreadedExecutor(context=context)
@@ -260,9 +262,10 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
         procs = {"magcal": psutil.Process(node.pid), "bare": psutil.Process(bare.pid)}
         print(f"\nCPU against a bare rclpy node (same subscriptions and publications, no maths), side by side, "
               f"{seconds:g} s per run, {os.cpu_count()} CPUs; CPU = (user + system) s per wall s of the node process; "
-              "sets: published by each node in the run")
+              "sets: published by each node in the run; age: set stamp to publication in the correction node, "
+              "median of its last second (a node that falls behind the traffic is starved, not cheap)")
         print(f"{'rate':>10} {'listeners':>9} {'run':>4} {'bare CPU %':>11} {'magcal CPU %':>13} {'magcal/bare':>12}"
-              f" {'sets sent':>10} {'magcal':>7} {'bare':>7}")
+              f" {'sets sent':>10} {'magcal':>7} {'bare':>7} {'age p50 ms':>12}")
         for listen in ("all", "gradient"):
             rec = subprocess.Popen([sys.executable, __file__, "--listen", listen, "--domain", str(domain)], env=env,
                                    stdout=subprocess.PIPE, text=True)
@@ -291,12 +294,12 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
                         rows.append((rate, listen, rep + 1, cpu["bare"], cpu["magcal"], sent, *got))
                         print(f"{4:>3} x {rate:<4g} {listen:>9} {rep + 1:>4} {100 * cpu['bare']:>11.1f} "
                               f"{100 * cpu['magcal']:>13.1f} {cpu['magcal'] / cpu['bare']:>12.3f} {sent:>10} {got[0]:>7}"
-                              f" {got[1]:>7}", flush=True)
+                              f" {got[1]:>7} {status.get('age_ms_p50', '-'):>12}", flush=True)
             finally:
                 rec.send_signal(sig.SIGINT)
                 rec.wait(10)
-        print("summary (median over runs; a run where a node published fewer sets than were sent is starved, "
-              "not cheaper):")
+        print("summary (median over runs; a run where a node published fewer sets than were sent was starved "
+              "by the machine, not cheaper):")
         for rate in rates:
             for listen in ("all", "gradient"):
                 r = [x for x in rows if x[0] == rate and x[1] == listen]
