@@ -263,9 +263,11 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
         print(f"\nCPU against a bare rclpy node (same subscriptions and publications, no maths), side by side, "
               f"{seconds:g} s per run, {os.cpu_count()} CPUs; CPU = (user + system) s per wall s of the node process; "
               "sets: published by each node in the run; age: set stamp to publication in the correction node, "
-              "median of its last second (a node that falls behind the traffic is starved, not cheap)")
+              "median of its last second (a node that falls behind the traffic is starved, not cheap); us: CPU "
+              "microseconds per set published (the fair figure when a busy machine starves a node)")
         print(f"{'rate':>10} {'listeners':>9} {'run':>4} {'bare CPU %':>11} {'magcal CPU %':>13} {'magcal/bare':>12}"
-              f" {'sets sent':>10} {'magcal':>7} {'bare':>7} {'age p50 ms':>12}")
+              f" {'sets sent':>10} {'magcal':>7} {'bare':>7} {'age p50 ms':>12} {'magcal us':>10} {'bare us':>8}"
+              f" {'ratio':>8}")
         for listen in ("all", "gradient"):
             rec = subprocess.Popen([sys.executable, __file__, "--listen", listen, "--domain", str(domain)], env=env,
                                    stdout=subprocess.PIPE, text=True)
@@ -292,9 +294,12 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
                         got = (published[0] - before[0], _count(bare_count) - before[1])
                         cpu = {k: (c1[k].user + c1[k].system - c0[k].user - c0[k].system) / wall for k in procs}
                         rows.append((rate, listen, rep + 1, cpu["bare"], cpu["magcal"], sent, *got))
+                        per_set = [1e6 * cpu[k] * wall / max(n, 1) for k, n in (("magcal", got[0]), ("bare", got[1]))]
                         print(f"{4:>3} x {rate:<4g} {listen:>9} {rep + 1:>4} {100 * cpu['bare']:>11.1f} "
                               f"{100 * cpu['magcal']:>13.1f} {cpu['magcal'] / cpu['bare']:>12.3f} {sent:>10} {got[0]:>7}"
-                              f" {got[1]:>7} {status.get('age_ms_p50', '-'):>12}", flush=True)
+                              f" {got[1]:>7} {status.get('age_ms_p50', '-'):>12} {per_set[0]:>10.0f} {per_set[1]:>8.0f}"
+                              f" {per_set[0] / per_set[1]:>8.3f}", flush=True)
+                        rows[-1] += (per_set[0], per_set[1])
             finally:
                 rec.send_signal(sig.SIGINT)
                 rec.wait(10)
@@ -304,8 +309,11 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
             for listen in ("all", "gradient"):
                 r = [x for x in rows if x[0] == rate and x[1] == listen]
                 ratio = float(np.median([x[4] / x[3] for x in r]))
+                per_set = float(np.median([x[9] / x[10] for x in r]))
                 print(f"  4 x {rate:g} Hz, {listen:>8} listened: magcal {100 * np.median([x[4] for x in r]):.1f} % "
-                      f"of a core, bare {100 * np.median([x[3] for x in r]):.1f} %, magcal/bare {ratio:.3f}")
+                      f"of a core, bare {100 * np.median([x[3] for x in r]):.1f} %, magcal/bare {ratio:.3f}; per set "
+                      f"published {np.median([x[9] for x in r]):.0f} us against {np.median([x[10] for x in r]):.0f} us, "
+                      f"{per_set:.3f}")
     finally:
         node.stop()
         bare.send_signal(sig.SIGINT)
