@@ -309,10 +309,10 @@ def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain
             for listen in ("all", "gradient"):
                 r = [x for x in rows if x[0] == rate and x[1] == listen]
                 ratio = float(np.median([x[4] / x[3] for x in r]))
-                per_set = float(np.median([x[9] / x[10] for x in r]))
+                per_set = float(np.median([x[8] / x[9] for x in r]))
                 print(f"  4 x {rate:g} Hz, {listen:>8} listened: magcal {100 * np.median([x[4] for x in r]):.1f} % "
                       f"of a core, bare {100 * np.median([x[3] for x in r]):.1f} %, magcal/bare {ratio:.3f}; per set "
-                      f"published {np.median([x[9] for x in r]):.0f} us against {np.median([x[10] for x in r]):.0f} us, "
+                      f"published {np.median([x[8] for x in r]):.0f} us against {np.median([x[9] for x in r]):.0f} us, "
                       f"{per_set:.3f}")
     finally:
         node.stop()
