@@ -1,20 +1,26 @@
-"""Throughput of ``magcal correct`` against a plain rosbags deserialize/serialize loop.
+"""Throughput of ``magcal correct`` against the storage limit, sqlite3 and mcap; flat memory.
 
 Not a test. Builds a simulated recording of ``--messages`` raw messages (4 sensors, so
-messages/4 sets), then, each in its own process so peak RSS is per run:
+messages/4 sets) in both storages, then runs, each in its own process (wall time from process
+start, interpreter start-up included; peak RSS per run), interleaved, best of ``--reps``:
 
-- ``fast``: ``python -m magcal_ros.app.cli correct`` (batch CDR decoding/encoding, batch
-  storage inserts);
-- ``plain``: the straightforward path: ``Reader.messages`` -> ``deserialize_cdr`` per
-  message -> sets matched by stamp -> the same numpy correction, in batches of 1024 sets ->
-  one message object per output -> ``serialize_cdr`` -> ``Writer.write``.
+- ``correct``: ``python -m magcal_ros.app.cli correct`` on the sqlite3 and on the mcap bag;
+- ``limit``, plain SQLite reading every raw row and writing 1.5x as many (the corrected output
+  has 6 messages per set of 4): one cursor reads every row of the sqlite3 bag into Python (apsw,
+  as the reader does), then one ``executemany`` writes each row and every second row again into
+  a new rosbag2 ``messages`` table (timestamp index, journal and syncs off, as the writer runs);
+  no decoding, no synchronising, no maths;
+- ``SQLite alone``: the same rows copied by SQLite itself (``INSERT .. SELECT`` from the
+  attached input, no Python per row): the floor no Python program reaches.
 
-Prints messages per second (input messages / wall time, process start-up included for
-both), the speed-up, and peak RSS of the fast path for two recording sizes (the second a
-quarter of the first) to show memory does not grow with the recording.
+Prints messages per second and each ``correct`` run against both (``correct / limit``), and
+peak RSS of ``correct`` for two recording sizes (the second a quarter of the first) to show
+memory does not grow with the recording. ``--rosbags`` adds the plain per-message rosbags
+path (``Reader.messages`` -> ``deserialize_cdr`` -> numpy -> ``serialize_cdr`` ->
+``Writer.write``, about 45,000 msg/s).
 
     python benchmarks/bench_correct_throughput.py                 # 1,000,000 messages
-    python benchmarks/bench_correct_throughput.py --messages 200000 --storage mcap
+    python benchmarks/bench_correct_throughput.py --messages 200000 --reps 3
 """
 
 from __future__ import annotations
@@ -107,6 +113,60 @@ def plain_correct(in_path: str, cal_path: str, out_path: str, storage: str) -> N
             flush()
 
 
+def plain_sqlite_limit(in_path: str, out_path: str) -> None:
+    """Read every row of the sqlite3 bag ``in_path`` into Python; write each, and every second one
+    again (1.5x), into a new rosbag2 messages table at ``out_path`` (see the module docstring)."""
+    import glob
+    import sqlite3
+
+    import apsw
+
+    Path(out_path).mkdir(parents=True)
+    rows = []
+    for f in sorted(glob.glob(f"{in_path}/*.db3")):
+        db = apsw.Connection(f"file:{f}?immutable=1", flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI)
+        rows += db.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp").fetchall()
+        db.close()
+    out = sqlite3.connect(Path(out_path) / "out.db3")
+    out.executescript(LIMIT_SCHEMA)
+
+    def doubled():  # type: ignore[no-untyped-def]
+        again = False
+        for row in rows:
+            yield row
+            if again:
+                yield row
+            again = not again
+
+    out.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)", doubled())
+    out.commit()
+    out.close()
+
+
+def sqlite_alone(in_path: str, out_path: str) -> None:
+    """The same 1.5x rows copied by SQLite itself (no Python per row)."""
+    import glob
+    import sqlite3
+
+    Path(out_path).mkdir(parents=True)
+    out = sqlite3.connect(f"file:{Path(out_path) / 'out.db3'}", uri=True)  # URI: the input attached immutable
+    out.executescript(LIMIT_SCHEMA)
+    for f in sorted(glob.glob(f"{in_path}/*.db3")):
+        out.execute("ATTACH ? AS src", (f"file:{f}?immutable=1",))
+        out.execute("INSERT INTO messages (topic_id, timestamp, data) SELECT m.topic_id, m.timestamp, m.data "
+                    "FROM src.messages AS m CROSS JOIN (SELECT 0 AS k UNION ALL SELECT 1) AS twice "
+                    "WHERE twice.k = 0 OR m.id % 2 = 0 ORDER BY m.timestamp")
+        out.commit()
+        out.execute("DETACH src")
+    out.close()
+
+
+LIMIT_SCHEMA = """PRAGMA journal_mode=OFF; PRAGMA synchronous=OFF;
+CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL,
+                      data BLOB NOT NULL);
+CREATE INDEX timestamp_idx ON messages (timestamp ASC);"""
+
+
 def timed(cmd: list[str]) -> tuple[float, float]:
     """Run ``cmd``; wall seconds and the child's peak RSS in MiB."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -124,11 +184,14 @@ def timed(cmd: list[str]) -> tuple[float, float]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--messages", type=int, default=1_000_000, help="raw messages in the recording (default 1,000,000)")
-    ap.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"])
-    ap.add_argument("--skip-plain", action="store_true", help="only the fast path")
-    ap.add_argument("--workdir", help="where to put the bags (default: a temporary directory)")
+    ap.add_argument("--reps", type=int, default=2, help="interleaved runs of each; the best counts (default 2)")
+    ap.add_argument("--rosbags", action="store_true", help="also the plain per-message rosbags path (slow)")
+    ap.add_argument("--workdir", help="where to put the bags (default: a temporary directory; kept when given)")
+    ap.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help=argparse.SUPPRESS)
     ap.add_argument("--_plain", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--_make", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--_limit", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--_alone", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args._plain:
         plain_correct(*args._plain, storage=args.storage)
@@ -137,43 +200,70 @@ def main() -> int:
         secs = make_recording(Path(args._make[0]), int(args._make[1]), args.storage, Path(args._make[2]))
         print(f"  wrote {Path(args._make[0]).name} in {secs:.1f} s")
         return 0
+    if args._limit:
+        plain_sqlite_limit(*args._limit)
+        return 0
+    if args._alone:
+        sqlite_alone(*args._alone)
+        return 0
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="magcal_bench_"))
     work.mkdir(parents=True, exist_ok=True)
     py = sys.executable
     try:
         sets = args.messages // 4
-        rows = []
-        print(f"recording: {sets} sets x 4 sensors = {4 * sets} messages, storage {args.storage}")
         sizes = [sets, max(1, sets // 4)]
-        results = {}
+        print(f"recording: {sets} sets x 4 sensors = {4 * sets} messages; {os.cpu_count()} CPUs; wall time from "
+              f"process start; best of {args.reps} interleaved runs")
         for n in sizes:
-            bag, cal = work / f"raw_{args.storage}_{n}", work / f"cal_{n}.yaml"
-            if not bag.exists():
-                # In a child process: the parent stays small, so the children's peak RSS
-                # (which on Linux includes the forked parent's pages) measures the child.
-                subprocess.run([py, __file__, "--storage", args.storage, "--_make", str(bag), str(n), str(cal)], check=True)
-            os.sync()
-            out = work / f"fast_{n}"
-            shutil.rmtree(out, ignore_errors=True)
-            wall, rss = timed([py, "-m", "magcal_ros.app.cli", "correct", str(bag), "-c", str(cal), "-o", str(out),
-                               "--storage", args.storage, "--quiet"])
-            results[n] = (wall, rss)
-            rows.append((f"fast  magcal correct, {4 * n} msgs", 4 * n / wall, wall, rss))
-        if not args.skip_plain:
-            bag, cal, out = work / f"raw_{args.storage}_{sets}", work / f"cal_{sets}.yaml", work / "plain"
+            for storage in ("sqlite3", "mcap"):
+                bag, cal = work / f"raw_{storage}_{n}", work / f"cal_{n}.yaml"
+                if not bag.exists():
+                    # In a child process: the parent stays small, so the children's peak RSS
+                    # (which on Linux includes the forked parent's pages) measures the child.
+                    subprocess.run([py, __file__, "--storage", storage, "--_make", str(bag), str(n), str(cal)],
+                                   check=True)
+        raw = {st: work / f"raw_{st}_{sets}" for st in ("sqlite3", "mcap")}
+        cal = work / f"cal_{sets}.yaml"
+
+        def correct(storage: str, n: int = sets) -> tuple[float, float]:
+            out = work / f"out_{storage}_{n}"
             shutil.rmtree(out, ignore_errors=True)
             os.sync()
-            wall, rss = timed([py, __file__, "--storage", args.storage, "--_plain", str(bag), str(cal), str(out)])
-            rows.append((f"plain rosbags deserialize/serialize, {4 * sets} msgs", 4 * sets / wall, wall, rss))
-        print(f"{'path':<50} {'msg/s':>10} {'wall s':>8} {'peak RSS MiB':>13}")
-        for label, rate, wall, rss in rows:
-            print(f"{label:<50} {rate:>10,.0f} {wall:>8.2f} {rss:>13.1f}")
-        if not args.skip_plain:
-            print(f"speed-up fast/plain: {rows[0][1] / rows[-1][1]:.1f}x (target >= 4x)")
-        big, small = results[sizes[0]][1], results[sizes[1]][1]
-        print(f"peak RSS of the fast path: {small:.1f} MiB at {4 * sizes[1]} msgs, {big:.1f} MiB at {4 * sizes[0]} msgs "
-              f"(x{big / small:.2f} for x{sizes[0] / sizes[1]:.0f} messages)")
+            return timed([py, "-m", "magcal_ros.app.cli", "correct", str(work / f"raw_{storage}_{n}"), "-c",
+                          str(work / f"cal_{n}.yaml"), "-o", str(out), "--quiet"])
+
+        def child(flag: str) -> tuple[float, float]:
+            out = work / f"out{flag}"
+            shutil.rmtree(out, ignore_errors=True)
+            os.sync()
+            return timed([py, __file__, flag, str(raw["sqlite3"]), str(out)])
+
+        runs: dict[str, list[tuple[float, float]]] = {}
+        for _ in range(args.reps):
+            for label, run in (("limit", lambda: child("--_limit")), ("correct sqlite3", lambda: correct("sqlite3")),
+                               ("SQLite alone", lambda: child("--_alone")), ("correct mcap", lambda: correct("mcap"))):
+                runs.setdefault(label, []).append(run())
+        if args.rosbags:
+            out = work / "plain"
+            shutil.rmtree(out, ignore_errors=True)
+            runs["rosbags per message"] = [timed([py, __file__, "--storage", "sqlite3", "--_plain", str(raw["sqlite3"]),
+                                                  str(cal), str(out)])]
+        best = {k: min(v) for k, v in runs.items()}
+        msgs = 4 * sets
+        print(f"{'path':<44} {'msg/s':>10} {'wall s':>8} {'runs s':>16} {'peak RSS MiB':>13}")
+        for label, (wall, rss) in best.items():
+            every = ", ".join(f"{w:.2f}" for w, _ in runs[label])
+            print(f"{label:<44} {msgs / wall:>10,.0f} {wall:>8.2f} {every:>16} {rss:>13.1f}")
+        for storage in ("sqlite3", "mcap"):
+            w = best[f"correct {storage}"][0]
+            print(f"correct {storage}: {best['limit'][0] / w:.2f} of the plain-SQLite limit, "
+                  f"{best['SQLite alone'][0] / w:.2f} of SQLite alone")
+        small = {st: correct(st, sizes[1])[1] for st in ("sqlite3", "mcap")}
+        for st in ("sqlite3", "mcap"):
+            big = best[f"correct {st}"][1]
+            print(f"peak RSS of correct {st}: {small[st]:.1f} MiB at {4 * sizes[1]} msgs, {big:.1f} MiB at "
+                  f"{msgs} msgs (x{big / small[st]:.2f} for x{sizes[0] / sizes[1]:.0f} messages)")
     finally:
         if not args.workdir:
             shutil.rmtree(work, ignore_errors=True)

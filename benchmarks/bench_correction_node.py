@@ -1,8 +1,21 @@
-"""Benchmark of the live nodes over DDS (not a test): throughput, latency, CPU, memory.
+"""Benchmark of the live nodes over DDS (not a test): CPU against a bare node, throughput, latency, memory.
 
-    python benchmarks/bench_correction_node.py                  # 10 s at 100/500/1000 Hz, 10 min memory run
-    python benchmarks/bench_correction_node.py --seconds 10 --minutes 2
+    python benchmarks/bench_correction_node.py                  # all three parts (about 15 min)
+    python benchmarks/bench_correction_node.py --compare-only   # CPU against the bare node only (about 3 min)
     python benchmarks/bench_correction_node.py --rates 500 --minutes 0
+
+CPU against a bare node (``--compare-only``, first part of a full run): ``correction_node`` and
+a bare rclpy node (this file, ``--bare``: the same four raw subscriptions and the same seven
+publications, ``<name>/corrected`` x 4, ``field``, ``gradient``, ``gradient_stamped``, filled
+with the received messages and constants, no maths) run side by side as their own processes,
+fed by one publisher process at each rate, so both see the same traffic and the same machine
+load. For each rate and each set of listeners, in repeated runs: CPU seconds per wall second of
+each node process (user + system, from psutil, over the publishing window plus 0.5 s to drain),
+and the ratio. Listeners: ``all`` (a receiver process subscribes every output of both nodes, so
+every output is published) and ``gradient`` (only ``gradient``: the correction node computes
+and builds nothing nobody listens to; the bare node publishes everything regardless, as a
+node that does not look does). The receiver counts each node's ``gradient`` messages: both
+must deliver every set.
 
 Throughput: ``correction_node`` runs as its own process (installed executable); four
 sensors publish from another process at each rate, every set stamped with the wall time
@@ -43,7 +56,7 @@ def publish(rate: float, seconds: float, domain: int, wait_subscribers: int) -> 
 
     rclpy.init(domain_id=domain)
     node = rclpy.create_node("magcal_bench_publisher")
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    qos = QoSProfile(depth=COMPARE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
     pubs = [node.create_publisher(MagneticField, f"/{n}/raw", qos) for n in NAMES]
     deadline = time.monotonic() + 60.0
     while time.monotonic() < deadline and min(p.get_subscription_count() for p in pubs) < wait_subscribers:
@@ -56,9 +69,9 @@ def publish(rate: float, seconds: float, domain: int, wait_subscribers: int) -> 
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     fields = (5.15e-5 * dirs).tolist()
     offsets = [(1e-7 * (i + 1), -2e-7, 3e-8 * i) for i in range(len(NAMES))]
-    msgs = [MagneticField() for _ in NAMES]
-    for m, n in zip(msgs, NAMES):
-        m.header.frame_id = n
+    from magcal_ros.io.cdr import StampedVectorPacker, magnetic_field_template
+
+    packers = [StampedVectorPacker(magnetic_field_template(n)) for n in NAMES]  # bytes: a cheap publisher
     period = 1.0 / rate
     start = time.monotonic()
     print("START", flush=True)
@@ -72,12 +85,9 @@ def publish(rate: float, seconds: float, domain: int, wait_subscribers: int) -> 
             time.sleep(due - now)
         stamp = max(time.time_ns(), last + 1)
         last = stamp
-        sec, nsec = divmod(stamp, NS_PER_S)
         f = fields[sent % len(fields)]
-        for m, p, o in zip(msgs, pubs, offsets):
-            m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
-            m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z = f[0] + o[0], f[1] + o[1], f[2] + o[2]
-            p.publish(m)
+        for packer, p, o in zip(packers, pubs, offsets):
+            p.publish(packer.pack(stamp, f[0] + o[0], f[1] + o[1], f[2] + o[2]))
         sent += 1
     print(f"SENT {sent} {time.monotonic() - start:.3f}", flush=True)
     time.sleep(1.0)
@@ -104,6 +114,216 @@ def publisher_result(proc: subprocess.Popen, timeout: float) -> tuple[int, float
             _, n, secs = line.split()
             return int(n), float(secs)
     raise RuntimeError(f"publisher failed:\n{out}")
+
+
+# --------------------------------------------------------------------------- bare node and receiver
+
+BARE_NAMESPACE = "bare"
+COMPARE_DEPTH = 1000
+"""Raw QoS of both nodes in the comparison: reliable, this deep, so that neither loses messages when the
+machine is busy (a node that drops sets would look cheaper)."""
+OUTPUTS_ALL = tuple(f"{n}/corrected" for n in NAMES) + ("field", "gradient", "gradient_stamped")
+
+
+def bare_node(domain: int, count_file: str) -> None:
+    """The bare node process: the correction node's subscriptions and publications, no maths.
+
+    On each set (the last sensor's message; the publisher sends the sensors in order) it publishes
+    the four received messages as ``<name>/corrected``, the last one's header on ``field`` and
+    ``gradient_stamped`` with constant values, and a constant ``gradient``: what any node with these
+    topics pays in rclpy and DDS. Writes its set count to ``count_file`` every second."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState, MagneticField
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    from magcal_ros.io.csv_recording import TENSOR_COLUMNS
+    from magcal_ros.nodes.common import output_qos, raw_qos
+
+    rclpy.init(domain_id=domain)
+    node = rclpy.create_node("magcal_bare", namespace=f"/{BARE_NAMESPACE}")
+    qin, qout = raw_qos("reliable", COMPARE_DEPTH), output_qos(COMPARE_DEPTH)
+    corrected = [node.create_publisher(MagneticField, f"{n}/corrected", qout) for n in NAMES]
+    field_pub = node.create_publisher(MagneticField, "field", qout)
+    gradient_pub = node.create_publisher(Float64MultiArray, "gradient", qout)
+    stamped_pub = node.create_publisher(JointState, "gradient_stamped", qout)
+    field = MagneticField()
+    grad = Float64MultiArray()
+    grad.layout.dim = [MultiArrayDimension(label="row", size=3, stride=9),
+                       MultiArrayDimension(label="col", size=3, stride=3)]
+    grad.data = [1e-9] * 9
+    stamped = JointState(name=list(TENSOR_COLUMNS), position=[1e-9] * 9)
+    latest: list = [None] * len(NAMES)
+    last = len(NAMES) - 1
+    sets = [0]
+
+    def callback(k: int):  # type: ignore[no-untyped-def]
+        def cb(msg: MagneticField) -> None:
+            latest[k] = msg
+            if k != last:
+                return
+            for pub, m in zip(corrected, latest):
+                if m is not None:
+                    pub.publish(m)
+            field.header = msg.header
+            field.magnetic_field = msg.magnetic_field
+            field_pub.publish(field)
+            gradient_pub.publish(grad)
+            stamped.header = msg.header
+            stamped_pub.publish(stamped)
+            sets[0] += 1
+        return cb
+
+    subs = [node.create_subscription(MagneticField, f"/{n}/raw", callback(k), qin) for k, n in enumerate(NAMES)]
+    assert subs
+    node.create_timer(1.0, lambda: Path(count_file).write_text(f"{sets[0]}\n"))
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    print("READY", flush=True)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, Exception):
+        pass
+    finally:
+        rclpy.try_shutdown()
+
+
+def listener(domain: int, listen: str) -> None:
+    """Listener process: subscriptions to every output of both nodes (``all``) or only their ``gradient``,
+    best effort with a history of one and never spun, so that the nodes see subscribers and DDS delivers,
+    while this process spends no Python per message (it would starve the nodes of a small machine)."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState, MagneticField
+    from std_msgs.msg import Float64MultiArray
+
+    rclpy.init(domain_id=domain)
+    node = rclpy.create_node("magcal_bench_listener")
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+    types = {"field": MagneticField, "gradient": Float64MultiArray, "gradient_stamped": JointState}
+    subs = [node.create_subscription(types.get(out, MagneticField), f"{prefix}/{out}", lambda _: None, qos, raw=True)
+            for prefix in ("", f"/{BARE_NAMESPACE}") for out in (OUTPUTS_ALL if listen == "all" else ("gradient",))]
+    assert subs
+    print("READY", flush=True)
+    try:
+        while rclpy.ok():  # SIGINT shuts the context down
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+
+
+def _count(path: Path) -> int:
+    try:
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def compare(rates: list[float], seconds: float, reps: int, workdir: Path, domain: int) -> list[tuple]:
+    """Correction node and bare node side by side: CPU seconds per wall second at each rate and listener set."""
+    import signal as sig
+
+    import psutil
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from magcal_ros.app.ros_driver import NodeProcess, ros_args, ros_environment, status_values
+
+    env = ros_environment(domain)
+    params = {"uncorrected_sensors": list(NAMES), "raw_reliability": "reliable", "qos_depth": COMPARE_DEPTH}
+    node = NodeProcess("correction_node", ros_args(params=params), env, workdir / "cmp_correction.log")
+    bare_count = workdir / "bare_count"
+    bare = subprocess.Popen([sys.executable, __file__, "--bare", str(bare_count), "--domain", str(domain)], env=env,
+                            stdout=subprocess.PIPE, text=True)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    watcher = rclpy.create_node("magcal_bench_watcher", context=context)
+    published = [0]
+    status: dict[str, str] = {}
+
+    def on_status(msg: DiagnosticStatus) -> None:
+        status.update(status_values(msg))
+        published[0] = int(status.get("published", 0))
+
+    watcher.create_subscription(DiagnosticStatus, "/magcal_correction/status", on_status, 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(watcher)
+    import threading
+
+    threading.Thread(target=executor.spin, daemon=True).start()
+    rows = []
+    try:
+        assert bare.stdout is not None
+        bare.stdout.readline()
+        if not node.wait_for_log("correcting", 60.0):
+            raise RuntimeError(f"correction node did not start:\n{node.log()}")
+        procs = {"magcal": psutil.Process(node.pid), "bare": psutil.Process(bare.pid)}
+        print(f"\nCPU against a bare rclpy node (same subscriptions and publications, no maths), side by side, "
+              f"{seconds:g} s per run, {os.cpu_count()} CPUs; CPU = (user + system) s per wall s of the node process; "
+              "sets: published by each node in the run; age: set stamp to publication in the correction node, "
+              "median of its last second (a node that falls behind the traffic is starved, not cheap); us: CPU "
+              "microseconds per set published (the fair figure when a busy machine starves a node)")
+        print(f"{'rate':>10} {'listeners':>9} {'run':>4} {'bare CPU %':>11} {'magcal CPU %':>13} {'magcal/bare':>12}"
+              f" {'sets sent':>10} {'magcal':>7} {'bare':>7} {'age p50 ms':>12} {'magcal us':>10} {'bare us':>8}"
+              f" {'ratio':>8}")
+        for listen in ("all", "gradient"):
+            rec = subprocess.Popen([sys.executable, __file__, "--listen", listen, "--domain", str(domain)], env=env,
+                                   stdout=subprocess.PIPE, text=True)
+            try:
+                assert rec.stdout is not None
+                rec.stdout.readline()
+                time.sleep(3.0)  # discovery; the node looks at who listens
+                pub = start_publisher(200.0, 2.0, domain, env, wait_subscribers=2)  # warm-up, discarded
+                publisher_result(pub, 120.0)
+                time.sleep(1.5)
+                for rate in rates:
+                    for rep in range(reps):
+                        before = (published[0], _count(bare_count))
+                        pub = start_publisher(rate, seconds, domain, env, wait_subscribers=2)
+                        assert pub.stdout is not None
+                        pub.stdout.readline()  # START
+                        t0 = time.monotonic()
+                        c0 = {k: p.cpu_times() for k, p in procs.items()}
+                        sent, secs = publisher_result(pub, seconds + 120.0)
+                        time.sleep(0.5)
+                        c1 = {k: p.cpu_times() for k, p in procs.items()}
+                        wall = time.monotonic() - t0
+                        time.sleep(1.6)  # both counts written
+                        got = (published[0] - before[0], _count(bare_count) - before[1])
+                        cpu = {k: (c1[k].user + c1[k].system - c0[k].user - c0[k].system) / wall for k in procs}
+                        rows.append((rate, listen, rep + 1, cpu["bare"], cpu["magcal"], sent, *got))
+                        per_set = [1e6 * cpu[k] * wall / max(n, 1) for k, n in (("magcal", got[0]), ("bare", got[1]))]
+                        print(f"{4:>3} x {rate:<4g} {listen:>9} {rep + 1:>4} {100 * cpu['bare']:>11.1f} "
+                              f"{100 * cpu['magcal']:>13.1f} {cpu['magcal'] / cpu['bare']:>12.3f} {sent:>10} {got[0]:>7}"
+                              f" {got[1]:>7} {status.get('age_ms_p50', '-'):>12} {per_set[0]:>10.0f} {per_set[1]:>8.0f}"
+                              f" {per_set[0] / per_set[1]:>8.3f}", flush=True)
+                        rows[-1] += (per_set[0], per_set[1])
+            finally:
+                rec.send_signal(sig.SIGINT)
+                rec.wait(10)
+        print("summary (median over runs; a run where a node published fewer sets than were sent was starved "
+              "by the machine, not cheaper):")
+        for rate in rates:
+            for listen in ("all", "gradient"):
+                r = [x for x in rows if x[0] == rate and x[1] == listen]
+                ratio = float(np.median([x[4] / x[3] for x in r]))
+                per_set = float(np.median([x[8] / x[9] for x in r]))
+                print(f"  4 x {rate:g} Hz, {listen:>8} listened: magcal {100 * np.median([x[4] for x in r]):.1f} % "
+                      f"of a core, bare {100 * np.median([x[3] for x in r]):.1f} %, magcal/bare {ratio:.3f}; per set "
+                      f"published {np.median([x[8] for x in r]):.0f} us against {np.median([x[9] for x in r]):.0f} us, "
+                      f"{per_set:.3f}")
+    finally:
+        node.stop()
+        bare.send_signal(sig.SIGINT)
+        try:
+            bare.wait(10)
+        except subprocess.TimeoutExpired:
+            bare.kill()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
+    return rows
 
 
 # --------------------------------------------------------------------------- measurements
@@ -257,17 +477,34 @@ def main() -> int:
     parser.add_argument("--minutes", type=float, default=10.0, help="memory run length (min); 0 skips it")
     parser.add_argument("--memory-rate", type=float, default=200.0, help="Hz per sensor in the memory run")
     parser.add_argument("--max-samples", type=int, default=2000, help="calibration node buffer in the memory run")
+    parser.add_argument("--compare-only", action="store_true", help="only CPU against the bare node")
+    parser.add_argument("--compare-rates", type=float, nargs="*", default=[500.0, 1000.0],
+                        help="Hz per sensor of the comparison with the bare node")
+    parser.add_argument("--compare-seconds", type=float, default=8.0, help="duration of each comparison run (s)")
+    parser.add_argument("--reps", type=int, default=2, help="comparison runs per rate and listener set")
     parser.add_argument("--publish", type=float, nargs=2, metavar=("RATE", "SECONDS"), help=argparse.SUPPRESS)
-    parser.add_argument("--domain", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--bare", help=argparse.SUPPRESS)
+    parser.add_argument("--listen", help=argparse.SUPPRESS)
+    parser.add_argument("--domain", type=int, help="ROS domain id (default: one in 215..232, away from test runs)")
     parser.add_argument("--wait-subscribers", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.publish:
         publish(args.publish[0], args.publish[1], args.domain, args.wait_subscribers)
         return 0
-    from magcal_ros.app.ros_driver import pick_domain_id
-
-    domain = pick_domain_id()
+    if args.bare:
+        bare_node(args.domain, args.bare)
+        return 0
+    if args.listen:
+        listener(args.domain, args.listen)
+        return 0
+    # Outside 1..100, where test runs pick theirs (pick_domain_id): another run's traffic on the same
+    # domain would mix into the nodes here (and this benchmark's into that run).
+    domain = args.domain if args.domain is not None else 215 + os.getpid() % 18
     with tempfile.TemporaryDirectory(prefix="magcal_bench_") as tmp:
+        if args.compare_rates:
+            compare(args.compare_rates, args.compare_seconds, args.reps, Path(tmp), domain)
+        if args.compare_only:
+            return 0
         if args.rates:
             throughput(args.rates, args.seconds, Path(tmp), domain)
         if args.minutes > 0:

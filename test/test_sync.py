@@ -131,6 +131,35 @@ def test_live_and_bag_paths_give_identical_sets(seed: int) -> None:
     assert live_sync.stats.dropped() + 4 * live_sync.stats.sets + live_sync.pending == total
 
 
+@pytest.mark.parametrize(("loss", "tol"), [(0.02, 600_000), (0.001, 600_000), (0.001, 5 * MS)])
+def test_bag_reads_in_large_chunks_follow_the_rule_set_by_set(loss: float, tol: int) -> None:
+    """Chunks of hundreds of messages per sensor (a bag read; runs of matching sets are found with
+    numpy): the same sets as the rule and the live path, with losses breaking the runs at random
+    places (2 % and 0.1 %) and a window the jitter sometimes exceeds: the tolerance (0.6 ms) or
+    the cap at half the period (1.25 ms, under a 5 ms tolerance)."""
+    rng = np.random.default_rng(11)
+    streams = lossy_streams(rng, n=6000, loss=loss, repeat=0.0005, late=0.0005)
+    expected = rule_sets(streams, tol)
+    live, live_sync = feed_streaming(streams, tol, rng)
+    sync = SetSynchronizer(4, tol)
+    batch: list[tuple[int, ...]] = []
+    pos, horizon = [0] * 4, streams[0][0]
+    while any(p < len(st) for p, st in zip(pos, streams)):  # like a bag: chunks of bag time, all sensors
+        horizon += int(rng.integers(50, 900)) * 2_500_000
+        for k, st in enumerate(streams):
+            end = pos[k]
+            while end < len(st) and st[end] <= horizon:
+                end += 1
+            sync.add_batch(k, np.array(st[pos[k] : end], dtype=np.int64), np.zeros((end - pos[k], 3)))
+            pos[k] = end
+        batch += [tuple(int(x) for x in row) for row in sync.pop().stamps]
+    batch += [tuple(int(x) for x in row) for row in sync.pop(final=True).stamps]
+    batch_sync = sync
+    assert live == batch == expected
+    assert len(expected) > 0.4 * 6000 and batch_sync.stats.unmatched > 0
+    assert batch_sync.stats.sets == live_sync.stats.sets == len(expected)
+
+
 @pytest.mark.parametrize("path", ["live", "bag"])
 def test_the_tolerance_boundary_is_inclusive(path: str) -> None:
     """A spread equal to the tolerance makes a set; one nanosecond more does not."""

@@ -47,12 +47,7 @@ from magcal_ros.io.recordings import (
     with_bag_imu,
     with_bag_temperatures,
 )
-from magcal_ros.methods.pipeline import (
-    DEFAULT_METHOD,
-    METHODS,
-    SolveOptions,
-    calibrate_array,
-)
+from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS
 
 if TYPE_CHECKING:
     from magcal_ros.core.geomagnetic import SiteField
@@ -520,6 +515,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         mounting = yaw_pitch_roll(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
     if args.max_residual is not None and not (np.isfinite(args.max_residual) and args.max_residual > 0):
         raise InputError("--max-residual must be a positive number of Tesla")
+    from magcal_ros.methods.pipeline import SolveOptions, calibrate_array  # scipy: only when calibrating
+
     if args.max_solve_sets is not None and args.max_solve_sets < 0:
         raise InputError("--max-solve-sets must be 0 (every set) or a positive number of sets")
     with _progress(args, "solve") as bar:
@@ -761,14 +758,15 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from magcal_ros.app.correct import check_sensors
 
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
-    if args.gradient_method is None:
+    out_csv = is_csv(args.output)
+    if args.gradient_method is None and (is_csv(args.input) or out_csv):
         # Auto: the difference formula for the cross, least squares for any other array, unless the
         # recording holds sensors the calibration lacks (then the cross is refused, naming them).
+        # Bag to bag, correct_bag decides the same with the bag it has open.
         from magcal_ros.core.tensor import method_for
 
         extra = set(recording_sensors(args.input)) - set(cal.geometry.names)
         args.gradient_method = "difference" if extra else method_for(cal.geometry)
-    out_csv = is_csv(args.output)
     copy = "all" if args.copy_all else _name_list(args.copy_topics)
     from magcal_ros.app.correct import check_temperature_topics
 

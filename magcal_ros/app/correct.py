@@ -37,7 +37,7 @@ from magcal_ros.core.interference import (
 from magcal_ros.core.matching import match_latest
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
-from magcal_ros.core.tensor import gradient
+from magcal_ros.core.tensor import gradient, method_for
 from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, TemperatureStats
 from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
@@ -229,7 +229,7 @@ def correct_bag(
     copy_topics: Sequence[str] | Literal["all"] = (),
     progress: Progress | None = None,
     frame_id: str | None = None,
-    gradient_method: str = "difference",
+    gradient_method: str | None = "difference",
     tolerance: float = DEFAULT_SYNC_TOLERANCE,
     nonfinite: NonFinite = "drop",
     start_ns: int | None = None,
@@ -263,7 +263,10 @@ def correct_bag(
     from ``temperature_topics`` (one per sensor or one for all; default ``/<name>/temperature``),
     the latest at most ``temperature_tolerance`` s older than the set (sets without one of every
     sensor are dropped and counted). ``frame_id``: the outputs' frame (default the calibration's,
-    else ``magcal_array``). Streaming and atomic: nothing is left at ``out_path`` on failure.
+    else ``magcal_array``). ``gradient_method`` None: the difference formula when the bag holds sensors
+    the calibration lacks, else :func:`~magcal_ros.core.tensor.method_for` the calibration's geometry
+    (decided here, so the bag is opened once). Streaming and atomic: nothing is left at ``out_path``
+    on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
@@ -275,7 +278,10 @@ def correct_bag(
     temp_tol = tolerance_of(temperature_tolerance, "temperature")
     frame_id = output_frame(calibration, frame_id)
     with open_bag(inp) as reader:
-        notes = check_sensors(calibration, sensor_names_of(reader), inp, calibration_name, gradient_method)
+        available = sensor_names_of(reader)
+        if gradient_method is None:
+            gradient_method = "difference" if set(available) - set(names) else method_for(calibration.geometry)
+        notes = check_sensors(calibration, available, inp, calibration_name, gradient_method)
         _, conns = resolve_sensor_topics(reader, inp, names)
         samples = read_current_samples(reader, inp, currents) if calibration.channels else []
         samples = sorted(samples, key=lambda c: calibration.channels.index(c.channel))

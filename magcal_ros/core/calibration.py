@@ -88,6 +88,23 @@ class CorrectedSets:
 
 
 @dataclass(frozen=True)
+class AffineOutputs:
+    """:meth:`ArrayCalibration.outputs` of one set as one affine map, for the live hot path:
+    ``y = matrix @ x + offset`` with ``x`` the raw vectors (3 S numbers, T, sensor order) followed by
+    the currents (one per channel, A), and ``y`` the corrected vectors (3 S), the centre field (3), then
+    the tensor (9, row-major, T/m) or the baseline gradient (3, T/m) when the geometry gives one; all in
+    the output frame."""
+
+    matrix: Array
+    """(K, 3 S + m)."""
+    offset: Array
+    """(K,)."""
+    sensors: int
+    kind: str
+    """``tensor``, ``baseline`` or ``none`` (what follows the centre field)."""
+
+
+@dataclass(frozen=True)
 class ArrayCalibration:
     """Per-sensor corrections of an array, with its geometry and provenance."""
 
@@ -270,6 +287,23 @@ class ArrayCalibration:
             tensor = None if tensor is None else rot @ tensor @ rot.T
             baseline = None if baseline is None else self.to_output_frame(baseline)
         return CorrectedSets(b, centre_field(b), tensor, baseline)
+
+    def affine_outputs(self, method: str = "difference") -> AffineOutputs | None:
+        """:meth:`outputs` of one set as an :class:`AffineOutputs` map (None with temperature terms,
+        where the matrix depends on the temperature). The map is read off :meth:`outputs` itself (at
+        zero and at each unit input), so it is that correction, merely precomputed."""
+        if self.has_temperature_terms:
+            return None
+        s, m = self.geometry.size, len(self.channels)
+        probes = np.vstack([np.zeros(3 * s + m), np.eye(3 * s + m)])
+        out = self.outputs(probes[:, : 3 * s].reshape(-1, s, 3), method, probes[:, 3 * s :] if m else None)
+        parts = [out.vectors.reshape(len(probes), -1), out.centre]
+        if out.tensor is not None:
+            parts.append(out.tensor.reshape(len(probes), 9))
+        elif out.baseline is not None:
+            parts.append(out.baseline)
+        y = np.hstack(parts)
+        return AffineOutputs(np.ascontiguousarray((y[1:] - y[0]).T), y[0].copy(), s, self.geometry.gradient_kind)
 
     def field_and_gradient(
         self, raw: ArrayLike, method: str = "difference", currents: ArrayLike | None = None,

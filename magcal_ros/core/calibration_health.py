@@ -67,7 +67,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.stamps import format_seconds
@@ -217,11 +216,15 @@ def robust_weights(x: Array, y: Array, n: Array, iterations: int = ROBUST_ITERAT
 
 @functools.lru_cache(maxsize=256)
 def _f_critical(alpha: float, p: int, dof: int) -> float:
+    from scipy import stats  # here: importing scipy.stats costs ~1 s, which `magcal correct` need not pay
+
     return float(stats.f.isf(alpha, p, dof))
 
 
 @functools.lru_cache(maxsize=256)
 def _t_critical(alpha: float, dof: int) -> float:
+    from scipy import stats
+
     return float(stats.t.isf(alpha, dof))
 
 

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from magcal_ros.errors import CalibrationFailed, InputError
 
@@ -158,6 +157,7 @@ def ml_fit(
     start = start or algebraic_fit(r, f)
     x = r / f
     p0 = _pack(start.matrix, start.offset, f)
+    from scipy.optimize import least_squares  # here: scipy.optimize takes ~0.7 s to import
 
     def solve(p_init: Array, target: float) -> tuple[Array, Array, Array]:
         def fun(p: Array) -> Array:

@@ -377,3 +377,76 @@ def decode_magnetic_field(data: bytes) -> tuple[int, float, float, float]:
         raise InputError("malformed sensor_msgs/MagneticField message")
     x, y, z = vec.unpack_from(data, at)
     return sec * NS_PER_S + nsec, x, y, z
+
+
+# --------------------------------------------------------------------------- single messages for live publishers
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+
+
+class StampedVectorPacker:
+    """One stamped vector message (``MagneticField`` or ``Vector3Stamped``) as CDR bytes per call, for a
+    live publisher's ``publish(bytes)`` (no message object, no serialisation): frame and covariance fixed
+    (from ``template`` and ``covariance``, 9 numbers T^2 row-major, MagneticField only), stamp (ns) and
+    vector (T) given."""
+
+    __slots__ = ("_struct", "_head", "_middle", "_tail")
+
+    def __init__(self, template: MagneticFieldTemplate, covariance: Any = None) -> None:
+        raw = template.template.tobytes()
+        at = template.vector_at
+        tail = raw[at + 24 :]
+        if covariance is not None:
+            if len(tail) != 72:
+                raise ValueError("a covariance needs a MagneticField template")
+            tail = struct.pack("<9d", *np.asarray(covariance, dtype=float).reshape(9).tolist())
+        self._head, self._middle, self._tail = raw[:4], raw[12:at], tail
+        self._struct = struct.Struct(f"<4siI{at - 12}s3d{len(tail)}s")
+
+    def pack(self, stamp_ns: int, x: float, y: float, z: float) -> bytes:
+        """The serialized message of stamp ``stamp_ns`` (ns) and vector ``x, y, z`` (T)."""
+        sec, nsec = divmod(stamp_ns, NS_PER_S)
+        return self._struct.pack(self._head, sec, nsec, self._middle, x, y, z, self._tail)
+
+
+class GradientPacker:
+    """The 3x3 ``Float64MultiArray`` (row-major, T/m) as CDR bytes per call (see :class:`StampedVectorPacker`)."""
+
+    __slots__ = ("_struct", "_head")
+
+    def __init__(self, template: GradientTemplate) -> None:
+        raw = template.template.tobytes()
+        self._head = raw[: template.data_at]
+        self._struct = struct.Struct(f"<{template.data_at}s9d")
+
+    def pack(self, values: Any) -> bytes:
+        """The serialized message of the nine components ``values`` (T/m, row-major)."""
+        return self._struct.pack(self._head, *values)
+
+
+class StampedNinePacker:
+    """A ``JointState`` with nine fixed ``names`` and ``frame_id``: stamp (ns) and the nine ``position``
+    values per call, as CDR bytes (``velocity`` and ``effort`` empty; see :class:`StampedVectorPacker`)."""
+
+    __slots__ = ("_struct", "_head", "_middle", "_tail")
+
+    def __init__(self, frame_id: str, names: Any) -> None:
+        ts = typestore()
+        t = ts.types
+        names = list(names)
+        if len(names) != 9:
+            raise ValueError("nine names")
+        probe = (np.arange(9.0) + 1.0) * 1.0009765625  # exact in binary, found once in the bytes below
+        msg = t[JOINT_STATE](header=_header(0, frame_id), name=names, position=probe, velocity=np.zeros(0),
+                             effort=np.zeros(0))
+        raw = bytes(ts.serialize_cdr(msg, JOINT_STATE, little_endian=True))
+        at = raw.find(struct.pack("<9d", *probe.tolist()))
+        if at < 0 or raw.find(struct.pack("<9d", *probe.tolist()), at + 1) >= 0:  # pragma: no cover
+            raise RuntimeError("JointState position not found in its serialized bytes")
+        self._head, self._middle, self._tail = raw[:4], raw[12:at], raw[at + 72 :]
+        self._struct = struct.Struct(f"<4siI{at - 12}s9d{len(self._tail)}s")
+
+    def pack(self, stamp_ns: int, values: Any) -> bytes:
+        """The serialized message of stamp ``stamp_ns`` (ns) and the nine ``values``."""
+        sec, nsec = divmod(stamp_ns, NS_PER_S)
+        return self._struct.pack(self._head, sec, nsec, self._middle, *values, self._tail)

@@ -82,7 +82,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState, MagneticField
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
@@ -94,9 +94,9 @@ from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
-from magcal_ros.io.csv_recording import TENSOR_COLUMNS
 from magcal_ros.nodes import common, drift
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
+from magcal_ros.nodes.live_outputs import Listeners, SetOutputs
 
 NODE_NAME = "magcal_correction"
 CORE_PARAMETERS: tuple[str, ...] = (
@@ -275,18 +275,6 @@ def _as_default(name: str, value: Any) -> bool:
     return default is not None and isinstance(value, (list, tuple)) and not _differs(default, value)
 
 
-def _gradient_message() -> Float64MultiArray:
-    """A gradient message with the contract's 3x3 row-major layout (dims row, col)."""
-    msg = Float64MultiArray()
-    msg.layout.dim = [
-        MultiArrayDimension(label="row", size=3, stride=9),
-        MultiArrayDimension(label="col", size=3, stride=3),
-    ]
-    msg.layout.data_offset = 0
-    msg.data = [0.0] * 9
-    return msg
-
-
 class CorrectionNode(Node):
     """Applies the array calibration to synchronized raw sets and publishes field and gradient."""
 
@@ -299,11 +287,12 @@ class CorrectionNode(Node):
         self._pending_names: set[str] = set()
         self._subs: list[Any] = []
         self._corrected_pubs: list[Any] = []
-        self._corrected_msgs: list[MagneticField] = []
         self._gradient_pubs: dict[str, Any] = {}
         self._current_subs: list[Any] = []
         self._temperature_subs: list[Any] = []
-        self._msg_state: CorrectionState | None = None
+        self._out: SetOutputs | None = None
+        self._out_state: CorrectionState | None = None
+        self._listeners = Listeners([])
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
         self._out_qos = common.output_qos(depth)
@@ -311,10 +300,6 @@ class CorrectionNode(Node):
         self._field_pub = self.create_publisher(MagneticField, topics.FIELD, self._out_qos)
         self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
-        self._field_msg = MagneticField()
-        self._gradient_msg = _gradient_message()
-        self._stamped_msg = JointState(name=list(TENSOR_COLUMNS))
-        self._baseline_msg = Vector3Stamped()
         self._now = common.clock_reader(self)
         self._published = 0
         self._withheld = 0
@@ -327,6 +312,7 @@ class CorrectionNode(Node):
         self._connect_currents(self._state.currents)
         self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self._connect_temperatures(self._state)
+        self._outputs_for(self._state)  # now, not at the first set (the first build loads the CDR templates)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
@@ -610,8 +596,7 @@ class CorrectionNode(Node):
         self._corrected_pubs = [
             self.create_publisher(MagneticField, topics.corrected(n), self._out_qos) for n in state.names
         ]
-        self._corrected_msgs = [MagneticField() for _ in state.names]
-        self._msg_state = None
+        self._out_state = None
         self._subs = [
             self.create_subscription(
                 MagneticField, topics.raw(n), self._raw_callback(i), self._raw_qos, raw=True
@@ -633,6 +618,7 @@ class CorrectionNode(Node):
         types = {topics.GRADIENT: Float64MultiArray, topics.GRADIENT_STAMPED: JointState,
                  topics.BASELINE_GRADIENT: Vector3Stamped}
         self._gradient_pubs = {t: self.create_publisher(types[t], t, self._out_qos) for t in GRADIENT_TOPICS[kind]}
+        self._out_state = None
 
     def _connect_currents(self, inputs: common.CurrentInputs) -> None:
         """Subscribe the current channels afresh (their values so far are dropped)."""
@@ -671,74 +657,69 @@ class CorrectionNode(Node):
 
         return callback
 
-    def _apply_covariances(self, state: CorrectionState) -> None:
-        """Put the state's covariances into the reused output messages."""
-        for msg, cov in zip(self._corrected_msgs, state.covariances):
-            msg.magnetic_field_covariance = list(cov)
-        self._field_msg.magnetic_field_covariance = list(state.field_covariance)
-        self._msg_state = state
+    def _outputs_for(self, state: CorrectionState) -> SetOutputs:
+        """The packers and correction map of ``state`` (rebuilt when the state or the publishers change)."""
+        self._out = SetOutputs(state.calibration, state.gradient_method, state.frame_id, state.covariances,
+                               state.field_covariance)
+        self._out_state = state
+        self._listeners = Listeners([*self._corrected_pubs, self._field_pub, *self._gradient_pubs.values()])
+        return self._out
 
     def _publish(self, synced: SyncedSet) -> None:
-        """Correct one set; publish corrected vectors, then field and the gradient topics."""
+        """Correct one set; publish corrected vectors, then field and the gradient topics (each only when
+        somebody subscribes it)."""
         state = self._state
-        if state is not self._msg_state:
-            self._apply_covariances(state)
+        out = self._out if self._out_state is state else self._outputs_for(state)
         currents = temperatures = None
         stale = False
         if state.currents.channels:
-            values, fresh = self._currents.at(synced.stamp)
+            currents, fresh = self._currents.at(synced.stamp)
             stale = not self._current_health.count(fresh)
-            currents = np.array([values])
         if state.temperatures:
-            celsius, fresh = self._temperatures.at(synced.stamp)
+            temperatures, fresh = self._temperatures.at(synced.stamp)
             stale = not self._temperature_health.count(fresh) or stale
-            temperatures = np.array([celsius])
         if stale:
             self._withheld += 1  # never corrected with a stale current or temperature
             return
-        raw = np.array(synced.values, dtype=float).reshape(1, -1, 3)
-        out = state.calibration.outputs(raw, state.gradient_method, currents, temperatures)
-        if self._health_cal is not None:  # judged in the array frame, where the positions are
-            rotation = state.calibration.output_rotation
-            self._health_cal.add(synced.stamp, out.vectors[0] if rotation is None else out.vectors[0] @ rotation)
-        frame = state.frame_id
-        missing = state.missing
-        for name, msg, pub, stamp, v in zip(state.names, self._corrected_msgs, self._corrected_pubs, synced.stamps,
-                                            out.vectors[0].tolist()):
-            if missing and name in missing:
-                continue
-            common.set_stamp(msg.header.stamp, stamp)
-            msg.header.frame_id = frame
-            f = msg.magnetic_field
-            f.x, f.y, f.z = v
-            pub.publish(msg)
-        if missing:
+        listeners = self._listeners
+        listeners.tick()
+        health = self._health_cal
+        if listeners.any or health is not None:
+            cal = state.calibration
+            y = out.values(cal, state.gradient_method, synced.values, currents, temperatures)
+            s3 = 3 * out.sensors
+            if health is not None:  # judged in the array frame, where the positions are
+                vectors = y[:s3].reshape(-1, 3)
+                health.add(synced.stamp, vectors if cal.output_rotation is None else vectors @ cal.output_rotation)
+            if listeners.any:
+                self._send(state, out, synced, y.tolist(), listeners.listening)
+        if state.missing:
             self._withheld += 1
             return
-        msg = self._field_msg
-        common.set_stamp(msg.header.stamp, synced.stamp)
-        msg.header.frame_id = frame
-        f = msg.magnetic_field
-        f.x, f.y, f.z = out.centre[0].tolist()
-        self._field_pub.publish(msg)
-        if out.tensor is not None:
-            components = out.tensor[0].reshape(9).tolist()
-            self._gradient_msg.data = components
-            self._gradient_pubs[topics.GRADIENT].publish(self._gradient_msg)
-            stamped = self._stamped_msg
-            common.set_stamp(stamped.header.stamp, synced.stamp)
-            stamped.header.frame_id = frame
-            stamped.position = components
-            self._gradient_pubs[topics.GRADIENT_STAMPED].publish(stamped)
-        elif out.baseline is not None:
-            base = self._baseline_msg
-            common.set_stamp(base.header.stamp, synced.stamp)
-            base.header.frame_id = frame
-            v3 = base.vector
-            v3.x, v3.y, v3.z = out.baseline[0].tolist()
-            self._gradient_pubs[topics.BASELINE_GRADIENT].publish(base)
         self._published += 1
         self._ages.append(self._now() - synced.stamp)
+
+    def _send(self, state: CorrectionState, out: SetOutputs, synced: SyncedSet, y: list[float],
+              listening: list[bool]) -> None:
+        """Pack and publish the outputs of one set somebody listens to (``y``: :meth:`SetOutputs.values`)."""
+        missing = state.missing
+        s = out.sensors
+        for k, (stamp, packer, pub) in enumerate(zip(synced.stamps, out.corrected, self._corrected_pubs)):
+            if listening[k] and not (missing and state.names[k] in missing):
+                pub.publish(packer.pack(stamp, y[3 * k], y[3 * k + 1], y[3 * k + 2]))
+        if missing:
+            return
+        stamp, c = synced.stamp, 3 * s
+        if listening[s]:
+            self._field_pub.publish(out.field.pack(stamp, y[c], y[c + 1], y[c + 2]))
+        if out.gradient is not None and out.stamped is not None:
+            components = y[c + 3 : c + 12]
+            if listening[s + 1]:
+                self._gradient_pubs[topics.GRADIENT].publish(out.gradient.pack(components))
+            if listening[s + 2]:
+                self._gradient_pubs[topics.GRADIENT_STAMPED].publish(out.stamped.pack(stamp, components))
+        elif out.baseline is not None and listening[s + 1]:
+            self._gradient_pubs[topics.BASELINE_GRADIENT].publish(out.baseline.pack(stamp, y[c + 3], y[c + 4], y[c + 5]))
 
     # -- reporting ------------------------------------------------------------------
     def _counters(self) -> dict[str, int]:
