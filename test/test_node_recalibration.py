@@ -56,7 +56,7 @@ def test_a_drift_mid_mission_is_named_advised_then_fixed(tmp_path: Path) -> None
         driver = run.driver(geo.names)
         h.wait_discovered(driver, subscribers=2)
         out = run_drift_mission(driver, sim, rng, say, speed=SPEED, clean=24.0, longest=600.0,
-                                target_at=12.0, fresh=20.0, target_depth=6.0)
+                                target_at=12.0, fresh=20.0)
         log = run.processes[1].log()
     finally:
         codes = run.close()

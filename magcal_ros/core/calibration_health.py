@@ -228,19 +228,38 @@ def _t_critical(alpha: float, dof: int) -> float:
     return float(stats.t.isf(alpha, dof))
 
 
+def attitude_part_of(y: Array, directions: Array, tau: Array, n: Array, common: Array | None
+                     ) -> tuple[Array, Array, Array, Array, Array]:
+    """The fits of :func:`attitude_part` for columns ``y`` (K, C) nT: residual sums of squares and
+    ranks with and without the directions, and the weights; ``common`` (K,): a regressor of the
+    base model (the other sensors' mean intensity) or None."""
+    base = np.column_stack([np.ones_like(tau), tau] + ([] if common is None else [common]))
+    full = np.column_stack([base, directions - np.average(directions, axis=0, weights=n)])
+    keep = robust_weights(full, y, n) > 0  # blocks beyond the bisquare's reach are out; the rest count fully
+    w = n[:, None] * keep.astype(float)
+    _, rss_full, rank_full = _wls(full, y, w, ranks=True)
+    _, rss_base, rank_base = _wls(base, y, w, ranks=True)
+    assert rank_full is not None and rank_base is not None
+    return rss_full, rss_base, rank_full, rank_base, w
+
+
 def attitude_part(tmi: Array, directions: Array, tau: Array, n: Array, alpha: float) -> tuple[Array, Array]:
     """The attitude-following part of block-mean intensities ``tmi`` (K, S) in T, per column: its RMS
     over the sets (T) beyond a constant and a trend in ``tau`` (K,), and whether an F test at
     ``alpha`` finds it significant. ``directions`` (K, 3): block-mean unit field directions."""
     y = (tmi - _weighted_median(tmi, n)) / NT  # nT about the median: well scaled
-    base = np.column_stack([np.ones_like(tau), tau])
-    full = np.column_stack([base, directions - np.average(directions, axis=0, weights=n)])
-    keep = robust_weights(full, y, n) > 0  # blocks beyond the bisquare's reach are out; the rest count fully
-    rho = keep.astype(float)
-    w = n[:, None] * rho
-    _, rss_full, rank_full = _wls(full, y, w, ranks=True)
-    _, rss_base, rank_base = _wls(base, y, w, ranks=True)
-    assert rank_full is not None and rank_base is not None
+    if y.shape[1] >= 3:  # the field itself changing (a target, geology) is common to every sensor: each
+        # sensor is judged beyond what the others' mean intensity follows (a drift is one sensor's own)
+        others = (y.sum(axis=1, keepdims=True) - y) / (y.shape[1] - 1)
+        cols = [attitude_part_of(y[:, [c]], directions, tau, n, others[:, c]) for c in range(y.shape[1])]
+    else:
+        cols = [attitude_part_of(y, directions, tau, n, None)]
+    rss_full = np.concatenate([c[0] for c in cols])
+    rss_base = np.concatenate([c[1] for c in cols])
+    rank_full = np.concatenate([c[2] for c in cols])
+    rank_base = np.concatenate([c[3] for c in cols])
+    w = np.concatenate([c[4] for c in cols], axis=1)
+    rho = (w > 0).astype(float)
     q = np.maximum(rss_base - rss_full, 0.0)
     figure = np.sqrt(q / np.maximum(np.sum(w, axis=0), 1e-300)) * NT
     significant = np.zeros(y.shape[1], bool)
