@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.matching import LatestValues, MatchStats, match_latest
+from magcal_ros.core.matching import LatestValues, MatchStats, checked_samples, match_latest
 from magcal_ros.core.stamps import seconds_to_ns
 from magcal_ros.errors import InputError
 
@@ -49,11 +49,9 @@ class CurrentSamples:
     values: Array
 
     def __post_init__(self) -> None:
-        t = np.asarray(self.stamps)
-        v = np.asarray(self.values, dtype=float).reshape(-1)
-        if t.dtype.kind not in "iu" or t.shape != v.shape:
-            raise InputError(f"channel {self.channel}: need integer ns stamps and one current per stamp")
-        object.__setattr__(self, "stamps", t.astype(np.int64))
+        t, v = checked_samples(f"channel {self.channel}: need integer ns stamps and one current", self.stamps,
+                               self.values)
+        object.__setattr__(self, "stamps", t)
         object.__setattr__(self, "values", v)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.units import NS_PER_S
+from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
 
@@ -118,6 +119,17 @@ class MatchStats:
         every = f" of every {self.OWNER}" if self.OWNER else ""
         return (f"{self.dropped} of {self.sets} sets dropped without {article} {self.NOUN}{every} within "
                 f"{self.tolerance_ns / NS_PER_S:g} s before the set ({per})")
+
+
+def checked_samples(what: str, stamps: ArrayLike, values: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """A side stream's recorded ``stamps`` (n,) as int64 ns and ``values`` (n,) as floats;
+    :class:`InputError` naming ``what`` (``mag1: ... one temperature``) unless the stamps are
+    integers and there is one value per stamp."""
+    t = np.asarray(stamps)
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if t.dtype.kind not in "iu" or t.shape != v.shape:
+        raise InputError(f"{what} per stamp")
+    return t.astype(np.int64), v
 
 
 class LatestValues:

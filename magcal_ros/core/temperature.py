@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.matching import MatchStats
+from magcal_ros.core.matching import MatchStats, checked_samples
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
@@ -42,11 +42,8 @@ class TemperatureSamples:
     values: Array
 
     def __post_init__(self) -> None:
-        t = np.asarray(self.stamps)
-        v = np.asarray(self.values, dtype=float).reshape(-1)
-        if t.dtype.kind not in "iu" or t.shape != v.shape:
-            raise InputError(f"{self.sensor}: need integer ns stamps and one temperature per stamp")
-        object.__setattr__(self, "stamps", t.astype(np.int64))
+        t, v = checked_samples(f"{self.sensor}: need integer ns stamps and one temperature", self.stamps, self.values)
+        object.__setattr__(self, "stamps", t)
         object.__setattr__(self, "values", v)
 
 
