@@ -26,7 +26,14 @@ import numpy as np
 import pytest
 import ros_harness as h
 import truth_tools as tt
-from test_model_blocks import F, GEO, NOISE, corrected, thermal_array, three_temperature_tumble
+from test_model_blocks import (
+    GEO,
+    NOISE,
+    F,
+    corrected,
+    thermal_array,
+    three_temperature_tumble,
+)
 from test_offline import magcal, ok, read_corrected
 
 from magcal_ros.app.ros_driver import ArrayDriver, recording_messages, wait_for_samples
@@ -105,9 +112,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, case: Case) -> Any:
     try:
         runner.start("correction_node", params=dict(reliable, status_period=0.25), params_files=[start],
                      namespace=NAMESPACE, log_name="thermo_correction")
-        runner.start("calibration_node", namespace=NAMESPACE, log_name="thermo_calibration", params=dict(reliable, **{
-            "reference_field": F, "prior": "none", "calibration_file": str(workdir / "out.yaml"),
-            "service_timeout": 10.0, "progress_period": 0.5}))
+        runner.start("calibration_node", namespace=NAMESPACE, log_name="thermo_calibration", params=dict(reliable, reference_field=F, prior="none", calibration_file=str(workdir / "out.yaml"), service_timeout=10.0, progress_period=0.5))
         yield runner
     finally:
         codes = runner.close()
