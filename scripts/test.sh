@@ -7,4 +7,4 @@ cd "$root"
 export PATH="$venv/bin:$PATH"
 # Small matrices: one BLAS thread each, so parallel test processes do not thrash two cores.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
-exec "$venv/bin/python" -m pytest -q test "$@"
+exec "$venv/bin/python" -m pytest -q --durations=15 test "$@"
