@@ -169,7 +169,8 @@ def test_unstamped_currents_count_from_their_arrival() -> None:
 def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing() -> None:
     """A Ctrl-C to the process group reaches the calibration node's analysis process too, maybe
     while it still imports: spawned with its stderr on the null device, it prints no traceback into
-    the node's output (the node sees a broken pool and starts a new one)."""
+    the node's output (the node sees a broken pool, closes it and starts a new one; closing it joins the
+    pool's thread, so nothing prints at exit either)."""
     import subprocess
     import sys
     import textwrap
@@ -177,7 +178,7 @@ def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing()
     script = textwrap.dedent("""
         import multiprocessing, os, signal, sys, threading, time
         from concurrent.futures import ProcessPoolExecutor
-        from magcal_ros.nodes.calibration_node import _quiet_worker, _stderr_to_null
+        from magcal_ros.nodes.calibration_node import _close_pool, _quiet_worker, _stderr_to_null
 
         def run():
             pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
@@ -190,7 +191,7 @@ def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing()
                 job.result(timeout=60)
             except Exception as exc:
                 print(type(exc).__name__)
-            pool.shutdown(wait=False)
+            _close_pool(pool)  # as the node does with a broken pool
             print("node stderr still works", file=sys.stderr)
 
         t = threading.Thread(target=run)

@@ -261,12 +261,13 @@ def test_calibrating_in_a_namespace_keeps_backup_generations_and_skips_unchanged
     pushed = {n: np.reshape(params[f"{n}.covariance"], (3, 3)) for n in data.names}
     assert all(0.5e-18 < np.trace(c) / 3 < 3e-18 for c in pushed.values()), pushed
     driver.clear_outputs()
-    h.replay_recording(driver, data.check.window(None, data.check.stamps[19]))
-    deadline = time.monotonic() + 20.0
-    while time.monotonic() < deadline and "field" not in driver.outputs.covariances:
-        time.sleep(0.05)
-    field_cov = np.reshape(driver.outputs.covariances["field"], (3, 3))
-    np.testing.assert_allclose(field_cov, sum(pushed.values()) / 16, rtol=1e-9)  # the mean of 4: sum / S^2
+    sent = list(h.replay_recording(driver, data.check.window(None, data.check.stamps[19])).values())
+    driver.wait_for_outputs(sent, timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
+    with driver._lock:  # by stamp: a field from the collection's replay may still come late on a busy machine
+        covs = [driver.outputs.field_covariance[t] for t in sent if t in driver.outputs.field_covariance]
+    assert len(covs) >= 0.95 * len(sent)
+    for cov in covs:  # the mean of 4: sum / S^2
+        np.testing.assert_allclose(np.reshape(cov, (3, 3)), sum(pushed.values()) / 16, rtol=1e-9)
     np.testing.assert_allclose(np.reshape(driver.outputs.covariances["mag3"], (3, 3)), pushed["mag3"], rtol=1e-9)
 
     # Same sets, same settings: nothing solved, applied or written again.
@@ -311,8 +312,8 @@ def test_a_failed_write_or_push_changes_nothing_and_no_set_uses_the_new_calibrat
         assert not ok and "cannot write" in message and "nothing was changed" in message, message
         assert _params(driver, CORRECTION) == before_params
         driver.wait_for_outputs(list(mapping.values()), timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
-        with driver._lock:
-            field = dict(driver.outputs.field)
+        with driver._lock:  # the sets of this replay (a field of the collection's may still come late)
+            field = {t: driver.outputs.field[t] for t in mapping.values() if t in driver.outputs.field}
         assert len(field) == len(rec)
         raw = {mapping[int(t)]: v for t, v in zip(rec.stamps, rec.vectors)}
         for t, centre in field.items():

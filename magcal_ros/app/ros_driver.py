@@ -277,6 +277,9 @@ class Outputs:
     stamped_names: list[tuple[str, ...]] = default(default_factory=list)
     covariances: dict[str, NDArray[np.float64]] = default(default_factory=dict)
     """Last magnetic_field_covariance (9,) received on field and each <name>/corrected, by topic name."""
+    field_covariance: dict[int, NDArray[np.float64]] = default(default_factory=dict)
+    """magnetic_field_covariance (9,) of each field message, by its header stamp (a message that comes
+    late from an earlier replay cannot pass for a new one)."""
     baseline: dict[int, NDArray[np.float64]] = default(default_factory=dict)
     """Baseline gradient dB/ds (3,) T/m by its header stamp (a collinear array)."""
     baseline_frames: set[str] = default(default_factory=set)
@@ -398,6 +401,7 @@ class ArrayDriver:
         with self._lock:
             self.outputs.field[t] = np.array([f.x, f.y, f.z])
             self.outputs.covariances["field"] = np.array(msg.magnetic_field_covariance, dtype=float)
+            self.outputs.field_covariance[t] = self.outputs.covariances["field"]
             if self.kind == "tensor":
                 self._fields.append(t)
                 self._pair()
@@ -460,6 +464,7 @@ class ArrayDriver:
             self.outputs.latency.clear()
             self.outputs.stamped.clear()
             self.outputs.covariances.clear()
+            self.outputs.field_covariance.clear()
             self.outputs.baseline.clear()
             self._fields.clear()
             self._tensors.clear()

@@ -601,6 +601,7 @@ class CalibrationNode(Node):
             if self._stopping.is_set():
                 return
             if isinstance(exc, BrokenProcessPool):
+                _close_pool(self._analyser)
                 self._analyser = None  # start a new one next time
             note = "none"
             result = progress.Assessment(len(raw), False, None, (), f"cannot analyse the collected sets: {exc}")
@@ -811,6 +812,7 @@ class CalibrationNode(Node):
             if self._stopping.is_set():
                 return
             if isinstance(exc, BrokenProcessPool):
+                _close_pool(self._analyser)
                 self._analyser = None
             text = f"cannot analyse the sets flown since the drift was named: {exc}"
         with self._lock:
@@ -869,8 +871,7 @@ class CalibrationNode(Node):
         if worker is not None and worker.is_alive():
             self.get_logger().info("shutting down during a calibration: it is abandoned, nothing is changed")
             worker.join(2.0)
-        if self._analyser is not None:
-            self._analyser.shutdown(wait=False, cancel_futures=True)
+        _close_pool(self._analyser)
         for thread in (self._assessor, self._drift_worker):
             if thread is not None and thread.is_alive():
                 thread.join(2.0)
@@ -1193,6 +1194,20 @@ def _stderr_to_null() -> Iterator[None]:
         os.dup2(saved, 2)
         os.close(saved)
         os.close(null)
+
+
+def _close_pool(pool: ProcessPoolExecutor | None) -> None:
+    """End the analysis process (what it computes is not needed any more) and join the pool's manager
+    thread, so that nothing of the pool is left when the interpreter exits: Python 3.11's exit hook wakes
+    every pool's manager thread and, when one closes its pipe at the same moment (a busy machine makes
+    that likely), prints a traceback (OSError: Bad file descriptor) into the node's output."""
+    if pool is None:
+        return
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        with contextlib.suppress(Exception):
+            proc.terminate()
+    with contextlib.suppress(Exception):
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _quiet_worker() -> None:
