@@ -164,3 +164,25 @@ def test_the_recalibration_status_says_what_is_done() -> None:
                                          {**record, "last_attempt": "not recalibrated: ..."})
     assert warn and text.endswith("; auto_recalibrate: collecting the sets flown since the drift was named: 10 of 60 s; "
                                   "last attempt: not recalibrated: ...")
+
+
+def test_a_sensor_turned_against_the_others_is_refused_though_its_tmi_fits(drifted: tuple) -> None:
+    """The right recalibration with mag2 turned by 0.5 deg (about the vehicle's z): every |B| is as good
+    (a rotation keeps intensity) and the sensors disagree as much on the fitted sets as on the held-out
+    ones, but far beyond what their noise leaves after field and gradient: refused, saying so."""
+    from scipy.spatial.transform import Rotation
+
+    _, moved, running, rng = drifted
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    result, fit, held = _solve(stamps, raw, running)
+    assert recalibration.verdict(result, running, raw[fit], raw[held])[0] is None
+    turn = Rotation.from_euler("z", 0.5, degrees=True).as_matrix()
+    cal = result.calibration
+    matrices = cal.matrices.copy()
+    matrices[1] = turn @ matrices[1]
+    turned = replace(result, calibration=replace(cal, matrices=matrices))
+    why, figures = recalibration.verdict(turned, running, raw[fit], raw[held])
+    assert figures is not None and np.all(figures.tmi_new < 1.2 * NOISE)  # the TMI cannot tell
+    assert why is not None and "a sensor turned against the others" in why, why
+    # what white noise leaves beyond field and gradient: sigma sqrt(4 / 12) for a cross of four
+    assert figures.disagreement_noise == pytest.approx(NOISE * np.sqrt(4 / 12), rel=0.2)

@@ -133,6 +133,7 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                 say(f"clean phase over ({clean:g} s, target passed): {health.message if health else 'no status'}")
                 phase = "drifting"
         elif phase == "drifting":
+            drifted_stamps.extend(int(s) for s in part.stamps if int(s) > jump_ns)
             if hv.get("drifted") == "true" and seen >= 0:
                 out.named_after, out.named = seen, health.message
                 say(f"{seen:.0f} s after the jump (of sets judged) /diagnostics says: {health.message}")
@@ -158,7 +159,8 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                 out.recalibrated = rv.get("last_recalibration", "")
                 say(f"{out.recalibrated_after:.0f} s later: {out.recalibrated}")
                 break
-    if drifted_stamps:
+    if drifted_stamps:  # a node (or this driver) that lags delivers them late: wait for them
+        driver.wait_for_outputs(drifted_stamps, timeout=60.0, settle=5.0)
         g = driver.gradients(drifted_stamps)
         out.tensor_drifted = tensor_rms(np.stack(list(g.values()))) if g else float("nan")
     if not out.recalibrated:

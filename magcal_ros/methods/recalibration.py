@@ -15,8 +15,9 @@ with the running calibration as the prior, exactly as ``~/calibrate`` does
    :data:`CHUNKS` stretches of the window in time is left out of the fit; on them each
    sensor's TMI residual (``|B| - F``) and the sensors' disagreement beyond the gradient
    must be within :data:`HOLD_OUT_RATIO` of what the fit left on its own sets (plus the
-   noise of so few sets), and the TMI residual must be smaller than the running
-   calibration's on the same sets.
+   noise of so few sets), the TMI residual must be smaller than the running
+   calibration's on the same sets, and the disagreement within :data:`DISAGREEMENT_NOISE`
+   times what the sensors' noise alone leaves there.
 
 Units: T; stamps int64 ns.
 """
@@ -44,6 +45,10 @@ HOLD_OUT_EVERY: int = 4
 """Chunks 3 and 7 of 10 (0-based): a fifth of the window, between stretches that are fitted."""
 HOLD_OUT_RATIO: float = 1.5
 """What the new calibration may leave on the held-out sets, against what it left on its own."""
+DISAGREEMENT_NOISE: float = 3.0
+"""What the sensors may disagree beyond the gradient on the held-out sets, in units of what their noise
+alone leaves there: a calibration that fits every sensor's TMI but turns one sensor against the others
+(a rotation the window does not determine) is refused even when it disagrees as much on its own sets."""
 OFFSET_SIGMA: float = 3.0
 """An offset counts as determined when its 1-sigma is below this many noise sd of its sensor."""
 
@@ -87,6 +92,8 @@ class HeldOut:
     disagreement_new: float
     """RMS over sets and components of the residual beyond field and gradient (NaN: none)."""
     disagreement_fit: float
+    disagreement_noise: float
+    """What white noise of the sensors' noise leaves beyond field and gradient (RMS, NaN: no such check)."""
     noise: Array
     """(S,) noise per axis the fit found."""
     names: tuple[str, ...]
@@ -111,6 +118,11 @@ class HeldOut:
             return (f"on {self.sets} held-out sets the sensors disagree by {self.disagreement_new / NT:.3g} nT beyond "
                     f"the gradient, more than {HOLD_OUT_RATIO:g}x the {self.disagreement_fit / NT:.3g} nT on the sets "
                     f"fitted")
+        if np.isfinite(self.disagreement_new) and self.disagreement_new > (
+                DISAGREEMENT_NOISE * self.disagreement_noise + float(np.max(slack))):
+            return (f"on {self.sets} held-out sets the sensors disagree by {self.disagreement_new / NT:.3g} nT beyond "
+                    f"the gradient, more than {DISAGREEMENT_NOISE:g}x the {self.disagreement_noise / NT:.3g} nT their "
+                    "noise leaves (a sensor turned against the others)")
         return None
 
     def describe(self) -> str:
@@ -137,8 +149,17 @@ def held_out(result: CalibrationResult, running: ArrayCalibration, raw_fit: Arra
     b_fit = new.apply(raw_fit, currents_fit if use else None)
     b_old = running.apply(raw_held, currents_held if running.channels else None)
     tmi = lambda b: rms(np.linalg.norm(b, axis=2) - f, axis=0)  # noqa: E731
+    noise = np.asarray(result.noise, dtype=float)
     return HeldOut(len(raw_held), tmi(b_new), tmi(b_old), tmi(b_fit), _disagreement(b_new, projector),
-                   _disagreement(b_fit, projector), np.asarray(result.noise, dtype=float), new.geometry.names)
+                   _disagreement(b_fit, projector), _noise_disagreement(noise, projector), noise, new.geometry.names)
+
+
+def _noise_disagreement(noise: Array, projector: Array | None) -> float:
+    """RMS over sets and components of ``P n`` for white noise ``n`` of ``noise`` (S,) T per axis."""
+    if projector is None:
+        return float("nan")
+    variance = np.repeat(noise**2, 3)  # per stacked component
+    return float(np.sqrt(np.sum((projector**2) @ variance) / len(variance)))
 
 
 def verdict(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
