@@ -459,7 +459,9 @@ def test_float64_currents_are_stamped_on_arrival(world: h.RosRun, thr: ArrayDriv
         # A Float64 is stamped when it arrives: sent CURRENT_LEAD (1 s) ahead it would be stale
         # (older than the current tolerance) at its set; a few sets ahead it is the set's.
         rows, b, _, used = _fresh_outputs(d, rec, u, lead=5)
-        assert len(rows) == len(rec)
+        # Every set from the first Float64's arrival on; on a busy machine it may arrive after the first
+        # sets' stamps, which are then withheld (no current yet, by design): only a leading stretch.
+        assert len(rows) >= 0.5 * len(rec) and np.array_equal(rows, np.arange(len(rec) - len(rows), len(rec))), rows
         expected = thruster_data.true.apply(rec.vectors[rows], _float32(used))
         np.testing.assert_allclose(b, expected, rtol=1e-9, atol=1e-18)
     finally:

@@ -189,6 +189,7 @@ def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing()
                 os.kill(p.pid, signal.SIGINT)  # while it imports
             try:
                 job.result(timeout=60)
+                print("done")
             except Exception as exc:
                 print(type(exc).__name__)
             _close_pool(pool)  # as the node does with a broken pool
@@ -200,7 +201,8 @@ def test_the_analysis_process_is_silent_when_ctrl_c_reaches_it_while_importing()
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr, proc.stderr
-    assert "node stderr still works" in proc.stderr and "BrokenProcessPool" in proc.stdout
+    # the Ctrl-C lands while it imports (a broken pool) or, on a busy machine, after it ignores SIGINT
+    assert "node stderr still works" in proc.stderr and proc.stdout.strip() in ("BrokenProcessPool", "done"), proc.stdout
 
 
 def test_the_calibration_health_reference_is_validated_with_the_calibration() -> None:

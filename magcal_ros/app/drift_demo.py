@@ -121,16 +121,19 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
         t = (int(part.stamps[-1]) - jump_ns) / NS_PER_S  # mission time since the jump, as published
         health, hv, seen = judged()
         if phase == "clean":
-            if health is not None and hv.get("figure") and seen < 0:
-                out.clean_levels.append(level(health))
             if t >= 0:
                 deadline = time.monotonic() + patience
                 while seen < -CHUNK and time.monotonic() < deadline:  # let the node judge the clean phase
                     time.sleep(0.2)
                     health, hv, seen = judged()
-                    if health is not None and hv.get("figure") and seen < 0:
-                        out.clean_levels.append(level(health))
-                say(f"clean phase over ({clean:g} s, target passed): {health.message if health else 'no status'}")
+                # every judgement of clean sets only, as received (polling alone misses some when a node lags)
+                clean_statuses = [st for st in driver.statuses_of(health_name) if _values(st).get("figure")
+                                  and _values(st).get("newest_stamp")
+                                  and parse_seconds(_values(st)["newest_stamp"]) < jump_ns]
+                out.clean_levels = [level(st) for st in clean_statuses]
+                shown = clean_statuses[-1].message if clean_statuses else "no judgement of clean sets"
+                say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "
+                    f"levels {sorted(set(out.clean_levels))}, the last: {shown}")
                 phase = "drifting"
         elif phase == "drifting":
             drifted_stamps.extend(int(s) for s in part.stamps if int(s) > jump_ns)

@@ -366,6 +366,8 @@ class ArrayDriver:
                     MagneticField, self.topic(f"{n}/corrected"), self._corrected_cb(n), out_qos))
         self._clock_pub: Any = None
         self.statuses: dict[str, Any] = {}
+        self.status_history: dict[str, deque[Any]] = {}
+        """Every status received per name (see :meth:`statuses_of`)."""
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name="magcal-driver", daemon=True)
@@ -793,8 +795,15 @@ class ArrayDriver:
             with self._lock:
                 for status in msg.status:
                     self.statuses[status.name] = status
+                    self.status_history.setdefault(status.name, deque(maxlen=100_000)).append(status)
 
         self._diagnostics_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics", keep, 100)
+
+    def statuses_of(self, name: str) -> list[Any]:
+        """Every status named ``name`` received since :meth:`watch_diagnostics`, oldest first (a reader that
+        polls :meth:`status` on a busy machine may miss some)."""
+        with self._lock:
+            return list(self.status_history.get(name, ()))
 
     def status(self, name: str) -> Any:
         """The latest status named ``name`` on /diagnostics (after :meth:`watch_diagnostics`), or None."""
