@@ -33,6 +33,11 @@ from magcal_ros.core.units import NS_PER_S
 # --------------------------------------------------------------------------- environment
 
 
+SERVICE_SETTLE: float = 1.0
+"""Seconds a new service client waits after the service is ready before its first call (see
+:meth:`ArrayDriver._call`)."""
+
+
 def pick_domain_id(seed: int | None = None) -> int:
     """A ROS domain id in 1..100 derived from ``seed`` (default: this process id)."""
     return 1 + (os.getpid() if seed is None else seed) % 100
@@ -366,6 +371,8 @@ class ArrayDriver:
                     MagneticField, self.topic(f"{n}/corrected"), self._corrected_cb(n), out_qos))
         self._clock_pub: Any = None
         self.statuses: dict[str, Any] = {}
+        self._clients: dict[tuple[Any, str], Any] = {}
+        """Service clients by (type, name), kept between calls (see :meth:`_call`)."""
         self.status_history: dict[str, deque[Any]] = {}
         """Every status received per name (see :meth:`statuses_of`)."""
         self._executor = SingleThreadedExecutor(context=self.context)
@@ -701,18 +708,29 @@ class ArrayDriver:
 
     # -- services ---------------------------------------------------------------------
     def _call(self, srv_type: Any, name: str, request: Any, timeout: float) -> Any:
-        client = self.node.create_client(srv_type, name)
-        try:
+        """One call; the client is kept for the next calls of the same service. A new client waits for the
+        service and then :data:`SERVICE_SETTLE` s more: the service is "ready" once it hears requests, but
+        its answer is lost when it has not yet discovered the client's reply reader (a busy machine
+        discovers slowly), and a kept client is discovered once."""
+        key = (srv_type, name)
+        with self._lock:
+            client = self._clients.get(key)
+        if client is None:
+            client = self.node.create_client(srv_type, name)
             if not client.wait_for_service(timeout_sec=timeout):
+                self.node.destroy_client(client)
                 raise TimeoutError(f"service {name} not available after {timeout:g} s")
-            future = client.call_async(request)
-            done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
-            if not done.wait(timeout) or future.result() is None:
-                raise TimeoutError(f"service {name} did not answer within {timeout:g} s")
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            time.sleep(SERVICE_SETTLE)
+            with self._lock:
+                self._clients[key] = client
+        elif not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"service {name} not available after {timeout:g} s")
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(timeout) or future.result() is None:
+            raise TimeoutError(f"service {name} did not answer within {timeout:g} s")
+        return future.result()
 
     def trigger(self, name: str, timeout: float = 300.0) -> tuple[bool, str]:
         """Call a std_srvs/Trigger service; returns (success, message)."""
