@@ -127,9 +127,9 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                     time.sleep(0.2)
                     health, hv, seen = judged()
                 # every judgement of clean sets only, as received (polling alone misses some when a node lags)
-                clean_statuses = [st for st in driver.statuses_of(health_name) if _values(st).get("figure")
-                                  and _values(st).get("newest_stamp")
-                                  and parse_seconds(_values(st)["newest_stamp"]) < jump_ns]
+                judged_all = [(st, _values(st)) for st in driver.statuses_of(health_name)]
+                clean_statuses = [st for st, v in judged_all if v.get("figure") and v.get("newest_stamp")
+                                  and parse_seconds(v["newest_stamp"]) < jump_ns]
                 out.clean_levels = [level(st) for st in clean_statuses]
                 shown = clean_statuses[-1].message if clean_statuses else "no judgement of clean sets"
                 say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "

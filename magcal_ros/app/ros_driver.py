@@ -715,16 +715,17 @@ class ArrayDriver:
         key = (srv_type, name)
         with self._lock:
             client = self._clients.get(key)
-        if client is None:
+        new = client is None
+        if new:
             client = self.node.create_client(srv_type, name)
-            if not client.wait_for_service(timeout_sec=timeout):
+        if not client.wait_for_service(timeout_sec=timeout):
+            if new:
                 self.node.destroy_client(client)
-                raise TimeoutError(f"service {name} not available after {timeout:g} s")
+            raise TimeoutError(f"service {name} not available after {timeout:g} s")
+        if new:
             time.sleep(SERVICE_SETTLE)
             with self._lock:
                 self._clients[key] = client
-        elif not client.wait_for_service(timeout_sec=timeout):
-            raise TimeoutError(f"service {name} not available after {timeout:g} s")
         future = client.call_async(request)
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())

@@ -601,8 +601,7 @@ class CalibrationNode(Node):
             if self._stopping.is_set():
                 return
             if isinstance(exc, BrokenProcessPool):
-                _close_pool(self._analyser)
-                self._analyser = None  # start a new one next time
+                self._drop_analyser()
             note = "none"
             result = progress.Assessment(len(raw), False, None, (), f"cannot analyse the collected sets: {exc}")
         with self._lock:
@@ -786,6 +785,11 @@ class CalibrationNode(Node):
                 self._watch.attempted(now, pushed)
             self._solve_lock.release()
 
+    def _drop_analyser(self) -> None:
+        """A broken analysis pool: closed now, a new one started next time."""
+        _close_pool(self._analyser)
+        self._analyser = None
+
     def _running_intensity(self) -> float | None:
         """The intensity (T) the correction node's calibration maps |B| to, when it says (else None)."""
         try:
@@ -812,8 +816,7 @@ class CalibrationNode(Node):
             if self._stopping.is_set():
                 return
             if isinstance(exc, BrokenProcessPool):
-                _close_pool(self._analyser)
-                self._analyser = None
+                self._drop_analyser()
             text = f"cannot analyse the sets flown since the drift was named: {exc}"
         with self._lock:
             self._advice = (now, text)
