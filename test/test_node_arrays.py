@@ -45,8 +45,6 @@ TWO = ArrayGeometry(("fore", "aft"), np.array([[0.25, 0.0, 0.0], [-0.25, 0.0, 0.
 SIX = ArrayGeometry(tuple(f"m{i}" for i in range(1, 7)), np.array([
     [0.3, 0.0, 0.0], [0.1, 0.25, 0.0], [-0.2, 0.2, 0.05], [-0.3, -0.05, 0.0], [0.0, -0.25, -0.05], [0.15, -0.1, 0.1],
 ]))
-LOSSLESS = {"raw_reliability": "reliable", "qos_depth": 1000}
-"""The driver publishes reliably: on a busy machine no set is lost on the way (the counts are checked)."""
 
 
 def simulate(geometry: ArrayGeometry, seed: int) -> ArraySimulation:
@@ -84,11 +82,11 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Any:
             manoeuvre, _ = sim.run(uniform_random(600, rng), rng, rate=50.0)
             fresh, _ = sim.run(uniform_random(300, rng), rng, rate=50.0, start=1000.0)
             params: dict[str, Any] = {"sensor_names": list(geo.names), "uncorrected_sensors": list(geo.names),
-                                      **LOSSLESS}
+                                      **h.LOSSLESS}
             if key == "two":
                 params["positions"] = [float(x) for x in geo.positions.reshape(-1)]
             run.start("correction_node", params=params, namespace=key, log_name=f"{key}_correction")
-            cal = {"sensor_names": list(geo.names), "reference_field": h.INTENSITY, "prior": "none", **LOSSLESS,
+            cal = {"sensor_names": list(geo.names), "reference_field": h.INTENSITY, "prior": "none", **h.LOSSLESS,
                    "calibration_file": str(workdir / f"{key}.yaml"), "service_timeout": h.SERVICE_TIMEOUT, "progress_period": 0.5}
             if key == "two":
                 cal["positions"] = params["positions"]

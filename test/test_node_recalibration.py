@@ -39,7 +39,7 @@ def test_a_drift_mid_mission_is_named_advised_then_fixed(tmp_path: Path) -> None
     before_text = cal_path.read_text()
     block = yaml.safe_load(before_text)["magcal_correction"]["ros__parameters"]  # what the health compares with
     assert block["calibration_intensity"] == pytest.approx(h.INTENSITY) and block["mag3"]["noise"] == pytest.approx(h.NOISE)
-    qos = {"raw_reliability": "reliable", "qos_depth": 2000}
+    qos = h.LOSSLESS
     run = h.RosRun(tmp_path)
     lines: list[str] = []
     t0 = time.monotonic()

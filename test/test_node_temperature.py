@@ -73,7 +73,7 @@ def world(tmp_path_factory: pytest.TempPathFactory, warm_data: Warm) -> Any:
     workdir = tmp_path_factory.mktemp("temperature")
     runner = h.RosRun(workdir, domain_id=h.pick_domain_id(seed=os.getpid() + 73))
     fast = {"status_period": 0.25, "sensor_timeout": 0.5, "output_timeout": 1.5}
-    reliable = {"raw_reliability": "reliable", "qos_depth": 1000}  # no set lost on a busy machine
+    reliable = h.LOSSLESS  # a history deeper than any replay: a reliable reader whose history fills loses sets for good
     try:
         for ns, key in (("warm", WARM), ("col", COL)):
             path = workdir / f"{ns}.yaml"
@@ -205,14 +205,14 @@ def test_the_calibration_node_collects_temperatures_and_imu_and_clears_old_terms
     ok, message = d.trigger(f"{COL_CAL}/start")
     assert ok, message
     sent = _replay(d, rec, rec.temperatures, imu=True)
-    progress = wait_for_samples(d, COL_CAL.strip("/"), int(0.95 * len(sent)), timeout=120.0)
-    # most of them: a busy machine may lose some sets (what was collected is asserted below: none stale)
-    assert int(progress.get("samples", 0)) >= 0.75 * len(rec), progress
+    progress = wait_for_samples(d, COL_CAL.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
+    # all but a few: on a busy machine a set whose temperature or attitude comes late is withheld (by design,
+    # counted); what was collected is asserted below: none stale
+    assert int(progress.get("samples", 0)) >= 0.97 * len(rec), str(progress)
 
     def heard(s: DiagnosticStatus) -> bool:
         v = status_values(s)
-        return int(v.get("imu.received", 0)) >= 0.75 * len(rec) and int(v.get("mag4.temperature_received", 0)) >= \
-            0.75 * len(rec)
+        return int(v.get("imu.received", 0)) >= len(rec) and int(v.get("mag4.temperature_received", 0)) >= len(rec)
 
     status = d.diagnostics(COL_CAL, heard, 60.0)
     assert status is not None, "the IMU and the temperatures were not heard"

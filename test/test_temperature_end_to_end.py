@@ -105,7 +105,7 @@ def test_magcal_calibrate_and_correct_on_csv_reach_the_true_temperature_aware_ca
 def world(tmp_path_factory: pytest.TempPathFactory, case: Case) -> Any:
     workdir = tmp_path_factory.mktemp("thermo")
     runner = h.RosRun(workdir, domain_id=h.pick_domain_id(seed=os.getpid() + 91))
-    reliable = {"raw_reliability": "reliable", "qos_depth": 1000}  # no set lost on a busy machine
+    reliable = h.LOSSLESS  # a history deeper than any replay: a reliable reader whose history fills loses sets for good
     start = workdir / "start.yaml"  # an untempered calibration: the node needs no temperature until the push
     start.write_text(calfile.dumps(ArrayCalibration(GEO, np.stack([np.eye(3)] * 4), np.zeros((4, 3))),
                                    node_name=CORRECTION))

@@ -10,12 +10,14 @@ its own ``ROS_DOMAIN_ID`` and localhost-only discovery.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
@@ -36,6 +38,9 @@ from magcal_ros.core.units import NS_PER_S
 SERVICE_SETTLE: float = 1.0
 """Seconds a new service client waits after the service is ready before its first call (see
 :meth:`ArrayDriver._call`)."""
+OTHER_OUTPUTS_SETTLE: float = 5.0
+"""Once every set's gradient is in, seconds without progress after which the other topics' outputs of
+the same sets are no longer waited for (see :meth:`ArrayDriver.wait_for_outputs`)."""
 
 
 def pick_domain_id(seed: int | None = None) -> int:
@@ -43,9 +48,38 @@ def pick_domain_id(seed: int | None = None) -> int:
     return 1 + (os.getpid() if seed is None else seed) % 100
 
 
+FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <data_writer profile_name="magcal_run_writer" is_default_profile="true">
+    <times>
+      <heartbeatPeriod><sec>0</sec><nanosec>100000000</nanosec></heartbeatPeriod>
+    </times>
+  </data_writer>
+</profiles>
+"""
+"""Fast DDS profile of a run's processes: reliable writers announce what they sent every 0.1 s instead
+of every 3 s, so that a message the transport dropped on a busy machine is sent again within a
+fraction of a second (a reader learns that it misses one only from a later message or from such an
+announcement: a replay's last messages would otherwise wait seconds)."""
+
+
+def fastdds_profile() -> str:
+    """Path of a file holding :data:`FASTDDS_PROFILE` (written once, in the temporary directory)."""
+    digest = hashlib.sha1(FASTDDS_PROFILE.encode()).hexdigest()[:12]
+    path = Path(tempfile.gettempdir()) / f"magcal_fastdds_{digest}.xml"
+    if not path.exists():
+        tmp = path.with_name(f"{path.name}.{os.getpid()}")
+        tmp.write_text(FASTDDS_PROFILE)
+        os.replace(tmp, path)
+    return str(path)
+
+
 def ros_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Environment for a run isolated on ``domain_id`` with localhost-only discovery."""
+    """Environment for a run isolated on ``domain_id`` with localhost-only discovery (and
+    :data:`FASTDDS_PROFILE`, unless the environment names a Fast DDS profile of its own)."""
     env = dict(os.environ if base is None else base)
+    if not env.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not env.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = fastdds_profile()
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_LOCALHOST_ONLY", None)
@@ -505,7 +539,8 @@ class ArrayDriver:
 
     def wait_for_outputs(self, stamps: Sequence[int], timeout: float = 60.0, settle: float = 5.0) -> int:
         """Wait until the outputs of all ``stamps`` arrived (gradients; baseline gradients, or fields for
-        one sensor, see ``kind``), or none arrived for ``settle`` s.
+        one sensor, see ``kind``), or none arrived for ``settle`` s; then until the other topics' outputs
+        of those sets are in too (at most :data:`OTHER_OUTPUTS_SETTLE` s without progress).
 
         Returns how many arrived. Never fails on time: the caller checks what it got.
         """
@@ -517,6 +552,7 @@ class ArrayDriver:
                 received = self._received()
                 count = sum(1 for t in wanted if t in received)
             if count == len(wanted):
+                self._wait_for_the_other_outputs(settle=min(settle, OTHER_OUTPUTS_SETTLE))
                 return count
             if count != last_count:
                 last_count, last_change = count, time.monotonic()
@@ -524,6 +560,31 @@ class ArrayDriver:
                 return count
             time.sleep(0.02)
         return max(last_count, 0)
+
+    def _behind(self) -> int:
+        """How many outputs of the other topics (field, stamped gradient, every sensor's corrected) are still
+        missing against the sets come back (see :meth:`_received`). Call with the lock held."""
+        done = len(self._received())
+        stores = [self.outputs.field, *self.outputs.corrected.values()]
+        if self.kind == "tensor":
+            stores.append(self.outputs.stamped)
+        return sum(max(done - len(d), 0) for d in stores)
+
+    def _wait_for_the_other_outputs(self, settle: float) -> None:
+        """Let the other topics' callbacks catch up with the sets come back: this reader serves its topics in
+        turn, and on a busy machine a set's corrected vectors can still be queued when its gradient is in.
+        Returns when none is missing or nothing changed for ``settle`` s (an output the node does not send)."""
+        last, since = -1, time.monotonic()
+        while True:
+            with self._lock:
+                behind = self._behind()
+            if behind == 0:
+                return
+            if behind != last:
+                last, since = behind, time.monotonic()
+            elif time.monotonic() - since > settle:
+                return
+            time.sleep(0.02)
 
     # -- discovery --------------------------------------------------------------------
     def wait_for_subscribers(self, count: int = 1, timeout: float = 30.0) -> bool:
@@ -639,7 +700,8 @@ class ArrayDriver:
 
         ``currents`` (sets, m) A: the channels' currents of each set (in order of the sets'
         first messages), published on the :attr:`current_publishers` with the set's stamp
-        ``current_lead`` sets ahead of the set itself (the first sets start that much later), so
+        ``current_lead`` sets ahead of the set itself (the first sets start that much later; the
+        side messages go out at the sets' pace from the start, never in a burst), so
         that a receiver has them whatever the order in which its topics are served (a receiver
         keeps recent values and takes the latest stamped not after the set). ``temperatures``
         (sets, S) deg C and ``imu`` (orientation (sets, 4), angular velocity (sets, 3)) go out the
@@ -672,7 +734,12 @@ class ArrayDriver:
                     self.publish_imu(stamp_of(k), imu[0][k], imu[1][k])
                 sent_currents += 1
 
-        send_currents(lead)
+        ahead = start - lead * period
+        for j in range(min(lead, len(originals))):  # paced like the sets: a burst can overflow the transport
+            delay = ahead + j * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            send_currents(j + 1)
         for m in messages:
             stamp = mapping.get(m.stamp_ns)
             if stamp is None:
