@@ -120,3 +120,19 @@ def _try_calibrate(driver: object) -> object:
         return driver.trigger(f"/{h.CALIBRATION}/calibrate", timeout=30.0)  # type: ignore[attr-defined]
     except Exception as exc:  # noqa: BLE001 - the node is stopped under it; the answer does not matter
         return exc
+
+
+def test_sigusr1_prints_every_threads_stack_and_the_node_carries_on(found: dict[str, str], tmp_path: Path) -> None:
+    """A node that seems stuck can be asked where it is: ``kill -USR1 <pid>`` prints every thread's stack
+    into its output (the spinning executor among them) and the node keeps running and exits cleanly."""
+    run = h.RosRun(tmp_path, domain_id=h.pick_domain_id(seed=os.getpid() + 67))
+    try:
+        node = run.start(found["correction_node"], params=h.UNCORRECTED, log_name="correction")
+        os.kill(node.pid, signal.SIGUSR1)
+        assert node.wait_for_log("spin", 60.0), node.log()
+        assert node.alive()
+    finally:
+        codes = run.close()
+    text = node.log()
+    assert "thread 0x" in text.lower() and "most recent call first" in text and "in spin" in text, text
+    assert codes == {"correction": 0}, (codes, text)

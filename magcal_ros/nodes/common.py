@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import re
 import signal
 import sys
@@ -663,10 +664,13 @@ def run_node(
     ``make_node(argv)`` builds the node. A node that cannot start (invalid parameters) logs
     one clear line and gives exit code 1; a signal at any moment gives a quiet exit 0.
     ``stop``: the event of :func:`~magcal_ros.nodes.entry.quiet_signals` if already installed.
-    The node's ``close()`` (if any) runs before ``destroy_node``.
+    The node's ``close()`` (if any) runs before ``destroy_node``. SIGUSR1 prints every thread's
+    stack to stderr (a node that seems stuck), and the node carries on.
     """
     if stop is None:
         stop = quiet_signals()
+    if hasattr(signal, "SIGUSR1"):  # kill -USR1 <pid>: every thread's stack to stderr, the node runs on
+        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
     import rclpy
     from rclpy.exceptions import (
         InvalidParameterTypeException,
