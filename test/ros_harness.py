@@ -20,11 +20,11 @@ from magcal_ros.app.ros_driver import (
     ArrayDriver,
     NodeProcess,
     RawMessage,
-    fastdds_profile,
     pick_domain_id,
     recording_messages,
     ros_args,
     ros_environment,
+    use_fastdds_profile,
 )
 from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
@@ -33,10 +33,9 @@ from magcal_ros.core.units import NT
 from magcal_ros.sim.attitudes import single_axis, uniform_random
 from magcal_ros.sim.simulator import ArraySimulation, Truth, random_sensor_errors
 
-if not os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
-    # before this process's first DDS participant (Fast DDS reads the profile once): the test driver's
-    # writers are the ones whose lost messages must come back quickly (see ros_driver.FASTDDS_PROFILE)
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", fastdds_profile())
+# before this process's first DDS participant (Fast DDS reads the profile once): the test driver's
+# writers are the ones whose lost messages must come back quickly (see ros_driver.FASTDDS_PROFILE)
+use_fastdds_profile(os.environ)
 
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT

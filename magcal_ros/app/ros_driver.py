@@ -21,7 +21,7 @@ import tempfile
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass
 from dataclasses import field as default
 from pathlib import Path
@@ -74,12 +74,17 @@ def fastdds_profile() -> str:
     return str(path)
 
 
-def ros_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Environment for a run isolated on ``domain_id`` with localhost-only discovery (and
-    :data:`FASTDDS_PROFILE`, unless the environment names a Fast DDS profile of its own)."""
-    env = dict(os.environ if base is None else base)
+def use_fastdds_profile(env: MutableMapping[str, str]) -> None:
+    """Point ``env`` at :data:`FASTDDS_PROFILE` unless it names a Fast DDS profile of its own."""
     if not env.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not env.get("FASTDDS_DEFAULT_PROFILES_FILE"):
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = fastdds_profile()
+
+
+def ros_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Environment for a run isolated on ``domain_id`` with localhost-only discovery (and
+    :data:`FASTDDS_PROFILE`, see :func:`use_fastdds_profile`)."""
+    env = dict(os.environ if base is None else base)
+    use_fastdds_profile(env)
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_LOCALHOST_ONLY", None)
@@ -734,20 +739,21 @@ class ArrayDriver:
                     self.publish_imu(stamp_of(k), imu[0][k], imu[1][k])
                 sent_currents += 1
 
-        ahead = start - lead * period
-        for j in range(min(lead, len(originals))):  # paced like the sets: a burst can overflow the transport
-            delay = ahead + j * period - time.monotonic()
+        def wait_until(due: float) -> None:
+            delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+
+        ahead = start - lead * period
+        for j in range(min(lead, len(originals))):  # paced like the sets: a burst can overflow the transport
+            wait_until(ahead + j * period)
             send_currents(j + 1)
         for m in messages:
             stamp = mapping.get(m.stamp_ns)
             if stamp is None:
                 k = len(mapping)
                 if period:
-                    delay = start + k * period - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)
+                    wait_until(start + k * period)
                 send_currents(k + 1 + lead)
                 stamp = start_ns + k * spacing if restamp else m.stamp_ns
                 mapping[m.stamp_ns] = stamp
