@@ -9,6 +9,7 @@ clients). Waits are on discovery and on data, with generous timeouts.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -181,9 +182,13 @@ class RosRun:
         return d
 
     def close(self) -> dict[str, int]:
-        """Close drivers, stop processes (Ctrl-C); exit codes by log name."""
+        """Close drivers, stop processes (Ctrl-C); exit codes by log name. What the drivers' callbacks
+        raised goes to stderr (pytest shows it with a failure)."""
         for d in self.drivers:
+            name = d.node.get_name()
             d.close()
+            for error in d.spin_errors:
+                print(f"driver {name}: a callback raised {error}", file=sys.stderr)
         self.drivers.clear()
         codes = {p.log_path.stem: p.stop() for p in self.processes}
         self.processes.clear()

@@ -251,3 +251,55 @@ def test_a_run_loads_its_fast_dds_profile_and_keeps_a_users_own(tmp_path: Path) 
     for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"):
         kept = ros_environment(97, {**base, key: str(mine)})
         assert kept[key] == str(mine) and kept.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(mine)) == str(mine)
+
+
+def test_the_test_driver_hears_on_after_a_callback_raises() -> None:
+    """A test's predicate that raises reaches the test; a callback that raises is recorded and the driver's
+    thread goes on (once it ended silently: every later wait of the module timed out with "none")."""
+    import os
+    import threading
+    import time
+
+    import pytest
+    from sensor_msgs.msg import MagneticField
+
+    from magcal_ros.app.ros_driver import ArrayDriver, pick_domain_id
+
+    driver = ArrayDriver(("m",), pick_domain_id(os.getpid() + 7), node_name="raising_driver", listen=False)
+    try:
+        topic = driver.topic("m/raw")
+
+        def publish_until(found: list[object]) -> None:
+            for k in range(600):
+                if found:
+                    return
+                msg = MagneticField()
+                msg.header.stamp.sec = k + 1
+                driver.publishers["m"].publish(msg)
+                time.sleep(0.05)
+
+        def raising(msg: object) -> bool:
+            raise KeyError("a value the message lacks")
+
+        found: list[object] = []
+        feeder = threading.Thread(target=publish_until, args=(found,), daemon=True)
+        feeder.start()
+        with pytest.raises(KeyError, match="a value the message lacks"):
+            driver.wait_for_message(MagneticField, topic, raising, timeout=60.0)
+        found.append(True)
+        feeder.join()
+
+        def broken(msg: object) -> None:
+            raise RuntimeError("broken callback")
+
+        driver.node.create_subscription(MagneticField, topic, broken, 10)
+        found = []
+        feeder = threading.Thread(target=publish_until, args=(found,), daemon=True)
+        feeder.start()
+        got = driver.wait_for_message(MagneticField, topic, lambda m: bool(driver.spin_errors), timeout=60.0)
+        found.append(True)
+        feeder.join()
+        assert got is not None and driver._thread.is_alive()
+        assert driver.spin_errors and driver.spin_errors[0] == "RuntimeError: broken callback"
+    finally:
+        driver.close()

@@ -414,6 +414,9 @@ class ArrayDriver:
         """Service clients by (type, name), kept between calls (see :meth:`_call`)."""
         self.status_history: dict[str, deque[Any]] = {}
         """Every status received per name (see :meth:`statuses_of`)."""
+        self.spin_errors: list[str] = []
+        """What callbacks raised in the driver's thread (see :meth:`_spin`)."""
+        self._closing = threading.Event()
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name="magcal-driver", daemon=True)
@@ -424,13 +427,24 @@ class ArrayDriver:
         return f"{self.prefix}/{relative.lstrip('/')}"
 
     def _spin(self) -> None:
-        try:
-            self._executor.spin()
-        except Exception:  # noqa: BLE001 - shutdown of the context ends the spin
-            pass
+        """Run the callbacks until :meth:`close`. A callback that raises is reported on stderr and kept in
+        :attr:`spin_errors`, and the spinning goes on: a driver whose thread ended would hear nothing more
+        for the rest of its life (every later wait times out, far from the cause)."""
+        import traceback
+
+        while not self._closing.is_set() and self.context.ok():
+            try:
+                self._executor.spin_once(timeout_sec=0.2)
+            except Exception as exc:  # noqa: BLE001 - see the docstring
+                if self._closing.is_set() or not self.context.ok():
+                    return
+                self.spin_errors.append(f"{type(exc).__name__}: {exc}")
+                print(f"magcal driver: a callback raised (the driver carries on):\n{traceback.format_exc()}",
+                      file=sys.stderr, flush=True)
 
     def close(self) -> None:
         """Stop spinning and shut the context down."""
+        self._closing.set()
         self._executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
@@ -903,13 +917,21 @@ class ArrayDriver:
             return self.statuses.get(name)
 
     def wait_for_message(self, msg_type: Any, topic: str, predicate: Any = None, timeout: float = 30.0) -> Any:
-        """The first message on ``topic`` satisfying ``predicate`` (None on timeout)."""
+        """The first message on ``topic`` satisfying ``predicate`` (None on timeout). What ``predicate``
+        raises (it runs in the driver's thread) is raised here."""
         got: list[Any] = []
+        raised: list[BaseException] = []
         done = threading.Event()
 
         def cb(msg: Any) -> None:
-            if not done.is_set() and (predicate is None or predicate(msg)):
-                got.append(msg)
+            if done.is_set():
+                return
+            try:
+                if predicate is None or predicate(msg):
+                    got.append(msg)
+                    done.set()
+            except Exception as exc:  # noqa: BLE001 - handed to the caller
+                raised.append(exc)
                 done.set()
 
         sub = self.node.create_subscription(msg_type, topic, cb, 10)
@@ -917,6 +939,8 @@ class ArrayDriver:
             done.wait(timeout)
         finally:
             self.node.destroy_subscription(sub)
+        if raised:
+            raise raised[0]
         return got[0] if got else None
 
 
