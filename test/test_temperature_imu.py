@@ -178,6 +178,12 @@ def test_live_imu_matches_the_offline_rule_whatever_the_arrival_order() -> None:
             assert angle_deg(q, offline.orientation[k]) < 1e-9 and np.allclose(w, offline.angular_velocity[k])
     assert live.ready(int(sets[0]), 0) == (live.newest > sets[0])  # waits for the sample after the set
     assert LatestImu(50 * MS).ready(10 * S, 10 * S + 51 * MS)  # or until the tolerance has passed
+    # a stream's last set (its IMU sample has its own stamp, nothing newer comes): matched once it waited the
+    # tolerance since it arrived, not only when a newer set comes
+    last = LatestImu(50 * MS)
+    last.add(10 * S, [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.1])
+    assert not last.ready(10 * S, 10 * S, waited_ns=49 * MS) and last.ready(10 * S, 10 * S, waited_ns=51 * MS)
+    assert last.at(10 * S)[2]
 
 
 def test_ned_orientation_becomes_enu() -> None:

@@ -267,10 +267,13 @@ class LatestImu:
         """Stamp (ns) of the newest sample kept, or None."""
         return self._stamps[-1] if self._stamps else None
 
-    def ready(self, stamp_ns: int, now_ns: int) -> bool:
-        """Whether a set stamped ``stamp_ns`` can be matched now (see the class docstring)."""
+    def ready(self, stamp_ns: int, now_ns: int, waited_ns: int = 0) -> bool:
+        """Whether a set stamped ``stamp_ns`` can be matched now (see the class docstring), or since it
+        arrived it waited ``waited_ns`` (receipt clock) beyond the tolerance: a stream's last set, after
+        which no newer sample or set comes, is matched too."""
         newest = self.newest
-        return (newest is not None and newest > stamp_ns) or now_ns - stamp_ns > self.tolerance_ns
+        return ((newest is not None and newest > stamp_ns) or now_ns - stamp_ns > self.tolerance_ns
+                or waited_ns > self.tolerance_ns)
 
     def at(self, stamp_ns: int) -> tuple[Array, Array, bool]:
         """Orientation (4,), angular velocity (3,) at a set stamped ``stamp_ns`` and whether it is fresh."""

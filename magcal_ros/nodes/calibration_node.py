@@ -471,8 +471,8 @@ class CalibrationNode(Node):
         imu_tol = tolerance_of(float(self.get_parameter("imu_tolerance").value), "IMU")
         self._imu = LatestImu(imu_tol)
         self._imu_health = ImuHealth(("imu",), (self.resolve_topic_name(topic),), imu_tol)
-        self._pending: deque[tuple[int, Any, list[float], list[float] | None]] = deque()
-        """Sets waiting for the IMU's next sample: (stamp, raw values, currents, temperatures)."""
+        self._pending: deque[tuple[int, Any, list[float], list[float] | None, int]] = deque()
+        """Sets waiting for the IMU's next sample: (stamp, raw values, currents, temperatures, arrival ns)."""
         self._newest_set = 0
         unknown = -1.0
 
@@ -494,8 +494,9 @@ class CalibrationNode(Node):
         """Collect the sets waiting for the IMU whose sample after them arrived or that waited long enough
         (all of them with ``force``); a set without an IMU sample near it is not collected. Lock held."""
         imu, pending = self._imu, self._pending
-        while pending and (force or imu.ready(pending[0][0], self._newest_set)):
-            stamp, values, currents, temperatures = pending.popleft()
+        now = self._receipt_clock()
+        while pending and (force or imu.ready(pending[0][0], self._newest_set, now - pending[0][4])):
+            stamp, values, currents, temperatures, _ = pending.popleft()
             q, w, fresh = imu.at(stamp)
             if self._imu_health.count([fresh]):
                 self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
@@ -531,7 +532,8 @@ class CalibrationNode(Node):
                             continue
                     self._newest_set = max(self._newest_set, synced.stamp)
                     if self._imu.received:  # wait for the IMU's sample after the set
-                        self._pending.append((synced.stamp, synced.values, currents, temperatures))
+                        self._pending.append((synced.stamp, synced.values, currents, temperatures,
+                                              self._receipt_clock()))
                         self._flush_pending(force=False)
                     else:
                         self._buffer.add(synced.stamp, synced.values, currents, temperatures)
