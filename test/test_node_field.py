@@ -205,18 +205,45 @@ not arrived yet is withheld, by design)."""
 def _collect(driver: ArrayDriver, node: str, rec: Recording, currents: np.ndarray | None = None) -> None:
     ok, message = driver.trigger(f"{node}/start")
     assert ok, message
+    before = _counts(driver, node)
     sent = driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
                          currents=currents, current_lead=CURRENT_LEAD)
-    progress = wait_for_samples(driver, node.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
+    # Every set judged (a set is collected or withheld as it forms): what was collected is final.
+    judged = driver.diagnostics(node, lambda s: int(status_values(s)["sets"]) - int(before["sets"]) >= len(sent),
+                                h.SAMPLES_TIMEOUT)
+    assert judged is not None, f"the calibration node did not form the {len(sent)} sets sent"
+    progress = wait_for_samples(driver, node.strip("/"), 0, timeout=h.SAMPLES_TIMEOUT)
     # all but a few: on a busy machine a set whose current comes late is withheld (by design, counted)
     assert int(progress.get("samples", 0)) >= 0.97 * len(rec), progress
 
 
+def _counts(driver: ArrayDriver, node: str) -> dict[str, str]:
+    """A node's counters now (its next status on /diagnostics)."""
+    status = driver.diagnostics(node, None, 60.0)
+    assert status is not None, f"no status of {node}"
+    return status_values(status)
+
+
 def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None,
             lead: int = CURRENT_LEAD) -> dict[int, int]:
+    """Replay ``rec`` and wait for the outputs of the sets the correction node published (once it counted
+    every set as published or withheld, the sets it withheld are not waited for)."""
+    node = f"{driver.prefix}/magcal_correction"
+    driver.watch_diagnostics()
+    before = _counts(driver, node)
+
+    def published() -> int | None:
+        status = driver.status(node)
+        if status is None:
+            return None
+        now = status_values(status)
+        judged = sum(int(now[k]) - int(before[k]) for k in ("published", "withheld"))
+        return int(now["published"]) - int(before["published"]) if judged >= len(rec) else None
+
     mapping = driver.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
                             currents=currents, current_lead=lead)
-    driver.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE)
+    driver.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=h.OUTPUT_TIMEOUT, settle=h.OUTPUT_SETTLE,
+                            expected=published)
     return mapping
 
 

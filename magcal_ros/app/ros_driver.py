@@ -21,7 +21,7 @@ import tempfile
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Iterator, Mapping, MutableMapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass
 from dataclasses import field as default
 from pathlib import Path
@@ -556,11 +556,14 @@ class ArrayDriver:
         with self._lock:
             return {t: self.outputs.baseline[t] for t in stamps if t in self.outputs.baseline}
 
-    def wait_for_outputs(self, stamps: Sequence[int], timeout: float = 60.0, settle: float = 5.0) -> int:
+    def wait_for_outputs(self, stamps: Sequence[int], timeout: float = 60.0, settle: float = 5.0,
+                         expected: Callable[[], int | None] | None = None) -> int:
         """Wait until the outputs of all ``stamps`` arrived (gradients; baseline gradients, or fields for
         one sensor, see ``kind``), or none arrived for ``settle`` s; then until the other topics' outputs
         of those sets are in too (at most :data:`OTHER_OUTPUTS_SETTLE` s without progress).
 
+        ``expected()``: how many of these sets the node says it published, once it has judged them all
+        (None before): the wait ends when those arrived, without waiting ``settle`` for sets it withheld.
         Returns how many arrived. Never fails on time: the caller checks what it got.
         """
         wanted = set(stamps)
@@ -570,7 +573,8 @@ class ArrayDriver:
             with self._lock:
                 received = self._received()
                 count = sum(1 for t in wanted if t in received)
-            if count == len(wanted):
+            published = expected() if expected is not None else None
+            if count == len(wanted) or (published is not None and count >= published):
                 self._wait_for_the_other_outputs(settle=min(settle, OTHER_OUTPUTS_SETTLE))
                 return count
             if count != last_count:
