@@ -21,6 +21,8 @@ from test_node_parameters import NAMES, _make, in_process
 from magcal_ros.core.sync import DROP_FIELDS
 from magcal_ros.core.units import NS_PER_S
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 UPDATES = 1000
 MESSAGES = 10_000
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from magcal_ros.nodes.buffer import CELLS, SetBuffer
 
@@ -226,6 +227,7 @@ def test_the_calibration_health_reference_is_validated_with_the_calibration() ->
             raise AssertionError(f"{values} accepted")
 
 
+@pytest.mark.dds
 def test_a_run_loads_its_fast_dds_profile_and_keeps_a_users_own(tmp_path: Path) -> None:
     """Every process of a run gets the profile in which reliable writers announce every 0.1 s (lost
     messages come back within a fraction of a second on a busy machine); Fast DDS parses it without an
@@ -253,6 +255,7 @@ def test_a_run_loads_its_fast_dds_profile_and_keeps_a_users_own(tmp_path: Path) 
         assert kept[key] == str(mine) and kept.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(mine)) == str(mine)
 
 
+@pytest.mark.dds
 def test_the_test_driver_hears_on_after_a_callback_raises() -> None:
     """A test's predicate that raises reaches the test; a callback that raises is recorded and the driver's
     thread goes on (once it ended silently: every later wait of the module timed out with "none")."""
@@ -260,7 +263,6 @@ def test_the_test_driver_hears_on_after_a_callback_raises() -> None:
     import threading
     import time
 
-    import pytest
     from sensor_msgs.msg import MagneticField
 
     from magcal_ros.app.ros_driver import ArrayDriver, pick_domain_id

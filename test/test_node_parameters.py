@@ -26,6 +26,8 @@ from test_offline import magcal, ok
 from magcal_ros.app.ros_driver import isolate_this_process, pick_domain_id
 from magcal_ros.io import calibration_file as calfile
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 NAMES = ["mag1", "mag2", "mag3", "mag4"]
 
 

@@ -25,6 +25,8 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 SPEED = 4.0
 
 

@@ -25,6 +25,8 @@ from magcal_ros.io import calibration_file as calfile  # noqa: E402
 from magcal_ros.sim.streams import PATTERNS, StreamRecording, simulate_streams, turn  # noqa: E402
 from test_streams import array  # noqa: E402
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 FLOOR = tensor_floor(1 * NT, 0.4)
 DURATION = 8.0
 SPEED = 2.0

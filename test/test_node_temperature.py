@@ -27,6 +27,8 @@ from magcal_ros.core.recording import Recording
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.sim.spec import SimulationSpec, build, run
 
+pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
+
 WARM = "/warm/magcal_correction"
 COL = "/col/magcal_correction"
 COL_CAL = "/col/magcal_calibration"

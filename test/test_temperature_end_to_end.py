@@ -131,6 +131,7 @@ def _replay(d: ArrayDriver, rec: Recording) -> dict[int, int]:
                     temperatures=rec.temperatures)
 
 
+@pytest.mark.dds
 def test_the_nodes_calibrate_with_temperatures_and_correct_at_the_true_temperature_aware_level(
     world: h.RosRun, case: Case
 ) -> None:
