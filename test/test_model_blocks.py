@@ -210,3 +210,20 @@ def test_a_clean_tumble_names_no_drift() -> None:
     rec, _ = sim.run(tumble(1500, rng=1), 2, rate=7.5)
     res = calibrate_array(rec.vectors, GEO, F, stamps=rec.stamps)
     assert "drift" not in res.summary() and not any("drift" in w for w in res.warnings)
+
+
+def test_direction_rates_match_the_motion_and_do_not_depend_on_the_block_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The lag block's field-direction rates: a steady turn at 0.5 rad/s about z (a gap splits it) gives
+    0.5 rad/s perpendicular to the direction away from the gap; computed a block of sets at a time (memory
+    bounded on long recordings), exactly what one block gives."""
+    from magcal_ros.core import array_fit
+
+    t = np.concatenate([np.arange(300) * 0.02, 10.0 + np.arange(200) * 0.02])
+    angle = 0.5 * t
+    d = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(t)], axis=1)
+    whole = array_fit.direction_rates(d, t)
+    speed = np.linalg.norm(whole, axis=1)
+    assert np.allclose(speed[5:290], 0.5, rtol=1e-3) and np.allclose(speed[305:495], 0.5, rtol=1e-3)
+    assert np.allclose(np.sum(whole * d, axis=1), 0.0, atol=1e-12)
+    monkeypatch.setattr(array_fit, "RATE_BLOCK", 7)
+    np.testing.assert_array_equal(array_fit.direction_rates(d, t), whole)

@@ -314,6 +314,47 @@ def test_csv_round_trip_with_temperature_and_imu_columns_in_any_order(tmp_path: 
     np.testing.assert_allclose(quat_to_matrix(back.imu.orientation[7]), want, atol=1e-12)
 
 
+def test_a_long_csv_is_read_a_chunk_at_a_time_with_the_same_result(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recording read in chunks of a few lines and formed into sets a few rows at a time (a long one is
+    read 4 MB and 65,536 rows at a time, so memory stays bounded) gives exactly what one pass gives, with IMU cells left empty or not; a bad line in a later
+    chunk is still named by its line number."""
+    from magcal_ros.io import csv_recording
+
+    rec, _, _ = run(thermal_imu_spec(count=60))
+    plain = Recording(rec.names, rec.stamps, rec.vectors)
+    for name, r in (("imu", rec), ("plain", plain)):
+        path = tmp_path / f"{name}.csv"
+        write_csv(path, r)
+        if name == "imu":  # one row's orientation unknown: the optional-cell parser
+            lines = path.read_text().splitlines()
+            cells = lines[9].split(",")
+            header = lines[0].split(",")
+            for c in ("imu.qx", "imu.qy", "imu.qz", "imu.qw"):
+                cells[header.index(c)] = ""
+            lines[9] = ",".join(cells)
+            path.write_text("\n".join(lines) + "\n")
+        whole, _ = read_csv(path)
+        monkeypatch.setattr(csv_recording, "CHUNK_CHARS", 700)  # a few lines per chunk
+        monkeypatch.setattr(csv_recording, "SYNC_ROWS", 7)  # and sets formed a few rows at a time
+        chunked, _ = read_csv(path)
+        monkeypatch.undo()
+        assert len(whole) == len(r) and np.array_equal(chunked.stamps, whole.stamps)
+        np.testing.assert_array_equal(chunked.vectors, whole.vectors)
+        np.testing.assert_array_equal(chunked.vectors, r.vectors)
+        if name == "imu":
+            np.testing.assert_array_equal(chunked.temperatures, whole.temperatures)
+            np.testing.assert_array_equal(chunked.imu.orientation, whole.imu.orientation)
+            assert np.all(np.isnan(chunked.imu.orientation[8]))
+        lines = path.read_text().splitlines()
+        lines[50] = lines[50] + ",1.0"  # a ragged line far into the file
+        path.write_text("\n".join(lines) + "\n")
+        monkeypatch.setattr(csv_recording, "CHUNK_CHARS", 700)
+        with pytest.raises(InputError, match="line 51: "):
+            read_csv(path)
+        monkeypatch.undo()
+
+
 def test_csv_single_temperature_column_unknown_imu_cells_and_ned(tmp_path: Path) -> None:
     q_ned = Rotation.random(4, random_state=5).as_quat()
     lines = ["stamp,a.x,a.y,a.z,imu.wx,imu.wy,imu.wz,temperature,imu.qx,imu.qy,imu.qz,imu.qw"]

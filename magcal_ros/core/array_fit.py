@@ -222,12 +222,29 @@ def direction_rates(directions: Array, times: Array) -> Array:
         return out
     typical = float(np.median(positive))
     segment = np.concatenate([[0], np.cumsum((dt > RATE_GAP * typical) | (dt <= 0))])
+    sorted_out = np.zeros((n, 3))
+    for lo in range(0, n, RATE_BLOCK):  # a block of sets at a time: memory stays bounded on long recordings
+        rows = np.arange(lo, min(lo + RATE_BLOCK, n))
+        sorted_out[rows] = _local_slopes(ts, ds, segment, typical, rows)
+    out[order] = sorted_out
+    return out
+
+
+RATE_BLOCK = 16_384
+"""Sets per block of :func:`direction_rates`."""
+
+
+def _local_slopes(ts: Array, ds: Array, segment: NDArray[np.int64], typical: float,
+                  rows: NDArray[np.int64]) -> Array:
+    """(len(rows), 3) :func:`direction_rates` at ``rows`` of the time-ordered ``ts``, ``ds`` (0 where
+    fewer than three neighbours are in reach)."""
+    n = len(ts)
     h = RATE_HALF_WINDOW
-    idx = np.arange(n)[:, None] + np.arange(-h, h + 1)[None, :]
+    idx = rows[:, None] + np.arange(-h, h + 1)[None, :]
     inside = (idx >= 0) & (idx < n)
     idx = np.clip(idx, 0, n - 1)
-    valid = inside & (segment[idx] == segment[:, None])
-    x = np.where(valid, (ts[idx] - ts[:, None]) / typical, 0.0)
+    valid = inside & (segment[idx] == segment[rows, None])
+    x = np.where(valid, (ts[idx] - ts[rows, None]) / typical, 0.0)
     wgt = valid.astype(float)
     powers = np.stack([np.sum(wgt * x**p, axis=1) for p in range(5)], axis=1)  # (N, 5)
     normal = np.stack([powers[:, i : i + 3] for i in range(3)], axis=1)  # (N, 3, 3) Hankel
@@ -235,13 +252,13 @@ def direction_rates(directions: Array, times: Array) -> Array:
     enough = valid.sum(axis=1) >= 3
     det = np.linalg.det(normal)
     enough &= np.abs(det) > 1e-9 * np.maximum(powers[:, 0] ** 3, 1e-300)
-    coef = np.zeros((n, 3, 3))
+    coef = np.zeros((len(rows), 3, 3))
     if np.any(enough):
         coef[enough] = np.linalg.solve(normal[enough], rhs[enough])
     slope = coef[:, 1, :] / typical
-    slope -= np.sum(slope * ds, axis=1, keepdims=True) * ds
-    out[order] = np.where(enough[:, None], slope, 0.0)
-    return out
+    d = ds[rows]
+    slope -= np.sum(slope * d, axis=1, keepdims=True) * d
+    return np.where(enough[:, None], slope, 0.0)
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ import csv
 import io
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -205,20 +205,57 @@ def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
         raise InputError(f"{path} is not a text CSV file") from None
 
 
-def _plain_table(text: str) -> tuple[list[str], str] | None:
-    """The header cells and the body (the lines after the header) of a CSV without quoting or
-    blank lines (what ``magcal`` and most loggers write), or None when it needs the full CSV reader."""
-    text = text.strip("\n")
-    if '"' in text or "\r" in text or "\n\n" in text or not text.strip(" \t,"):
+def _plain_table(text: str) -> tuple[list[str], int, int] | None:
+    """The header cells and where the body (the lines after the header) starts and ends in ``text``, for
+    a CSV without quoting or blank lines (what ``magcal`` and most loggers write); None when it needs
+    the full CSV reader. Offsets, not a copy: a long recording's text is hundreds of MB."""
+    start, end = 0, len(text)
+    while start < end and text[start] == "\n":
+        start += 1
+    while end > start and text[end - 1] == "\n":
+        end -= 1
+    if '"' in text or "\r" in text or text.find("\n\n", start, end) >= 0:
         return None
-    header, _, body = text.partition("\n")
+    split = text.find("\n", start, end)
+    header = text[start:end] if split < 0 else text[start:split]
     if not header.strip(" \t,"):
         return None
-    return header.split(","), body
+    return header.split(","), (end if split < 0 else split + 1), end
 
 
-def _fast_columns(body: str, width: int, checked: list[int], nonfinite: NonFinite,
+SYNC_ROWS = 65_536
+"""Rows of a CSV formed into sets at a time (see :func:`read_csv`)."""
+
+CHUNK_CHARS = 4 << 20
+"""A long CSV body is parsed this many characters (whole lines) at a time: memory stays bounded."""
+
+
+def _body_chunks(text: str, start: int, end: int) -> Iterator[str]:
+    """Whole lines of ``text[start:end]``, about :data:`CHUNK_CHARS` at a time."""
+    while start < end:
+        stop = text.find("\n", min(start + CHUNK_CHARS, end), end)
+        stop = end if stop < 0 else stop
+        yield text[start:stop]
+        start = stop + 1
+
+
+def _fast_columns(text: str, start: int, end: int, width: int, checked: list[int], nonfinite: NonFinite,
                   optional: set[int]) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
+    """:func:`_fast_chunk` over the body ``text[start:end]`` a chunk at a time; None when any line is not
+    regular."""
+    parts = []
+    for body in _body_chunks(text, start, end):
+        part = _fast_chunk(body, width, checked, nonfinite, optional)
+        if part is None:
+            return None
+        parts.append(part)
+    if not parts:
+        return None
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _fast_chunk(body: str, width: int, checked: list[int], nonfinite: NonFinite,
+                optional: set[int]) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
     """Stamps (N,) ns and values (N, width - 1) of body lines that are all regular (the right
     number of cells, every value a number, finite where ``nonfinite`` is "error"), parsed at
     once; None when any line is not (the row-by-row reader then names it). An empty cell of
@@ -301,7 +338,6 @@ def read_csv(
             rows = _rows(text)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
-    del text
     if not rows:
         raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
     try:
@@ -312,8 +348,8 @@ def read_csv(
     width = 1 + 3 * len(names) + len(layout.extra)
     imu_cols = {1 + 3 * len(names) + k for k, c in enumerate(layout.extra) if _extra_kind(c) == "IMU"}
     checked = [k for k in range(1, width) if k not in imu_cols]
-    fast = None if parsed is None else _fast_columns(parsed[1], width, checked, nonfinite, imu_cols)
-    parsed = None if parsed is None else (parsed[0], "")  # the body's text is no longer needed
+    fast = None if parsed is None else _fast_columns(text, parsed[1], parsed[2], width, checked, nonfinite, imu_cols)
+    del text
     if fast is not None:
         stamps, data = fast
     elif parsed is not None:  # irregular somewhere: the row-by-row reading finds and names it
@@ -357,14 +393,19 @@ def read_csv(
     if temperatures is not None:
         row_ok &= np.all(np.isfinite(temperatures), axis=1)
     sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False, max_reading=MAX_READING)
-    for k in range(len(names)):
-        faulty = np.logical_or.reduce(list(reading_faults(vectors[:, k]).values()))
-        tags = np.where(row_ok[:, None], np.stack([row, np.zeros_like(row), np.zeros_like(row)], axis=1), np.nan)
-        sync.add_batch(k, stamps, np.where(faulty[:, None], vectors[:, k], tags))
-    sets = sync.pop(final=True)
-    if len(sets) == 0:
+    kept_parts = []
+    for a in range(0, len(data), SYNC_ROWS):  # a block at a time, as a bag is read: memory stays bounded
+        b = slice(a, a + SYNC_ROWS)
+        for k in range(len(names)):
+            faulty = np.logical_or.reduce(list(reading_faults(vectors[b, k]).values()))
+            tag = row[b, None] * np.array([1.0, 0.0, 0.0])
+            tags = np.where(row_ok[b, None], tag, np.nan)
+            sync.add_batch(k, stamps[b], np.where(faulty[:, None], vectors[b, k], tags))
+        sets = sync.pop(final=a + SYNC_ROWS >= len(data))
+        kept_parts.append(np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64))
+    kept = np.concatenate(kept_parts) if kept_parts else np.empty(0, np.int64)
+    if len(kept) == 0:
         raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
-    kept = np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64)
     imu = None
     if layout.has_orientation or layout.has_rate:
         q = (extra[:, layout.columns(IMU_ORIENTATION_COLUMNS)] if layout.has_orientation
@@ -376,7 +417,7 @@ def read_csv(
             imu = ImuSamples(q, w)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
-    return Recording(names, sets.set_stamps, vectors[kept], channels, currents[kept],
+    return Recording(names, stamps[kept], vectors[kept], channels, currents[kept],
                      None if temperatures is None else temperatures[kept], imu), sync.stats
 
 
