@@ -170,7 +170,7 @@ def _prime(d: ArrayDriver, data: Thrusters) -> None:
     while True:
         d.clear_outputs()
         mapping = d.replay(recording_messages(rec.names, rec.stamps, rec.vectors), rate=h.REPLAY_RATE,
-                           currents=rec.currents)
+                           currents=rec.currents, current_lead=5)  # a Float64 sent far ahead would be stale
         time.sleep(0.5)
         # (a Float64 current is stamped on arrival, after the first set: that one is stale)
         if d.wait_for_outputs([mapping[int(t)] for t in rec.stamps], timeout=2.0, settle=0.5) >= len(rec) - 1:

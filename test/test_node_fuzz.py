@@ -12,6 +12,7 @@ subscription's own callback.
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -159,13 +160,15 @@ def test_every_random_message_is_published_or_counted(kind: str) -> None:
         offered = 0
         for index, sec, nanosec, vector in _messages(rng, MESSAGES, sensors):
             msg = _message(sec, nanosec, vector)
+            # the middleware's reception time, or none (0: the node's clock stands in)
+            info = {"source_timestamp": 0, "received_timestamp": time.time_ns() if rng.random() < 0.9 else 0}
             if kind == "correction":
                 data = serialize_message(msg)
                 if rng.random() < 0.01:
                     data = bytes(rng.integers(0, 256, int(rng.integers(0, 200)), dtype=np.uint8))  # undecodable
-                callbacks[index](data)
+                callbacks[index](data, info)
             else:
-                callbacks[index](msg)
+                callbacks[index](msg, info)
             offered += 1
         stats = node._sync.stats.as_dict()
         assert _accounted(stats, node._sync.pending, sensors) == offered
@@ -177,3 +180,29 @@ def test_every_random_message_is_published_or_counted(kind: str) -> None:
             assert node._published + node._withheld == stats["sets"] and node._published > 100
         else:
             assert node._buffer.offered == stats["sets"]
+
+
+def test_a_sensor_restarting_alone_is_placed_by_when_its_messages_arrived_not_when_the_node_read_them() -> None:
+    """mag3's clock jumps 60 s back mid-stream while the node reads a backlog, each topic's queue in turn,
+    after a second without CPU (a busy machine): its new segment is placed by the middleware's reception
+    times (the message info), so the sets go on; the moment the callbacks ran would put it a second
+    ahead of the other sensors, and a second of sets would be lost."""
+    from rclpy.serialization import serialize_message
+
+    with in_process("-p", f"uncorrected_sensors:={list(NAMES)}", "-p", "sync_mode:=exact") as run:
+        node = _make("correction", run)
+        callbacks = [sub.callback for sub in node._subs[:len(NAMES)]]
+        t0, arrived0 = 1_700_000_000 * NS_PER_S, time.time_ns() - 60 * NS_PER_S
+        sets, period = 1500, 10_000_000  # 100 sets/s, mag3 restarts at set 500
+        for block in range(0, sets, 50):  # the executor serves each topic's queue in turn: 50 of mag1, of mag2 ...
+            if block == 500:
+                time.sleep(1.0)  # and the node got no CPU for a second just before mag3's restart
+            for i in range(len(NAMES)):
+                for k in range(block, block + 50):
+                    stamp = t0 + k * period - (60 * NS_PER_S if i == 2 and k >= 500 else 0)
+                    msg = _message(stamp // NS_PER_S, stamp % NS_PER_S, (2e-5, 1e-5, 4e-5))
+                    info = {"source_timestamp": 0, "received_timestamp": arrived0 + k * period + 200_000}
+                    callbacks[i](serialize_message(msg), info)
+        stats = node._sync.stats.as_dict()
+        assert stats["restarts"] == 1, stats
+        assert node._published >= 0.98 * sets, (node._published, stats)

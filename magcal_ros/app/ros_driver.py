@@ -710,7 +710,7 @@ class ArrayDriver:
         restamp: bool = True,
         progress: Any = None,
         currents: NDArray[np.float64] | None = None,
-        current_lead: int = 25,
+        current_lead: int | None = None,
         temperatures: NDArray[np.float64] | None = None,
         imu: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     ) -> dict[int, int]:
@@ -723,10 +723,11 @@ class ArrayDriver:
 
         ``currents`` (sets, m) A: the channels' currents of each set (in order of the sets'
         first messages), published on the :attr:`current_publishers` with the set's stamp
-        ``current_lead`` sets ahead of the set itself (the first sets start that much later; the
-        side messages go out at the sets' pace from the start, never in a burst), so
-        that a receiver has them whatever the order in which its topics are served (a receiver
-        keeps recent values and takes the latest stamped not after the set). ``temperatures``
+        ``current_lead`` sets ahead of the set itself (default: one second of sets; the first sets
+        start that much later; the side messages go out at the sets' pace from the start, never in
+        a burst), so that a receiver has them whatever the order in which its topics are served and
+        however late a lost message is sent again (a receiver keeps 2 s of values and takes the
+        latest stamped not after the set: a current that came late would be the previous one). ``temperatures``
         (sets, S) deg C and ``imu`` (orientation (sets, 4), angular velocity (sets, 3)) go out the
         same way, with each set's stamp.
         """
@@ -734,6 +735,8 @@ class ArrayDriver:
         period = 1.0 / rate if rate > 0 else 0.0
         spacing = int(period * NS_PER_S) if period else 10_000_000
         sides = currents is not None or temperatures is not None or imu is not None
+        if current_lead is None:
+            current_lead = max(1, int(round(rate))) if rate > 0 else 25
         lead = current_lead if sides else 0  # the side sensors started that much earlier
         start = time.monotonic() + lead * period
         start_ns = time.time_ns() + lead * spacing

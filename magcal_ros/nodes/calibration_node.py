@@ -454,6 +454,7 @@ class CalibrationNode(Node):
                                              inputs.tolerance_ns)
         clock = common.clock_reader(self)
         self._receipt_clock = clock
+        self._arrival = common.arrival_reader(self)
         self._subs += common.subscribe_currents(self, inputs, self._currents, self._raw_qos, lambda: clock())
         self._connect_temperature_and_imu(geo, clock)
 
@@ -507,13 +508,14 @@ class CalibrationNode(Node):
         self._subs = []
 
     def _raw_callback(self, index: int) -> Any:
-        def callback(msg: MagneticField) -> None:
+        def callback(msg: MagneticField, info: dict[str, Any]) -> None:
             st = msg.header.stamp
             f = msg.magnetic_field
             stamp = common.stamp_ns(st)
+            arrival = self._arrival(info)
             with self._lock:
                 self._health.seen(index, stamp)
-                for synced in self._sync.add(index, stamp, f.x, f.y, f.z, self._receipt_clock()):
+                for synced in self._sync.add(index, stamp, f.x, f.y, f.z, arrival):
                     if self._mission.due(synced.stamp):  # the mission's rolling window, for a recalibration at sea
                         values, fresh = self._currents.at(synced.stamp) if self._inputs.channels else ([], [])
                         if all(fresh):

@@ -137,6 +137,17 @@ def clock_reader(node: Any) -> Callable[[], int]:
     return time.time_ns
 
 
+def arrival_reader(node: Any) -> Callable[[Any], int]:
+    """When a message arrived (ns), from the message info a subscription callback gets: the middleware's
+    reception time (system clock), not the moment the callback runs, which on a busy machine can be
+    seconds later for a whole queue of messages; the node clock when the middleware gives none, or with
+    use_sim_time (the reception time is system time). Call again when use_sim_time changes."""
+    clock = clock_reader(node)
+    if node.get_parameter("use_sim_time").value:
+        return lambda info: clock()
+    return lambda info: info.get("received_timestamp") or clock()
+
+
 NUMBER_ARRAYS = (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY)
 
 

@@ -301,6 +301,7 @@ class CorrectionNode(Node):
         self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
         self._now = common.clock_reader(self)
+        self._arrival = common.arrival_reader(self)
         self._published = 0
         self._withheld = 0
         self._ages: list[int] = []
@@ -476,6 +477,7 @@ class CorrectionNode(Node):
         """Swap in the validated state (runs between two sets: single-threaded executor)."""
         if any(p.name == "use_sim_time" for p in params):
             self._now = common.clock_reader(self)
+            self._arrival = common.arrival_reader(self)
         new, self._pending = self._pending, None
         if new is None:
             return
@@ -645,14 +647,14 @@ class CorrectionNode(Node):
     def _raw_callback(self, index: int) -> Any:
         decode, publish = decode_magnetic_field, self._publish
 
-        def callback(data: bytes) -> None:
+        def callback(data: bytes, info: dict[str, Any]) -> None:
             try:
                 stamp, x, y, z = decode(data)
             except (InputError, struct.error):
                 self._sync.stats.malformed += 1
                 return
             self._health.seen(index, stamp)
-            for synced in self._sync.add(index, stamp, x, y, z, self._now()):
+            for synced in self._sync.add(index, stamp, x, y, z, self._arrival(info)):
                 publish(synced)
 
         return callback
