@@ -225,12 +225,13 @@ def _counts(driver: ArrayDriver, node: str) -> dict[str, str]:
 
 
 def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None,
-            lead: int = CURRENT_LEAD) -> dict[int, int]:
+            lead: int = CURRENT_LEAD, before: dict[str, str] | None = None) -> dict[int, int]:
     """Replay ``rec`` and wait for the outputs of the sets the correction node published (once it counted
-    every set as published or withheld, the sets it withheld are not waited for)."""
+    every set as published or withheld, the sets it withheld are not waited for); ``before``: its counters
+    before the replay, if the caller has them."""
     node = f"{driver.prefix}/magcal_correction"
     driver.watch_diagnostics()
-    before = _counts(driver, node)
+    before = before or _counts(driver, node)
 
     def published() -> int | None:
         status = driver.status(node)
@@ -248,11 +249,12 @@ def _replay(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = N
 
 
 def _fresh_outputs(driver: ArrayDriver, rec: Recording, currents: np.ndarray | None = None,
-                   lead: int = CURRENT_LEAD) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+                   lead: int = CURRENT_LEAD, before: dict[str, str] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """(rows of ``rec`` that came back, corrected vectors, tensors, their currents; ``lead``: how many
-    sets ahead the currents go out)."""
+    sets ahead the currents go out; ``before`` as :func:`_replay` takes it)."""
     driver.clear_outputs()
-    mapping = _replay(driver, rec, currents, lead)
+    mapping = _replay(driver, rec, currents, lead, before)
     back = {p: k for k, p in enumerate(mapping[int(t)] for t in rec.stamps)}
     g, c = driver.gradients(back), driver.corrected(back)
     stamps = sorted(t for t in g if t in c)
@@ -275,8 +277,9 @@ def _fresh_with_currents(driver: ArrayDriver, rec: Recording,
     """:func:`_fresh_outputs` of the thruster set-up, checked against what the correction node counted: every
     set came back or was withheld for a current that had not yet arrived (by design: on a busy machine a
     current can come after its set however far ahead it is sent), and most came back."""
-    before = _set_counts(driver.diagnostics(THR_CORRECTION, None, 30.0))
-    rows, b, g, used = _fresh_outputs(driver, rec, currents)
+    counters = _counts(driver, THR_CORRECTION)
+    before = int(counters["published"]), int(counters["withheld"])
+    rows, b, g, used = _fresh_outputs(driver, rec, currents, before=counters)
 
     def counted(s: DiagnosticStatus) -> bool:
         return sum(_set_counts(s)) - sum(before) >= len(rec)

@@ -20,6 +20,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from dataclasses import dataclass
@@ -430,8 +431,6 @@ class ArrayDriver:
         """Run the callbacks until :meth:`close`. A callback that raises is reported on stderr and kept in
         :attr:`spin_errors`, and the spinning goes on: a driver whose thread ended would hear nothing more
         for the rest of its life (every later wait times out, far from the cause)."""
-        import traceback
-
         while not self._closing.is_set() and self.context.ok():
             try:
                 self._executor.spin_once(timeout_sec=0.2)
