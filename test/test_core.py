@@ -67,6 +67,39 @@ def test_sensor_errors_round_trip_through_matrices():
     np.testing.assert_allclose(back.offset, e.offset, atol=1e-20)
 
 
+def test_the_identifiability_reads_known_physical_errors_from_a_stack_of_parameter_vectors():
+    """The identifiability's stacked decomposition gives back the scale, non-orthogonality,
+    misalignment and offset a sensor was built with, for several sensors at once (one with ``-K``),
+    and its Jacobian is the derivative of those quantities (an offset entry moves only its offset)."""
+    from magcal_ros.core.forward_model import ForwardModel
+    from magcal_ros.core.identifiability import _phys_many, physical_jacobian
+
+    truth = [SensorErrors(scale=[1.253, 0.951, 1.11], angles=np.radians([3.56, -1.85, 2.27]),
+                          offset=[357 * NT, 160 * NT, -213 * NT], misalignment=np.radians([-21.97, 12.88, 13.64])),
+             SensorErrors(scale=[0.98, 1.02, 1.0], angles=np.radians([-0.5, 0.3, 1.1]),
+                          offset=[-20 * NT, 5 * NT, 90 * NT], misalignment=np.radians([2.0, -3.0, 170.0]))]
+    model = ForwardModel(2)
+    theta = np.zeros((2, model.size))
+    for i, e in enumerate(truth):
+        k, o = e.forward()
+        w = np.column_stack([k, o / F]) * (-1.0 if i == 1 else 1.0)  # r / F = K d + o / F; -K predicts the same
+        if i == 1:
+            w[:, 3] *= -1.0  # the offset is not a sign of K
+        theta[i] = w.reshape(-1)
+    phys = _phys_many(theta, F, model)
+    for i, e in enumerate(truth):
+        np.testing.assert_allclose(phys[i, :3], e.offset, atol=1e-18)
+        np.testing.assert_allclose(phys[i, 3:6], e.scale, rtol=1e-12)
+        np.testing.assert_allclose(phys[i, 6:9], e.angles, atol=1e-12)
+        np.testing.assert_allclose(phys[i, 9:12], e.misalignment, atol=1e-12)
+    values, jac = physical_jacobian(theta, F, model)
+    np.testing.assert_allclose(values, phys, atol=1e-18)
+    for a in range(3):  # d offset_a / d W[a, 3] = F (in T per unit of W), nothing else moves
+        col = jac[0, :, a * model.q + 3]
+        assert col[a] == pytest.approx(F, rel=1e-6)
+        assert np.all(np.abs(np.delete(col, a)) < 1e-6 * F)
+
+
 def test_euler_convention_matches_li2018_eq6():
     a, b, g = np.radians([-21.97, 12.88, 13.64])
     t = euler_to_matrix(a, b, g)

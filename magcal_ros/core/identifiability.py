@@ -26,8 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.forward_model import ForwardModel
-from magcal_ros.core.sensor_model import SensorErrors
 from magcal_ros.core.units import NT
+from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
 
@@ -78,35 +78,62 @@ class Quantity:
         return f"{self.sensor} {self.name} {self.value:.4g} +- {sigma} {self.unit}"
 
 
-def _phys(theta_i: Array, f: float, model: ForwardModel) -> Array:
-    """Physical vector of one sensor's parameters (:func:`quantity_names` order): offsets (T),
-    scales, angles (rad), misalignment (rad), interference D (T/A, platform frame, row-major),
-    then offset per kelvin (T/K, raw axes), gain per kelvin (1/K), time offset (s)."""
-    w_row = theta_i[: 3 * model.q].reshape(3, model.q)
-    k = w_row[:, :3] * np.sign(np.linalg.det(w_row[:, :3]) or 1.0)  # K and -K (with -d) predict the same
-    e = SensorErrors.from_forward(k, w_row[:, 3] * f)
-    d = np.linalg.inv(k) @ (w_row[:, 4 : 4 + model.channels] * f)
-    parts = [e.offset, e.scale, e.angles, e.misalignment, d.reshape(-1)]
+def _rq_positive(k: Array) -> tuple[Array, Array]:
+    """``K = U Q`` for a stack (B, 3, 3): ``U`` upper triangular with a positive diagonal, ``Q``
+    orthogonal (unique for a non-singular ``K``; from a QR decomposition of the flipped transpose)."""
+    flip = np.eye(3)[::-1]
+    q1, r1 = np.linalg.qr(np.swapaxes(k, 1, 2) @ flip)  # K^T J = Q1 R1, so K = (J R1^T J)(J Q1^T)
+    upper = flip @ np.swapaxes(r1, 1, 2) @ flip
+    q = flip @ np.swapaxes(q1, 1, 2)
+    signs = np.sign(np.diagonal(upper, axis1=1, axis2=2))
+    signs[signs == 0] = 1.0
+    return upper * signs[:, None, :], signs[:, :, None] * q
+
+
+def _phys_many(thetas: Array, f: float, model: ForwardModel) -> Array:
+    """Physical vectors (B, Q) of B parameter vectors (B, P) of one sensor, in :func:`quantity_names`
+    order: offsets (T), scales, angles (rad), misalignment (rad), interference D (T/A, platform frame,
+    row-major), then offset per kelvin (T/K, raw axes), gain per kelvin (1/K), time offset (s).
+
+    The decomposition is :meth:`~magcal_ros.core.sensor_model.SensorErrors.from_forward`'s (``K = (C A) T^T``), for a whole stack
+    at once; ``K`` and ``-K`` (with ``-D``) predict the same readings and are taken with ``det > 0``.
+    """
+    b = len(thetas)
+    w_row = thetas[:, : 3 * model.q].reshape(b, 3, model.q)
+    det = np.linalg.det(w_row[:, :, :3])
+    k = w_row[:, :, :3] * np.where(det < 0, -1.0, 1.0)[:, None, None]
+    if not np.all(np.isfinite(k)) or np.any(det == 0):
+        raise InputError("K must be a finite 3x3 matrix with positive determinant")
+    upper, q = _rq_positive(k)
+    scale = np.linalg.norm(upper, axis=2)
+    a = upper / scale[:, :, None]
+    angles = np.stack([np.arcsin(np.clip(a[:, 0, 2], -1, 1)), np.arctan2(a[:, 0, 1], a[:, 0, 0]),
+                       np.arcsin(np.clip(a[:, 1, 2], -1, 1))], axis=1)
+    t = np.swapaxes(q, 1, 2)  # sensor to platform, angles as rotation.matrix_to_euler
+    misalignment = np.stack([np.arctan2(t[:, 1, 2], t[:, 2, 2]), -np.arcsin(np.clip(t[:, 0, 2], -1, 1)),
+                             np.arctan2(t[:, 0, 1], t[:, 0, 0])], axis=1)
+    d = np.linalg.solve(k, w_row[:, :, 4 : 4 + model.channels] * f)
+    parts = [w_row[:, :, 3] * f, scale, angles, misalignment, d.reshape(b, -1)]
     if model.temperature:
-        parts += [w_row[:, model.offset_tempco_column] * f, theta_i[model.gain_slice]]
+        parts += [w_row[:, :, model.offset_tempco_column] * f, thetas[:, model.gain_slice]]
     if model.lag:
-        parts.append(theta_i[model.lag_index : model.lag_index + 1])
-    return np.concatenate(parts)
+        parts.append(thetas[:, model.lag_index : model.lag_index + 1])
+    return np.concatenate(parts, axis=1)
 
 
 def physical_jacobian(theta: Array, f: float, model: ForwardModel) -> tuple[Array, Array]:
     """Physical values (S, Q) and d phys / d theta (S, Q, P) by central differences."""
     s, p = model.sensors, model.size
     t = np.asarray(theta, dtype=float).reshape(s, p)
-    values = np.stack([_phys(t[i], f, model) for i in range(s)])
-    jac = np.empty((s, values.shape[1], p))
-    for i in range(s):
-        for j in range(p):
-            h = 1e-6 * max(1.0, abs(t[i, j])) if j < 3 * model.q else 1e-6 * max(1e-3, abs(t[i, j]))
-            plus, minus = t[i].copy(), t[i].copy()
-            plus[j] += h
-            minus[j] -= h
-            jac[i, :, j] = (_phys(plus, f, model) - _phys(minus, f, model)) / (2 * h)
+    steps = np.where(np.arange(p) < 3 * model.q, 1e-6 * np.maximum(1.0, np.abs(t)), 1e-6 * np.maximum(1e-3, np.abs(t)))
+    # per sensor: the point, then +h and -h along every parameter, in one stack
+    stack = np.repeat(t[:, None, :], 2 * p + 1, axis=1)  # (S, 2P + 1, P)
+    eye = np.eye(p)
+    stack[:, 1 : p + 1] += eye[None] * steps[:, None, :]
+    stack[:, p + 1 :] -= eye[None] * steps[:, None, :]
+    phys = _phys_many(stack.reshape(-1, p), f, model).reshape(s, 2 * p + 1, -1)
+    values = phys[:, 0]
+    jac = np.swapaxes((phys[:, 1 : p + 1] - phys[:, p + 1 :]) / (2 * steps[:, :, None]), 1, 2)
     return values, jac
 
 
