@@ -100,6 +100,34 @@ def test_the_identifiability_reads_known_physical_errors_from_a_stack_of_paramet
         assert np.all(np.abs(np.delete(col, a)) < 1e-6 * F)
 
 
+def test_the_predicted_tmi_error_is_the_spread_of_the_tmi_over_calibrations_drawn_from_the_covariance():
+    """The envelope's predicted TMI variance at a direction is the variance of ``|b| - F`` when the
+    calibration's parameters scatter with the stated covariance (drawn, corrected, measured), for
+    every sensor of a stack (one with an interference column and a lag after ``W``); chunked or not."""
+    from magcal_ros.core.identifiability import predicted_tmi_variance
+
+    rng = np.random.default_rng(12)
+    s, q, p = 2, 5, 16  # W (3 x 5: K, o, one channel) and one parameter after it
+    w = np.zeros((s, 3, q))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
+    w[:, :, 3:] = rng.normal(0, 0.01, (s, 3, q - 3))
+    a = rng.normal(size=(s * p, s * p))
+    cov = a @ a.T * 1e-10  # small: the TMI error is linear in the parameters' errors
+    dirs = rng.normal(size=(5, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    predicted = predicted_tmi_variance(w, cov, dirs)
+    np.testing.assert_allclose(predicted_tmi_variance(w, cov, dirs, chunk=2), predicted, rtol=1e-12)
+    draws = rng.multivariate_normal(np.zeros(s * p), cov, size=40_000).reshape(-1, s, p)
+    for i in range(s):
+        dw = draws[:, i, : 3 * q].reshape(-1, 3, q)
+        k, o = w[i, :, :3], w[i, :, 3]
+        for j, d in enumerate(dirs):
+            r = k @ d + o  # the reading / F, no current
+            b = np.linalg.solve(k[None] + dw[:, :, :3], (r[None] - o[None] - dw[:, :, 3])[..., None])[..., 0]
+            tmi = np.linalg.norm(b, axis=1) - 1.0
+            assert np.var(tmi) == pytest.approx(predicted[j, i], rel=0.05)
+
+
 def test_euler_convention_matches_li2018_eq6():
     a, b, g = np.radians([-21.97, 12.88, 13.64])
     t = euler_to_matrix(a, b, g)

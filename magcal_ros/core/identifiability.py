@@ -301,25 +301,55 @@ def _effect(sigma: float, unit: str, current_rms: float, temperature_rms: float,
 
 
 # -- predicted TMI error ------------------------------------------------------------------
-def predicted_tmi_variance(w: Array, cov: Array, directions: Array) -> Array:
+VARIANCE_CHUNK: int = 8192
+"""Directions evaluated at a time by :func:`predicted_tmi_variance` (keeps the work in cache)."""
+
+
+def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int = VARIANCE_CHUNK) -> Array:
     """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S).
 
     From ``b = M (r - o - E u)`` with ``r = K F d + E u + o``: a parameter error gives
     ``db = -M (dK F d + do + dE u)`` and the TMI error ``d^T db`` (no current, u = 0), which is
-    ``-(d^T M) (x) [d, 1]`` applied to the sensor's ``dW``: a quadratic form per direction.
+    ``-(d^T M) (x) [d, 1]`` applied to the sensor's ``dW``: a quadratic form per direction. As
+    ``(d^T M) (x) [d, 1] = (d (x) [d, 1]) (M (x) I_4)``, every sensor's form acts on the same
+    numbers per direction, the 9 distinct ones of ``d (x) [d, 1]``: one product for all sensors.
     """
     s, _, q = w.shape
     p = cov.shape[0] // s  # parameters per sensor: W first, then any non-linear ones
     mats = np.linalg.inv(w[:, :, :3])
-    phi = np.concatenate([directions, np.ones((len(directions), 1))], axis=1)  # (A, 4)
     keep = (np.arange(3)[:, None] * q + np.arange(4)[None, :]).reshape(-1)  # K and o entries
-    out = np.empty((len(directions), s))
+    forms = np.empty((12, s, 12))
     for i in range(s):
-        row = directions @ mats[i]  # d^T M_i, (A, 3)
-        x = (row[:, :, None] * phi[:, None, :]).reshape(len(directions), 12)
-        block = cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)]
-        out[:, i] = np.sum((x @ block) * x, axis=1)
+        t = np.kron(mats[i], np.eye(4))
+        forms[:, i, :] = t @ cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)] @ t.T
+    fold = _FOLD.T @ forms.reshape(12, s, 12).transpose(1, 0, 2) @ _FOLD  # (S, 9, 9)
+    forms = fold.transpose(1, 0, 2).reshape(9, s * 9)
+    d = np.asarray(directions, dtype=float)
+    out = np.empty((len(d), s))
+    for lo in range(0, len(d), chunk):
+        dc = d[lo : lo + chunk]
+        z = np.empty((len(dc), 9))
+        np.multiply(dc[:, _PAIRS[0]], dc[:, _PAIRS[1]], out=z[:, :6])
+        z[:, 6:] = dc
+        out[lo : lo + chunk] = np.einsum("asj,aj->as", (z @ forms).reshape(len(dc), s, 9), z)
     return np.clip(out, 0, None)
+
+
+_PAIRS = (np.array([0, 1, 2, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2]))
+"""The distinct products ``d_a d_b`` (a <= b) of a direction."""
+
+
+def _fold() -> Array:
+    """(12, 9): ``d (x) [d, 1]`` from its distinct entries (the products of :data:`_PAIRS`, then ``d``)."""
+    out = np.zeros((12, 9))
+    for a in range(3):
+        for b in range(3):
+            out[4 * a + b, next(k for k in range(6) if {_PAIRS[0][k], _PAIRS[1][k]} == {a, b})] = 1.0
+        out[4 * a + 3, 6 + a] = 1.0
+    return out
+
+
+_FOLD = _fold()
 
 
 def attitude_directions(inclination: float, pitch_deg: Array, roll_deg: Array, yaw_steps: int = 12) -> Array:
