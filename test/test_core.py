@@ -128,6 +128,22 @@ def test_the_predicted_tmi_error_is_the_spread_of_the_tmi_over_calibrations_draw
             assert np.var(tmi) == pytest.approx(predicted[j, i], rel=0.05)
 
 
+@pytest.mark.parametrize("manoeuvre", ["yaw circles, pitch and roll +-5 deg", "whole sphere"])
+def test_a_relative_calibration_takes_f_from_the_sensors_own_scale(manoeuvre: str) -> None:
+    """Without a reference only ``M F`` is determined; the reported F is the field in the sensors'
+    mean gain (geometric mean of ``|det K_i|^(1/3)`` of the true sensors), whatever the manoeuvre
+    covered. (The spread of the readings about their centroid, the scalar fit's relative F, is
+    only the horizontal field on yaw circles: half of F at 60 deg inclination.)"""
+    from magcal_ros.sim.attitudes import sea_manoeuvre
+
+    sim = simulation(seed=4, noise=1 * NT)
+    rot = sea_manoeuvre(1500, 5.0, 5.0, 3.0, 0.0, 5) if manoeuvre.startswith("yaw") else uniform_random(600, 5)
+    rec, _ = sim.run(rot, 6)
+    result = calibrate_array(rec.vectors, CROSS, None)
+    mean_gain = float(np.exp(np.mean(np.log(np.abs(np.linalg.det(tt.true_forward(sim))))) / 3.0))
+    assert result.relative and result.intensity == pytest.approx(F * mean_gain, rel=2e-3)
+
+
 def test_euler_convention_matches_li2018_eq6():
     a, b, g = np.radians([-21.97, 12.88, 13.64])
     t = euler_to_matrix(a, b, g)

@@ -382,3 +382,32 @@ def test_more_than_1_percent_of_a_periods_messages_dropped_is_a_warning() -> Non
         health.seen(0, t)
     warned = health.assess(0, {"unmatched": 10 + 11}, "sets")  # 11 more of the next 1000
     assert warned.level == WARN and "dropping 1.1% of messages" in warned.message
+
+
+@pytest.mark.parametrize("motion", ["tumble", "level yaw circle"])
+def test_a_step_is_scored_as_the_best_split_of_offset_and_gain(motion: str) -> None:
+    """The step part of the residual's shape is, at each split tried, the variance explained by
+    ``[1, h, h d, d]`` (``h``: 1 from the split on) fitted by least squares: checked against that fit,
+    with a planted step (explained almost whole) and on noise alone (explained little), also when
+    a direction component never varies (a level yaw circle)."""
+    rng = np.random.default_rng(8)
+    n = 900
+    if motion == "tumble":
+        d = rng.normal(size=(n, 3))
+    else:
+        a = np.linspace(0.0, 6 * np.pi, n)
+        d = np.column_stack([0.6 * np.cos(a), 0.6 * np.sin(a), np.full(n, 0.8)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    splits = np.linspace(n * 0.05, n * 0.95, 37).astype(int)
+    noise = rng.normal(0.0, 1e-9, n)
+    stepped = noise + np.where(np.arange(n) >= splits[16], 40e-9 + 25e-9 * d[:, 0], 0.0)  # at a split tried
+    for y, low, high in ((stepped, 0.99, 1.0), (noise, 0.0, 0.05)):
+        direct = []
+        for k in splits:
+            h = (np.arange(n) >= k).astype(float)
+            design = np.column_stack([np.ones(n), h, h[:, None] * d, d])
+            coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+            direct.append(1.0 - np.sum((y - design @ coef) ** 2) / np.sum((y - y.mean()) ** 2))
+        got = quality._step_explained(y, d, splits)
+        assert got == pytest.approx(max(direct), abs=1e-9)
+        assert low <= got <= high

@@ -189,11 +189,18 @@ class JointSolution:
 
 def tangent_bases(u: Array) -> Array:
     """(N, 3, 2) orthonormal bases of the planes perpendicular to unit vectors ``u``."""
-    helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return np.stack([e1, e2], axis=2)
+    x, y, z = u[:, 0], u[:, 1], u[:, 2]
+    out = np.empty((len(u), 3, 2))
+    e1, e2 = out[:, :, 0], out[:, :, 1]
+    use_x = np.abs(x) < 0.9  # u x (1, 0, 0) = (0, z, -y), else u x (0, 1, 0) = (-z, 0, x)
+    e1[:, 0] = np.where(use_x, 0.0, -z)
+    e1[:, 1] = np.where(use_x, z, 0.0)
+    e1[:, 2] = np.where(use_x, -y, x)
+    e1 /= np.sqrt(np.einsum("na,na->n", e1, e1))[:, None]
+    e2[:, 0] = y * e1[:, 2] - z * e1[:, 1]  # u x e1
+    e2[:, 1] = z * e1[:, 0] - x * e1[:, 2]
+    e2[:, 2] = x * e1[:, 1] - y * e1[:, 0]
+    return out
 
 
 def features(directions: Array, currents: Array) -> Array:
@@ -362,10 +369,12 @@ class _Eval:
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
-        a = scipy.linalg.block_diag(*self.a_blocks)
+        s, p = self.shape
+        a = np.zeros((s * p, s * p))
+        for i in range(s):
+            a[i * p : (i + 1) * p, i * p : (i + 1) * p] = self.a_blocks[i]
         if not self.globals:
             return a
-        s, p = self.shape
         cross = self.a_sg.reshape(s * p, self.globals)
         return np.block([[a, cross], [cross.T, self.a_gg]])
 

@@ -212,6 +212,31 @@ def _explained(y: Array, x: Array) -> float:
     return float(1.0 - np.sum((y - design @ coef) ** 2) / total)
 
 
+def _segment_sse(sums: Array) -> Array:
+    """Residual sums of squares of ``y`` fitted on ``[1, d]``, from the sums (K, 5, 5) of ``z z^T``,
+    ``z = [1, d, y]``, over K segments (centred, so a direction component that does not vary drops out)."""
+    n = np.maximum(sums[:, 0, 0], 1e-300)
+    mean = sums[:, 0, 1:] / n[:, None]
+    centred = sums[:, 1:, 1:] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]  # d and y about their means
+    cdd, cdy, cyy = centred[:, :3, :3], centred[:, :3, 3], centred[:, 3, 3]
+    fit = np.einsum("ka,kab,kb->k", cdy, np.linalg.pinv(cdd, rcond=1e-12, hermitian=True), cdy)
+    return np.where(sums[:, 0, 0] > 0, np.maximum(cyy - fit, 0.0), 0.0)
+
+
+def _step_explained(y: Array, d: Array, splits: NDArray[np.int64]) -> float:
+    """The largest fraction of the variance of ``y`` (N,) that a step at one of ``splits`` explains:
+    an offset and a gain along the direction ``d`` (N, 3) that change at the split, that is
+    ``[1, d]`` fitted before and after it apart (running sums: every split for the price of one)."""
+    total = float(np.sum((y - y.mean()) ** 2))
+    if total <= 0 or len(y) <= 7 + 3:  # as _explained with the step's seven columns
+        return 0.0
+    z = np.column_stack([np.ones(len(y)), d, y])
+    running = np.cumsum(z[:, :, None] * z[:, None, :], axis=0)
+    before = np.concatenate([np.zeros((1, 5, 5)), running])[splits]
+    sse = _segment_sse(before) + _segment_sse(running[-1][None] - before)
+    return float(np.max(1.0 - sse / total))
+
+
 def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: Array, directions: Array,
                    rates: Array | None, noise: float) -> ResidualShape:
     """How one sensor's residual follows time (``times`` (N,) s), the field direction
@@ -238,9 +263,7 @@ def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: 
     quad = np.column_stack([d, d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]]])
     attitude_part = _explained(y, quad)
     # A sudden change (iron moved) is a step, not a drift: the best single split, offset and gain.
-    step_part = max(_explained(y, np.column_stack([h, h[:, None] * d, d]))
-                    for h in ((np.arange(len(y)) >= k).astype(float) for k in
-                              np.linspace(len(y) * 0.05, len(y) * 0.95, 37).astype(int)))
+    step_part = _step_explained(y[:, 0], d, np.linspace(len(y) * 0.05, len(y) * 0.95, 37).astype(int))
     rate_part = 0.0
     if rates is not None and used.sum() > 20:
         rate_part = _explained(np.asarray(residual, dtype=float)[used], np.asarray(rates, dtype=float)[used])

@@ -255,6 +255,20 @@ def _start(spec: Any, r: Array, clean: Array, f_ref: float | None, opts: SolveOp
     return np.stack([f.matrix for f in fits]), np.stack([f.offset for f in fits]), intensity
 
 
+def _unit_mean_gain(matrices: Array, intensity: float) -> tuple[Array, float]:
+    """A relative start rescaled so that the sensors' mean gain is 1: ``(M / g, F / g)``, ``g`` the
+    geometric mean of ``|det M_i|^(1/3)``. Without a reference only ``M F`` is determined; the raw
+    readings' own scale (a fluxgate's gain is within percent of 1) then fixes ``F``. The scalar fit's
+    relative ``F`` (the spread of the readings about their centroid) is the field's only when the
+    manoeuvre covers the sphere: yaw circles put the centroid on the vertical field and measure
+    just the horizontal component. Unchanged when a matrix is singular (a start that failed)."""
+    det = np.abs(np.linalg.det(matrices))
+    if not (np.all(np.isfinite(det)) and np.all(det > 0)):
+        return matrices, intensity
+    g = float(np.exp(np.mean(np.log(det)) / 3.0))
+    return matrices / g, intensity / g
+
+
 def _start_directions(r: Array, matrices: Array, offsets: Array) -> Array:
     """(N, 3) unit field direction of each set from a start: the mean of the sensors' corrections."""
     b = np.einsum("sij,nsj->nsi", matrices, r - offsets).mean(axis=1)
@@ -791,6 +805,8 @@ def calibrate_array(
         except (MagcalError, np.linalg.LinAlgError, ValueError) as exc_start:
             start_failed = exc_start
             matrices, offsets, intensity = _crude_start(r, f_ref)
+        if f_ref is None:
+            matrices, intensity = _unit_mean_gain(matrices, intensity)
     weights = clean_reading.astype(float)
     blocks = BlockInputs()
     if joint or start_failed is not None:
@@ -827,6 +843,8 @@ def calibrate_array(
         # A closed-form start on noisy, narrow data can land on a collapsed ellipsoid the joint
         # fit cannot leave: try again from spheres, and keep that if it is better.
         m2, o2, f2 = _sphere_start(r, clean, f_ref)
+        if f_ref is None:
+            m2, f2 = _unit_mean_gain(m2, f2)
         retry = solve(m2, o2, f2, None)
         ana2, cov2 = _analyse(retry, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
         if _plausible(retry, geometry) and (False, len(ana2.undetermined())) < badness:
