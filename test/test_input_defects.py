@@ -234,3 +234,21 @@ def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
     assert "expected one argument" not in proc.stderr, proc.stderr
     ok(proc)
     assert calfile.read(rec["dir"] / "neg2.yaml").geometry.positions[0].tolist() == [-0.2, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("value", ["1e300", "-25000"])
+def test_a_current_beyond_any_vehicle_is_one_line_and_nothing_is_written(rec: dict[str, Any], value: str) -> None:
+    """A current of 1e300 A corrected the field to 1e292 T; 25,000 (mA written as A) is refused too."""
+    d = rec["dir"]
+    csv = d / "thr.csv"
+    if not csv.exists():
+        ok(magcal("simulate", csv, "--count", 200, "--seed", 6, "--thruster", "1.0,0,0,0,0,0.05", "-q"))
+    lines = csv.read_text().splitlines()
+    col = next(i for i, name in enumerate(lines[0].split(",")) if name.startswith("current."))
+    _set(lines, 52, col, value)
+    bad = d / "thr_bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = d / "thr_out.yaml"
+    line = one_line_error(magcal("calibrate", bad, "-o", out, "--reference-field", F))
+    assert f"current {float(value):g} A is beyond +-10000 A: currents must be in A" in line and "thr_bad.csv" in line
+    assert not out.exists()

@@ -37,6 +37,17 @@ DEFAULT_CURRENT_TOLERANCE: float = 0.5
 """Largest age (s) of a channel's latest current value at a set's stamp; older is stale."""
 MIN_CURRENT_VARIATION: float = 1e-3
 """A channel whose current varies by less than this RMS (A) never varies."""
+MAX_CURRENT: float = 1e4
+"""Largest magnitude (A) of a current a vehicle's channel can carry; beyond it the values are not
+amperes (mA?) or a broken reading."""
+
+
+def check_currents(values: ArrayLike, where: str) -> None:
+    """:class:`InputError` naming ``where`` when a finite current exceeds :data:`MAX_CURRENT` in magnitude."""
+    v = np.asarray(values, dtype=float)
+    big = v[np.isfinite(v) & (np.abs(v) > MAX_CURRENT)]
+    if big.size:
+        raise InputError(f"{where}: current {big[0]:g} A is beyond +-{MAX_CURRENT:g} A: currents must be in A")
 
 
 # -- currents matched to sets ---------------------------------------------------------------

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.imu import ImuStream, ned_to_enu
-from magcal_ros.core.interference import CurrentSamples
+from magcal_ros.core.interference import CurrentSamples, check_currents
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.sync import (
@@ -550,6 +550,8 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
             raise InputError(f"{path}: {wanted[index[cid]]}: {exc}") from None
         stamps[index[cid]].append(stamp)
         values[index[cid]].append(current)
+    for t, v in zip(wanted, values):
+        check_currents(np.array(v), f"{path}: {t}")
     return [CurrentSamples(topic_names.current_channel(t), np.array(st, np.int64), np.array(v, float))
             for t, st, v in zip(wanted, stamps, values)]
 

@@ -48,6 +48,7 @@ from magcal_ros.core.imu import imu_frame, ned_to_enu
 from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds, parse_seconds_column
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.core.interference import check_currents
 from magcal_ros.core.temperature import check_temperatures
 from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError
@@ -383,6 +384,7 @@ def read_csv(
         temperatures = extra[:, layout.columns(TEMPERATURE_PREFIX + n for n in names)]
     if temperatures is not None:
         check_temperatures(temperatures, str(path))
+    check_currents(currents, str(path))
     # Each sensor's messages carry their row number (scaled into the accepted range of a
     # reading), so the sets the rule keeps name their rows (and so their currents and
     # temperatures); a faulty reading goes in as it is, to be dropped and counted by the rule;
