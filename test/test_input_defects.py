@@ -252,3 +252,39 @@ def test_a_current_beyond_any_vehicle_is_one_line_and_nothing_is_written(rec: di
     line = one_line_error(magcal("calibrate", bad, "-o", out, "--reference-field", F))
     assert f"current {float(value):g} A is beyond +-10000 A: currents must be in A" in line and "thr_bad.csv" in line
     assert not out.exists()
+
+
+def test_a_recording_sorted_backwards_is_refused_not_reduced_to_one_set(rec: dict[str, Any]) -> None:
+    """Rows newest first: every message but the first of each sensor is behind its predecessor.
+    Correcting it wrote 1 set of 300 and exited 0; now both commands say what is wrong."""
+    lines = rec["lines"]
+    rev = rec["dir"] / "backwards.csv"
+    rev.write_text("\n".join([lines[0], *reversed(lines[1:])]) + "\n")
+    cal = rec["dir"] / "fwd.yaml"
+    ok(magcal("calibrate", rec["csv"], "-o", cal, "--reference-field", F, "-q"))
+    for cmd in (["calibrate", rev, "-o", rec["dir"] / "bw.yaml", "--reference-field", F],
+                ["correct", rev, "-c", cal, "-o", rec["dir"] / "bw_out.csv"]):
+        line = one_line_error(magcal(*cmd))
+        assert "against 1 sets formed: the recording is not in time order" in line and "sort it by stamp" in line
+        assert not Path(cmd[cmd.index("-o") + 1]).exists()
+
+
+def test_a_bag_whose_storage_times_run_backwards_is_refused(rec: dict[str, Any]) -> None:
+    """The bag's storage timestamps reversed (headers intact): read in storage order, nearly every message
+    is behind its predecessor; both commands refuse, and correct (which streams the bag) writes nothing."""
+    import sqlite3
+
+    bag = rec["dir"] / "backwards_bag"
+    ok(magcal("simulate", bag, "--count", 200, "--seed", 7, "-q"))
+    db = sqlite3.connect(next(bag.glob("*.db3")))
+    lo, hi = db.execute("SELECT min(timestamp), max(timestamp) FROM messages").fetchone()
+    db.execute("UPDATE messages SET timestamp = ? - timestamp", (lo + hi,))
+    db.commit()
+    db.close()
+    cal = rec["dir"] / "fwd_bag.yaml"
+    ok(magcal("calibrate", rec["csv"], "-o", cal, "--reference-field", F, "-q"))
+    for cmd in (["calibrate", bag, "-o", rec["dir"] / "bwb.yaml", "--reference-field", F],
+                ["correct", bag, "-c", cal, "-o", rec["dir"] / "bwb_out"]):
+        line = one_line_error(magcal(*cmd))
+        assert "the recording is not in time order" in line
+        assert not Path(cmd[cmd.index("-o") + 1]).exists()

@@ -346,6 +346,9 @@ def correct_bag(
                     sets_out = calibration.outputs(part.vectors, gradient_method, part_u, part_t)
                     sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
+            why = sets.stats.disorder()
+            if why:
+                raise InputError(f"{inp}: {why}")
             if sets.stats.sets == 0:
                 raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
             if n_in == 0 and current_stats is not None and current_stats.dropped:

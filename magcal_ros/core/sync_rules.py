@@ -105,6 +105,17 @@ class SyncStats:
         """Messages dropped for any reason."""
         return sum(getattr(self, name) for name in DROP_FIELDS)
 
+    def disorder(self) -> str | None:
+        """Why a recording cannot be read in its order, or None: more messages dropped for stamps behind
+        their sensor's previous one (``out_of_order``, and ``glitch`` once a second or more behind) than
+        sets formed (rows sorted backwards, storage times reversed)."""
+        behind = self.out_of_order + self.glitch
+        if behind <= max(self.sets, DISORDER_MIN):
+            return None
+        return (f"{behind} messages dropped as out of order or far off their sensor's sequence against {self.sets} "
+                "sets formed: the recording is not in time order (rows sorted backwards? storage times reversed?); "
+                "sort it by stamp")
+
     def count(self, fault: str, n: int = 1) -> None:
         """Add ``n`` messages to the counter ``fault`` (a name of :mod:`magcal_ros.core.acceptance`)."""
         setattr(self, fault, getattr(self, fault) + n)
@@ -122,6 +133,8 @@ class SyncStats:
         return ", ".join(parts)
 
 
+DISORDER_MIN: int = 10
+"""Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
                                 "glitch", "gap", "negative_stamp", "out_of_range")
 """The counters of dropped messages."""

@@ -115,6 +115,9 @@ def open_recording(
             raise InputError(f"{p}: not a recording: give a rosbag2 directory or a .csv file")
         rec, stats = read_bag_sets(p, names, tolerance=tol, nonfinite=nonfinite, progress=progress,
                                    sync_mode=sync_mode, max_gap=max_gap, time_offsets=time_offsets)
+    why = stats.disorder()
+    if why:
+        raise InputError(f"{p}: {why}")
     rec = rec.window(start_ns, end_ns)
     if len(rec) == 0:
         raise InputError(f"{p}: no synchronized sets in the selected time window")
