@@ -305,3 +305,57 @@ def test_the_test_driver_hears_on_after_a_callback_raises() -> None:
         assert driver.spin_errors and driver.spin_errors[0] == "RuntimeError: broken callback"
     finally:
         driver.close()
+
+
+@pytest.mark.dds
+def test_the_driver_credits_each_unstamped_gradient_to_its_own_set() -> None:
+    """The ``gradient`` topic has no stamp; the driver once paired it with ``field`` in arrival order, so
+    a message lost or cleared on one topic only shifted every later pair (after a busy replay, 0 of 1,900
+    fresh sets came back). Now each is credited to the ``gradient_stamped`` with the same numbers: a field
+    missing, gradients cleared in flight and an arrival order mixed across topics leave every pair right."""
+    import os
+    from types import SimpleNamespace
+
+    from magcal_ros.app.ros_driver import ArrayDriver, pick_domain_id
+
+    def stamp(t: int) -> SimpleNamespace:
+        return SimpleNamespace(stamp=SimpleNamespace(sec=t // 10**9, nanosec=t % 10**9), frame_id="magcal_array")
+
+    def field(t: int) -> SimpleNamespace:
+        return SimpleNamespace(header=stamp(t), magnetic_field=SimpleNamespace(x=1.0, y=2.0, z=3.0),
+                               magnetic_field_covariance=[0.0] * 9)
+
+    def gradient(g: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(data=g.reshape(-1).tolist(), layout=SimpleNamespace(dim=[]))
+
+    def stamped(t: int, g: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(header=stamp(t), position=g.reshape(-1).tolist(), name=[f"g{k}" for k in range(9)])
+
+    driver = ArrayDriver(("m",), pick_domain_id(os.getpid() + 11), node_name="pairing_driver", listen=False)
+    try:
+        rng = np.random.default_rng(3)
+        stamps = [10**18 + k * 10**7 for k in range(40)]
+        tensors = {t: rng.normal(size=(3, 3)) * 1e-8 for t in stamps}
+        tensors[stamps[7]] = tensors[stamps[6]].copy()  # two sets with equal tensors
+        for t in stamps[:10]:  # gradients first, their stamped twins later, one field lost
+            driver._on_gradient(gradient(tensors[t]))
+            if t != stamps[3]:
+                driver._on_field(field(t))
+        for t in stamps[:10]:
+            driver._on_stamped(stamped(t, tensors[t]))
+        for t in stamps[10:20]:  # outputs cleared while the gradients are in flight
+            driver._on_field(field(t))
+        driver.clear_outputs()
+        for t in stamps[10:20]:
+            driver._on_gradient(gradient(tensors[t]))
+            driver._on_stamped(stamped(t, tensors[t]))
+        for t in stamps[20:]:  # then in order
+            driver._on_field(field(t))
+            driver._on_stamped(stamped(t, tensors[t]))
+            driver._on_gradient(gradient(tensors[t]))
+        got = driver.gradients(stamps)
+        assert set(got) == set(stamps[10:])
+        for t, g in got.items():
+            np.testing.assert_array_equal(g, tensors[t])
+    finally:
+        driver.close()

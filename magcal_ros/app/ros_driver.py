@@ -390,8 +390,11 @@ class ArrayDriver:
         self.imu_publisher = self.node.create_publisher(Imu, self.topic(imu_topic), reliable) if imu_topic else None
         self.outputs = Outputs()
         self._lock = threading.Lock()
-        self._fields: deque[int] = deque()
-        self._tensors: deque[tuple[int, NDArray[np.float64]]] = deque()
+        # The ``gradient`` topic has no stamp: each is credited to the set whose ``gradient_stamped`` carries
+        # the same nine numbers (robust to a message lost or cleared on one topic only, which pairing in
+        # arrival order is not: one lost message shifted every later pair).
+        self._tensors: dict[bytes, deque[tuple[int, NDArray[np.float64]]]] = {}
+        self._stamps_of: dict[bytes, deque[int]] = {}
         out_qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)  # a busy reader catches up
         self.subscriptions = [
             self.node.create_subscription(MagneticField, self.topic("field"), self._on_field, out_qos),
@@ -463,27 +466,28 @@ class ArrayDriver:
             self.outputs.field[t] = np.array([f.x, f.y, f.z])
             self.outputs.covariances["field"] = np.array(msg.magnetic_field_covariance, dtype=float)
             self.outputs.field_covariance[t] = self.outputs.covariances["field"]
-            if self.kind == "tensor":
-                self._fields.append(t)
-                self._pair()
 
     def _on_gradient(self, msg: Any) -> None:
         now = time.time_ns()
+        g = np.array(msg.data, dtype=float).reshape(3, 3)
         with self._lock:
-            self._tensors.append((now, np.array(msg.data, dtype=float).reshape(3, 3)))
+            self._tensors.setdefault(g.tobytes(), deque()).append((now, g))
             if not self.outputs.gradient_layouts:
                 self.outputs.gradient_layouts.append(
                     tuple((d.label, int(d.size), int(d.stride)) for d in msg.layout.dim)
                 )
-            self._pair()
+            self._pair(g.tobytes())
 
     def _on_stamped(self, msg: Any) -> None:
         t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        g = np.array(msg.position, dtype=float).reshape(3, 3)
         with self._lock:
-            self.outputs.stamped[t] = np.array(msg.position, dtype=float).reshape(3, 3)
+            self.outputs.stamped[t] = g
             self.outputs.stamped_frames.add(msg.header.frame_id)
             if not self.outputs.stamped_names:
                 self.outputs.stamped_names.append(tuple(msg.name))
+            self._stamps_of.setdefault(g.tobytes(), deque()).append(t)
+            self._pair(g.tobytes())
 
     def _on_baseline(self, msg: Any) -> None:
         t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
@@ -497,13 +501,18 @@ class ArrayDriver:
         Call with the lock held."""
         return {"tensor": self.outputs.gradient, "baseline": self.outputs.baseline, "none": self.outputs.field}[self.kind]
 
-    def _pair(self) -> None:
-        """Match gradients to fields in publication order (the node sends field, then gradient)."""
-        while self._fields and self._tensors:
-            t = self._fields.popleft()
-            received, g = self._tensors.popleft()
+    def _pair(self, key: bytes) -> None:
+        """Credit the unstamped gradients with the nine numbers ``key`` to the sets whose stamped gradient
+        carries them (in order, for sets with equal tensors). Call with the lock held."""
+        tensors, stamps = self._tensors.get(key), self._stamps_of.get(key)
+        while tensors and stamps:
+            t = stamps.popleft()
+            received, g = tensors.popleft()
             self.outputs.gradient[t] = g
             self.outputs.latency.append((received - t) / NS_PER_S)
+        for store in (self._tensors, self._stamps_of):
+            if key in store and not store[key]:
+                del store[key]
 
     def _corrected_cb(self, name: str) -> Any:
         def cb(msg: Any) -> None:
@@ -527,8 +536,8 @@ class ArrayDriver:
             self.outputs.covariances.clear()
             self.outputs.field_covariance.clear()
             self.outputs.baseline.clear()
-            self._fields.clear()
             self._tensors.clear()
+            self._stamps_of.clear()
 
     def gradients(self, stamps: Iterable[int]) -> dict[int, NDArray[np.float64]]:
         """Received gradients for the given set stamps (missing ones left out)."""
