@@ -288,3 +288,13 @@ def test_a_bag_whose_storage_times_run_backwards_is_refused(rec: dict[str, Any])
         line = one_line_error(magcal(*cmd))
         assert "the recording is not in time order" in line
         assert not Path(cmd[cmd.index("-o") + 1]).exists()
+
+
+def test_a_calibration_written_over_a_directory_is_one_line_without_temporary_names(rec: dict[str, Any]) -> None:
+    """``-o`` naming an existing directory: the message named the temporary file (".x.magcal123.partial/x")."""
+    target = rec["dir"] / "a_directory"
+    target.mkdir(exist_ok=True)
+    (target / "keep.txt").write_text("mine\n")
+    line = one_line_error(magcal("calibrate", rec["csv"], "-o", target, "--reference-field", F))
+    assert f"cannot write {target}: it is a directory" in line and ".partial" not in line and "magcal" in line
+    assert (target / "keep.txt").read_text() == "mine\n" and not list(rec["dir"].glob(".a_directory*"))

@@ -234,6 +234,9 @@ def atomic_path(target: str | os.PathLike[str], backup: bool = False, mode: int 
             (work / (dest.name + OWNER_SUFFIX)).write_text(f"{socket.gethostname()} {os.getpid()}\n")
             tmp = work / dest.name
             yield tmp
+            if tmp.is_file() and dest.is_dir() or tmp.is_dir() and dest.is_file():
+                want, found = ("a file", "a directory") if tmp.is_file() else ("a directory (a rosbag2)", "a file")
+                raise MagcalError(f"cannot write {dest}: it is {found}, and this output is {want}; give another name")
             if tmp.is_file():
                 if mode is not None:
                     os.chmod(tmp, mode)
