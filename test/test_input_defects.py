@@ -298,3 +298,12 @@ def test_a_calibration_written_over_a_directory_is_one_line_without_temporary_na
     line = one_line_error(magcal("calibrate", rec["csv"], "-o", target, "--reference-field", F))
     assert f"cannot write {target}: it is a directory" in line and ".partial" not in line and "magcal" in line
     assert (target / "keep.txt").read_text() == "mine\n" and not list(rec["dir"].glob(".a_directory*"))
+
+
+def test_a_one_sensor_calibration_file_holds_no_nan(rec: dict[str, Any]) -> None:
+    """One sensor has no gradient tensor: its file wrote ``tensor_rms_before: .nan``; now the keys are left out."""
+    csv, out = rec["dir"] / "one.csv", rec["dir"] / "one.yaml"
+    ok(magcal("simulate", csv, "--count", 300, "--seed", 9, "-q"))
+    ok(magcal("calibrate", csv, "--sensors", "mag1", "-o", out, "--reference-field", 5.5e-5, "-q"))
+    text = out.read_text()
+    assert ".nan" not in text.lower() and "tmi_rms_after" in text and "tensor_rms" not in text

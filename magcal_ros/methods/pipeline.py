@@ -993,8 +993,6 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         "intensity": result.intensity,
         "tmi_rms_before": [float(x) for x in result.tmi_before],
         "tmi_rms_after": [float(x) for x in result.tmi_after],
-        "tensor_rms_before": result.tensor_before,
-        "tensor_rms_after": result.tensor_after,
         "coverage": result.excitation.coverage,
         "valid_envelope": {"pitch_deg": result.envelope.pitch_deg, "roll_deg": result.envelope.roll_deg},
         "noise": [float(x) for x in result.noise],
@@ -1004,6 +1002,8 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         "uncertainty_inflation": result.inflation,
         "summary": result.summary(),
     }
+    if np.isfinite(result.tensor_before) and np.isfinite(result.tensor_after):  # no tensor of one sensor
+        meta["tensor_rms_before"], meta["tensor_rms_after"] = result.tensor_before, result.tensor_after
     if ana.weak():
         meta["weak"] = [f"{q.sensor} {q.name}" for q in ana.weak()]
     if result.prior:
