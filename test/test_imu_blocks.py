@@ -229,3 +229,17 @@ def test_quaternion_orientation_enters_as_imu_to_world():
     att = ab.attitude_inputs(matrix_to_quat(q), np.full((20, 3), np.nan), np.arange(20) * 10**8, None, False)
     assert att is not None and att.world
     assert np.allclose(att.rotations, q, atol=1e-12)
+
+
+def test_an_imu_that_does_not_turn_with_the_readings_is_refused_in_words(tumble):
+    """Every orientation the identity (a frozen IMU, or another vehicle's) while the readings tumble: the
+    solve ended in "solution rejected: covariances must be positive semi-definite"; now the refusal
+    says what is wrong. The IMU of the same tumble (turning with it) still calibrates (the fixture)."""
+    from magcal_ros.errors import InputError
+
+    spec, rec, _, sim, result = tumble
+    assert result.calibration.rotated
+    still = ImuSamples(np.tile([0.0, 0.0, 0.0, 1.0], (len(rec.imu), 1)), rec.imu.angular_velocity, "imu_link")
+    with pytest.raises(InputError, match=r"the IMU's orientation turns by 0\.0 deg at most while the readings turn by "
+                                         r"\d+ deg: the IMU does not follow the array"):
+        calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps, imu=still)

@@ -50,6 +50,28 @@ def attitude_for(imu: ImuSamples | None, stamps: Any, geometry: ArrayGeometry, c
                               field if imu.has_orientation else None, imu.frame_id)
 
 
+IMU_STILL_FRACTION: float = 0.1
+"""An IMU whose orientation turns by less than this fraction of the readings' turn does not follow the array."""
+MIN_READINGS_TURN_DEG: float = 10.0
+"""Readings that turn less than this (deg) say nothing about whether the IMU follows them."""
+
+
+def check_follows(imu: ImuSamples | None, raw: Array) -> None:
+    """:class:`InputError` when the IMU's orientation stays (nearly) still while the readings ``raw``
+    (N, S, 3) T turn: a frozen orientation or another vehicle's topic, which no calibration can use."""
+    if imu is None or not imu.has_orientation:
+        return
+    q = imu.orientation[np.all(np.isfinite(imu.orientation), axis=1)]
+    imu_turn = float(np.degrees(2.0 * np.arccos(np.clip(np.abs(q @ q[0]), 0.0, 1.0))).max())
+    centre = np.asarray(raw, dtype=float).mean(axis=1)
+    d = centre / np.maximum(np.linalg.norm(centre, axis=1, keepdims=True), 1e-300)
+    readings_turn = float(np.degrees(np.arccos(np.clip(d @ d[0], -1.0, 1.0))).max())
+    if readings_turn >= MIN_READINGS_TURN_DEG and imu_turn < IMU_STILL_FRACTION * readings_turn:
+        raise InputError(f"the IMU's orientation turns by {imu_turn:.1f} deg at most while the readings turn by "
+                         f"{readings_turn:.0f} deg: the IMU does not follow the array (a frozen orientation, or "
+                         "another vehicle's topic?)")
+
+
 @dataclass(frozen=True)
 class ImuReport:
     """What the global blocks found: the quantities with their 1-sigma, and how the IMU was used."""

@@ -816,6 +816,7 @@ def calibrate_array(
     if imu is not None and (imu.has_orientation or imu.has_angular_velocity):
         if not (joint or start_failed is not None):
             raise InputError(f"calibrating with the IMU needs method 'ml', not {method!r}")
+        imu_blocks.check_follows(imu, r)
         blocks = replace(blocks, attitude=imu_blocks.attitude_for(imu, stamps, geometry, n, opts.site_field))
     param_prior = _prior_of(prior, geometry, intensity, channels, opts, blocks)
 
