@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from test_offline import magcal, ok
 
+from magcal_ros.app.cli import main
 from magcal_ros.core.acceptance import reading_fault
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
 from magcal_ros.core.units import MAX_READING
@@ -234,3 +235,19 @@ def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
     assert "expected one argument" not in proc.stderr, proc.stderr
     ok(proc)
     assert calfile.read(rec["dir"] / "neg2.yaml").geometry.positions[0].tolist() == [-0.2, 0.0, 0.0]
+
+
+SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
+    (("--seed", -1), "--seed must be an integer >= 0, got -1"),
+]
+"""Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
+
+
+@pytest.mark.parametrize(("args", "says"), SIMULATE_REFUSALS, ids=[" ".join(map(str, a)) for a, _ in SIMULATE_REFUSALS])
+def test_simulate_refuses_what_it_cannot_simulate(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                  args: tuple[object, ...], says: str) -> None:
+    """Each is one line naming the option, exit 2, nothing written (no traceback, no wrong output)."""
+    code = main(["simulate", str(tmp_path / "sim_bag"), "--count", "20", "-q", *map(str, args)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"magcal simulate: error: {says}"), err
+    assert not list(tmp_path.iterdir())

@@ -167,6 +167,8 @@ class SimulationSpec:
             raise InputError("--axis must be x, y or z")
         if self.count < 1:
             raise InputError("--count must be at least 1")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise InputError(f"--seed must be an integer >= 0, got {self.seed}")
         if not (self.rate > 0 and np.isfinite(self.rate)):
             raise InputError("--rate must be a positive number of sets per second")
         if not (0 < self.intensity < 1e-2):
