@@ -239,6 +239,8 @@ def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
 
 SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--seed", -1), "--seed must be an integer >= 0, got -1"),
+    *[(("--thruster", "0,0,0,1,1,1", "--thruster-current", c), "--thruster-current must be random:IMAX (IMAX >= 0)")
+      for c in ("random:-5", "random:nan", "steps:0,inf", "steps:nan")],
 ]
 """Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
 

@@ -5,7 +5,7 @@ the same ``seed`` share the same sensors: calibrate one, correct the other.
 
 Thrusters (``thrusters``, platform-fixed dipoles per ampere) run on a current schedule
 (:func:`current_schedule`): ``random:IMAX`` draws each thruster's current uniformly in
-``0..IMAX`` A at every set; ``steps:L1,L2,...`` holds levels (A) for ``step_sets`` sets
+``0..IMAX`` A (``IMAX >= 0``) at every set; ``steps:L1,L2,...`` holds levels (A) for ``step_sets`` sets
 each, the thrusters stepping like an odometer (thruster 1 changes level every
 ``step_sets`` sets, thruster 2 every ``step_sets * L`` sets, ...) so that no two move in
 lockstep. Thruster ``j`` (from 1) is channel ``thrusterj/battery``: in a bag its current is
@@ -67,8 +67,10 @@ def current_schedule(text: str, count: int, thrusters: int, step_sets: int, rng:
         numbers = [float(v) for v in values.split(",") if v.strip()]
     except ValueError:
         numbers = []
-    if kind not in CURRENT_SCHEDULES or not numbers or not np.all(np.isfinite(numbers)) or (kind == "random" and len(numbers) != 1):
-        raise InputError(f"--thruster-current must be random:IMAX or steps:L1,L2,... (amperes), got {text!r}")
+    if kind not in CURRENT_SCHEDULES or not numbers or not np.all(np.isfinite(numbers)) or \
+            (kind == "random" and (len(numbers) != 1 or numbers[0] < 0)):
+        raise InputError(f"--thruster-current must be random:IMAX (IMAX >= 0) or steps:L1,L2,... (finite amperes), "
+                         f"got {text!r}")
     if kind == "random":
         return rng.uniform(0.0, numbers[0], (count, thrusters))
     if step_sets < 1:
