@@ -241,6 +241,11 @@ SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--seed", -1), "--seed must be an integer >= 0, got -1"),
     *[(("--thruster", "0,0,0,1,1,1", "--thruster-current", c), "--thruster-current must be random:IMAX (IMAX >= 0)")
       for c in ("random:-5", "random:nan", "steps:0,inf", "steps:nan")],
+    (("--inclination", "nan"), "--inclination must be a finite number (deg), got nan"),
+    (("--declination", "inf"), "--declination must be a finite number (deg), got inf"),
+    (("--schedule", "sea", "--turns", "nan"), "--turns must be a finite number (turns), got nan"),
+    (("--schedule", "sea", "--pitch=-inf"), "--pitch must be a finite number (deg), got -inf"),
+    (("--baseline", "inf"), "--baseline must be positive and finite (m)"),
 ]
 """Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
 

@@ -175,8 +175,14 @@ class SimulationSpec:
             raise InputError("--rate must be a positive number of sets per second")
         if not (0 < self.intensity < 1e-2):
             raise InputError(f"--intensity {self.intensity} T is not a magnetic field intensity in Tesla")
-        if not self.baseline > 0:
-            raise InputError("--baseline must be positive (m)")
+        for option, value in (("--inclination", self.inclination), ("--declination", self.declination),
+                              ("--pitch", self.pitch), ("--roll", self.roll), ("--wobble", self.wobble),
+                              ("--turns", self.turns)):
+            if not np.isfinite(value):
+                raise InputError(f"{option} must be a finite number ({'turns' if option == '--turns' else 'deg'}), "
+                                 f"got {value}")
+        if not (self.baseline > 0 and np.isfinite(self.baseline)):
+            raise InputError("--baseline must be positive and finite (m)")
         spreads = (self.scale_sd, self.angle_sd, self.offset_sd, self.misalignment_sd, self.hard_iron_sd, self.soft_iron_sd, self.noise)
         if any(not (np.isfinite(v) and v >= 0) for v in spreads):
             raise InputError("error spreads and noise must be finite and >= 0")
