@@ -246,6 +246,10 @@ SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--schedule", "sea", "--turns", "nan"), "--turns must be a finite number (turns), got nan"),
     (("--schedule", "sea", "--pitch=-inf"), "--pitch must be a finite number (deg), got -inf"),
     (("--baseline", "inf"), "--baseline must be positive and finite (m)"),
+    (("--noise", "1e300"), "--noise 1e+300 T (1-sigma per axis) puts readings beyond a magnetometer's range (0.002 T)"),
+    (("--noise", "2e-4"), "--noise 0.0002 T (1-sigma per axis) puts readings beyond a magnetometer's range (0.002 T)"),
+    (("--world-gradient", "1e300,0,0,0,0"), "--world-gradient reaches 2e+299 T at a sensor 0.2 m from the array's centre"),
+    (("--world-gradient", "0.01,0,0,0,0"), "--world-gradient reaches 0.002"),
 ]
 """Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
 

@@ -29,7 +29,7 @@ import numpy as np
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.units import NT
+from magcal_ros.core.units import MAX_READING, NT
 from magcal_ros.errors import InputError
 from magcal_ros.sim import attitudes
 from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
@@ -45,6 +45,9 @@ SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "li2018", "coaxial2022", "thre
 SCHEDULE_ALIASES: dict[str, str] = {"paper000": "li2018", "paper004": "coaxial2022"}
 """Schedule names of the first release, still accepted."""
 CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
+NOISE_SIGMAS: float = 6.0
+"""Standard deviations of noise on each axis a simulated reading may carry and stay within
+:data:`~magcal_ros.core.units.MAX_READING` (a Gaussian draw beyond 6 sigma: 2e-9)."""
 
 
 def schedule_name(name: str) -> str:
@@ -211,7 +214,25 @@ class SimulationSpec:
             if self.imu_rate and not self.continuous:
                 raise InputError("--imu-rate needs a schedule flown in time: "
                                  + ", ".join(attitudes.CONTINUOUS_SCHEDULES) + " (or --still)")
-        self.world_gradient_matrix()
+        self.check_reach()
+
+    def check_reach(self) -> None:
+        """Refuse a world gradient or noise that puts readings beyond any magnetometer's range
+        (:data:`~magcal_ros.core.units.MAX_READING`, the limit the tools drop readings at): the
+        gradient's field over the array's arms added to the Earth's, plus :data:`NOISE_SIGMAS`
+        standard deviations of the noise on each axis."""
+        reach = self.intensity
+        g = self.world_gradient_matrix()
+        if g is not None:
+            arm = self.baseline / 2.0  # the cross's sensors are baseline / 2 from its centre
+            reach += float(np.linalg.norm(g, 2)) * arm
+            if not reach <= MAX_READING:
+                raise InputError(f"--world-gradient reaches {reach:.3g} T at a sensor {arm:g} m from the array's centre: "
+                                 f"beyond a magnetometer's range ({MAX_READING:g} T)")
+        worst = NOISE_SIGMAS * np.sqrt(3.0) * self.noise
+        if not reach + worst <= MAX_READING:
+            raise InputError(f"--noise {self.noise:g} T (1-sigma per axis) puts readings beyond a magnetometer's range "
+                             f"({MAX_READING:g} T): at most {(MAX_READING - reach) / (NOISE_SIGMAS * np.sqrt(3.0)):.3g} T")
 
     def temperature_profile(self) -> tuple[str, tuple[float, ...]] | None:
         """The temperature profile ``(kind, values)``, None without one; :class:`InputError` for two."""
