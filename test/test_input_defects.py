@@ -250,6 +250,16 @@ SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--noise", "2e-4"), "--noise 0.0002 T (1-sigma per axis) puts readings beyond a magnetometer's range (0.002 T)"),
     (("--world-gradient", "1e300,0,0,0,0"), "--world-gradient reaches 2e+299 T at a sensor 0.2 m from the array's centre"),
     (("--world-gradient", "0.01,0,0,0,0"), "--world-gradient reaches 0.002"),
+    *[(("--start-time", t), f"--start-time {float(t):g} s is not a ROS stamp: 0 < SECONDS <= 2147483647")
+      for t in ("9e9", "-1e20", "1e20", "nan", "0", "2147483648")],
+    (("--start-time", "2147483647"), "--count 20 sets at --rate 10 Hz from --start-time 2147483647 s end at 2.147e+09 s, "
+                                     "beyond a ROS stamp (at most 2147483647 s"),
+    (("--rate", "1e-300"), "--count 20 sets at --rate 1e-300 Hz from --start-time 1700000000 s end at 1.9e+301 s"),
+    (("--rate", "1e300"), "--rate must be a positive number of sets per second, at most 1e+09"),
+    (("--rate", "nan"), "--rate must be a positive number of sets per second, at most 1e+09"),
+    (("--count", 10_000_001), "--count 10000001 is more sets than magcal simulates: at most 10000000"),
+    (("--schedule", "sea", "--imu", "--imu-rate", "2e9"), "--imu-rate 2e+09 Hz over the 1.9 s recording is more IMU"),
+    (("--schedule", "sea", "--imu", "--imu-rate", "1e7"), "--imu-rate 1e+07 Hz over the 1.9 s recording is more IMU"),
 ]
 """Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
 

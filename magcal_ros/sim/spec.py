@@ -29,7 +29,8 @@ import numpy as np
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.units import MAX_READING, NT
+from magcal_ros.core.stamps import ROS_MAX_SECONDS
+from magcal_ros.core.units import MAX_READING, NS_PER_S, NT
 from magcal_ros.errors import InputError
 from magcal_ros.sim import attitudes
 from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
@@ -45,6 +46,9 @@ SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "li2018", "coaxial2022", "thre
 SCHEDULE_ALIASES: dict[str, str] = {"paper000": "li2018", "paper004": "coaxial2022"}
 """Schedule names of the first release, still accepted."""
 CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
+MAX_MESSAGES: int = 10_000_000
+"""Most messages ``magcal simulate`` writes per sensor (sets, one sensor's stream, the IMU's): 10
+million sets take about 6 GB of memory and of bag."""
 NOISE_SIGMAS: float = 6.0
 """Standard deviations of noise on each axis a simulated reading may carry and stay within
 :data:`~magcal_ros.core.units.MAX_READING` (a Gaussian draw beyond 6 sigma: 2e-9)."""
@@ -174,8 +178,19 @@ class SimulationSpec:
             raise InputError("--count must be at least 1")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise InputError(f"--seed must be an integer >= 0, got {self.seed}")
-        if not (self.rate > 0 and np.isfinite(self.rate)):
-            raise InputError("--rate must be a positive number of sets per second")
+        if self.count > MAX_MESSAGES:
+            raise InputError(f"--count {self.count} is more sets than magcal simulates: at most {MAX_MESSAGES}")
+        if not (0 < self.rate <= NS_PER_S):  # False for NaN
+            raise InputError(f"--rate must be a positive number of sets per second, at most {NS_PER_S:.0e} (stamps are "
+                             f"integer nanoseconds: a set period of at least 1 ns), got {self.rate:g}")
+        if not (0 < self.start_time <= ROS_MAX_SECONDS):  # False for NaN
+            raise InputError(f"--start-time {self.start_time:g} s is not a ROS stamp: 0 < SECONDS <= {ROS_MAX_SECONDS} "
+                             "(builtin_interfaces/Time.sec is int32)")
+        end = self.start_time + (self.count - 1) / self.rate
+        if not end < ROS_MAX_SECONDS + 1:
+            raise InputError(f"--count {self.count} sets at --rate {self.rate:g} Hz from --start-time {self.start_time:.10g} s "
+                             f"end at {end:.4g} s, beyond a ROS stamp (at most {ROS_MAX_SECONDS} s: "
+                             "builtin_interfaces/Time.sec is int32)")
         if not (0 < self.intensity < 1e-2):
             raise InputError(f"--intensity {self.intensity} T is not a magnetic field intensity in Tesla")
         for option, value in (("--inclination", self.inclination), ("--declination", self.declination),
@@ -211,6 +226,10 @@ class SimulationSpec:
             raise InputError("--imu-mounting needs ROLL,PITCH,YAW (deg) and --imu-gyro-bias 3 numbers (rad/s)")
         if self.imu:
             self.imu_model()
+            seconds = (self.count - 1) / self.rate
+            if self.imu_rate > NS_PER_S or self.imu_rate * seconds > MAX_MESSAGES:
+                raise InputError(f"--imu-rate {self.imu_rate:g} Hz over the {seconds:g} s recording is more IMU messages "
+                                 f"than magcal simulates: at most {MAX_MESSAGES} (and {NS_PER_S:.0e} Hz)")
             if self.imu_rate and not self.continuous:
                 raise InputError("--imu-rate needs a schedule flown in time: "
                                  + ", ".join(attitudes.CONTINUOUS_SCHEDULES) + " (or --still)")
