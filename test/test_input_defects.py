@@ -264,11 +264,17 @@ SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
 """Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
 
 
+def simulate_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: tuple[object, ...], says: str) -> None:
+    """``magcal simulate OUT ARGS`` (in this process: an exception would fail the test as its traceback)
+    exits 2 with one line starting ``says`` and writes nothing (``tmp_path`` left empty)."""
+    code = main(["simulate", str(tmp_path / "sim_bag"), "-q", *map(str, args)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"magcal simulate: error: {says}"), err
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize(("args", "says"), SIMULATE_REFUSALS, ids=[" ".join(map(str, a)) for a, _ in SIMULATE_REFUSALS])
 def test_simulate_refuses_what_it_cannot_simulate(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                   args: tuple[object, ...], says: str) -> None:
     """Each is one line naming the option, exit 2, nothing written (no traceback, no wrong output)."""
-    code = main(["simulate", str(tmp_path / "sim_bag"), "--count", "20", "-q", *map(str, args)])
-    err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and err.startswith(f"magcal simulate: error: {says}"), err
-    assert not list(tmp_path.iterdir())
+    simulate_refused(tmp_path, capsys, ("--count", 20, *args), says)
