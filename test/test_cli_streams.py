@@ -116,6 +116,13 @@ STREAM_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--sensor-rate", 2e9), "--sensor-rate must be positive, at most 1e+09 Hz (a sample period of at least 1 ns)"),
     (("--glitch", "mag1,1,-1e12"), "--glitch TIME,SHIFT must be finite seconds within +-1e+06, got 1,-1e+12"),
     (("--restart", "1,-1e12"), "--restart TIME,JUMP must be finite seconds within +-1e+06, got 1,-1e+12"),
+    # stamps a ROS stamp (int32 sec) cannot hold
+    (("--start-time", 2147483000, "--receipt-delay", 1000), "--start-time 2147483000 s with --receipt-delay 1000 s and "
+     "--receipt-jitter 0 s puts a stamp of mag1 at 2147484020 s: a ROS stamp holds 0 .. 2147483647 s"),
+    (("--start-time", 10, "--receipt-delay=-10"), "--start-time 10 s with --receipt-delay -10 s and --receipt-jitter 0 s "
+                                                  "puts a stamp of mag1 at 0 s"),
+    (("--start-time", 1e5, "--restart", "1,9e5"), "--restart 1,900000 puts a stamp of mag1 at -799999 s"),
+    (("--start-time", 1e5, "--glitch", "mag2,1,-9e5"), "--glitch mag2,1,-900000 puts a stamp of mag2 at -799999 s"),
 ]
 """Stream options ``magcal simulate`` refuses (with ``--count 200``: 19.9 s at 10 Hz) and the start of the line."""
 
@@ -123,5 +130,6 @@ STREAM_REFUSALS: list[tuple[tuple[object, ...], str]] = [
 @pytest.mark.parametrize(("args", "says"), STREAM_REFUSALS, ids=[" ".join(map(str, a)) for a, _ in STREAM_REFUSALS])
 def test_stream_options_that_cannot_be_simulated_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                                args: tuple[object, ...], says: str) -> None:
-    """Tracebacks before (an empty stream's CDR, an infinite or huge int, a 148 GiB array): now exit 2, one line naming the option, nothing written."""
+    """Tracebacks before (an empty stream's CDR, an infinite or huge int, a 148 GiB array) or exit 0 with
+    wrapped stamps: now exit 2, one line naming the option, nothing written."""
     simulate_refused(tmp_path, capsys, ("--count", 200, *args), says)

@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.stamps import seconds_to_ns
+from magcal_ros.core.stamps import ROS_MAX_SECONDS, seconds_to_ns
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.sim.attitudes import _about
@@ -56,6 +56,14 @@ restart time or jump."""
 def _text(values: Array) -> str:
     """Per-sensor values as the option gives them: one number when they are all equal."""
     return f"{values[0]:g}" if np.all(values == values[0]) else ",".join(f"{v:g}" for v in values)
+
+
+def _check_stamps(name: str, stamps: NDArray[np.int64], cause: str) -> None:
+    """Refuse stamps (ns) of sensor ``name`` that a ROS stamp cannot hold, naming their ``cause``."""
+    if len(stamps) and (stamps.min() <= 0 or stamps.max() > ROS_MAX_SECONDS * NS_PER_S + NS_PER_S - 1):
+        worst = int(stamps.min() if stamps.min() <= 0 else stamps.max())
+        raise InputError(f"{cause} puts a stamp of {name} at {worst / NS_PER_S:.10g} s: a ROS stamp holds 0 .. "
+                         f"{ROS_MAX_SECONDS} s (builtin_interfaces/Time.sec is int32)")
 
 
 def sample_instants(phase: float, period: float, lag: float, duration: float) -> Array:
@@ -249,14 +257,18 @@ def simulate_streams(
             jit = gen.uniform(-half, half, len(rel))
         instants = start_ns + np.rint(rel * NS_PER_S).astype(np.int64)
         received = instants + np.rint((delays[i] + jit) * NS_PER_S).astype(np.int64)
+        _check_stamps(name, received, f"--start-time {start:.10g} s with --receipt-delay {delays[i]:g} s and "
+                                      f"--receipt-jitter {spec.jitter:g} s")
         stamps = received.copy()
         for sensor, when, shift in spec.glitches:
             if sensor == i and len(rel):
                 j = int(np.argmin(np.abs(rel - when)))
                 stamps[j] += int(round(shift * NS_PER_S))
+                _check_stamps(name, stamps[j : j + 1], f"--glitch {name},{when:g},{shift:g}")
         for when, jump, which in spec.restarts:
             if not which or i in which:
                 stamps[rel >= when] -= int(round(jump * NS_PER_S))
+                _check_stamps(name, stamps, f"--restart {when:g},{jump:g}")
         keep = gen.random(len(rel)) >= spec.loss
         if not keep.any():
             raise InputError(f"{name} has no messages: --loss {spec.loss:g} lost all {len(rel)} of them")
