@@ -252,8 +252,8 @@ SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
     (("--world-gradient", "0.01,0,0,0,0"), "--world-gradient reaches 0.002"),
     *[(("--start-time", t), f"--start-time {float(t):g} s is not a ROS stamp: 0 < SECONDS <= 2147483647")
       for t in ("9e9", "-1e20", "1e20", "nan", "0", "2147483648")],
-    (("--start-time", "2147483647"), "--count 20 sets at --rate 10 Hz from --start-time 2147483647 s end at 2.147e+09 s, "
-                                     "beyond a ROS stamp (at most 2147483647 s"),
+    (("--start-time", "2147483647"), ("--count 20 sets at --rate 10 Hz from --start-time 2147483647 s end at 2.147e+09 s, "
+                                      "beyond a ROS stamp (at most 2147483647 s")),
     (("--rate", "1e-300"), "--count 20 sets at --rate 1e-300 Hz from --start-time 1700000000 s end at 1.9e+301 s"),
     (("--rate", "1e300"), "--rate must be a positive number of sets per second, at most 1e+09"),
     (("--rate", "nan"), "--rate must be a positive number of sets per second, at most 1e+09"),
