@@ -19,7 +19,7 @@ from magcal_ros.errors import InputError
 from magcal_ros.io import bag_reader as bagsource
 from magcal_ros.io import cdr
 from magcal_ros.io.bag_reader import open_bag, read_bag_recording, read_bag_sets
-from magcal_ros.io.bag_writer import BagSink, write_recording_bag
+from magcal_ros.io.bag_writer import BagSink, write_recording_bag, write_stream_bag
 
 NAMES = ("mag1", "mag2", "mag3", "mag4")
 NS = 1_000_000_000
@@ -97,6 +97,20 @@ def test_decode_mixed_frames_and_endianness_matches_rosbags() -> None:
     same = [m for m in msgs[2::6]]
     s2, v2 = cdr.decode_magnetic_fields(same)
     np.testing.assert_array_equal(s2, stamps[2::6])
+
+
+def test_an_empty_batch_encodes_and_writes(tmp_path: Path) -> None:
+    """A stream with no messages is valid data: the encoders give (0, size) bytes and a stream bag
+    with one empty sensor is written, the other sensor's messages intact."""
+    template = cdr.magnetic_field_template("mag2")
+    assert template.encode(np.zeros(0, np.int64), np.zeros((0, 3))).shape == (0, template.size)
+    assert cdr.gradient_template().encode(np.zeros((0, 3, 3))).shape == (0, cdr.gradient_template().size)
+    bag = tmp_path / "empty_bag"
+    write_stream_bag(bag, ("mag1", "mag2"), [np.array([5 * NS]), np.zeros(0, np.int64)],
+                     [np.full((1, 3), 1e-5), np.zeros((0, 3))], [np.array([5 * NS]), np.zeros(0, np.int64)])
+    with Reader(bag) as reader:
+        assert sorted(c.topic for c in reader.connections) == ["/mag1/raw", "/mag2/raw"]
+    assert [(topic, stamp_ns(m)) for topic, _, _, m in read_all(bag)] == [("/mag1/raw", 5 * NS)]
 
 
 def test_decode_rejects_other_types() -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_input_defects import simulate_refused
 from test_offline import magcal, ok
 
 from magcal_ros.core.metrics import tensor_floor
@@ -92,3 +93,44 @@ def test_csv_columns_are_shifted_by_their_time_offsets(tmp_path: Path) -> None:
 def test_stream_options_need_a_bag(tmp_path: Path, option: str) -> None:
     proc = magcal("simulate", tmp_path / "s.csv", option, "0,0,0.001,0")
     assert proc.returncode == 2 and "rosbag2" in proc.stderr
+
+
+STREAM_REFUSALS: list[tuple[tuple[object, ...], str]] = [
+    # a sensor left without messages: which and why
+    (("--phases", "100,0,0,0"), "mag1 has no messages: its first sample (--phases 100 s) is after the 19.9 s of the streams"),
+    (("--sensor-rate", 0.001), ("mag1 has no messages: it samples every 1000 s (--sensor-rate 0.001 Hz, --clock-ppm 0), "
+                                "longer than the 19.9 s it records")),
+    (("--lags", "0,30,0,0"), "mag2 has no messages: its readings lag their instants by 30 s (--lags)"),
+    (("--lags", "-30,0,0,0"), "the streams last -10.1 s (the attitudes' span less the largest lead of --lags)"),
+    (("--loss", 0.9999), "mag1 has no messages: --loss 0.9999 lost all 198 of them"),
+    # values beyond a physical or sane range
+    (("--phases", 1e9), "--phases must be finite seconds within +-1e+06, got 1e+09"),
+    (("--receipt-delay", 1e9), "--receipt-delay must be finite seconds within +-1e+06, got 1e+09"),
+    (("--receipt-jitter=-1",), "--receipt-jitter must be a standard deviation of 0 .. 1e+06 s"),
+    (("--loss", 1), "--loss must be a fraction in [0, 1), got 1"),
+    (("--clock-ppm", 1e9), "--clock-ppm must be within +-100000 ppm (a clock off by more is not a clock error), got 1e+09"),
+    (("--clock-ppm", "0,-1e6,0,0"), ("--clock-ppm must be within +-100000 ppm (a clock off by more is not a clock error), "
+                                     "got 0,-1e+06,0,0")),
+    (("--sensor-rate", 1e9), ("mag1 would sample 1.99e+10 times (--sensor-rate 1e+09 Hz from --phases 0 s over 19.9 s): "
+                              "more messages than magcal simulates, at most 10000000")),
+    (("--sensor-rate", 2e9), "--sensor-rate must be positive, at most 1e+09 Hz (a sample period of at least 1 ns)"),
+    (("--glitch", "mag1,1,-1e12"), "--glitch TIME,SHIFT must be finite seconds within +-1e+06, got 1,-1e+12"),
+    (("--restart", "1,-1e12"), "--restart TIME,JUMP must be finite seconds within +-1e+06, got 1,-1e+12"),
+    # stamps a ROS stamp (int32 sec) cannot hold
+    (("--start-time", 2147483000, "--receipt-delay", 1000),
+     ("--start-time 2147483000 s with --receipt-delay 1000 s and --receipt-jitter 0 s puts a stamp of mag1 at 2147484020 s: "
+      "a ROS stamp holds 0 .. 2147483647 s")),
+    (("--start-time", 10, "--receipt-delay=-10"), ("--start-time 10 s with --receipt-delay -10 s and --receipt-jitter 0 s "
+                                                   "puts a stamp of mag1 at 0 s")),
+    (("--start-time", 1e5, "--restart", "1,9e5"), "--restart 1,900000 puts a stamp of mag1 at -799999 s"),
+    (("--start-time", 1e5, "--glitch", "mag2,1,-9e5"), "--glitch mag2,1,-900000 puts a stamp of mag2 at -799999 s"),
+]
+"""Stream options ``magcal simulate`` refuses (with ``--count 200``: 19.9 s at 10 Hz) and the start of the line."""
+
+
+@pytest.mark.parametrize(("args", "says"), STREAM_REFUSALS, ids=[" ".join(map(str, a)) for a, _ in STREAM_REFUSALS])
+def test_stream_options_that_cannot_be_simulated_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                               args: tuple[object, ...], says: str) -> None:
+    """Tracebacks before (an empty stream's CDR, an infinite or huge int, a 148 GiB array) or exit 0 with
+    wrapped stamps: now exit 2, one line naming the option, nothing written."""
+    simulate_refused(tmp_path, capsys, ("--count", 200, *args), says)

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from test_offline import magcal, ok
 
+from magcal_ros.app.cli import main
 from magcal_ros.core.acceptance import reading_fault
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
 from magcal_ros.core.units import MAX_READING
@@ -307,3 +308,46 @@ def test_a_one_sensor_calibration_file_holds_no_nan(rec: dict[str, Any]) -> None
     ok(magcal("calibrate", csv, "--sensors", "mag1", "-o", out, "--reference-field", 5.5e-5, "-q"))
     text = out.read_text()
     assert ".nan" not in text.lower() and "tmi_rms_after" in text and "tensor_rms" not in text
+
+
+SIMULATE_REFUSALS: list[tuple[tuple[object, ...], str]] = [
+    (("--seed", -1), "--seed must be an integer >= 0, got -1"),
+    *[(("--thruster", "0,0,0,1,1,1", "--thruster-current", c), "--thruster-current must be random:IMAX (IMAX >= 0)")
+      for c in ("random:-5", "random:nan", "steps:0,inf", "steps:nan")],
+    (("--inclination", "nan"), "--inclination must be a finite number (deg), got nan"),
+    (("--declination", "inf"), "--declination must be a finite number (deg), got inf"),
+    (("--schedule", "sea", "--turns", "nan"), "--turns must be a finite number (turns), got nan"),
+    (("--schedule", "sea", "--pitch=-inf"), "--pitch must be a finite number (deg), got -inf"),
+    (("--baseline", "inf"), "--baseline must be positive and finite (m)"),
+    (("--noise", "1e300"), "--noise 1e+300 T (1-sigma per axis) puts readings beyond a magnetometer's range (0.002 T)"),
+    (("--noise", "2e-4"), "--noise 0.0002 T (1-sigma per axis) puts readings beyond a magnetometer's range (0.002 T)"),
+    (("--world-gradient", "1e300,0,0,0,0"), "--world-gradient reaches 2e+299 T at a sensor 0.2 m from the array's centre"),
+    (("--world-gradient", "0.01,0,0,0,0"), "--world-gradient reaches 0.002"),
+    *[(("--start-time", t), f"--start-time {float(t):g} s is not a ROS stamp: 0 < SECONDS <= 2147483647")
+      for t in ("9e9", "-1e20", "1e20", "nan", "0", "2147483648")],
+    (("--start-time", "2147483647"), ("--count 20 sets at --rate 10 Hz from --start-time 2147483647 s end at 2.147e+09 s, "
+                                      "beyond a ROS stamp (at most 2147483647 s")),
+    (("--rate", "1e-300"), "--count 20 sets at --rate 1e-300 Hz from --start-time 1700000000 s end at 1.9e+301 s"),
+    (("--rate", "1e300"), "--rate must be a positive number of sets per second, at most 1e+09"),
+    (("--rate", "nan"), "--rate must be a positive number of sets per second, at most 1e+09"),
+    (("--count", 10_000_001), "--count 10000001 is more sets than magcal simulates: at most 10000000"),
+    (("--schedule", "sea", "--imu", "--imu-rate", "2e9"), "--imu-rate 2e+09 Hz over the 1.9 s recording is more IMU"),
+    (("--schedule", "sea", "--imu", "--imu-rate", "1e7"), "--imu-rate 1e+07 Hz over the 1.9 s recording is more IMU"),
+]
+"""Options ``magcal simulate`` cannot simulate (with ``--count 20``) and the start of their one-line error."""
+
+
+def simulate_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: tuple[object, ...], says: str) -> None:
+    """``magcal simulate OUT ARGS`` (in this process: an exception would fail the test as its traceback)
+    exits 2 with one line starting ``says`` and writes nothing (``tmp_path`` left empty)."""
+    code = main(["simulate", str(tmp_path / "sim_bag"), "-q", *map(str, args)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"magcal simulate: error: {says}"), err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(("args", "says"), SIMULATE_REFUSALS, ids=[" ".join(map(str, a)) for a, _ in SIMULATE_REFUSALS])
+def test_simulate_refuses_what_it_cannot_simulate(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                  args: tuple[object, ...], says: str) -> None:
+    """Each is one line naming the option, exit 2, nothing written (no traceback, no wrong output)."""
+    simulate_refused(tmp_path, capsys, ("--count", 20, *args), says)

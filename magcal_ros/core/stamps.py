@@ -19,6 +19,9 @@ from magcal_ros.errors import InputError
 Stamps = NDArray[np.int64]
 MAX_SECONDS: int = 9_000_000_000
 """Largest magnitude (s) of a stamp: int64 nanoseconds end at about 9.22e9 s (year 2262)."""
+ROS_MAX_SECONDS: int = 2**31 - 1
+"""Largest ``sec`` of a ROS stamp: ``builtin_interfaces/Time.sec`` is int32 (2038-01-19). A stamp
+written to a bag is in ``0 .. ROS_MAX_SECONDS`` s (``sec`` at most this, ``nanosec`` below 1e9)."""
 
 
 def split_stamp(stamp_ns: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

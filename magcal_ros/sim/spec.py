@@ -5,7 +5,7 @@ the same ``seed`` share the same sensors: calibrate one, correct the other.
 
 Thrusters (``thrusters``, platform-fixed dipoles per ampere) run on a current schedule
 (:func:`current_schedule`): ``random:IMAX`` draws each thruster's current uniformly in
-``0..IMAX`` A at every set; ``steps:L1,L2,...`` holds levels (A) for ``step_sets`` sets
+``0..IMAX`` A (``IMAX >= 0``) at every set; ``steps:L1,L2,...`` holds levels (A) for ``step_sets`` sets
 each, the thrusters stepping like an odometer (thruster 1 changes level every
 ``step_sets`` sets, thruster 2 every ``step_sets * L`` sets, ...) so that no two move in
 lockstep. Thruster ``j`` (from 1) is channel ``thrusterj/battery``: in a bag its current is
@@ -29,7 +29,8 @@ import numpy as np
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.units import NT
+from magcal_ros.core.stamps import ROS_MAX_SECONDS
+from magcal_ros.core.units import MAX_READING, NS_PER_S, NT
 from magcal_ros.errors import InputError
 from magcal_ros.sim import attitudes
 from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
@@ -45,6 +46,12 @@ SCHEDULE_NAMES: tuple[str, ...] = ("single-axis", "li2018", "coaxial2022", "thre
 SCHEDULE_ALIASES: dict[str, str] = {"paper000": "li2018", "paper004": "coaxial2022"}
 """Schedule names of the first release, still accepted."""
 CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
+MAX_MESSAGES: int = 10_000_000
+"""Most messages ``magcal simulate`` writes per sensor (sets, one sensor's stream, the IMU's): 10
+million sets take about 6 GB of memory and of bag."""
+NOISE_SIGMAS: float = 6.0
+"""Standard deviations of noise on each axis a simulated reading may carry and stay within
+:data:`~magcal_ros.core.units.MAX_READING` (a Gaussian draw beyond 6 sigma: 2e-9)."""
 
 
 def schedule_name(name: str) -> str:
@@ -67,8 +74,10 @@ def current_schedule(text: str, count: int, thrusters: int, step_sets: int, rng:
         numbers = [float(v) for v in values.split(",") if v.strip()]
     except ValueError:
         numbers = []
-    if kind not in CURRENT_SCHEDULES or not numbers or not np.all(np.isfinite(numbers)) or (kind == "random" and len(numbers) != 1):
-        raise InputError(f"--thruster-current must be random:IMAX or steps:L1,L2,... (amperes), got {text!r}")
+    if kind not in CURRENT_SCHEDULES or not numbers or not np.all(np.isfinite(numbers)) or \
+            (kind == "random" and (len(numbers) != 1 or numbers[0] < 0)):
+        raise InputError(f"--thruster-current must be random:IMAX (IMAX >= 0) or steps:L1,L2,... (finite amperes), "
+                         f"got {text!r}")
     if kind == "random":
         return rng.uniform(0.0, numbers[0], (count, thrusters))
     if step_sets < 1:
@@ -167,12 +176,31 @@ class SimulationSpec:
             raise InputError("--axis must be x, y or z")
         if self.count < 1:
             raise InputError("--count must be at least 1")
-        if not (self.rate > 0 and np.isfinite(self.rate)):
-            raise InputError("--rate must be a positive number of sets per second")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise InputError(f"--seed must be an integer >= 0, got {self.seed}")
+        if self.count > MAX_MESSAGES:
+            raise InputError(f"--count {self.count} is more sets than magcal simulates: at most {MAX_MESSAGES}")
+        if not (0 < self.rate <= NS_PER_S):  # False for NaN
+            raise InputError(f"--rate must be a positive number of sets per second, at most {NS_PER_S:.0e} (stamps are "
+                             f"integer nanoseconds: a set period of at least 1 ns), got {self.rate:g}")
+        if not (0 < self.start_time <= ROS_MAX_SECONDS):  # False for NaN
+            raise InputError(f"--start-time {self.start_time:g} s is not a ROS stamp: 0 < SECONDS <= {ROS_MAX_SECONDS} "
+                             "(builtin_interfaces/Time.sec is int32)")
+        end = self.start_time + (self.count - 1) / self.rate
+        if not end < ROS_MAX_SECONDS + 1:
+            raise InputError(f"--count {self.count} sets at --rate {self.rate:g} Hz from --start-time {self.start_time:.10g} s "
+                             f"end at {end:.4g} s, beyond a ROS stamp (at most {ROS_MAX_SECONDS} s: "
+                             "builtin_interfaces/Time.sec is int32)")
         if not (0 < self.intensity < 1e-2):
             raise InputError(f"--intensity {self.intensity} T is not a magnetic field intensity in Tesla")
-        if not self.baseline > 0:
-            raise InputError("--baseline must be positive (m)")
+        for option, value in (("--inclination", self.inclination), ("--declination", self.declination),
+                              ("--pitch", self.pitch), ("--roll", self.roll), ("--wobble", self.wobble),
+                              ("--turns", self.turns)):
+            if not np.isfinite(value):
+                raise InputError(f"{option} must be a finite number ({'turns' if option == '--turns' else 'deg'}), "
+                                 f"got {value}")
+        if not (self.baseline > 0 and np.isfinite(self.baseline)):
+            raise InputError("--baseline must be positive and finite (m)")
         spreads = (self.scale_sd, self.angle_sd, self.offset_sd, self.misalignment_sd, self.hard_iron_sd, self.soft_iron_sd, self.noise)
         if any(not (np.isfinite(v) and v >= 0) for v in spreads):
             raise InputError("error spreads and noise must be finite and >= 0")
@@ -198,10 +226,32 @@ class SimulationSpec:
             raise InputError("--imu-mounting needs ROLL,PITCH,YAW (deg) and --imu-gyro-bias 3 numbers (rad/s)")
         if self.imu:
             self.imu_model()
+            seconds = (self.count - 1) / self.rate
+            if self.imu_rate > NS_PER_S or self.imu_rate * seconds > MAX_MESSAGES:
+                raise InputError(f"--imu-rate {self.imu_rate:g} Hz over the {seconds:g} s recording is more IMU messages "
+                                 f"than magcal simulates: at most {MAX_MESSAGES} (and {NS_PER_S:.0e} Hz)")
             if self.imu_rate and not self.continuous:
                 raise InputError("--imu-rate needs a schedule flown in time: "
                                  + ", ".join(attitudes.CONTINUOUS_SCHEDULES) + " (or --still)")
-        self.world_gradient_matrix()
+        self.check_reach()
+
+    def check_reach(self) -> None:
+        """Refuse a world gradient or noise that puts readings beyond any magnetometer's range
+        (:data:`~magcal_ros.core.units.MAX_READING`, the limit the tools drop readings at): the
+        gradient's field over the array's arms added to the Earth's, plus :data:`NOISE_SIGMAS`
+        standard deviations of the noise on each axis."""
+        reach = self.intensity
+        g = self.world_gradient_matrix()
+        if g is not None:
+            arm = self.baseline / 2.0  # the cross's sensors are baseline / 2 from its centre
+            reach += float(np.linalg.norm(g, 2)) * arm
+            if not reach <= MAX_READING:
+                raise InputError(f"--world-gradient reaches {reach:.3g} T at a sensor {arm:g} m from the array's centre: "
+                                 f"beyond a magnetometer's range ({MAX_READING:g} T)")
+        worst = NOISE_SIGMAS * np.sqrt(3.0) * self.noise
+        if not reach + worst <= MAX_READING:
+            raise InputError(f"--noise {self.noise:g} T (1-sigma per axis) puts readings beyond a magnetometer's range "
+                             f"({MAX_READING:g} T): at most {(MAX_READING - reach) / (NOISE_SIGMAS * np.sqrt(3.0)):.3g} T")
 
     def temperature_profile(self) -> tuple[str, tuple[float, ...]] | None:
         """The temperature profile ``(kind, values)``, None without one; :class:`InputError` for two."""

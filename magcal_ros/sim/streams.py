@@ -35,14 +35,43 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.stamps import seconds_to_ns
+from magcal_ros.core.stamps import ROS_MAX_SECONDS, seconds_to_ns
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.sim.attitudes import _about
 from magcal_ros.sim.simulator import ArraySimulation
+from magcal_ros.sim.spec import MAX_MESSAGES
 
 Array = NDArray[np.float64]
 JitterKind = Literal["gaussian", "uniform"]
+
+
+MAX_CLOCK_PPM: float = 1e5
+"""Largest sensor clock error (ppm): a clock 10 % off is not a clock error any more."""
+MAX_SECONDS_OFF: float = 1e6
+"""Largest magnitude (s, 11.6 days) of a phase, receipt delay or jitter, lag, glitch time or shift,
+restart time or jump."""
+
+
+def _text(values: Array) -> str:
+    """Per-sensor values as the option gives them: one number when they are all equal."""
+    return f"{values[0]:g}" if np.all(values == values[0]) else ",".join(f"{v:g}" for v in values)
+
+
+def _check_stamps(name: str, stamps: NDArray[np.int64], cause: str) -> None:
+    """Refuse stamps (ns) of sensor ``name`` that a ROS stamp cannot hold, naming their ``cause``."""
+    if len(stamps) and (stamps.min() <= 0 or stamps.max() > ROS_MAX_SECONDS * NS_PER_S + NS_PER_S - 1):
+        worst = int(stamps.min() if stamps.min() <= 0 else stamps.max())
+        raise InputError(f"{cause} puts a stamp of {name} at {worst / NS_PER_S:.10g} s: a ROS stamp holds 0 .. "
+                         f"{ROS_MAX_SECONDS} s (builtin_interfaces/Time.sec is int32)")
+
+
+def sample_instants(phase: float, period: float, lag: float, duration: float) -> Array:
+    """A sensor's sample instants after the start (s): from ``phase`` every ``period`` within
+    ``duration``, those whose reading (``lag`` earlier) is of a time after the start."""
+    n = int(np.floor((duration - phase) / period))
+    rel = phase + np.arange(max(n, 0)) * period
+    return rel[rel - lag >= 0.0]  # a reading of the field before the attitudes start: none
 
 
 @dataclass(frozen=True)
@@ -71,6 +100,58 @@ class StreamSpec:
     """(time after start s, jump back s, sensor indices or () for all)."""
     bag_delay: float = 0.0002
     """Recorder receipt delay (s) after the undisturbed stamp: the bag time."""
+
+    def check(self, names: tuple[str, ...], duration: float) -> None:
+        """Raise :class:`InputError` for values no stream of ``names`` over ``duration`` s can use (the
+        options of ``magcal simulate`` named), or that leave a sensor without messages (which and why)."""
+        size = len(names)
+        if not (0.0 <= self.loss < 1.0):  # False for NaN
+            raise InputError(f"--loss must be a fraction in [0, 1), got {self.loss:g}")
+        if not (0.0 <= self.jitter <= MAX_SECONDS_OFF) or self.jitter_kind not in ("gaussian", "uniform"):
+            raise InputError(f"--receipt-jitter must be a standard deviation of 0 .. {MAX_SECONDS_OFF:g} s "
+                             f"(gaussian or uniform), got {self.jitter:g}")
+        rates = self.per_sensor(self.rate, size, "--sensor-rate")
+        if not np.all((rates > 0) & (rates <= NS_PER_S)):
+            raise InputError(f"--sensor-rate must be positive, at most {NS_PER_S:.0e} Hz (a sample period of at least "
+                             f"1 ns), got {_text(rates)}")
+        ppm = self.per_sensor(self.clock_ppm, size, "--clock-ppm")
+        if not np.all(np.abs(ppm) <= MAX_CLOCK_PPM):
+            raise InputError(f"--clock-ppm must be within +-{MAX_CLOCK_PPM:g} ppm (a clock off by more is not a clock "
+                             f"error), got {_text(ppm)}")
+        phases = self.per_sensor(self.phases, size, "--phases")
+        lags = self.per_sensor(self.lags, size, "--lags")
+        for option, values in (("--phases", phases), ("--receipt-delay", self.per_sensor(self.delay, size, "--receipt-delay")),
+                               ("--lags", lags)):
+            if not np.all(np.abs(values) <= MAX_SECONDS_OFF):
+                raise InputError(f"{option} must be finite seconds within +-{MAX_SECONDS_OFF:g}, got {_text(values)}")
+        for option, events in (("--glitch TIME,SHIFT", [(w, x, (k,)) for k, w, x in self.glitches]),
+                               ("--restart TIME,JUMP", self.restarts)):
+            for when, shift, which in events:
+                if not (abs(when) <= MAX_SECONDS_OFF and abs(shift) <= MAX_SECONDS_OFF):
+                    raise InputError(f"{option} must be finite seconds within +-{MAX_SECONDS_OFF:g}, got "
+                                     f"{when:g},{shift:g}")
+                if not all(0 <= k < size for k in which):
+                    raise InputError(f"{option}: a sensor index must be 0 .. {size - 1}, got {which}")
+        if not (0.0 < duration < np.inf):
+            raise InputError(f"the streams last {duration:g} s (the attitudes' span less the largest lead of --lags): "
+                             "no sensor has messages")
+        for i, name in enumerate(names):
+            period = (1.0 + ppm[i] * 1e-6) / rates[i]
+            samples = (duration - phases[i]) / period
+            if samples > MAX_MESSAGES:
+                raise InputError(f"{name} would sample {samples:.3g} times (--sensor-rate {rates[i]:g} Hz from --phases "
+                                 f"{phases[i]:g} s over {duration:g} s): more messages than magcal simulates, at most "
+                                 f"{MAX_MESSAGES}")
+            if len(sample_instants(phases[i], period, lags[i], duration)):
+                continue
+            if phases[i] >= duration:
+                why = f"its first sample (--phases {phases[i]:g} s) is after the {duration:g} s of the streams"
+            elif samples < 1:
+                why = (f"it samples every {period:g} s (--sensor-rate {rates[i]:g} Hz, --clock-ppm {ppm[i]:g}), longer "
+                       f"than the {duration - phases[i]:g} s it records")
+            else:
+                why = f"its readings lag their instants by {lags[i]:g} s (--lags), beyond the {duration:g} s of the streams"
+            raise InputError(f"{name} has no messages: {why}")
 
     def per_sensor(self, value: float | tuple[float, ...], sensors: int, what: str) -> Array:
         """``value`` for each of ``sensors`` sensors (:class:`InputError` for a tuple of another length)."""
@@ -148,10 +229,9 @@ def simulate_streams(
     rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
     if len(rot) < 2 or attitude_rate <= 0:
         raise InputError("need at least two attitudes and a positive attitude rate")
-    if not (0.0 <= spec.loss < 1.0) or spec.jitter < 0:
-        raise InputError("loss must be in [0, 1) and jitter >= 0")
     names = sim.geometry.names
     size = len(names)
+    spec.check(names, duration)
     times = np.arange(len(rot)) / attitude_rate  # relative to start
     slerp = Slerp(times, Rotation.from_matrix(rot))
     rates = spec.per_sensor(spec.rate, size, "rate")
@@ -159,15 +239,11 @@ def simulate_streams(
     delays = spec.per_sensor(spec.delay, size, "delay")
     ppm = spec.per_sensor(spec.clock_ppm, size, "clock_ppm")
     lags = spec.per_sensor(spec.lags, size, "lags")
-    if np.any(rates <= 0):
-        raise InputError("rates must be positive")
     start_ns = int(seconds_to_ns(start))
     streams = []
     for i, name in enumerate(names):
         period = (1.0 + ppm[i] * 1e-6) / rates[i]
-        n = int(np.floor((duration - phases[i]) / period))
-        rel = phases[i] + np.arange(max(n, 0)) * period  # instants after start (s)
-        rel = rel[rel - lags[i] >= 0.0]  # a reading of the field before the attitudes start: none
+        rel = sample_instants(phases[i], period, lags[i], duration)  # instants after start (s)
         reading_time = rel - lags[i]
         if rel.size and reading_time[-1] > times[-1]:
             raise InputError(f"the attitudes cover {times[-1]:.3g} s, the streams need {reading_time[-1]:.3g} s")
@@ -181,15 +257,21 @@ def simulate_streams(
             jit = gen.uniform(-half, half, len(rel))
         instants = start_ns + np.rint(rel * NS_PER_S).astype(np.int64)
         received = instants + np.rint((delays[i] + jit) * NS_PER_S).astype(np.int64)
+        _check_stamps(name, received, f"--start-time {start:.10g} s with --receipt-delay {delays[i]:g} s and "
+                                      f"--receipt-jitter {spec.jitter:g} s")
         stamps = received.copy()
         for sensor, when, shift in spec.glitches:
             if sensor == i and len(rel):
                 j = int(np.argmin(np.abs(rel - when)))
                 stamps[j] += int(round(shift * NS_PER_S))
+                _check_stamps(name, stamps[j : j + 1], f"--glitch {name},{when:g},{shift:g}")
         for when, jump, which in spec.restarts:
             if not which or i in which:
                 stamps[rel >= when] -= int(round(jump * NS_PER_S))
+                _check_stamps(name, stamps, f"--restart {when:g},{jump:g}")
         keep = gen.random(len(rel)) >= spec.loss
+        if not keep.any():
+            raise InputError(f"{name} has no messages: --loss {spec.loss:g} lost all {len(rel)} of them")
         bag = received + int(round(spec.bag_delay * NS_PER_S))
         bag = np.maximum.accumulate(bag)  # a topic arrives in order
         streams.append(SensorStream(name, stamps[keep], raw[keep], bag[keep], instants[keep], truth[keep]))
