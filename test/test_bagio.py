@@ -113,6 +113,17 @@ def test_an_empty_batch_encodes_and_writes(tmp_path: Path) -> None:
     assert [(topic, stamp_ns(m)) for topic, _, _, m in read_all(bag)] == [("/mag1/raw", 5 * NS)]
 
 
+def test_a_stamp_beyond_a_ros_stamp_is_refused_not_wrapped() -> None:
+    """``sec`` is int32: a stamp after 2038-01-19 was written wrapped to a negative second (a CSV stamped
+    in 2065 corrected into a bag). The last second that fits is written and read back exactly."""
+    template = cdr.magnetic_field_template("mag1")
+    last = (2**31 - 1) * NS + 999_999_999
+    got, _ = cdr.decode_magnetic_fields([bytes(template.encode(np.array([last]), np.ones((1, 3)))[0])])
+    assert got.tolist() == [last]
+    with pytest.raises(InputError, match=r"stamp 3000000000 s does not fit a ROS stamp"):
+        template.encode(np.array([5 * NS, 3_000_000_000 * NS]), np.ones((2, 3)))
+
+
 def test_decode_rejects_other_types() -> None:
     grad = bytes(cdr.gradient_template().template)
     with pytest.raises(InputError, match="MagneticField"):

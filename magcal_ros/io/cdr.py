@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.stamps import split_stamp
+from magcal_ros.core.stamps import ROS_MAX_SECONDS, split_stamp
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
@@ -222,6 +222,10 @@ class MagneticFieldTemplate:
     def fill(self, out: NDArray[np.uint8], offset: int, stamp_ns: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
         """Encode N messages into columns ``offset..offset+size`` of ``out`` (N, B), template already copied."""
         sec, nsec = split_stamp(stamp_ns)
+        if len(sec) and (sec.max() > ROS_MAX_SECONDS or sec.min() < -ROS_MAX_SECONDS - 1):
+            bad = int(sec.max() if sec.max() > ROS_MAX_SECONDS else sec.min())
+            raise InputError(f"stamp {bad} s does not fit a ROS stamp (builtin_interfaces/Time.sec is int32: "
+                             f"up to {ROS_MAX_SECONDS} s, 2038-01-19); a bag cannot hold it")
         _put(out, offset + 4, sec, "<i4")
         _put(out, offset + 8, nsec, "<u4")
         _put(out, offset + self.vector_at, vectors, "<f8")
