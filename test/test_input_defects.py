@@ -351,3 +351,21 @@ def test_simulate_refuses_what_it_cannot_simulate(tmp_path: Path, capsys: pytest
                                                   args: tuple[object, ...], says: str) -> None:
     """Each is one line naming the option, exit 2, nothing written (no traceback, no wrong output)."""
     simulate_refused(tmp_path, capsys, ("--count", 20, *args), says)
+
+
+def test_a_calibration_whose_positions_coincide_corrects_the_field_and_says_why_no_gradient(rec: dict[str, Any]) -> None:
+    """Positions all zero in the file: the gradient columns went missing without a word."""
+    import yaml
+
+    cal = rec["dir"] / "zero_pos_src.yaml"
+    ok(magcal("calibrate", rec["csv"], "-o", cal, "--reference-field", F, "-q"))
+    doc = yaml.safe_load(cal.read_text())
+    block = doc["magcal_correction"]["ros__parameters"]
+    block["positions"] = [0.0] * len(block["positions"])
+    zero = rec["dir"] / "zero_pos.yaml"
+    zero.write_text(yaml.safe_dump(doc))
+    out = rec["dir"] / "zero_pos_out.csv"
+    proc = ok(magcal("correct", rec["csv"], "-c", zero, "-o", out))
+    assert "note: the positions of mag1, mag2, mag3, mag4" in proc.stderr and "coincide: no gradient" in proc.stderr
+    header = out.read_text().splitlines()[0]
+    assert "field.x" in header and "gradient." not in header

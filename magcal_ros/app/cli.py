@@ -756,6 +756,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from magcal_ros.app.correct import check_sensors
 
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
+    if cal.geometry.size > 1 and cal.geometry.gradient_kind == "none":
+        _note(f"the positions of {', '.join(cal.geometry.names)} in {args.calibration} coincide: no gradient, "
+              "the field only")
     out_csv = is_csv(args.output)
     if args.gradient_method is None and (is_csv(args.input) or out_csv):
         # Auto: the difference formula for the cross, least squares for any other array, unless the
