@@ -438,7 +438,7 @@ def test_simulate_thruster_options_are_checked(tmp_path: Path) -> None:
     for extra, message in [
         (["--thruster", "1,2,3"], "--thruster must be 6"),
         (["--thruster=0.2,0,0,1,0,0"], "thruster thruster1/battery lies on a sensor"),
-        ([*THRUSTER_ARGS, "--thruster-current", "sometimes:5"], "--thruster-current must be random:IMAX or steps"),
+        ([*THRUSTER_ARGS, "--thruster-current", "sometimes:5"], "--thruster-current must be random:IMAX (IMAX >= 0) or steps"),
         ([*THRUSTER_ARGS, "--thruster-current", "steps:1,2", "--step-sets", "0"], "--step-sets must be at least 1"),
     ]:
         proc = magcal("simulate", tmp_path / "x.csv", "--count", 10, *extra)
