@@ -471,12 +471,13 @@ class ArrayDriver:
         now = time.time_ns()
         g = np.array(msg.data, dtype=float).reshape(3, 3)
         with self._lock:
-            self._tensors.setdefault(g.tobytes(), deque()).append((now, g))
+            key = g.tobytes()
+            self._tensors.setdefault(key, deque()).append((now, g))
             if not self.outputs.gradient_layouts:
                 self.outputs.gradient_layouts.append(
                     tuple((d.label, int(d.size), int(d.stride)) for d in msg.layout.dim)
                 )
-            self._pair(g.tobytes())
+            self._pair(key)
 
     def _on_stamped(self, msg: Any) -> None:
         t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
@@ -486,8 +487,9 @@ class ArrayDriver:
             self.outputs.stamped_frames.add(msg.header.frame_id)
             if not self.outputs.stamped_names:
                 self.outputs.stamped_names.append(tuple(msg.name))
-            self._stamps_of.setdefault(g.tobytes(), deque()).append(t)
-            self._pair(g.tobytes())
+            key = g.tobytes()
+            self._stamps_of.setdefault(key, deque()).append(t)
+            self._pair(key)
 
     def _on_baseline(self, msg: Any) -> None:
         t = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec

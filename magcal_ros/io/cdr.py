@@ -192,9 +192,9 @@ def decode_imu(data: bytes, bag_time_ns: int) -> tuple[int, tuple[float, ...], t
 
 def _put(out: NDArray[np.uint8], offset: int, values: Any, dtype: str) -> None:
     """Write ``values`` (N, ...) as ``dtype`` into byte columns ``offset..`` of ``out`` (N, B)."""
-    v = np.ascontiguousarray(np.asarray(values).astype(dtype, copy=False))
     if not len(out):  # an empty batch (a stream with no messages): nothing to write
         return
+    v = np.ascontiguousarray(np.asarray(values).astype(dtype, copy=False))
     raw = v.view(U8).reshape(len(out), -1)
     out[:, offset : offset + raw.shape[1]] = raw
 
