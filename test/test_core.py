@@ -100,6 +100,33 @@ def test_the_identifiability_reads_known_physical_errors_from_a_stack_of_paramet
         assert np.all(np.abs(np.delete(col, a)) < 1e-6 * F)
 
 
+def test_the_envelope_grid_interpolated_along_roll_is_the_predicted_tmi_variance_at_every_attitude():
+    """The envelope evaluates the predicted TMI variance at a few rolls and interpolates the others (a
+    trigonometric polynomial in roll): it must equal the direct evaluation at every grid attitude."""
+    from magcal_ros.core.identifiability import (
+        PITCH_GRID,
+        ROLL_GRID,
+        attitude_directions,
+        predicted_tmi_variance,
+        variance_grid,
+    )
+
+    rng = np.random.default_rng(7)
+    s, q, p = 3, 5, 16
+    w = np.zeros((s, 3, q))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
+    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
+    a = rng.normal(size=(s * p, s * p))
+    cov = a @ a.T * 1e-10
+    pitch = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
+    roll = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
+    for inclination in (0.2, 1.1, -0.9):
+        dirs = attitude_directions(inclination, pitch, roll)
+        direct = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3)).reshape(*dirs.shape[:3], s)
+        np.testing.assert_allclose(variance_grid(w, cov, inclination, pitch, roll), direct,
+                                   rtol=1e-9, atol=1e-12 * direct.max())
+
+
 def test_the_predicted_tmi_error_is_the_spread_of_the_tmi_over_calibrations_drawn_from_the_covariance():
     """The envelope's predicted TMI variance at a direction is the variance of ``|b| - F`` when the
     calibration's parameters scatter with the stated covariance (drawn, corrected, measured), for

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
+from magcal_ros.core.batched import per_sensor, per_sensor_columns, row_norms
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.errors import CalibrationFailed, InputError
 
@@ -302,7 +303,7 @@ class _Eval:
         # Direction each sensor saw (lag), and its derivatives.
         if tau is not None and rates is not None:
             lagged = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
-            norm = np.linalg.norm(lagged, axis=2, keepdims=True)
+            norm = row_norms(lagged)[..., None]
             dl = lagged / norm
             dnorm = (-np.sum(d * rates, axis=1)[:, None] + tau[None, :] * np.sum(rates * rates, axis=1)[:, None])
             d_tau = -rates[:, None, :] / norm - dl * (dnorm[:, :, None] / norm)  # d dl / d tau (N, S, 3)
@@ -314,10 +315,10 @@ class _Eval:
             d_tau = None
             dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
         seen = dl if h is None else dl + h  # the field each sensor saw, units of F
-        kd = np.matmul(k, seen[..., None])[..., 0]
+        kd = per_sensor(k, seen)
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
-        self.pred = gain * kd + np.matmul(w[:, :, 3:], psi[..., None])[..., 0]
+        self.pred = gain * kd + per_sensor(w[:, :, 3:], psi)
         self.e = self.pred - x
         jac = np.zeros((n, s, 3, p))
         for a in range(3):
@@ -327,22 +328,22 @@ class _Eval:
             for a in range(3):
                 jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
         if model.lag_index is not None and d_tau is not None:
-            jac[:, :, :, model.lag_index] = gain * np.matmul(k, d_tau[..., None])[..., 0]
+            jac[:, :, :, model.lag_index] = gain * per_sensor(k, d_tau)
         self.jac = jac
-        self.m = gain[..., None] * np.matmul(k, dir_jac)  # (N, S, 3, 2) d pred / d direction
+        self.m = gain[..., None] * per_sensor_columns(k, dir_jac)  # (N, S, 3, 2) d pred / d direction
         ws = weights / sigma[None, :] ** 2
         self.ws = ws
         wj = jac * ws[:, :, None, None]
         self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])  # (S, P, P)
-        g_theta = np.matmul(self.e[:, :, None, :], wj)[:, :, 0, :].sum(axis=0)  # (S, P)
         b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
         wm = ws[:, :, None, None] * self.m
         self.c = np.matmul(wm.transpose(0, 1, 3, 2), self.m).sum(axis=1)  # (N, 2, 2)
-        self.g_d = np.matmul(self.e[:, :, None, :], wm)[:, :, 0, :].sum(axis=1)  # (N, 2)
+        self.g_d = np.einsum("nsa,nsac->nc", self.e, wm)  # (N, 2)
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
         self.globals = ng
         self.set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
+        g_theta = np.ones(n) @ self.set_scores  # (S P,) summed over the sets
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
             gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
@@ -416,14 +417,14 @@ def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: Se
     (``h`` (N, S, 3), the site gradient's field at each sensor, taken off)."""
     s = x.shape[1]
     w, g, tau = model.split(theta)
-    rest = x - np.matmul(w[:, :, 3:], inputs.rest_features(s)[..., None])[..., 0]
+    rest = x - per_sensor(w[:, :, 3:], inputs.rest_features(s))
     if g is not None and inputs.temperatures is not None:
         rest = rest * (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
-    b = np.matmul(np.linalg.inv(w[:, :, :3]), rest[..., None])[..., 0]
+    b = per_sensor(np.linalg.inv(w[:, :, :3]), rest)
     if h is not None:
         b = b - h
     if tau is not None and rates is not None:
-        b = b + tau[None, :, None] * rates[:, None, :] * np.linalg.norm(b, axis=2, keepdims=True)
+        b = b + tau[None, :, None] * rates[:, None, :] * row_norms(b)[..., None]
     return b
 
 
@@ -437,10 +438,10 @@ def _mean_direction(b: Array, weights: Array) -> Array:
     """(N, 3) unit weighted mean of the sensors' corrected readings ``b`` (N, S, 3)."""
     wsum = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
     mean = np.einsum("ns,nsa->na", weights, b) / wsum
-    norm = np.linalg.norm(mean, axis=1, keepdims=True)
-    fallback = b.mean(axis=1)
-    mean = np.where(norm > 0, mean, fallback)
-    norm = np.linalg.norm(mean, axis=1, keepdims=True)
+    norm = row_norms(mean)[:, None]
+    if not np.all(norm > 0):
+        mean = np.where(norm > 0, mean, b.mean(axis=1))
+        norm = row_norms(mean)[:, None]
     out = mean / np.where(norm > 0, norm, 1.0)
     out[~np.isfinite(out).all(axis=1) | (norm[:, 0] == 0)] = np.array([0.0, 0.0, 1.0])
     return out
@@ -453,15 +454,15 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
     s = w.shape[0]
     if tau is not None and rates is not None:
         dl = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
-        dl /= np.linalg.norm(dl, axis=2, keepdims=True)
+        dl /= row_norms(dl)[..., None]
     else:
         dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
     if h is not None:
         dl = dl + h
-    kd = np.matmul(w[:, :, :3], dl[..., None])[..., 0]
+    kd = per_sensor(w[:, :, :3], dl)
     if g is not None and inputs.temperatures is not None:
         kd = kd / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :])
-    return kd + np.matmul(w[:, :, 3:], inputs.rest_features(s)[..., None])[..., 0]
+    return kd + per_sensor(w[:, :, 3:], inputs.rest_features(s))
 
 
 def _cost(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
@@ -521,7 +522,7 @@ def _solve_lm(
         flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
         schur = (cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T)[np.ix_(free, free)]
-        rhs = (cur.g_theta + prec * deviation(theta, att) - np.sum(bc * cur.g_d[:, None, :], axis=(0, 2)))[free]
+        rhs = (cur.g_theta + prec * deviation(theta, att) - np.einsum("npc,nc->p", bc, cur.g_d))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
         diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
@@ -533,11 +534,11 @@ def _solve_lm(
             except (np.linalg.LinAlgError, ValueError):
                 lam *= 10
                 continue
-            dd = -np.matmul(c_inv, (cur.g_d + cur.b.transpose(0, 2, 1) @ step)[:, :, None])[:, :, 0]
+            dd = -np.einsum("nab,nb->na", c_inv, cur.g_d + np.einsum("npc,p->nc", cur.b, step))
             t_new = theta + step[: s * p].reshape(s, p)
             a_new = None if att is None else att.moved(step[s * p :], model)
-            d_new = d + np.matmul(cur.basis, dd[:, :, None])[:, :, 0]
-            d_new /= np.linalg.norm(d_new, axis=1, keepdims=True)
+            d_new = d + np.einsum("nac,nc->na", cur.basis, dd)
+            d_new /= row_norms(d_new)[:, None]
             if not invertible(t_new):
                 lam *= 10
                 continue
@@ -960,17 +961,19 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
                             None if inputs.times is None else inputs.times[sl])
             rc = None if rates is None else rates[sl]
             b = corrected_directions(model, theta, xc, inc, rc)
+            d = _mean_direction(b, np.ones((len(sl), s)))
             if weights is None:  # beyond the outlier bound at the fit's noise: out; large: weighs less
-                e = _prediction(model, theta, _mean_direction(b, np.ones((len(sl), s))), inc, rc) - xc
-                q = np.sum(e * e, axis=2) / sigma[None, :] ** 2
+                e = _prediction(model, theta, d, inc, rc) - xc
+                q = np.einsum("nsa,nsa->ns", e, e) / sigma[None, :] ** 2
                 w = np.where(q > bound, 0.0, np.minimum(1.0, SOFT_BOUND / np.maximum(q, 1e-300)))
                 used[sl] = np.where(w < 0.5, 0.0, w)
             w = used[sl]
-            d = _mean_direction(b, w)
+            if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
+                d = _mean_direction(b, w)
             vertical[sl] = d[:, 2]
             ev = _Eval(model, theta, d, xc, inc, rc, w, sigma)
             c_inv = _inv2(ev.c)
-            y = np.matmul(c_inv, ev.g_d[:, :, None])  # (N, 2, 1)
+            y = np.einsum("nab,nb->na", c_inv, ev.g_d)[:, :, None]  # (N, 2, 1)
             flat_b = ev.b.transpose(0, 2, 1).reshape(-1, s * p)  # (2 N, S P)
             infos[k] += ev.a_matrix() - np.matmul(ev.b, c_inv).transpose(0, 2, 1).reshape(-1, s * p).T @ flat_b
             grads[k] += ev.g_theta.reshape(-1) - y.reshape(-1) @ flat_b

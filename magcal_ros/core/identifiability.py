@@ -327,11 +327,12 @@ def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int =
     d = np.asarray(directions, dtype=float)
     out = np.empty((len(d), s))
     for lo in range(0, len(d), chunk):
-        dc = d[lo : lo + chunk]
-        z = np.empty((len(dc), 9))
-        np.multiply(dc[:, _PAIRS[0]], dc[:, _PAIRS[1]], out=z[:, :6])
-        z[:, 6:] = dc
-        out[lo : lo + chunk] = np.einsum("asj,aj->as", (z @ forms).reshape(len(dc), s, 9), z)
+        dt = d[lo : lo + chunk].T  # (3, A): rows contiguous
+        z = np.empty((len(dt[0]), 9))
+        for k, (i, j) in enumerate(zip(*_PAIRS)):
+            np.multiply(dt[i], dt[j], out=z[:, k])
+        z[:, 6:] = dt.T
+        out[lo : lo + chunk] = np.einsum("asj,aj->as", (z @ forms).reshape(len(z), s, 9), z)
     return np.clip(out, 0, None)
 
 
@@ -422,6 +423,33 @@ PITCH_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 91, 5.0)])
 ROLL_GRID = np.concatenate([np.arange(0, 30, 1.0), np.arange(30, 181, 5.0)])
 
 
+ROLL_HARMONICS: int = 4
+"""Degree in the roll angle of the predicted TMI variance at a fixed pitch and yaw: a quadratic form
+in the direction's products and components, each a trigonometric polynomial of degree 2 in roll."""
+
+
+def _roll_basis(roll_deg: Array) -> Array:
+    """(R, 2 H + 1) ``[1, cos r, sin r, ..., cos H r, sin H r]`` with H = :data:`ROLL_HARMONICS`."""
+    r = np.radians(np.asarray(roll_deg, dtype=float))[:, None] * np.arange(1, ROLL_HARMONICS + 1)[None, :]
+    return np.column_stack([np.ones(len(r)), np.stack([np.cos(r), np.sin(r)], axis=2).reshape(len(r), -1)])
+
+
+def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, roll_deg: Array) -> Array:
+    """(P, R, Y, S) :func:`predicted_tmi_variance` at every attitude of :func:`attitude_directions`.
+
+    Along roll the variance is a trigonometric polynomial of degree :data:`ROLL_HARMONICS`, so it
+    is computed exactly (to rounding) from ``2 H + 1`` rolls and interpolated to the others: the
+    work of a few rolls instead of every one.
+    """
+    probes = np.arange(2 * ROLL_HARMONICS + 1) * 360.0 / (2 * ROLL_HARMONICS + 1)
+    dirs = attitude_directions(inclination, pitch_deg, probes)  # (P, K, Y, 3)
+    p, k, y, _ = dirs.shape
+    at_probes = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3)).reshape(p, k, -1)  # (P, K, Y S)
+    coef = np.linalg.solve(_roll_basis(probes), at_probes.transpose(1, 0, 2).reshape(k, -1))  # (K, P Y S)
+    var = (_roll_basis(roll_deg) @ coef).reshape(len(roll_deg), p, y, -1).transpose(1, 0, 2, 3)
+    return np.clip(var, 0.0, None)
+
+
 def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: float) -> Envelope:
     """The largest |pitch| x |roll| box (any yaw) where the predicted TMI error / noise stays
     within :data:`ENVELOPE_RATIO`; ``noise`` (S,) and ``intensity`` in T, ``inclination`` rad.
@@ -433,11 +461,9 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     f_noise = np.asarray(noise, dtype=float)
     grid_p = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
     grid_r = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
-    dirs = attitude_directions(inclination, grid_p, grid_r)
-    shape = dirs.shape[:3]
-    var = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3))  # (A, S) in units of F^2
+    var = variance_grid(w, cov, inclination, grid_p, grid_r)  # (P, R, Y, S) in units of F^2
     sigma_f = f_noise / intensity  # noise in units of F, like the predicted variance
-    ratio = np.sqrt(np.mean(1.0 + var / sigma_f[None, :] ** 2, axis=1)).reshape(shape)
+    ratio = np.sqrt(np.mean(1.0 + var / sigma_f**2, axis=3))
     worst = ratio.max(axis=2)  # over yaw, (P, R)
     # fold signs: a box |p| <= P, |r| <= R
     npos, rpos = len(PITCH_GRID), len(ROLL_GRID)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core.batched import column_means, row_norms
 from magcal_ros.errors import InputError, ObservabilityError
 
 Array = NDArray[np.float64]
@@ -97,15 +98,18 @@ class Excitation:
             raise ObservabilityError(why)
 
 
-def singular_values(design: Array) -> Array:
-    """Singular values of a tall matrix, via its R factor (fast and stable for N >> 10)."""
-    return np.linalg.svd(np.linalg.qr(design, mode="r"), compute_uv=False)
+def gram_singular_values(design: Array) -> Array:
+    """Singular values of a tall matrix (largest first) from its Gram matrix (faster than
+    a QR or SVD of the matrix itself), accurate for those above about 1e-7 of the largest (the quadric
+    ratio is judged at :data:`MIN_QUADRIC_RATIO`)."""
+    return np.sqrt(np.clip(np.linalg.eigvalsh(design.T @ design)[::-1], 0.0, None))
 
 
 def quadric_design(points: ArrayLike) -> Array:
     """Design matrix (N, 10) of a general quadric in normalised coordinates."""
     x = np.asarray(points, dtype=float)
-    x = (x - x.mean(axis=0)) / max(np.median(np.linalg.norm(x - x.mean(axis=0), axis=1)), 1e-300)
+    x = x - column_means(x)
+    x = x / max(float(np.median(row_norms(x))), 1e-300)
     a, b, c = x.T
     return np.column_stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c, 2 * a, 2 * b, 2 * c, np.ones(len(x))])
 
@@ -120,17 +124,18 @@ def excitation(readings: ArrayLike) -> Excitation:
     n = len(r)
     if n < 3:
         return Excitation(n, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
-    scale = float(np.mean(np.linalg.norm(r, axis=1))) or 1.0
-    centred = r - r.mean(axis=0)
+    scale = float(np.mean(row_norms(r))) or 1.0
+    centred = r - column_means(r)
     evals, evecs = np.linalg.eigh(centred.T @ centred / n)
     spread = np.sqrt(np.clip(evals[::-1], 0.0, None)) / scale
     normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
-    norms = np.linalg.norm(centred, axis=1)
-    dirs = centred[norms > 0] / norms[norms > 0, None]
-    bins = sphere_cells()
-    visited = np.unique(np.argmax(dirs @ bins.T, axis=1)) if len(dirs) else np.array([])
+    moved = centred[row_norms(centred) > 0]
+    visited = 0
+    if len(moved):  # the cell of a direction: the nearest centre, the largest dot product (any length)
+        dots = sphere_cells() @ moved.T  # (cells, N)
+        visited = int(np.count_nonzero((dots == dots.max(axis=0)).any(axis=1)))
     ratio = 0.0
     if n >= 10:
-        sv = singular_values(quadric_design(r))
+        sv = gram_singular_values(quadric_design(r))
         ratio = float(sv[8] / sv[0]) if sv[0] > 0 else 0.0
-    return Excitation(n, spread, normal, len(visited) / len(bins), ratio)
+    return Excitation(n, spread, normal, visited / SPHERE_CELLS, ratio)

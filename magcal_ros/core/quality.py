@@ -49,7 +49,8 @@ WARN_RATIO: float = 3.5
 MAX_OUTLIER_FRACTION: float = 0.25
 """Largest accepted fraction of a sensor's readings excluded as outliers."""
 STUCK_FRACTION: float = 0.5
-"""An axis that reads one exact value in more than this fraction of a manoeuvre is stuck."""
+"""An axis that reads one exact value in more than this fraction of a manoeuvre is stuck (at least
+one half: such a value is the median, which is how :func:`stuck_axis` finds it)."""
 MIN_RUN: int = 10
 """Excluded readings in runs of at least this many consecutive sets count as a run."""
 MAX_GAIN_ERROR: float = 0.2
@@ -310,11 +311,14 @@ def stuck_axis(readings: Array) -> tuple[int, float, float] | None:
     in more than :data:`STUCK_FRACTION` of them, or None. A turning sensor's axis sweeps the field;
     even one clipped at full scale on one side cannot stay there for most of a rotation."""
     r = np.asarray(readings, dtype=float)
+    if not len(r):
+        return None
     for axis in range(3):
-        values, counts = np.unique(r[:, axis], return_counts=True)
-        if len(counts) and counts.max() > STUCK_FRACTION * len(r):
-            k = int(np.argmax(counts))
-            return axis, float(values[k]), float(counts[k] / len(r))
+        # a value held in more than half the readings holds the middle of their sorted order
+        value = np.partition(r[:, axis], len(r) // 2)[len(r) // 2]
+        count = int(np.count_nonzero(r[:, axis] == value))
+        if count > STUCK_FRACTION * len(r):
+            return axis, float(value), count / len(r)
     return None
 
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.batched import column_extremes, row_norms
+
 Array = NDArray[np.float64]
 
 RUN_LENGTH: int = 16
@@ -45,9 +47,11 @@ def direction_proxy(raw: Array) -> Array:
     reading minus the centre of its cloud (mid-range per axis). Good enough to sort sets into
     coarse attitude cells before any calibration."""
     mean = np.asarray(raw, dtype=float).mean(axis=1)
-    centre = 0.5 * (mean.max(axis=0) + mean.min(axis=0))
-    v = mean - centre
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+    if not len(mean):
+        return mean
+    low, high = column_extremes(mean)
+    v = mean - 0.5 * (low + high)
+    return v / np.maximum(row_norms(v), 1e-300)[:, None]
 
 
 def cube_cell(directions: Array, cells: int = CUBE_CELLS) -> NDArray[np.int64]:

@@ -14,6 +14,8 @@ reports: the virtual centre sensor's matrix upper triangular.
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,14 +27,24 @@ MAX_BANDWIDTH_FRACTION: float = 0.1
 """The Newey-West bandwidth never exceeds this fraction of the sets."""
 
 
+def _correlations(series: Array) -> Iterator[float]:
+    """The sample autocorrelation of a (N,) or (N, K) series (averaged over columns) at lags 0, 1,
+    2, ... as they are asked for; zeros after lag 0 for a constant or too short series."""
+    x = np.asarray(series, dtype=float)
+    x = x.reshape(len(x), -1)
+    x = x - np.ones(len(x)) @ x / max(len(x), 1)
+    var = float(np.sum(x * x))
+    yield 1.0
+    for k in itertools.count(1):
+        yield float(np.sum(x[: len(x) - k] * x[k:])) / var if var > 0 and 3 <= len(x) and k < len(x) else 0.0
+
+
 def autocorrelation(series: Array, lags: int) -> Array:
     """Sample autocorrelation of a (N,) or (N, K) series at lags 0..``lags`` (averaged over columns)."""
-    x = np.asarray(series, dtype=float)
-    x = x.reshape(len(x), -1) - x.reshape(len(x), -1).mean(axis=0)
-    var = float(np.sum(x * x))
-    if var <= 0 or len(x) < 3:
-        return np.concatenate([[1.0], np.zeros(lags)])
-    return np.array([float(np.sum(x[: len(x) - k] * x[k:])) / var for k in range(lags + 1)])
+    out = np.zeros(lags + 1)
+    for k, rho in zip(range(lags + 1), _correlations(series)):
+        out[k] = rho
+    return out
 
 
 def bandwidth(series: Array) -> int:
@@ -40,14 +52,17 @@ def bandwidth(series: Array) -> int:
 
     The autocorrelation fades at the first lag below ``2 / sqrt(N)`` (indistinguishable from
     white); the Bartlett taper needs about twice that to take the correlation in fully.
-    Capped at :data:`MAX_BANDWIDTH_FRACTION` of the sets.
+    Capped at :data:`MAX_BANDWIDTH_FRACTION` of the sets. Lags are computed only up to the fade.
     """
     n = len(series)
     cap = max(1, int(MAX_BANDWIDTH_FRACTION * n))
-    rho = autocorrelation(series, cap)
-    below = np.flatnonzero(np.abs(rho[1:]) < 2.0 / np.sqrt(max(n, 1)))
-    fade = int(below[0]) if len(below) else cap
-    return min(cap, 2 * fade)  # Bartlett weights taper: reach twice as far as the correlation
+    threshold = 2.0 / np.sqrt(max(n, 1))
+    correlations = _correlations(series)
+    next(correlations)  # lag 0
+    for lag, rho in zip(range(1, cap + 1), correlations):
+        if abs(rho) < threshold:
+            return min(cap, 2 * (lag - 1))  # Bartlett weights taper: reach twice as far as the correlation
+    return cap
 
 
 def meat(scores: Array, lags: int) -> Array:

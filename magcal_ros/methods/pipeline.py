@@ -691,12 +691,13 @@ def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
     mats = np.linalg.inv(sol.w[:, :, :3])
     d = sol.directions
     phi = np.concatenate([d, np.ones((len(d), 1)), np.zeros((len(d), q - 4))], axis=1)
+    moments = phi.T @ phi / len(d)  # (q, q) the mean of phi phi^T over the manoeuvre
     out = np.empty((s, 3, 3))
     for i in range(s):
-        # db = -M dW phi F  ->  J (3, 3 q) per direction
-        jac = -np.einsum("ab,nq->nabq", mats[i], phi).reshape(len(d), 3, 3 * q) * sol.intensity
-        block = cov[i * p : i * p + 3 * q, i * p : i * p + 3 * q]
-        cal = np.einsum("nap,pk,nbk->ab", jac, block, jac) / len(d)
+        # db = -M dW phi F: the mean of J C J^T over the sets is F^2 M (sum over q, r of C_bq,cr E[phi_q phi_r]) M^T
+        block = cov[i * p : i * p + 3 * q, i * p : i * p + 3 * q].reshape(3, q, 3, q)
+        inner = np.einsum("bqcr,qr->bc", block, moments)
+        cal = sol.intensity**2 * mats[i] @ inner @ mats[i].T
         out[i] = sol.sigma[i] ** 2 * np.eye(3) + 0.5 * (cal + cal.T)
     return out
 
