@@ -23,6 +23,7 @@ from magcal_ros.app.ros_driver import (
     RawMessage,
     pick_domain_id,
     recording_messages,
+    release_domain_id,
     ros_args,
     ros_environment,
     use_fastdds_profile,
@@ -192,6 +193,7 @@ class RosRun:
         self.drivers.clear()
         codes = {p.log_path.stem: p.stop() for p in self.processes}
         self.processes.clear()
+        release_domain_id(self.domain_id)
         return codes
 
 

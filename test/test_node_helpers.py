@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -359,3 +363,78 @@ def test_the_driver_credits_each_unstamped_gradient_to_its_own_set() -> None:
             np.testing.assert_array_equal(g, tensors[t])
     finally:
         driver.close()
+
+
+_CLEAN_UP_SCRIPT = """
+import os, signal, sys, time
+from magcal_ros.nodes import common
+common.CLEANUP_TIMEOUT = float(sys.argv[2])
+class Node:
+    def destroy_node(self):
+        print("destroying", flush=True)
+        time.sleep(float(sys.argv[1]))
+class Rclpy:
+    @staticmethod
+    def try_shutdown():
+        print("shut down", flush=True)
+common._clean_up(Node(), Rclpy)
+print("cleaned up", flush=True)
+"""
+
+
+def _clean_up_process(destroy_seconds: float, timeout: float) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-c", _CLEAN_UP_SCRIPT, str(destroy_seconds), str(timeout)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "destroying"  # inside the clean-up now
+    return proc
+
+
+def test_ctrl_c_again_and_again_during_the_clean_up_is_ignored() -> None:
+    """A terminal or launch file signals again while the node shuts down: the clean-up finishes, exit 0."""
+    proc = _clean_up_process(destroy_seconds=1.5, timeout=60.0)
+    for _ in range(20):
+        if proc.poll() is not None:
+            break
+        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.02)
+    try:
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    assert "shut down" in out and "cleaned up" in out and "Traceback" not in out
+
+
+def test_a_clean_up_stuck_in_the_middleware_ends_with_its_stack_instead_of_hanging() -> None:
+    """``destroy_node`` that never returns (seen once in a few hundred shutdowns): after the clean-up
+    timeout the process prints where it was stuck and exits 1 rather than hanging until killed."""
+    started = time.monotonic()
+    proc = _clean_up_process(destroy_seconds=1000.0, timeout=1.0)
+    try:
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 1, out
+    assert "destroy_node" in out and "cleaned up" not in out
+    assert time.monotonic() - started < 100.0
+
+
+def test_runs_side_by_side_never_share_a_ros_domain() -> None:
+    """Parallel test workers (or a demo beside the tests) pick domain ids from the same seeds: a held id
+    is skipped by every other process until it is given back."""
+    from magcal_ros.app.ros_driver import pick_domain_id, release_domain_id
+
+    child = [sys.executable, "-c", "from magcal_ros.app.ros_driver import pick_domain_id; print(pick_domain_id(seed=41))"]
+    held = pick_domain_id(seed=41)
+    try:
+        second = pick_domain_id(seed=41)  # this process skips its own lease too
+        assert second != held
+        release_domain_id(second)
+        other = int(subprocess.run(child, capture_output=True, text=True, check=True, timeout=60).stdout)
+        assert other != held and 1 <= other <= 100
+    finally:
+        release_domain_id(held)
+    again = int(subprocess.run(child, capture_output=True, text=True, check=True, timeout=60).stdout)
+    assert again == held

@@ -10,6 +10,8 @@ its own ``ROS_DOMAIN_ID`` and localhost-only discovery.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import math
 import os
@@ -44,9 +46,37 @@ OTHER_OUTPUTS_SETTLE: float = 5.0
 the same sets are no longer waited for (see :meth:`ArrayDriver.wait_for_outputs`)."""
 
 
+_LEASES: dict[int, Any] = {}
+"""Domain ids this process holds (id -> its locked file), see :func:`pick_domain_id`."""
+
+
 def pick_domain_id(seed: int | None = None) -> int:
-    """A ROS domain id in 1..100 derived from ``seed`` (default: this process id)."""
-    return 1 + (os.getpid() if seed is None else seed) % 100
+    """A ROS domain id in 1..100 derived from ``seed`` (default: this process id) that no other
+    process of this machine holds: each id picked is leased through a lock on a file in the
+    temporary directory, held until :func:`release_domain_id` or the end of the process, so runs
+    side by side (parallel test workers, a demo beside the tests) never share a domain. When all
+    100 are held the id of ``seed`` is shared."""
+    start = os.getpid() if seed is None else seed
+    for k in range(100):
+        domain = 1 + (start + k) % 100
+        if domain in _LEASES:
+            continue
+        lock = open(Path(tempfile.gettempdir()) / f"magcal_ros_domain_{domain}.lock", "a")  # noqa: SIM115
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            continue
+        _LEASES[domain] = lock
+        return domain
+    return 1 + start % 100
+
+
+def release_domain_id(domain: int) -> None:
+    """Give back a domain id leased by :func:`pick_domain_id` (nothing if this process does not hold it)."""
+    lock = _LEASES.pop(domain, None)
+    if lock is not None:
+        lock.close()
 
 
 FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
@@ -216,8 +246,16 @@ class NodeProcess:
         try:
             self.process.wait(timeout)
         except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait(5.0)
+            # A hung node: ask it where it is (SIGUSR1 prints every thread's stack into its log)
+            # before killing it, so the log says why it did not exit.
+            if hasattr(signal, "SIGUSR1"):
+                with contextlib.suppress(ProcessLookupError):
+                    self.process.send_signal(signal.SIGUSR1)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self.process.wait(2.0)
+            if self.process.poll() is None:
+                self.process.kill()
+                self.process.wait(5.0)
         self._log.close()
         return int(self.process.returncode)
 
