@@ -7,4 +7,10 @@ cd "$root"
 export PATH="$venv/bin:$PATH"
 # Small matrices: one BLAS thread each, so parallel test processes do not thrash two cores.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
-exec "$venv/bin/python" -m pytest -q --durations=15 test "$@"
+# Test files run in parallel (pytest-xdist, one file per worker at a time, module fixtures kept):
+# most of the time is spent waiting on node processes and replays, so three workers on two
+# cores take a third of the serial time. MAGCAL_TEST_WORKERS=0 runs serially.
+workers="${MAGCAL_TEST_WORKERS:-3}"
+parallel=()
+[ "$workers" != 0 ] && parallel=(-n "$workers" --dist loadfile)
+exec "$venv/bin/python" -m pytest -q --durations=15 ${parallel[@]+"${parallel[@]}"} test "$@"
