@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -438,3 +439,34 @@ def test_runs_side_by_side_never_share_a_ros_domain() -> None:
         release_domain_id(held)
     again = int(subprocess.run(child, capture_output=True, text=True, check=True, timeout=60).stdout)
     assert again == held
+
+
+_FLOOD_SCRIPT = """
+import sys, time
+from magcal_ros.nodes.entry import quiet_signals
+stop = quiet_signals()
+print("ready", flush=True)
+end = time.monotonic() + 1.5
+while time.monotonic() < end:
+    pass
+print("done" if stop.is_set() else "no signal seen", flush=True)
+"""
+
+
+def test_a_flood_of_stop_signals_neither_deadlocks_nor_recurses_the_quiet_handler() -> None:
+    """The nodes' Ctrl-C handler runs again inside itself when signals come faster than it returns: one
+    that took a lock (``threading.Event.set``) deadlocked on itself (seen: a calibration node stuck in
+    its handler after a SIGINT flood) or recursed until RecursionError. SIGINT as fast as ``kill`` can
+    send it for a second: the process finishes its work, exit 0."""
+    for _ in range(3):
+        proc = subprocess.Popen([sys.executable, "-c", _FLOOD_SCRIPT], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end and proc.poll() is None:
+            os.kill(proc.pid, signal.SIGINT)
+        try:
+            out, _ = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        assert proc.returncode == 0 and "done" in out, out[-2000:]

@@ -107,6 +107,7 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
@@ -1232,7 +1233,7 @@ def _envelope_text(assessed: progress.Assessment | None) -> str:
     return assessed.envelope_text()
 
 
-def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+def main(args: Sequence[str] | None = None, stop: StopFlag | None = None) -> int:
     """Run the node (``ros2 run magcal_ros calibration_node`` goes through :mod:`magcal_ros.nodes.entry`)."""
     return common.run_node(lambda argv: CalibrationNode(), SingleThreadedExecutor, args, stop)
 

@@ -6,7 +6,6 @@ import faulthandler
 import re
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,7 +28,7 @@ from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 from magcal_ros.core.units import MAX_READING, NS_PER_S
 from magcal_ros.errors import InputError
-from magcal_ros.nodes.entry import quiet_signals
+from magcal_ros.nodes.entry import StopFlag, quiet_signals
 from magcal_ros.nodes.health import Assessment, HealthLimits
 
 DEFAULT_SENSOR_NAMES: list[str] = list(DEFAULT_NAMES)
@@ -668,7 +667,7 @@ def run_node(
     make_node: Callable[[list[str]], Any],
     make_executor: Callable[[], Any],
     args: Sequence[str] | None = None,
-    stop: threading.Event | None = None,
+    stop: StopFlag | None = None,
 ) -> int:
     """Initialise rclpy, spin the node until shutdown (Ctrl-C, SIGTERM) and clean up; exit code.
 
@@ -735,9 +734,10 @@ def _clean_up(node: Any, rclpy: Any) -> None:
     A terminal's Ctrl-C or a launch file's stop may come again and again while the node shuts
     down: from here on they are ignored at the process level (rclpy's handler would act on a
     context being torn down, and the interpreter's own teardown resets Python handlers to the
-    default: killed by SIGINT, exit -2). A clean-up stuck in the middleware (rare; seen once in
-    a few hundred shutdowns under repeated SIGINT) ends after :data:`CLEANUP_TIMEOUT` with the
-    stacks in the output rather than never.
+    default: killed by SIGINT, exit -2). A clean-up stuck in the middleware ends after
+    :data:`CLEANUP_TIMEOUT` with the stacks in the output rather than never: Fast DDS 2.14 can
+    deadlock destroying the participant while another node's endpoints disappear (two nodes
+    stopped at once; about once in 300 such stops on a busy machine).
     """
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)

@@ -69,7 +69,6 @@ Usage::
 from __future__ import annotations
 
 import struct
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -95,6 +94,7 @@ from magcal_ros.errors import InputError
 from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
 from magcal_ros.nodes.live_outputs import Listeners, SetOutputs
 
@@ -778,7 +778,7 @@ class CorrectionNode(Node):
         return drift.status(self.get_fully_qualified_name(), ",".join(state.names), report)
 
 
-def main(args: Sequence[str] | None = None, stop: threading.Event | None = None) -> int:
+def main(args: Sequence[str] | None = None, stop: StopFlag | None = None) -> int:
     """Run the node (``ros2 run magcal_ros correction_node`` goes through :mod:`magcal_ros.nodes.entry`)."""
     return common.run_node(lambda argv: CorrectionNode(argv=argv), SingleThreadedExecutor, args, stop)
 

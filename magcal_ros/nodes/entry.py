@@ -8,24 +8,40 @@ therefore installed first, and the node then exits 0 as soon as rclpy is up.
 from __future__ import annotations
 
 import signal
-import threading
 from typing import Any
 
 
-def quiet_signals() -> threading.Event:
-    """SIGINT and SIGTERM set the returned event instead of raising KeyboardInterrupt or killing the process.
+class StopFlag:
+    """Set by a stop signal (it is the signal handler itself); read with :meth:`is_set`.
+
+    No lock and one line of Python: a handler runs again inside itself when the next signal
+    comes between two of its bytecodes (a terminal or launch file signalling again and again),
+    and one that takes a lock, such as ``threading.Event.set``, then waits for itself for ever
+    (or, under a flood, recurses until the interpreter gives up)."""
+
+    def __init__(self) -> None:
+        self._set = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        self._set = True
+
+    def set(self) -> None:
+        self._set = True
+
+    def is_set(self) -> bool:
+        return self._set
+
+
+def quiet_signals() -> StopFlag:
+    """SIGINT and SIGTERM set the returned flag instead of raising KeyboardInterrupt or killing the process.
 
     Installed before ``rclpy.init``: rclpy's own handler (installed by init) shuts the
     context down, which ends the spin, and then calls this one, so a Ctrl-C anywhere,
     also a second one during clean-up, never raises a traceback.
     """
-    stop = threading.Event()
-
-    def handler(signum: int, frame: Any) -> None:
-        stop.set()
-
+    stop = StopFlag()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
+        signal.signal(sig, stop)
     return stop
 
 
