@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from magcal_ros.core.batched import column_means
+
 Array = NDArray[np.float64]
 
 MAX_BANDWIDTH_FRACTION: float = 0.1
@@ -32,7 +34,7 @@ def _correlations(series: Array) -> Iterator[float]:
     2, ... as they are asked for; zeros after lag 0 for a constant or too short series."""
     x = np.asarray(series, dtype=float)
     x = x.reshape(len(x), -1)
-    x = x - np.ones(len(x)) @ x / max(len(x), 1)
+    x = x - column_means(x)
     var = float(np.sum(x * x))
     yield 1.0
     for k in itertools.count(1):

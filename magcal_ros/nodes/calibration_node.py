@@ -107,8 +107,8 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 from magcal_ros.nodes import common, drift
-from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
+from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
 NODE_NAME = "magcal_calibration"

@@ -25,9 +25,6 @@ class StopFlag:
     def __call__(self, signum: int, frame: Any) -> None:
         self._set = True
 
-    def set(self) -> None:
-        self._set = True
-
     def is_set(self) -> bool:
         return self._set
 
