@@ -59,6 +59,8 @@ IRREGULAR: float = 0.3
 """A run whose residual scale exceeds this fraction of its period is not clocked (stamps kept)."""
 PAUSE: int = 1_000_000_000
 """Default ``pause_ns``: a silence this long (ns) ends a run."""
+FOLLOW_WAIT: int = 4 * LEARN_INTERVALS
+"""Stamps a run that follows another clock's restart holds at most while that clock learns."""
 
 Released = list[tuple[Any, "int | None"]]
 """Samples released by one call: (payload, fitted instant ns, or None when dropped)."""
@@ -139,7 +141,7 @@ class SampleClock:
 
     __slots__ = ("memory", "pause_ns", "_lam", "lost", "gaps", "dropped", "_learn", "_held", "ready", "regular",
                  "_t0", "_n0", "_n", "_a", "_b", "_s0", "_s1", "_s2", "_y1", "_y2", "_var", "_bad", "_last",
-                 "_raw_count", "_hint", "_shift")
+                 "_raw_count", "_hint", "_shift", "_follow")
 
     def __init__(self, memory: int = MEMORY, pause_ns: int = PAUSE) -> None:
         if memory < 2:
@@ -163,6 +165,8 @@ class SampleClock:
         self._hint: tuple[int, float] | None = None
         self._shift = 0
         """Added to every stamp of this run (a restart placed on the old grid)."""
+        self._follow: SampleClock | None = None
+        """The clock whose restart this run's stamps share (its correction is this run's too)."""
         self._reset_fit()
 
     def _reset_fit(self) -> None:
@@ -238,16 +242,20 @@ class SampleClock:
             out += self._flush_learning()
         return out
 
-    def restart(self) -> Released:
+    def restart(self, follow: "SampleClock | None" = None) -> Released:
         """A new run starts (the sensor's driver restarted): release what is held, then learn afresh.
 
         The sensor itself is taken to have kept sampling: where the new run's line falls within a
         quarter period of the old one's grid (the old line carried on), it is moved onto it, so the
-        new run's instants keep the old run's precision rather than that of the stamps that placed it."""
-        hint = (self.instant(self._n), self._b) if self.ready else None
+        new run's instants keep the old run's precision rather than that of the stamps that placed it.
+        ``follow``: another sensor's clock whose stamps made the same jump (one stamping clock
+        restarted for both). This run then takes that clock's correction once it is known, not one
+        of its own: the sensors stay aligned exactly as their stamps say, whichever restarted first."""
+        hint = (self.instant(self._n), self._b) if self.ready and follow is None else None
         out = self.finish()
         self._relearn()
         self._hint = hint
+        self._follow = follow
         self._shift = 0
         self._last = -(2**62)
         return out
@@ -278,10 +286,30 @@ class SampleClock:
             out = [(p, s) for s, p in self._learn]
             self._learn = []
         self._relearn()
+        self._follow = None
         return out
 
     def _bootstrap(self, final: bool = False) -> Released:
         """Fit the learning stamps (module docstring, 1.); release them with their fitted instants."""
+        follow = self._follow
+        if follow is not None and not final:
+            if not follow.ready and len(self._learn) <= FOLLOW_WAIT:
+                return []  # the clock this run follows is still learning its correction
+            if len(self._learn) > LEARN_INTERVALS + 1:  # learnt from the same stamps as without the wait
+                extra = self._learn[LEARN_INTERVALS + 1:]
+                del self._learn[LEARN_INTERVALS + 1:]
+                end = self._learn[-1][0]  # a raw stamp: a following run has no shift while it learns
+                out = self._fit_learning(False)
+                newest, self._last = self._last, end
+                for stamp, payload in extra:
+                    out += self.offer(stamp, payload)
+                self._last = newest
+                return out
+        return self._fit_learning(final)
+
+    def _fit_learning(self, final: bool) -> Released:
+        """:meth:`_bootstrap` on the stamps held."""
+        follow = self._follow
         stamps = [s for s, _ in self._learn]
         t0 = stamps[0]
         y = [float(s - t0) for s in stamps]
@@ -324,7 +352,14 @@ class SampleClock:
             s2 += w * i * i
             y1 += w * v
             y2 += w * i * v
-        if self._hint is not None:  # a restart: onto the old grid if it is within a quarter period
+        if follow is not None and not final:  # the same correction as the clock this run follows
+            self._follow = None
+            shift = follow._shift
+            self._shift = shift
+            a += shift
+            y1 += shift * s0
+            y2 += shift * s1
+        elif self._hint is not None:  # a restart: onto the old grid if it is within a quarter period
             before, old = self._hint
             first = t0 + int(round(a))
             shift = int(round(before + round((first - before) / old) * old - first))

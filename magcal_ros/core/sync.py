@@ -218,7 +218,7 @@ class SetSynchronizer(AcceptanceRule):
         for stamp, common, value, cap, restart in accepted:
             if clock is not None:
                 if restart:
-                    clock.restart()
+                    self.restart_clock(index)
                 clock.offer(common)
             if value is None:
                 continue

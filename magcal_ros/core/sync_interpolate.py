@@ -13,7 +13,9 @@ exactly ``T`` as it is). The set waits until every other sensor has a sample at 
 and counted when
 
 - ``t_b - t_a`` exceeds the gap limit (``max_gap_ns``; 0: :data:`MAX_GAP_PERIODS` periods
-  of that sensor, so two lost samples in a row are bridged, three are not): ``gap``;
+  of that sensor, so two lost samples in a row are bridged, three are not), or ``t_b`` is
+  the first sample after a restart of that sensor (where the new segment sits relative to
+  the old one is only as good as its arrival): ``gap``;
 - a sensor has no sample before ``T`` (it started later), or none after it arrives within
   ``lag_ns`` of the newest stamp (live) or before the end (offline): ``unmatched``.
 
@@ -34,6 +36,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
+    NEVER,
     RESTART_JUMP,
     AcceptanceRule,
     SetBatch,
@@ -83,6 +86,9 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._head = [0] * sensors
         self._prev: int | None = None
         """Instant of the last set formed."""
+        self._fence = [NEVER] * sensors
+        """Per sensor, the instant of the first sample after its latest restart: no set bridges it."""
+        self._fresh = [False] * sensors
 
     # -- state ------------------------------------------------------------------------
     @property
@@ -124,6 +130,8 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._out = []
         self._head = [0] * self.size
         self._prev = None
+        self._fence = [NEVER] * self.size
+        self._fresh = [False] * self.size
         self.forget()
 
     # -- input ------------------------------------------------------------------------
@@ -180,8 +188,9 @@ class InterpolatingSynchronizer(AcceptanceRule):
         push = self._push
         for stamp, common, value, _, restart in accepted:
             if restart:
-                for payload, instant in clock.restart():
+                for payload, instant in self.restart_clock(index):
                     push(index, payload, instant)
+                self._fresh[index] = True
             for payload, instant in clock.offer(common, (stamp, common, value)):
                 push(index, payload, instant)
 
@@ -200,6 +209,9 @@ class InterpolatingSynchronizer(AcceptanceRule):
             return
         q.append(tau)
         self._vals[index].append(value)
+        if self._fresh[index]:  # the first sample of a new segment (a restart)
+            self._fence[index] = tau
+            self._fresh[index] = False
         if index == 0:  # in the reference's own clock, whatever placed it on the common time line
             clock = self.streams[0].clock
             self._out.append(stamp + (instant - common - clock.shift) - self.offsets[0])  # type: ignore[union-attr]
@@ -212,7 +224,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
         out: list[SyncedSet] = []
         tau0 = self._tau[0]
         head = self._head
-        taus_all, vals_all, used_all = self._tau, self._vals, self._used
+        taus_all, vals_all, used_all, fences = self._tau, self._vals, self._used, self._fence
         st = self.stats
         others = range(1, self.size)
         while head[0] < len(tau0):
@@ -239,7 +251,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
                     verdict = 1  # this sensor's samples start after t
                     break
                 span = taus[j] - taus[j - 1]
-                if span > self.gap_limit(k):
+                if span > self.gap_limit(k) or taus[j] == fences[k]:  # too far apart, or across a restart
                     verdict = 2
                     break
                 picks.append((j - 1, j, (t - taus[j - 1]) / span))

@@ -27,7 +27,9 @@ timeline of the sets: when another sensor's stamps made the same jump (within ha
 otherwise after the sensor's last sample by the time its messages took to arrive (bag
 time offline, the node's clock live), rounded to whole sample periods. The sets on
 either side of a restart are kept; only the first sensor making a jump counts as a
-``restarts``.
+``restarts``. A sensor placed by another's shift *follows* it (:attr:`SensorStream.follows`):
+its sample clock takes that sensor's correction after the restart, not one of its own
+(:meth:`~magcal_ros.core.sample_clock.SampleClock.restart`).
 """
 
 from __future__ import annotations
@@ -214,7 +216,7 @@ class SensorStream:
     placement on the common timeline (``base``: common = stamp + base) and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "placed_at",
-                 "before")
+                 "before", "follows")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -234,6 +236,8 @@ class SensorStream:
         self.before: tuple[int, int] | None = None
         """(last stamp, base) of the segment before the latest restart, while the stamps may still
         return to it (two bad stamps in a row look like a restart until the old sequence goes on)."""
+        self.follows: int | None = None
+        """The sensor whose stamps the latest restart's share (placed by its shift), None: placed alone."""
 
     def suspect_period(self) -> int | None:
         """The period the suspect rule uses: the short median once the window is full."""
@@ -411,6 +415,7 @@ class AcceptanceRule:
     def _place(self, index: int, stamp: int, receipt: int | None) -> None:
         """Place sensor ``index``'s new segment starting at ``stamp`` on the common timeline."""
         s = self.streams[index]
+        s.follows = None
         period = s.best_period()
         if receipt is not None and s.last_receipt is not None:
             estimate = s.lastc + max(receipt - s.last_receipt, 0)
@@ -419,11 +424,13 @@ class AcceptanceRule:
         for j, other in enumerate(self.streams):  # the same jump as another sensor's: the same clock
             if j != index and abs(stamp + other.base - estimate) <= self.restart_ns // 2:
                 s.base = other.base
+                s.follows = self._leader(index, j)
                 break
         else:
             for j, other in enumerate(self.streams):  # back in line with another sensor's latest stamps
                 if j != index and other.lastc != NEVER and abs(stamp + other.base - other.lastc) <= self.restart_ns // 2:
                     s.base = other.base
+                    s.follows = self._leader(index, j)
                     s.placed_at = stamp + s.base
                     return
             if period:
@@ -432,6 +439,18 @@ class AcceptanceRule:
             s.base = max(estimate, s.lastc + 1) - stamp
             self.stats.restarts += 1
         s.placed_at = stamp + s.base
+
+    def _leader(self, index: int, j: int) -> int:
+        """The sensor whose clock sensor ``index`` follows when placed by sensor ``j``'s shift."""
+        first = self.streams[j].follows
+        return j if first is None or first == index else first
+
+    def restart_clock(self, index: int) -> Any:
+        """Restart sensor ``index``'s sample clock for its new segment (following the clock of the sensor
+        whose shift placed it); the samples that releases."""
+        s = self.streams[index]
+        leader = self.streams[s.follows].clock if s.follows is not None else None
+        return s.clock.restart(leader) if s.clock is not None else []
 
     # -- health -------------------------------------------------------------------
     def period_ns(self, index: int) -> int | None:
