@@ -621,3 +621,31 @@ def test_joint_fit_reaches_the_maximum_likelihood_optimum(seed: int, tolerance: 
     rel_ref = np.einsum("jab,ibc->ijac", k_ref, np.linalg.inv(k_ref))
     assert np.abs(rel - rel_ref).max() < tolerance
     assert np.abs(sol.offsets - o_ref).max() < 0.1 * NT
+
+
+def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
+    """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost) equal those of the
+    general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
+    from magcal_ros.core.array_fit import SetInputs, _Eval, _single_sensor_terms
+    from magcal_ros.core.forward_model import ForwardModel
+
+    rng = np.random.default_rng(4)
+    model = ForwardModel(1, channels=1)
+    q, n = model.q, 400
+    w = np.zeros((1, 3, q))
+    w[0, :, :3] = np.eye(3) + rng.normal(0, 0.05, (3, 3))
+    w[0, :, 3:] = rng.normal(0, 0.02, (3, q - 3))
+    theta = w.reshape(1, -1)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    inputs = SetInputs(rng.normal(size=(n, 1)))
+    x = (d @ w[0, :, :3].T + inputs.rest_features(1)[:, 0] @ w[0, :, 3:].T)[:, None, :] + rng.normal(0, 0.01, (n, 1, 3))
+    weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
+    sigma = np.array([0.01])
+    ev = _Eval(model, theta, d, x, inputs, None, weights, sigma)
+    info, grad, cost = _single_sensor_terms(model, theta, d, x, inputs, weights[:, 0] / sigma[0] ** 2)
+    np.testing.assert_allclose(info, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
+    y = np.einsum("nab,nb->na", _inv2(ev.c), ev.g_d)
+    np.testing.assert_allclose(grad, ev.g_theta - np.einsum("npc,nc->p", ev.b, y), rtol=1e-9,
+                               atol=1e-9 * np.abs(grad).max())
+    assert cost == pytest.approx(ev.cost - float(np.sum(ev.g_d * y)), rel=1e-9)

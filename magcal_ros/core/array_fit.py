@@ -320,29 +320,38 @@ class _Eval:
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + per_sensor(w[:, :, 3:], psi)
         self.e = self.pred - x
-        jac = np.zeros((n, s, 3, p))
-        for a in range(3):
-            jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * seen if gain.shape[0] > 1 else seen
-            jac[:, :, a, a * q + 3 : a * q + q] = psi
-        if model.gain_slice is not None and inputs.temperatures is not None:
-            for a in range(3):
-                jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
-        if model.lag_index is not None and d_tau is not None:
-            jac[:, :, :, model.lag_index] = gain * per_sensor(k, d_tau)
-        self.jac = jac
         self.m = gain[..., None] * per_sensor_columns(k, dir_jac)  # (N, S, 3, 2) d pred / d direction
         ws = weights / sigma[None, :] ** 2
         self.ws = ws
-        wj = jac * ws[:, :, None, None]
-        self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])  # (S, P, P)
-        b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
         wm = ws[:, :, None, None] * self.m
         self.c = np.matmul(wm.transpose(0, 1, 3, 2), self.m).sum(axis=1)  # (N, 2, 2)
         self.g_d = np.einsum("nsa,nsac->nc", self.e, wm)  # (N, 2)
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
         self.globals = ng
-        self.set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
+        if p == 3 * q and gain.shape[0] == 1 and not ng:
+            # Every axis a has the same features phi = [seen, psi] in its own q columns and zeros
+            # elsewhere: the products below without the (N, S, 3, P) Jacobian, two thirds zeros.
+            phi = np.concatenate([seen, np.broadcast_to(psi, (n, s, q - 3))], axis=2)  # (N, S, q)
+            wphi = phi * ws[:, :, None]
+            eye = np.eye(3)
+            self.a_blocks = np.stack([np.kron(eye, wphi[:, i].T @ phi[:, i]) for i in range(s)])  # (S, P, P)
+            b = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s * p, 2)
+            self.set_scores = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s * p)
+        else:
+            jac = np.zeros((n, s, 3, p))
+            for a in range(3):
+                jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * seen if gain.shape[0] > 1 else seen
+                jac[:, :, a, a * q + 3 : a * q + q] = psi
+            if model.gain_slice is not None and inputs.temperatures is not None:
+                for a in range(3):
+                    jac[:, :, a, model.gain_slice.start + a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
+            if model.lag_index is not None and d_tau is not None:
+                jac[:, :, :, model.lag_index] = gain * per_sensor(k, d_tau)
+            wj = jac * ws[:, :, None, None]
+            self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])
+            b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
+            self.set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
         g_theta = np.ones(n) @ self.set_scores  # (S P,) summed over the sets
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
@@ -971,6 +980,12 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
             if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
                 d = _mean_direction(b, w)
             vertical[sl] = d[:, 2]
+            if s == 1 and p == 3 * model.q and model.lag_index is None:
+                info, grad, c = _single_sensor_terms(model, theta, d, xc, inc, w[:, 0] / sigma[0] ** 2)
+                infos[k] += info
+                grads[k] += grad
+                cost += c
+                continue
             ev = _Eval(model, theta, d, xc, inc, rc, w, sigma)
             c_inv = _inv2(ev.c)
             y = np.einsum("nab,nb->na", c_inv, ev.g_d)[:, :, None]  # (N, 2, 1)
@@ -980,6 +995,25 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
             cost += ev.cost - float(np.sum(ev.g_d * y[:, :, 0]))  # each direction at its optimum
     infos = 0.5 * (infos + infos.transpose(0, 2, 1))
     return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
+
+
+def _single_sensor_terms(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs,
+                         ws: Array) -> tuple[Array, Array, float]:
+    """One sensor, readings linear in the model (no gain or lag block): the reduced normal matrix
+    (P, P), gradient (P,) and cost of the sets ``d`` (N, 3), ``x`` (N, 1, 3) F, weights over variance
+    ``ws`` (N,), without the per-set 2 x 2 eliminations of :class:`_Eval`.
+
+    With its direction free, a set constrains the model only along the normal ``nu`` of the plane
+    its direction's tangents map to, ``K^-T d``: the Schur complement of the direction is
+    ``ws J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u]`` (rank one per set)."""
+    w = model.split(theta)[0][0]  # (3, q)
+    nu = np.linalg.solve(w[:, :3].T, d.T).T
+    nu /= row_norms(nu)[:, None]
+    phi = np.concatenate([d, inputs.rest_features(1)[:, 0]], axis=1)  # (N, q)
+    e = (d @ w[:, :3].T + phi[:, 3:] @ w[:, 3:].T) - x[:, 0]
+    rows = (nu[:, :, None] * phi[:, None, :]).reshape(len(d), -1)  # (N, 3 q)
+    along = np.einsum("na,na->n", nu, e)
+    return (rows * ws[:, None]).T @ rows, (ws * along) @ rows, float(np.sum(ws * along * along))
 
 
 def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Array | list[Array],
