@@ -856,10 +856,12 @@ def calibrate_array(
                              _inclination(opts, sol.directions[:, 2]))
         raise ObservabilityError(_refusal(ana, sol, env))
     stage("uncertainty")
-    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks)
+    refining = full is not None and (joint or start_failed is not None)
+    if not refining:  # (refined, the jackknife comes from every set's refinement instead)
+        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks)
     excluded = None
     vertical = sol.directions[:, 2]
-    if full is not None and (joint or start_failed is not None):  # the subset's result, refined on every set
+    if refining:  # the subset's result, refined on every set
         stage(f"refine on all {full.count} sets")
         refined = _refine(sol, full, param_prior, blocks, bool(channels), prior is None)
         sol, excluded, vertical = refined.solution, refined.excluded, refined.vertical
