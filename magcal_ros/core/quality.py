@@ -205,12 +205,17 @@ class ResidualShape:
 
 def _explained(y: Array, x: Array) -> float:
     """Fraction of the variance of ``y`` (N, 3) a least-squares fit on the columns of ``x`` (N, K) explains."""
+    return _fit_explained(y, np.column_stack([np.ones(len(y)), x]))[0]
+
+
+def _fit_explained(y: Array, design: Array) -> tuple[float, Array | None]:
+    """The fraction of the variance of ``y`` (N, M) the columns of ``design`` (N, K, a constant among them)
+    explain, and the coefficients (K, M) (None when there is nothing to explain)."""
     total = float(np.sum((y - y.mean(axis=0)) ** 2))
-    if total <= 0 or len(y) <= x.shape[1] + 3:
-        return 0.0
-    design = np.column_stack([np.ones(len(y)), x])
+    if total <= 0 or len(y) <= design.shape[1] + 2:
+        return 0.0, None
     coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    return float(1.0 - np.sum((y - design @ coef) ** 2) / total)
+    return float(1.0 - np.sum((y - design @ coef) ** 2) / total), coef
 
 
 def _segment_sse(sums: Array) -> Array:
@@ -259,8 +264,8 @@ def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: 
     poly = np.column_stack([np.polynomial.legendre.legval(x, np.eye(DRIFT_DEGREE + 1)[k])
                             for k in range(1, DRIFT_DEGREE + 1)])
     d = np.asarray(directions, dtype=float)
-    timed = np.column_stack([poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
-    time_part = _explained(y, timed)
+    design = np.column_stack([np.ones(len(y)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
+    time_part, coef = _fit_explained(y, design)
     quad = np.column_stack([d, d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]]])
     attitude_part = _explained(y, quad)
     # A sudden change (iron moved) is a step, not a drift: the best single split, offset and gain.
@@ -268,9 +273,9 @@ def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: 
     rate_part = 0.0
     if rates is not None and used.sum() > 20:
         rate_part = _explained(np.asarray(residual, dtype=float)[used], np.asarray(rates, dtype=float)[used])
-    design = np.column_stack([np.ones(len(y)), timed])
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    drifting = np.column_stack([np.ones(len(y)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1)])
+    if coef is None:  # nothing varies
+        return ResidualShape(0.0, span, time_part, attitude_part, rate_part, step_part)
+    drifting = design[:, : design.shape[1] - 3]  # without the direction's own columns
     trend = drifting @ coef[: drifting.shape[1]]
     change = float(np.ptp(trend))
     drift = change if change > DRIFT_NOISE * noise else 0.0

@@ -916,7 +916,7 @@ def calibrate_array(
         raise CalibrationFailed(f"{field.describe()}; to accept it anyway give a max residual (magcal "
                                 "--max-residual, the calibration node's max_residual)")
     rates = sol.rates
-    if rates is None and stamps is not None:
+    if rates is None and stamps is not None and s > 1:  # (one sensor's direction takes up any lag: no timing to tell)
         rates = direction_rates(sol.directions, np.asarray(stamps, dtype=float) / NS_PER_S)
     verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
                             None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
