@@ -21,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

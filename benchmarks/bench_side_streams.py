@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import timeit
 
+import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 from scipy.spatial.transform import Rotation
 

@@ -787,12 +787,13 @@ def calibrate_array(
 
     # 2. spikes and the start
     clean_reading = np.ones((n, s), bool)
+    trimmed = None
     if opts.robust:
         for i in range(s):
             try:
-                clean_reading[:, i] = trimmed_algebraic_fit(r[:, i], f_ref)[1]
+                trimmed, clean_reading[:, i] = trimmed_algebraic_fit(r[:, i], f_ref)
             except (MagcalError, np.linalg.LinAlgError):
-                pass  # degenerate data: the identifiability analysis below names why
+                trimmed = None  # degenerate data: the identifiability analysis below names why
     clean = clean_reading.all(axis=1)
     if clean.sum() < MIN_SAMPLES:
         clean[:] = True
@@ -800,6 +801,13 @@ def calibrate_array(
     start_interference = None
     if prior is not None:
         matrices, offsets, start_interference, intensity = _prior_start(prior, geometry, r, f_ref, channels)
+    elif s == 1 and joint and trimmed is not None and clean_reading[:, 0].sum() >= MIN_SAMPLES \
+            and np.all(np.isfinite(trimmed.matrix)) and np.linalg.det(trimmed.matrix) > 0:
+        # One sensor: the joint fit is its maximum-likelihood fit, so the method's own start (a scalar
+        # fit, then the sensor aligned onto itself) would solve it twice over; the closed form will do.
+        matrices, offsets, intensity = trimmed.matrix[None], trimmed.offset[None], trimmed.intensity
+        if f_ref is None:
+            matrices, intensity = _unit_mean_gain(matrices, intensity)
     else:
         try:
             matrices, offsets, intensity = _start(spec, r, clean, f_ref, opts)
