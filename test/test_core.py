@@ -626,7 +626,7 @@ def test_joint_fit_reaches_the_maximum_likelihood_optimum(seed: int, tolerance: 
 def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost) equal those of the
     general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
-    from magcal_ros.core.array_fit import SetInputs, _Eval, _single_sensor_terms
+    from magcal_ros.core.array_fit import SetInputs, _Eval, _single_sensor_rows
     from magcal_ros.core.forward_model import ForwardModel
 
     rng = np.random.default_rng(4)
@@ -643,9 +643,45 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
     sigma = np.array([0.01])
     ev = _Eval(model, theta, d, x, inputs, None, weights, sigma)
-    info, grad, cost = _single_sensor_terms(model, theta, d, x, inputs, weights[:, 0] / sigma[0] ** 2)
+    rows, along, _ = _single_sensor_rows(model, theta, d, x, inputs)
+    ws = weights[:, 0] / sigma[0] ** 2
+    info, grad, cost = (rows * ws[:, None]).T @ rows, (ws * along) @ rows, float(np.sum(ws * along**2))
     np.testing.assert_allclose(info, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
     y = np.einsum("nab,nb->na", _inv2(ev.c), ev.g_d)
     np.testing.assert_allclose(grad, ev.g_theta - np.einsum("npc,nc->p", ev.b, y), rtol=1e-9,
                                atol=1e-9 * np.abs(grad).max())
     assert cost == pytest.approx(ev.cost - float(np.sum(ev.g_d * y)), rel=1e-9)
+
+
+def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chunks(monkeypatch):
+    """The one-sensor pass (all sets of a chunk at once) gives the general pass's normal matrix, gradient,
+    cost, weights and per-part terms, with parts of uneven size in no order and chunks across them."""
+    from magcal_ros.core import array_fit
+    from magcal_ros.core.array_fit import SetInputs, _full_pass
+    from magcal_ros.core.forward_model import ForwardModel
+
+    rng = np.random.default_rng(5)
+    model = ForwardModel(1, channels=1)
+    q, n = model.q, 1000
+    w = np.zeros((1, 3, q))
+    w[0, :, :3] = np.eye(3) + rng.normal(0, 0.05, (3, 3))
+    w[0, :, 3:] = rng.normal(0, 0.02, (3, q - 3))
+    theta = w.reshape(1, -1)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    inputs = SetInputs(rng.normal(size=(n, 1)))
+    x = (d @ w[0, :, :3].T + inputs.rest_features(1)[:, 0] @ w[0, :, 3:].T)[:, None, :] + rng.normal(0, 0.01, (n, 1, 3))
+    x[::97] += 0.2  # outliers
+    order = rng.permutation(n)
+    parts = [order[:130], order[130:555], order[555:560], order[560:]]
+    sigma = np.array([0.01])
+    fast = _full_pass(model, theta, x, inputs, None, sigma, 300, parts)
+    monkeypatch.setattr(array_fit, "_rank_one", lambda model: False)
+    slow = _full_pass(model, theta, x, inputs, None, sigma, 300, parts)
+    np.testing.assert_array_equal(fast.weights, slow.weights)
+    assert (fast.weights == 0).sum() >= 10
+    for a, b in ((fast.information, slow.information), (fast.gradient, slow.gradient),
+                 (fast.part_information, slow.part_information), (fast.part_gradient, slow.part_gradient)):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * np.abs(b).max())
+    assert fast.cost == pytest.approx(slow.cost, rel=1e-9)
+    np.testing.assert_allclose(fast.vertical, slow.vertical, atol=1e-12)

@@ -956,12 +956,14 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
     """The normal equations at ``theta`` over every set (per part, ``chunk`` sets at a time);
     outliers decided at the noise ``sigma`` (units of F) unless ``weights`` are given."""
     s, p = theta.shape
+    bound = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, 3.0 - 2.0 / s)  # per reading, its dof in the fit
+    if _rank_one(model):
+        return _single_sensor_pass(model, theta, x, inputs, sigma[0], chunk, parts, weights, bound)
     infos = np.zeros((len(parts), s * p, s * p))
     grads = np.zeros((len(parts), s * p))
     cost = 0.0
     used = np.empty((len(x), s)) if weights is None else weights
     vertical = np.empty(len(x))
-    bound = scipy.stats.chi2.isf(OUTLIER_PROBABILITY, 3.0 - 2.0 / s)  # per reading, its dof in the fit
     for k, part in enumerate(parts):
         for lo in range(0, len(part), chunk):
             sl = part[lo : lo + chunk]
@@ -973,19 +975,11 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
             d = _mean_direction(b, np.ones((len(sl), s)))
             if weights is None:  # beyond the outlier bound at the fit's noise: out; large: weighs less
                 e = _prediction(model, theta, d, inc, rc) - xc
-                q = np.einsum("nsa,nsa->ns", e, e) / sigma[None, :] ** 2
-                w = np.where(q > bound, 0.0, np.minimum(1.0, SOFT_BOUND / np.maximum(q, 1e-300)))
-                used[sl] = np.where(w < 0.5, 0.0, w)
+                used[sl] = _weigh(np.einsum("nsa,nsa->ns", e, e) / sigma[None, :] ** 2, bound)
             w = used[sl]
             if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
                 d = _mean_direction(b, w)
             vertical[sl] = d[:, 2]
-            if s == 1 and p == 3 * model.q and model.lag_index is None:
-                info, grad, c = _single_sensor_terms(model, theta, d, xc, inc, w[:, 0] / sigma[0] ** 2)
-                infos[k] += info
-                grads[k] += grad
-                cost += c
-                continue
             ev = _Eval(model, theta, d, xc, inc, rc, w, sigma)
             c_inv = _inv2(ev.c)
             y = np.einsum("nab,nb->na", c_inv, ev.g_d)[:, :, None]  # (N, 2, 1)
@@ -997,23 +991,72 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
     return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
 
 
-def _single_sensor_terms(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs,
-                         ws: Array) -> tuple[Array, Array, float]:
-    """One sensor, readings linear in the model (no gain or lag block): the reduced normal matrix
-    (P, P), gradient (P,) and cost of the sets ``d`` (N, 3), ``x`` (N, 1, 3) F, weights over variance
-    ``ws`` (N,), without the per-set 2 x 2 eliminations of :class:`_Eval`.
+def _rank_one(model: ForwardModel) -> bool:
+    """One sensor whose readings are linear in the model (no gain or lag block, no global blocks):
+    :func:`_single_sensor_pass` applies."""
+    return model.sensors == 1 and model.size == 3 * model.q and model.lag_index is None
+
+
+def _weigh(q: Array, bound: float) -> Array:
+    """Weights of readings from their squared whitened residuals ``q``: beyond the outlier ``bound`` 0,
+    large ones less (down to a half; below it 0)."""
+    w = np.where(q > bound, 0.0, np.minimum(1.0, SOFT_BOUND / np.maximum(q, 1e-300)))
+    return np.where(w < 0.5, 0.0, w)
+
+
+def _single_sensor_rows(model: ForwardModel, theta: Array, d: Array, x: Array,
+                        inputs: SetInputs) -> tuple[Array, Array, Array]:
+    """One sensor, readings linear in the model (no gain or lag block), directions ``d`` (N, 3) of the
+    readings ``x`` (N, 1, 3) F: each set's row of the reduced Jacobian (N, P), its residual along it
+    (N,) and its residual vector (N, 3).
 
     With its direction free, a set constrains the model only along the normal ``nu`` of the plane
     its direction's tangents map to, ``K^-T d``: the Schur complement of the direction is
-    ``ws J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u]`` (rank one per set)."""
+    ``w J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u]`` (rank one per set), where
+    :class:`_Eval` eliminates a 2 x 2 block per set."""
     w = model.split(theta)[0][0]  # (3, q)
     nu = np.linalg.solve(w[:, :3].T, d.T).T
     nu /= row_norms(nu)[:, None]
     phi = np.concatenate([d, inputs.rest_features(1)[:, 0]], axis=1)  # (N, q)
-    e = (d @ w[:, :3].T + phi[:, 3:] @ w[:, 3:].T) - x[:, 0]
+    e = phi @ w.T - x[:, 0]
     rows = (nu[:, :, None] * phi[:, None, :]).reshape(len(d), -1)  # (N, 3 q)
-    along = np.einsum("na,na->n", nu, e)
-    return (rows * ws[:, None]).T @ rows, (ws * along) @ rows, float(np.sum(ws * along * along))
+    return rows, np.einsum("na,na->n", nu, e), e
+
+
+def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, sigma: float,
+                        chunk: int, parts: list[NDArray[np.int64]], weights: Array | None, bound: float) -> _Pass:
+    """:func:`_full_pass` for one sensor (see :func:`_single_sensor_rows`): each chunk of the parts,
+    in their order, at once."""
+    n, p = len(x), model.size
+    order = np.concatenate(parts)
+    ends = np.cumsum([len(pt) for pt in parts])
+    infos = np.zeros((len(parts), p, p))
+    grads = np.zeros((len(parts), p))
+    cost = 0.0
+    used = np.empty((n, 1)) if weights is None else weights
+    vertical = np.empty(n)
+    for lo in range(0, len(order), chunk):
+        sl = order[lo : lo + chunk]
+        b = corrected_directions(model, theta, x[sl], SetInputs(inputs.currents[sl]), None)[:, 0]
+        d = _mean_direction(b[:, None, :], np.ones((len(sl), 1)))
+        rows, along, e = _single_sensor_rows(model, theta, d, x[sl], SetInputs(inputs.currents[sl]))
+        if weights is None:
+            used[sl, 0] = _weigh(np.einsum("na,na->n", e, e) / sigma**2, bound)
+        ws = used[sl, 0] / sigma**2
+        vertical[sl] = d[:, 2]
+        wr = rows * ws[:, None]
+        start = lo
+        for k in range(int(np.searchsorted(ends, lo, side="right")), len(parts)):
+            stop = min(int(ends[k]), lo + len(sl))
+            a, z = start - lo, stop - lo
+            infos[k] += wr[a:z].T @ rows[a:z]
+            grads[k] += along[a:z] @ wr[a:z]
+            start = stop
+            if stop == lo + len(sl):
+                break
+        cost += float(np.sum(ws * along * along))
+    infos = 0.5 * (infos + infos.transpose(0, 2, 1))
+    return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
 
 
 def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Array | list[Array],
