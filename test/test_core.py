@@ -624,8 +624,8 @@ def test_joint_fit_reaches_the_maximum_likelihood_optimum(seed: int, tolerance: 
 
 
 def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
-    """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost) equal those of the
-    general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
+    """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost, residual) equal those
+    of the general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
     from magcal_ros.core.array_fit import SetInputs, _Eval, _single_sensor_rows
     from magcal_ros.core.forward_model import ForwardModel
 
@@ -642,8 +642,9 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     x = (d @ w[0, :, :3].T + inputs.rest_features(1)[:, 0] @ w[0, :, 3:].T)[:, None, :] + rng.normal(0, 0.01, (n, 1, 3))
     weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
     sigma = np.array([0.01])
+    rows, along, sq, d = _single_sensor_rows(model, theta, x, inputs)  # d: each set's direction at its optimum
     ev = _Eval(model, theta, d, x, inputs, None, weights, sigma)
-    rows, along, _ = _single_sensor_rows(model, theta, d, x, inputs)
+    np.testing.assert_allclose(sq, np.sum(ev.e[:, 0] ** 2, axis=1), rtol=1e-9)
     ws = weights[:, 0] / sigma[0] ** 2
     info, grad, cost = (rows * ws[:, None]).T @ rows, (ws * along) @ rows, float(np.sum(ws * along**2))
     np.testing.assert_allclose(info, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())

@@ -1004,23 +1004,30 @@ def _weigh(q: Array, bound: float) -> Array:
     return np.where(w < 0.5, 0.0, w)
 
 
-def _single_sensor_rows(model: ForwardModel, theta: Array, d: Array, x: Array,
-                        inputs: SetInputs) -> tuple[Array, Array, Array]:
-    """One sensor, readings linear in the model (no gain or lag block), directions ``d`` (N, 3) of the
-    readings ``x`` (N, 1, 3) F: each set's row of the reduced Jacobian (N, P), its residual along it
-    (N,) and its residual vector (N, 3).
+def _single_sensor_rows(model: ForwardModel, theta: Array, x: Array,
+                        inputs: SetInputs) -> tuple[Array, Array, Array, Array]:
+    """One sensor, readings linear in the model (no gain or lag block), readings ``x`` (N, 1, 3) F,
+    each set's direction at its optimum ``d`` (the corrected reading ``b = K^-1 (x - rest)``
+    normalised): (rows of the reduced Jacobian (N, P), the residual along them (N,), the squared
+    residual (N,), ``d`` (N, 3)).
 
     With its direction free, a set constrains the model only along the normal ``nu`` of the plane
     its direction's tangents map to, ``K^-T d``: the Schur complement of the direction is
     ``w J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u]`` (rank one per set), where
-    :class:`_Eval` eliminates a 2 x 2 block per set."""
+    :class:`_Eval` eliminates a 2 x 2 block per set. The residual is ``e = K d + rest - x = K (d - b)``,
+    along ``nu``: ``(1 - |b|) / |K^-T d|``."""
     w = model.split(theta)[0][0]  # (3, q)
-    nu = np.linalg.solve(w[:, :3].T, d.T).T
-    nu /= row_norms(nu)[:, None]
-    phi = np.concatenate([d, inputs.rest_features(1)[:, 0]], axis=1)  # (N, q)
-    e = phi @ w.T - x[:, 0]
-    rows = (nu[:, :, None] * phi[:, None, :]).reshape(len(d), -1)  # (N, 3 q)
-    return rows, np.einsum("na,na->n", nu, e), e
+    k_inv = np.linalg.inv(w[:, :3])
+    rest = inputs.rest_features(1)[:, 0]  # (N, q - 3)
+    b = (x[:, 0] - rest @ w[:, 3:].T) @ k_inv.T
+    size = row_norms(b)
+    d = b / np.where(size > 0, size, 1.0)[:, None]
+    d[size == 0] = (0.0, 0.0, 1.0)
+    nu = d @ k_inv
+    nu_size = row_norms(nu)
+    e = (d - b) @ w[:, :3].T
+    rows = ((nu / nu_size[:, None])[:, :, None] * np.concatenate([d, rest], axis=1)[:, None, :]).reshape(len(d), -1)
+    return rows, (1.0 - size) / nu_size, np.einsum("na,na->n", e, e), d
 
 
 def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, sigma: float,
@@ -1037,11 +1044,9 @@ def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: Set
     vertical = np.empty(n)
     for lo in range(0, len(order), chunk):
         sl = order[lo : lo + chunk]
-        b = corrected_directions(model, theta, x[sl], SetInputs(inputs.currents[sl]), None)[:, 0]
-        d = _mean_direction(b[:, None, :], np.ones((len(sl), 1)))
-        rows, along, e = _single_sensor_rows(model, theta, d, x[sl], SetInputs(inputs.currents[sl]))
+        rows, along, sq, d = _single_sensor_rows(model, theta, x[sl], SetInputs(inputs.currents[sl]))
         if weights is None:
-            used[sl, 0] = _weigh(np.einsum("na,na->n", e, e) / sigma**2, bound)
+            used[sl, 0] = _weigh(sq / sigma**2, bound)
         ws = used[sl, 0] / sigma**2
         vertical[sl] = d[:, 2]
         wr = rows * ws[:, None]
