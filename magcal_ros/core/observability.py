@@ -109,8 +109,12 @@ def quadric_design(points: ArrayLike) -> Array:
     """Design matrix (N, 10) of a general quadric in normalised coordinates."""
     x = np.asarray(points, dtype=float)
     x = x - column_means(x)
-    x = x / max(float(np.median(row_norms(x))), 1e-300)
-    a, b, c = x.T
+    return _centred_quadric_design(x, row_norms(x))
+
+
+def _centred_quadric_design(x: Array, norms: Array) -> Array:
+    """:func:`quadric_design` of points already centred, ``norms`` (N,) their distances from the centre."""
+    a, b, c = (x / max(float(np.median(norms)), 1e-300)).T
     return np.column_stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c, 2 * a, 2 * b, 2 * c, np.ones(len(x))])
 
 
@@ -129,13 +133,14 @@ def excitation(readings: ArrayLike) -> Excitation:
     evals, evecs = np.linalg.eigh(centred.T @ centred / n)
     spread = np.sqrt(np.clip(evals[::-1], 0.0, None)) / scale
     normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
-    moved = centred[row_norms(centred) > 0]
+    norms = row_norms(centred)
+    moved = centred if np.all(norms > 0) else centred[norms > 0]
     visited = 0
     if len(moved):  # the cell of a direction: the nearest centre, the largest dot product (any length)
         dots = sphere_cells() @ moved.T  # (cells, N)
         visited = int(np.count_nonzero((dots == dots.max(axis=0)).any(axis=1)))
     ratio = 0.0
     if n >= 10:
-        sv = gram_singular_values(quadric_design(r))
+        sv = gram_singular_values(_centred_quadric_design(centred, norms))
         ratio = float(sv[8] / sv[0]) if sv[0] > 0 else 0.0
     return Excitation(n, spread, normal, visited / SPHERE_CELLS, ratio)
