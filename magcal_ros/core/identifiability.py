@@ -463,8 +463,8 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     grid_r = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
     var = variance_grid(w, cov, inclination, grid_p, grid_r)  # (P, R, Y, S) in units of F^2
     sigma_f = f_noise / intensity  # noise in units of F, like the predicted variance
-    ratio = np.sqrt(np.mean(1.0 + var / sigma_f**2, axis=3))
-    worst = ratio.max(axis=2)  # over yaw, (P, R)
+    sq = 1.0 + (var @ (1.0 / sigma_f**2)) / len(sigma_f)  # the squared ratio, (P, R, Y)
+    worst = np.sqrt(sq.max(axis=2))  # over yaw, (P, R)
     # fold signs: a box |p| <= P, |r| <= R
     npos, rpos = len(PITCH_GRID), len(ROLL_GRID)
     folded = np.maximum.reduce([
@@ -488,14 +488,12 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     roll_lim = float(ROLL_GRID[j]) if valid[i, j] else 0.0
     # Uniform over rotations: the yaw-pitch-roll measure is cos(pitch) d(yaw) d(pitch) d(roll),
     # and the grids are not evenly spaced.
-    wp = np.cos(np.radians(grid_p)) * np.gradient(grid_p)
-    wr = np.gradient(grid_r)
-    weight = np.broadcast_to((wp[:, None] * wr[None, :])[:, :, None], ratio.shape)
-    sq = ratio**2
-    sphere = float(np.sqrt(np.sum(weight * sq) / np.sum(weight)))
-    out = (np.abs(grid_p)[:, None, None] > pitch_lim) | (np.abs(grid_r)[None, :, None] > roll_lim)
-    out = np.broadcast_to(out, ratio.shape)
-    outside = float(np.sqrt(np.sum(weight * sq * out) / np.sum(weight * out))) if out.any() else 1.0
+    weight = (np.cos(np.radians(grid_p)) * np.gradient(grid_p))[:, None] * np.gradient(grid_r)[None, :]  # (P, R)
+    over_yaw = sq.sum(axis=2)  # every yaw weighs the same
+    sphere = float(np.sqrt(np.sum(weight * over_yaw) / (np.sum(weight) * sq.shape[2])))
+    out = (np.abs(grid_p)[:, None] > pitch_lim) | (np.abs(grid_r)[None, :] > roll_lim)
+    outside = float(np.sqrt(np.sum((weight * over_yaw)[out]) / (np.sum(weight[out]) * sq.shape[2]))) \
+        if out.any() else 1.0
     return Envelope(pitch_lim, roll_lim, float(np.degrees(inclination)), inside, sphere, outside)
 
 
