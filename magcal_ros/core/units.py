@@ -43,10 +43,11 @@ def check_tesla(vectors: ArrayLike, names: Sequence[str], where: str) -> None:
     v = np.asarray(vectors, dtype=float)
     if v.size == 0:
         return
-    norms = np.linalg.norm(v.reshape(len(v), -1, 3), axis=-1)
+    v3 = v.reshape(len(v), -1, 3)
+    norms = np.sqrt(np.einsum("nsa,nsa->sn", v3, v3))  # (S, N)
     lo, hi = EARTH_FIELD_RANGE
-    for name, column in zip(names, norms.T):
-        finite = column[np.isfinite(column)]
+    for name, column in zip(names, norms):
+        finite = column if np.isfinite(column).all() else column[np.isfinite(column)]
         if len(finite) == 0:
             continue
         median = float(np.median(finite))
