@@ -686,3 +686,37 @@ def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chu
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * np.abs(b).max())
     assert fast.cost == pytest.approx(slow.cost, rel=1e-9)
     np.testing.assert_allclose(fast.vertical, slow.vertical, atol=1e-12)
+
+
+@pytest.mark.parametrize("lag", [False, True])
+def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, lag):
+    """Four sensors with a current channel (and a lag block): the normal matrix, the direction couplings
+    and each set's scores built from the features equal those of the dense Jacobian."""
+    from magcal_ros.core import array_fit
+    from magcal_ros.core.array_fit import SetInputs, _Eval
+    from magcal_ros.core.forward_model import ForwardModel
+
+    rng = np.random.default_rng(6)
+    s, n = 4, 300
+    model = ForwardModel(s, channels=1, lag=lag)
+    q = model.q
+    theta = np.zeros((s, model.size))
+    w = np.zeros((s, 3, q))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
+    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
+    theta[:, : 3 * q] = w.reshape(s, -1)
+    if lag:
+        theta[:, model.lag_index] = rng.normal(0, 0.003, s)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rates = np.cross(d, rng.normal(size=(n, 3))) if lag else None
+    inputs = SetInputs(rng.normal(size=(n, 1)))
+    x = rng.normal(0, 1.0, (n, s, 3))
+    weights = rng.uniform(0.0, 1.0, (n, s))
+    sigma = rng.uniform(0.005, 0.02, s)
+    fast = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    monkeypatch.setattr(array_fit, "STRUCTURED", False)
+    dense = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    for a, b in ((fast.a_blocks, dense.a_blocks), (fast.b, dense.b), (fast.set_scores, dense.set_scores),
+                 (fast.information(), dense.information())):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())

@@ -286,6 +286,11 @@ class _Att:
         return _Att(self.inputs, self.state.moved(step, model), self.precision)
 
 
+STRUCTURED: bool = True
+""":class:`_Eval` builds the products of the linear blocks from their features (False: from the dense
+Jacobian, the reference the structured products are tested against)."""
+
+
 class _Eval:
     """The model at one point: prediction, residuals, Jacobians and the whitened normal equations
     (directions eliminated by their 2 x 2 blocks)."""
@@ -329,15 +334,33 @@ class _Eval:
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
         self.globals = ng
-        if p == 3 * q and gain.shape[0] == 1 and not ng:
+        lag_only = model.lag_index is not None and d_tau is not None and p == 3 * q + 1
+        if STRUCTURED and (p == 3 * q or lag_only) and gain.shape[0] == 1 and not ng:
             # Every axis a has the same features phi = [seen, psi] in its own q columns and zeros
-            # elsewhere: the products below without the (N, S, 3, P) Jacobian, two thirds zeros.
+            # elsewhere (then the lag's column, dense): the products below without the (N, S, 3, P)
+            # Jacobian, two thirds zeros.
             phi = np.concatenate([seen, np.broadcast_to(psi, (n, s, q - 3))], axis=2)  # (N, S, q)
             wphi = phi * ws[:, :, None]
-            eye = np.eye(3)
-            self.a_blocks = np.stack([np.kron(eye, wphi[:, i].T @ phi[:, i]) for i in range(s)])  # (S, P, P)
-            b = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s * p, 2)
-            self.set_scores = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s * p)
+            lin = 3 * q
+            a_blocks = np.zeros((s, p, p))
+            for i in range(s):
+                a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i].T @ phi[:, i])
+            b = np.empty((n, s, p, 2))
+            b[:, :, :lin] = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s, lin, 2)
+            scores = np.empty((n, s, p))
+            scores[:, :, :lin] = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s, lin)
+            if lag_only:  # d pred / d tau (N, S, 3): its products with the linear columns and itself
+                col = per_sensor(k, d_tau)
+                wcol = col * ws[:, :, None]
+                for i in range(s):
+                    cross = np.einsum("na,nj->aj", wcol[:, i], phi[:, i]).reshape(lin)
+                    a_blocks[i, :lin, lin] = a_blocks[i, lin, :lin] = cross
+                    a_blocks[i, lin, lin] = float(np.sum(wcol[:, i] * col[:, i]))
+                b[:, :, lin] = np.einsum("nsa,nsac->nsc", wcol, self.m)
+                scores[:, :, lin] = np.einsum("nsa,nsa->ns", wcol, self.e)
+            self.a_blocks = a_blocks
+            b = b.reshape(n, s * p, 2)
+            self.set_scores = scores.reshape(n, s * p)
         else:
             jac = np.zeros((n, s, 3, p))
             for a in range(3):
