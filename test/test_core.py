@@ -690,8 +690,9 @@ def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chu
 
 @pytest.mark.parametrize("lag", [False, True])
 def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, lag):
-    """Four sensors with a current channel (and a lag block): the normal matrix, the direction couplings
-    and each set's scores built from the features equal those of the dense Jacobian."""
+    """Four sensors with a current channel (and a lag block): the normal matrix, the direction couplings,
+    each set's scores and the reduced normal equations built from the features equal those of the dense
+    Jacobian."""
     from magcal_ros.core import array_fit
     from magcal_ros.core.array_fit import SetInputs, _Eval
     from magcal_ros.core.forward_model import ForwardModel
@@ -713,10 +714,14 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
     inputs = SetInputs(rng.normal(size=(n, 1)))
     x = rng.normal(0, 1.0, (n, s, 3))
     weights = rng.uniform(0.0, 1.0, (n, s))
+    weights[:10] = 0.0  # sets no sensor constrains
     sigma = rng.uniform(0.005, 0.02, s)
     fast = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    reduced = fast.reduced()  # (before anything builds its B)
     monkeypatch.setattr(array_fit, "STRUCTURED", False)
     dense = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
     for a, b in ((fast.a_blocks, dense.a_blocks), (fast.b, dense.b), (fast.set_scores, dense.set_scores),
-                 (fast.information(), dense.information())):
+                 (fast.information(), dense.information()), (reduced[0], dense.information()),
+                 *zip(reduced[:2], dense.reduced()[:2])):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+    assert reduced[2] == pytest.approx(dense.reduced()[2], rel=1e-12)

@@ -345,10 +345,9 @@ class _Eval:
             a_blocks = np.zeros((s, p, p))
             for i in range(s):
                 a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i].T @ phi[:, i])
-            b = np.empty((n, s, p, 2))
-            b[:, :, :lin] = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s, lin, 2)
             scores = np.empty((n, s, p))
             scores[:, :, :lin] = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s, lin)
+            wcol = None
             if lag_only:  # d pred / d tau (N, S, 3): its products with the linear columns and itself
                 col = per_sensor(k, d_tau)
                 wcol = col * ws[:, :, None]
@@ -356,12 +355,13 @@ class _Eval:
                     cross = np.einsum("na,nj->aj", wcol[:, i], phi[:, i]).reshape(lin)
                     a_blocks[i, :lin, lin] = a_blocks[i, lin, :lin] = cross
                     a_blocks[i, lin, lin] = float(np.sum(wcol[:, i] * col[:, i]))
-                b[:, :, lin] = np.einsum("nsa,nsac->nsc", wcol, self.m)
                 scores[:, :, lin] = np.einsum("nsa,nsa->ns", wcol, self.e)
             self.a_blocks = a_blocks
-            b = b.reshape(n, s * p, 2)
             self.set_scores = scores.reshape(n, s * p)
+            self._features = (wphi, wcol)  # the direction couplings B, built when asked for
+            b = None
         else:
+            self._features = None
             jac = np.zeros((n, s, 3, p))
             for a in range(3):
                 jac[:, :, a, a * q : a * q + 3] = gain[:, :, a, None] * seen if gain.shape[0] > 1 else seen
@@ -398,7 +398,49 @@ class _Eval:
             self.g_theta = np.concatenate([g_theta.reshape(-1), g_global])
         else:
             self.g_theta = g_theta.reshape(-1)
-        self.b = b  # (N, S P + G, 2)
+        self._b = b
+
+    @property
+    def b(self) -> Array:
+        """(N, S P + G, 2) the couplings ``J^T W M`` of the parameters with each set's direction."""
+        if self._b is None:
+            wphi, wcol = self._features  # type: ignore[misc]
+            n, s, q = wphi.shape
+            p = self.shape[1]
+            b = np.empty((n, s, p, 2))
+            b[:, :, : 3 * q] = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s, 3 * q, 2)
+            if wcol is not None:
+                b[:, :, 3 * q] = np.einsum("nsa,nsac->nsc", wcol, self.m)
+            self._b = b.reshape(n, s * p, 2)
+        return self._b
+
+    def reduced(self) -> tuple[Array, Array, float]:
+        """The normal equations with each set's direction at its optimum: (information ``A - sum_k B_k
+        C_k^-1 B_k^T``, gradient ``g - sum_k B_k C_k^-1 g_k``, cost), whitened, no damping.
+
+        With the structured blocks ``B_k C_k^-1 B_k^T = (B_k L_k)(B_k L_k)^T``, ``L_k L_k^T = C_k^-1``,
+        and ``B_k L_k`` is the features times ``M_k L_k``: no ``B`` is built."""
+        c_inv = _inv2(self.c)
+        y = np.einsum("nab,nb->na", c_inv, self.g_d)
+        cost = self.cost - float(np.sum(self.g_d * y))
+        if self._b is not None or self._features is None:
+            flat_b = self.b.transpose(0, 2, 1).reshape(-1, self.b.shape[1])  # (2 N, S P + G)
+            info = self.a_matrix() - np.matmul(self.b, c_inv).transpose(0, 2, 1).reshape(-1, self.b.shape[1]).T @ flat_b
+            return info, self.g_theta - y.reshape(-1) @ flat_b, cost
+        wphi, wcol = self._features
+        n, s, q = wphi.shape
+        p, lin = self.shape[1], 3 * q
+        g = np.matmul(self.m, _chol2(c_inv)[:, None])  # (N, S, 3, 2): M_k L_k
+        rows = np.empty((n, 2, s, p))
+        rows[:, :, :, :lin] = (g.transpose(0, 3, 1, 2)[..., None] * wphi[:, None, :, None, :]).reshape(n, 2, s, lin)
+        my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
+        corr = np.empty((s, p))
+        corr[:, :lin] = np.einsum("nsa,nsj->saj", my, wphi).reshape(s, lin)
+        if wcol is not None:
+            rows[:, :, :, lin] = np.einsum("nsa,nsac->ncs", wcol, g)
+            corr[:, lin] = np.einsum("nsa,nsa->s", wcol, my)
+        flat = rows.reshape(2 * n, s * p)
+        return self.a_matrix() - flat.T @ flat, self.g_theta - corr.reshape(-1), cost
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
@@ -427,6 +469,19 @@ class _Eval:
         flat_b = self.b.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         flat_bc = bc.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
         return self.a_matrix() - flat_bc @ flat_b.T
+
+
+def _chol2(c: Array) -> Array:
+    """(N, 2, 2) lower factors ``L`` with ``L L^T = c`` of symmetric positive semi-definite 2 x 2 matrices
+    (zero where ``c`` is)."""
+    a = np.maximum(c[:, 0, 0], 0.0)
+    la = np.sqrt(a)
+    lb = np.divide(c[:, 1, 0], la, out=np.zeros_like(la), where=la > 0)
+    out = np.zeros_like(c)
+    out[:, 0, 0] = la
+    out[:, 1, 0] = lb
+    out[:, 1, 1] = np.sqrt(np.maximum(c[:, 1, 1] - lb * lb, 0.0))
+    return out
 
 
 def _inv2(c: Array) -> Array:
@@ -1003,13 +1058,10 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
             if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
                 d = _mean_direction(b, w)
             vertical[sl] = d[:, 2]
-            ev = _Eval(model, theta, d, xc, inc, rc, w, sigma)
-            c_inv = _inv2(ev.c)
-            y = np.einsum("nab,nb->na", c_inv, ev.g_d)[:, :, None]  # (N, 2, 1)
-            flat_b = ev.b.transpose(0, 2, 1).reshape(-1, s * p)  # (2 N, S P)
-            infos[k] += ev.a_matrix() - np.matmul(ev.b, c_inv).transpose(0, 2, 1).reshape(-1, s * p).T @ flat_b
-            grads[k] += ev.g_theta.reshape(-1) - y.reshape(-1) @ flat_b
-            cost += ev.cost - float(np.sum(ev.g_d * y[:, :, 0]))  # each direction at its optimum
+            info, grad, c = _Eval(model, theta, d, xc, inc, rc, w, sigma).reduced()  # each direction at its optimum
+            infos[k] += info
+            grads[k] += grad
+            cost += c
     infos = 0.5 * (infos + infos.transpose(0, 2, 1))
     return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
 
