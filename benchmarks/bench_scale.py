@@ -4,7 +4,7 @@
     python benchmarks/bench_scale.py --sizes 20000 200000 --no-magyc
 
 For each size, a four-sensor array tumbling smoothly at 50 sets/s is written as CSV and
-``magcal calibrate`` runs on it as a user would (its own process): wall time, CPU time and
+``magcal calibrate`` runs on it as a user would (its own process, best of two runs): wall time, CPU time and
 peak memory (RSS, VmHWM read by the process as it exits) of that process, and the ratios to the smallest size. The calibration is
 then checked on fresh attitudes against the simulator's truth: TMI RMS against the noise
 and tensor RMS against the floor sqrt(2) sigma / d. At the smallest size the solve with every
@@ -116,7 +116,9 @@ def scale(sizes: list[int]) -> None:
             write_csv(csv, rec)
             del rec
             out_yaml = Path(tmp) / f"cal{n}.yaml"
-            wall, cpu, mb, text = run_cli(["calibrate", str(csv), "-o", str(out_yaml), "-q", "--reference-field", str(F)])
+            runs = [run_cli(["calibrate", str(csv), "-o", str(out_yaml), "-q", "--reference-field", str(F)])
+                    for _ in range(2)]  # best of two: a shared machine's neighbours come and go
+            wall, cpu, mb, text = min(runs, key=lambda r: r[0])
             tmi, tensor = fresh_errors(sim, out_yaml)
             base = base or (wall, cpu)
             solved = next((p.strip() for p in text.split(",") if "solved on" in p), "every set")
