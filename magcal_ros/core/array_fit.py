@@ -254,16 +254,19 @@ def _local_slopes(ts: Array, ds: Array, segment: NDArray[np.int64], typical: flo
     valid = inside & (segment[idx] == segment[rows, None])
     x = np.where(valid, (ts[idx] - ts[rows, None]) / typical, 0.0)
     wgt = valid.astype(float)
-    powers = np.stack([np.sum(wgt * x**p, axis=1) for p in range(5)], axis=1)  # (N, 5)
-    normal = np.stack([powers[:, i : i + 3] for i in range(3)], axis=1)  # (N, 3, 3) Hankel
-    rhs = np.stack([np.einsum("nw,nwc->nc", wgt * x**p, ds[idx]) for p in range(3)], axis=1)  # (N, 3, 3)
-    enough = valid.sum(axis=1) >= 3
-    det = np.linalg.det(normal)
-    enough &= np.abs(det) > 1e-9 * np.maximum(powers[:, 0] ** 3, 1e-300)
-    coef = np.zeros((len(rows), 3, 3))
-    if np.any(enough):
-        coef[enough] = np.linalg.solve(normal[enough], rhs[enough])
-    slope = coef[:, 1, :] / typical
+    x2 = x * x
+    moments = [wgt, wgt * x, wgt * x2]  # the weights times x^p, p = 0, 1, 2 (0 outside the reach)
+    powers = np.stack([m.sum(axis=1) for m in moments] + [np.sum(moments[1] * x2, axis=1),
+                                                         np.sum(moments[2] * x2, axis=1)], axis=1)  # (N, 5)
+    near = ds[idx]  # (N, W, 3) the neighbours' directions
+    rhs = np.stack([np.einsum("nw,nwc->nc", m, near) for m in moments], axis=1)  # (N, 3, 3)
+    # The slope is the middle row of the inverse of the Hankel normal matrix [[s0 s1 s2] [s1 s2 s3]
+    # [s2 s3 s4]] times the right side: its cofactors, over its determinant (no batched solve).
+    s0, s1, s2, s3, s4 = powers.T
+    row = np.stack([s2 * s3 - s1 * s4, s0 * s4 - s2 * s2, s1 * s2 - s0 * s3], axis=1)  # (N, 3)
+    det = s0 * (s2 * s4 - s3 * s3) + s1 * row[:, 0] + s2 * (s1 * s3 - s2 * s2)
+    enough = (valid.sum(axis=1) >= 3) & (np.abs(det) > 1e-9 * np.maximum(s0**3, 1e-300))
+    slope = np.einsum("nk,nkc->nc", row, rhs) / np.where(enough, det, 1.0)[:, None] / typical
     d = ds[rows]
     slope -= np.sum(slope * d, axis=1, keepdims=True) * d
     return np.where(enough[:, None], slope, 0.0)
