@@ -15,7 +15,8 @@ from rosbags.rosbag2 import Reader
 from test_offline import magcal, ok
 
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.stamps import format_seconds, parse_seconds
+from magcal_ros.core.stamps import format_seconds, parse_seconds, parse_seconds_column
+from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
 from magcal_ros.io.bag_writer import write_recording_bag
@@ -50,6 +51,21 @@ def test_format_and_parse_are_exact_inverses() -> None:
     assert format_seconds(1_763_900_000_000_000_007) == "1763900000.000000007"
     assert parse_seconds("1763900000.1234567891") == 1_763_900_000_123_456_789
     assert parse_seconds("1.7e9") == 1_700_000_000 * NS and parse_seconds(" 0.02 ") == 20_000_000
+
+
+def test_a_column_of_stamps_parses_as_each_stamp_alone() -> None:
+    """The column parser's fast paths (plain ``digits.digits`` of any 1-9 decimals) give each text's own
+    nanoseconds; anything else goes one by one; a stamp out of range is refused, never wrapped around."""
+    rng = np.random.default_rng(8)
+    plain = [f"{w}.{str(f).zfill(k)}" for w, f, k in zip(rng.integers(0, 9 * 10**9, 500), rng.integers(0, 10**9, 500),
+                                                         rng.integers(1, 10, 500))]
+    plain = [t if len(t.split(".")[1]) <= 9 else t[: t.index(".") + 10] for t in plain]
+    assert parse_seconds_column(plain).tolist() == [parse_seconds(t) for t in plain]
+    mixed = plain[:5] + ["1.7e9", " 0.02", "5", "1.", ".5", "1.1234567891"]
+    assert parse_seconds_column(mixed).tolist() == [parse_seconds(t) for t in mixed]
+    for bad in (["999999999999.5", "1.0"], ["9000000000.0", "1.0"]):
+        with pytest.raises(InputError, match="out of range"):
+            parse_seconds_column(bad)
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])

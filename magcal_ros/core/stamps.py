@@ -69,15 +69,45 @@ def parse_seconds_column(texts: list[str]) -> NDArray[np.int64]:
     """:func:`parse_seconds` of every text of a column, vectorised when they are plain
     ``digits[.digits]`` with at most nine decimals (what :func:`format_seconds` writes);
     otherwise one by one (same results, same errors)."""
+    plain = _plain_seconds(texts)
+    if plain is not None:
+        return plain
     a = np.asarray(texts, dtype=str)
     if a.ndim == 1 and len(a):
         whole, dot, frac = np.char.partition(a, ".").T
         plain = (np.char.str_len(whole) > 0) & (np.char.str_len(whole) <= 12) & np.char.isdigit(whole)
         plain &= ((dot == "") & (frac == "")) | ((dot == ".") & (np.char.str_len(frac) <= 9) & np.char.isdigit(frac))
         if np.all(plain):
-            nsec = np.char.ljust(frac, 9, "0")
-            return whole.astype(np.int64) * NS_PER_S + np.where(frac == "", "0", nsec).astype(np.int64)
+            seconds = whole.astype(np.int64)
+            if seconds.max() < MAX_SECONDS:  # (beyond: the one-by-one parse names it)
+                nsec = np.char.ljust(frac, 9, "0")
+                return seconds * NS_PER_S + np.where(frac == "", "0", nsec).astype(np.int64)
     return np.array([parse_seconds(t) for t in texts], dtype=np.int64)
+
+
+def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
+    """:func:`parse_seconds_column` of texts that are all ``digits.digits`` (1-12 whole digits, 1-9
+    decimals, ASCII), from one joined string; None otherwise."""
+    if not isinstance(texts, list) or not texts or not all(isinstance(x, str) for x in texts[:1]):
+        return None
+    try:
+        pieces = ",".join(texts).replace(".", ",").split(",")
+    except TypeError:
+        return None
+    if len(pieces) != 2 * len(texts):
+        return None  # a text without a point, with two, or with a comma
+    whole, frac = pieces[0::2], pieces[1::2]
+    digits = "".join(whole) + "".join(frac)
+    if not (digits.isascii() and digits.isdigit()):
+        return None
+    wl = np.fromiter(map(len, whole), np.int64, len(whole))
+    fl = np.fromiter(map(len, frac), np.int64, len(frac))
+    if wl.min() < 1 or wl.max() > 12 or fl.min() < 1 or fl.max() > 9:
+        return None
+    seconds = np.array(whole, dtype=np.int64)
+    if seconds.max() >= MAX_SECONDS:
+        return None  # out of range: the one-by-one parse names it
+    return seconds * NS_PER_S + np.array(frac, dtype=np.int64) * 10 ** (9 - fl)
 
 
 def format_seconds(stamp_ns: int) -> str:
