@@ -284,6 +284,22 @@ def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
     return gains[:, None, None] * np.eye(3)[None], offsets, intensity
 
 
+def _sensor_like(matrix: Array, offset: Array) -> bool:
+    """True when a closed-form correction is one a sensor can have (:func:`check_sensor`, positive
+    determinant) with gains within :data:`START_SPREAD` of each other: a start the joint fit can take
+    as it is (a stretched one comes from a manoeuvre that leaves the closed form astray)."""
+    try:
+        check_sensor("start", matrix, offset)
+    except InputError:
+        return False
+    sv = np.linalg.svd(matrix, compute_uv=False)
+    return bool(np.linalg.det(matrix) > 0 and sv[0] < START_SPREAD * sv[-1])
+
+
+START_SPREAD: float = 1.5
+"""Largest ratio of a one-sensor closed-form start's gains for the joint fit to start from it directly."""
+
+
 def _plausible(sol: JointSolution, geometry: ArrayGeometry) -> bool:
     """True when every sensor's solved correction is one a sensor can have (no collapsed gains)."""
     try:
@@ -802,9 +818,10 @@ def calibrate_array(
     if prior is not None:
         matrices, offsets, start_interference, intensity = _prior_start(prior, geometry, r, f_ref, channels)
     elif s == 1 and joint and trimmed is not None and clean_reading[:, 0].sum() >= MIN_SAMPLES \
-            and np.all(np.isfinite(trimmed.matrix)) and np.linalg.det(trimmed.matrix) > 0:
+            and _sensor_like(trimmed.matrix, trimmed.offset):
         # One sensor: the joint fit is its maximum-likelihood fit, so the method's own start (a scalar
-        # fit, then the sensor aligned onto itself) would solve it twice over; the closed form will do.
+        # fit, then the sensor aligned onto itself) would solve it twice over; the closed form will do
+        # when it is a sensor's correction (collapsed, as on a narrow noisy manoeuvre, it is not).
         matrices, offsets, intensity = trimmed.matrix[None], trimmed.offset[None], trimmed.intensity
         if f_ref is None:
             matrices, intensity = _unit_mean_gain(matrices, intensity)
