@@ -623,23 +623,31 @@ def test_joint_fit_reaches_the_maximum_likelihood_optimum(seed: int, tolerance: 
     assert np.abs(sol.offsets - o_ref).max() < 0.1 * NT
 
 
-def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
-    """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost, residual) equal those
-    of the general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
-    from magcal_ros.core.array_fit import SetInputs, _Eval, _single_sensor_rows
+def one_sensor_problem(seed: int, n: int):  # type: ignore[no-untyped-def]
+    """One sensor with a current channel, ``n`` noisy sets in units of F: (model, theta, x, inputs, rng)."""
+    from magcal_ros.core.array_fit import SetInputs
     from magcal_ros.core.forward_model import ForwardModel
 
-    rng = np.random.default_rng(4)
+    rng = np.random.default_rng(seed)
     model = ForwardModel(1, channels=1)
-    q, n = model.q, 400
+    q = model.q
     w = np.zeros((1, 3, q))
     w[0, :, :3] = np.eye(3) + rng.normal(0, 0.05, (3, 3))
     w[0, :, 3:] = rng.normal(0, 0.02, (3, q - 3))
-    theta = w.reshape(1, -1)
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     inputs = SetInputs(rng.normal(size=(n, 1)))
     x = (d @ w[0, :, :3].T + inputs.rest_features(1)[:, 0] @ w[0, :, 3:].T)[:, None, :] + rng.normal(0, 0.01, (n, 1, 3))
+    return model, w.reshape(1, -1), x, inputs, rng
+
+
+def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
+    """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost, residual) equal those
+    of the general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
+    from magcal_ros.core.array_fit import _Eval, _single_sensor_rows
+
+    model, theta, x, inputs, rng = one_sensor_problem(4, 400)
+    n = len(x)
     weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
     sigma = np.array([0.01])
     rows, along, sq, d = _single_sensor_rows(model, theta, x, inputs)  # d: each set's direction at its optimum
@@ -658,20 +666,10 @@ def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chu
     """The one-sensor pass (all sets of a chunk at once) gives the general pass's normal matrix, gradient,
     cost, weights and per-part terms, with parts of uneven size in no order and chunks across them."""
     from magcal_ros.core import array_fit
-    from magcal_ros.core.array_fit import SetInputs, _full_pass
-    from magcal_ros.core.forward_model import ForwardModel
+    from magcal_ros.core.array_fit import _full_pass
 
-    rng = np.random.default_rng(5)
-    model = ForwardModel(1, channels=1)
-    q, n = model.q, 1000
-    w = np.zeros((1, 3, q))
-    w[0, :, :3] = np.eye(3) + rng.normal(0, 0.05, (3, 3))
-    w[0, :, 3:] = rng.normal(0, 0.02, (3, q - 3))
-    theta = w.reshape(1, -1)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    inputs = SetInputs(rng.normal(size=(n, 1)))
-    x = (d @ w[0, :, :3].T + inputs.rest_features(1)[:, 0] @ w[0, :, 3:].T)[:, None, :] + rng.normal(0, 0.01, (n, 1, 3))
+    model, theta, x, inputs, rng = one_sensor_problem(5, 1000)
+    n = len(x)
     x[::97] += 0.2  # outliers
     order = rng.permutation(n)
     parts = [order[:130], order[130:555], order[555:560], order[560:]]

@@ -467,11 +467,7 @@ class _Eval:
 
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
-        c_inv = _inv2(self.c)
-        bc = np.matmul(self.b, c_inv)
-        flat_b = self.b.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
-        flat_bc = bc.transpose(1, 0, 2).reshape(self.b.shape[1], -1)
-        return self.a_matrix() - flat_bc @ flat_b.T
+        return self.reduced()[0]
 
 
 def _chol2(c: Array) -> Array:

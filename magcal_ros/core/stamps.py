@@ -88,7 +88,7 @@ def parse_seconds_column(texts: list[str]) -> NDArray[np.int64]:
 def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
     """:func:`parse_seconds_column` of texts that are all ``digits.digits`` (1-12 whole digits, 1-9
     decimals, ASCII), from one joined string; None otherwise."""
-    if not isinstance(texts, list) or not texts or not all(isinstance(x, str) for x in texts[:1]):
+    if not isinstance(texts, list) or not texts or not isinstance(texts[0], str):
         return None
     try:
         pieces = ",".join(texts).replace(".", ",").split(",")
