@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from magcal_ros.core.sync import PERIOD_WINDOW, SetSynchronizer, SyncStats, tolerance_ns
+from magcal_ros.core.sync import DEFAULT_LAG, PERIOD_WINDOW, SetSynchronizer, StreamSynchronizer, SyncStats, tolerance_ns
 
 MS = 1_000_000
 NS = 1_000_000_000
@@ -295,14 +295,62 @@ def test_a_restart_is_a_jump_back_of_more_than_a_second(path: str) -> None:
 
 
 def test_a_message_waits_for_its_partners_at_most_the_default_lag() -> None:
-    """Live: a head exactly DEFAULT_LAG (1 s) behind the newest stamp still waits; 1 ns more and
-    it is given up while its partner stays silent."""
+    """Live, arrivals unknown: a head exactly DEFAULT_LAG (5 s) behind the newest stamp still waits;
+    1 ns more and it is given up while its partner stays silent."""
+    lag = int(DEFAULT_LAG * NS)
+    assert lag == 5 * NS
     sync = SetSynchronizer(2, MS)
-    sync.add(0, 5 * NS, 1.0, 0.0, 0.0)
-    sync.add(0, 6 * NS, 1.0, 0.0, 0.0)
-    assert (sync.pending, sync.stats.unmatched) == (2, 0)
-    sync.add(0, 6 * NS + 1, 1.0, 0.0, 0.0)
-    assert (sync.pending, sync.stats.unmatched) == (2, 1)
+    step = lag // 50
+    for k in range(51):  # 5 s of stamps, 100 ms apart (a jump of 5 s would be a restart)
+        sync.add(0, 5 * NS + k * step, 1.0, 0.0, 0.0)
+    assert (sync.pending, sync.stats.unmatched) == (51, 0)
+    sync.add(0, 5 * NS + lag + 1, 1.0, 0.0, 0.0)
+    assert (sync.pending, sync.stats.unmatched) == (51, 1)
+
+
+@pytest.mark.parametrize("engine", ["exact", "interpolate"])
+def test_a_message_waits_while_the_silent_sensor_arrived_within_the_lag(engine: str) -> None:
+    """Live, arrivals known: a node that fell behind reads one topic's backlog first; its stamps run
+    past the lag, but the silent sensor's last message arrived no more than the lag before the latest
+    arrival (its next ones are waiting in the middleware), so nothing is given up; one arrival 1 ns
+    later than that and the oldest head is."""
+    lag = int(DEFAULT_LAG * NS)
+    period = 10 * MS
+    sync = StreamSynchronizer(2, MS, mode=engine)
+    for k in range(40):  # both sensors in step: sets
+        for j in (0, 1):
+            sync.add(j, NS + k * period, 1.0, 0.0, 0.0, 100 * NS + k * period)
+    last = 100 * NS + 39 * period  # sensor 1's last arrival
+    base = sync.stats.sets
+    backlog = lag // period + 2  # stamps from 40 periods to past 40 periods + the lag
+    for k in range(40, 40 + backlog):  # read a microsecond apart, the last arriving the lag after sensor 1's
+        sync.add(0, NS + k * period, 1.0, 0.0, 0.0, last + (lag if k == 39 + backlog else (k - 39) * 1000))
+    assert (sync.stats.unmatched, sync.stats.sets) == (0, base)
+    for k in range(40, 40 + backlog):  # sensor 1's backlog: every set
+        sync.add(1, NS + k * period, 1.0, 0.0, 0.0, last + lag)
+    assert (sync.stats.unmatched, sync.stats.sets) == (0, base + backlog)
+    for k in range(40 + backlog, 40 + 2 * backlog):  # sensor 0 alone again, now arriving after the lag
+        sync.add(0, NS + k * period, 1.0, 0.0, 0.0, last + 2 * lag + 1)
+    assert sync.stats.unmatched >= 1 and sync.stats.sets == base + backlog
+
+
+@pytest.mark.parametrize("engine", ["exact", "interpolate"])
+def test_a_sensor_held_up_three_seconds_loses_nothing(engine: str) -> None:
+    """A reliable reader that lost a sample holds that topic's later samples until the writer sends
+    it again (the default heartbeat period of Fast DDS is 3 s): one sensor's messages arrive 3 s late,
+    in a burst, behind the others'. Within the default lag every set is still formed."""
+    period, n, late = 10 * MS, 1000, 3 * NS
+    stamps = [NS + k * period for k in range(n)]
+    arrivals = []  # (arrival, sensor, stamp)
+    for j in range(4):
+        for t in stamps:
+            held = j == 2 and NS + 2 * NS <= t < NS + 2 * NS + late
+            arrivals.append((NS + 2 * NS + late + j if held else t + MS + j, j, t))
+    sync = StreamSynchronizer(4, MS, mode=engine)
+    for at, j, t in sorted(arrivals):
+        sync.add(j, t, 1.0 + j, 0.0, 0.0, at)
+    sync.pop(final=True)
+    assert (sync.stats.sets, sync.stats.unmatched) == (n, 0)
 
 
 def test_a_message_no_partner_can_still_match_is_given_up_at_once() -> None:

@@ -31,7 +31,8 @@ messages interleave, so a recording gives the same sets on the ship (streaming,
 :meth:`StreamSynchronizer.add`, one message at a time, a set released the moment its last
 member arrives) and on shore (batches, :meth:`StreamSynchronizer.add_batch` and
 :meth:`StreamSynchronizer.pop`). Two bounds keep memory finite in a live node and are the
-only departures from that: a head older than ``lag_ns`` behind the newest stamp seen, or
+only departures from that: a head that waited ``lag_ns`` (the newest stamp that far past it and,
+where arrivals are known, the latest arrival that far past the silent sensor's last one), or
 beyond ``max_pending`` queued messages of one sensor, is given up (``unmatched``) while
 another sensor is silent; and where a sensor restarts alone, its new stamps are placed by
 their arrival (bag time offline, the node's clock live).
@@ -294,6 +295,8 @@ class SetSynchronizer(AcceptanceRule):
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
         self.newest = max(self.newest, st.lastc)
+        if st.last_receipt is not None:
+            self.latest_arrival = max(self.latest_arrival or st.last_receipt, st.last_receipt)
         faults = acceptance.reading_faults(v, self.max_reading)
         for name, mask in faults.items():
             stats.count(name, int(mask.sum()))
@@ -404,7 +407,7 @@ class SetSynchronizer(AcceptanceRule):
             # A sensor has nothing queued: decide only what its next message cannot change.
             dead = any(streams[k].lastc >= t0 + tol and streams[k].held is None
                        for k in sensors if head[k] >= len(stamps[k]))
-            stale = self.newest - t0 > self.lag_ns
+            stale = self.waited(t0, (k for k in sensors if head[k] >= len(stamps[k])))
             crowded = max(len(stamps[k]) - head[k] for k in avail) > self.max_pending
             if final or dead or stale or crowded:
                 st.unmatched += 1

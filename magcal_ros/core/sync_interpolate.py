@@ -16,8 +16,9 @@ and counted when
   of that sensor, so two lost samples in a row are bridged, three are not), or ``t_b`` is
   the first sample after a restart of that sensor (where the new segment sits relative to
   the old one is only as good as its arrival): ``gap``;
-- a sensor has no sample before ``T`` (it started later), or none after it arrives within
-  ``lag_ns`` of the newest stamp (live) or before the end (offline): ``unmatched``.
+- a sensor has no sample before ``T`` (it started later), or none after it arrives before the
+  end (offline) or before the newest stamp and the latest arrival are both ``lag_ns`` past it
+  (live; :meth:`~magcal_ros.core.sync_rules.AcceptanceRule.waited`): ``unmatched``.
 
 Every member of a set carries the set's stamp: the reference sample's instant, written in
 the reference's own stamp clock. Samples of the other sensors count as ``used`` when they
@@ -239,7 +240,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
                 while j < n and taus[j] < t:
                     j += 1
                 if j == n:
-                    if final or self._give_up(t):
+                    if final or self._give_up(t, k):
                         verdict = 1
                         break
                     self._compact()
@@ -283,9 +284,10 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._compact()
         return out
 
-    def _give_up(self, t: int) -> bool:
-        """Live bounds: a set instant too far behind the newest stamp, or a queue too long."""
-        if self.newest - t > self.lag_ns:
+    def _give_up(self, t: int, silent: int) -> bool:
+        """Live bounds: a set instant that waited too long for sensor ``silent`` (:meth:`waited`), or a
+        queue too long."""
+        if self.waited(t, (silent,)):
             return True
         return any(len(q) - h > self.max_pending for q, h in zip(self._tau, self._head))
 

@@ -35,6 +35,7 @@ its sample clock takes that sensor's correction after the restart, not one of it
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -47,8 +48,11 @@ from magcal_ros.core.units import NS_PER_S
 
 DEFAULT_SYNC_TOLERANCE: float = 1e-3
 """Default largest spread (s) of the header stamps of one set (exact matching)."""
-DEFAULT_LAG: float = 1.0
-"""Default time (s) a live synchronizer waits for a silent sensor before giving a set up."""
+DEFAULT_LAG: float = 5.0
+"""Default time (s) a live synchronizer waits for a silent sensor before giving a set up: both the
+stamps and the arrivals must run this far ahead of it. Longer than a reliable DDS writer's default
+heartbeat period (3 s in Fast DDS): a reader that lost a sample holds that topic's later samples
+until the sample is sent again, so a sensor can be silent that long while its messages wait."""
 RESTART_JUMP: float = 1.0
 """A stamp this far (s) behind its sensor's previous one is a restart (or a glitch)."""
 PERIOD_WINDOW: int = 8
@@ -290,6 +294,8 @@ class AcceptanceRule:
     """
 
     max_reading: float = math.inf
+    lag_ns: int = int(DEFAULT_LAG * NS_PER_S)
+    """Live bound: how long a message waits for a silent sensor (ns; see :meth:`waited`)."""
 
     def __init__(self, sensors: int, stats: SyncStats | None, restart_ns: int, reject_zero: bool,
                  clocked: bool, pause_ns: int | None = None) -> None:
@@ -304,6 +310,8 @@ class AcceptanceRule:
         self.streams = [self._new_stream() for _ in range(sensors)]
         self.newest = NEVER
         """Newest common stamp accepted from any sensor."""
+        self.latest_arrival: int | None = None
+        """Latest arrival (receipt ns) of an accepted message, None while unknown."""
 
     def _new_stream(self) -> SensorStream:
         return SensorStream(SampleClock(pause_ns=self.pause_ns) if self.clocked else None)
@@ -313,6 +321,7 @@ class AcceptanceRule:
         self.stats.glitch += sum(s.held is not None for s in self.streams)
         self.streams = [self._new_stream() for _ in range(self.size)]
         self.newest = NEVER
+        self.latest_arrival = None
 
     def set_pause(self, pause_ns: int) -> None:
         """A silence longer than ``pause_ns`` is a pause of the sensor, not a loss (sample clocks)."""
@@ -320,6 +329,25 @@ class AcceptanceRule:
         for s in self.streams:
             if s.clock is not None:
                 s.clock.pause_ns = self.pause_ns
+
+    def waited(self, t: int, silent: Iterable[int]) -> bool:
+        """Whether a message at common stamp ``t`` (ns) has waited long enough for the ``silent`` sensors
+        (nothing queued): the newest stamp is more than :attr:`lag_ns` past ``t``, and where arrivals are
+        known, each silent sensor's last message arrived more than that before the latest one. Stamps
+        alone would give messages up that are waiting in the middleware while a node that fell behind
+        reads another topic first."""
+        lag = self.lag_ns
+        if self.newest - t <= lag:
+            return False
+        now = self.latest_arrival
+        if now is None:
+            return True
+        streams = self.streams
+        for k in silent:
+            last = streams[k].last_receipt
+            if last is not None and now - last <= lag:
+                return False
+        return True
 
     @property
     def held(self) -> int:
@@ -407,6 +435,8 @@ class AcceptanceRule:
         s.last_receipt = receipt
         if c > self.newest:
             self.newest = c
+        if receipt is not None and (self.latest_arrival is None or receipt > self.latest_arrival):
+            self.latest_arrival = receipt
         if fault is not None:
             self.stats.count(fault)
             payload = None
