@@ -8,7 +8,7 @@ import truth_tools as tt
 from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.alignment import li2018_angles
-from magcal_ros.core.array_fit import _inv2, fit_array
+from magcal_ros.core.array_fit import _inv2, chi2_isf, fit_array
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.metrics import tensor_rms, tmi_rms
@@ -723,3 +723,13 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
                  *zip(reduced[:2], dense.reduced()[:2])):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
     assert reduced[2] == pytest.approx(dense.reduced()[2], rel=1e-12)
+
+
+@pytest.mark.parametrize("dof", [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 2.75, 7.0])
+def test_the_chi_square_quantiles_are_scipys(dof: float) -> None:
+    """The outlier bound and the robust scale's median, without scipy.stats at run time."""
+    from scipy import stats
+
+    for p in (1e-5, 0.01, 0.5, 0.9):
+        assert chi2_isf(p, dof) == pytest.approx(stats.chi2.isf(p, dof), rel=1e-12)
+    assert chi2_isf(0.5, dof) == pytest.approx(stats.chi2.median(dof), rel=1e-12)

@@ -47,8 +47,11 @@ from magcal_ros.sim.simulator import ArraySimulation
 NAMESPACE = "thermo"
 CORRECTION = f"/{NAMESPACE}/magcal_correction"
 CALIBRATION = f"/{NAMESPACE}/magcal_calibration"
-LEAD = 50
-"""Sets by which the temperatures lead the raw sets in a replay."""
+LEAD = int(h.REPLAY_RATE)
+"""Sets by which the temperatures lead the raw sets in a replay: one second. The fresh sets' temperatures
+jump by up to 26 C from one set to the next (2.5 ms apart), which no real sensor does, so a set whose
+temperature came after its readings would be corrected at the previous set's; on a loaded machine a
+temperature message held up by a repair (the writers announce every 0.1 s) came more than 50 sets late."""
 
 
 class Case:

@@ -44,7 +44,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import nnls
 
 from magcal_ros.core.units import NT
 
@@ -155,6 +154,8 @@ def check(corrected: Array, positions: Array) -> Uniformity | None:
     sensor = np.repeat(np.arange(s), 3)
     # E r_j^2 = sum_m R_jm^2 sigma_m^2, sigma the same for a sensor's three axes
     design = np.stack([np.sum(resid_op[:, sensor == i] ** 2, axis=1) for i in range(s)], axis=1)
+    from scipy.optimize import nnls  # here: scipy.optimize takes a second to import
+
     var_sensor = nnls(design, np.mean(resid**2, axis=0))[0]
     floor2 = (PRECISION * float(np.median(np.linalg.norm(y, axis=2)))) ** 2
     var_sensor = var_sensor + floor2  # a noise-free simulation is not judged on rounding errors

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from magcal_ros.core.scalar_fit import ScalarFit, _readings, _target
 from magcal_ros.errors import CalibrationFailed, InputError
@@ -153,6 +152,8 @@ def paired_fit(
         raise InputError(f"paired fit needs at least {16 if fit_offset else 10} readings, got {len(x)}")
     q0, o0 = linear_start(x1, x2, fit_offset)
     p0 = np.concatenate([q0, o0]) if fit_offset else q0
+    from scipy.optimize import least_squares  # here: scipy.optimize takes a second to import
+
     sol = least_squares(_pair_residuals, p0, args=(x1, x2, fit_offset), method="lm", xtol=1e-15, ftol=1e-15)
     if not np.all(np.isfinite(sol.x)):
         raise CalibrationFailed("paired fit did not converge (non-finite parameters)")
