@@ -17,15 +17,22 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation, RotationSpline
 
 Array = NDArray[np.float64]
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
 
+def _tf() -> Any:
+    """``scipy.spatial.transform``, imported on first use: it takes a third of a second, which every
+    ``magcal`` command would pay (the simulate options are built from this package)."""
+    from scipy.spatial import transform
+
+    return transform
+
+
 def _about(axis: str, angles_rad: Array) -> Array:
-    return Rotation.from_rotvec(np.outer(angles_rad, np.eye(3)[AXES[axis]])).as_matrix()
+    return _tf().Rotation.from_rotvec(np.outer(angles_rad, np.eye(3)[AXES[axis]])).as_matrix()
 
 
 def single_axis(axis: str = "z", count: int = 36, start_deg: float = 0.0) -> Array:
@@ -71,13 +78,13 @@ def three_rotations(count: int = 10) -> Array:
 def uniform_random(count: int, rng: np.random.Generator | int | None = None) -> Array:
     """``count`` attitudes drawn uniformly from SO(3)."""
     gen = np.random.default_rng(rng)
-    return Rotation.random(count, random_state=gen).as_matrix()
+    return _tf().Rotation.random(count, random_state=gen).as_matrix()
 
 
 def yaw_pitch_roll(yaw_deg: Array, pitch_deg: Array, roll_deg: Array) -> Array:
     """Platform-to-world rotations ``Rz(yaw) Ry(pitch) Rx(roll)`` (NED, the vehicle convention), (N, 3, 3)."""
     angles = np.column_stack([yaw_deg, pitch_deg, roll_deg])
-    return Rotation.from_euler("ZYX", angles, degrees=True).as_matrix()
+    return _tf().Rotation.from_euler("ZYX", angles, degrees=True).as_matrix()
 
 
 def sea_manoeuvre(
@@ -112,12 +119,12 @@ def tumble(count: int, step_deg: float = 3.0, rng: np.random.Generator | int | N
     about a slowly wandering axis by about ``step_deg`` per sample."""
     gen = np.random.default_rng(rng)
     axis = gen.normal(size=3)
-    out = [Rotation.random(random_state=gen)]
+    out = [_tf().Rotation.random(random_state=gen)]
     for _ in range(count - 1):
         axis = 0.97 * axis + 0.25 * gen.normal(size=3)
-        step = Rotation.from_rotvec(np.radians(step_deg) * axis / np.linalg.norm(axis))
+        step = _tf().Rotation.from_rotvec(np.radians(step_deg) * axis / np.linalg.norm(axis))
         out.append(out[-1] * step)
-    return Rotation.concatenate(out).as_matrix()
+    return _tf().Rotation.concatenate(out).as_matrix()
 
 
 SCHEDULES = {
@@ -148,7 +155,7 @@ class AttitudePath:
     def through(cls, attitudes: ArrayLike, times: ArrayLike) -> "AttitudePath":
         """The path through ``attitudes`` at increasing ``times`` (s)."""
         t = np.asarray(times, dtype=float)
-        return cls(t, RotationSpline(t, Rotation.from_matrix(np.asarray(attitudes, dtype=float))))
+        return cls(t, _tf().RotationSpline(t, _tf().Rotation.from_matrix(np.asarray(attitudes, dtype=float))))
 
     def attitude(self, times: ArrayLike) -> Array:
         """Platform-to-world rotations (n, 3, 3) at ``times`` (s, within the path's span)."""
