@@ -21,15 +21,12 @@ Ratios are left out (``-``) where the floor is zero (noise-free scenarios).
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcal_ros.core.alignment import li2018_angles  # noqa: E402
 from magcal_ros.core.field import earth_field  # noqa: E402

@@ -17,14 +17,12 @@ Run: ``python benchmarks/bench_field.py`` from the repository root.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from pathlib import Path
 
 import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcal_ros.core.geometry import ArrayGeometry  # noqa: E402
 from magcal_ros.errors import MagcalError  # noqa: E402

@@ -17,14 +17,12 @@ Prints:
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcal_ros.core.calibration_health import CalibrationHealth  # noqa: E402
 from magcal_ros.core.field import earth_field  # noqa: E402

@@ -13,14 +13,11 @@ Run: ``python benchmarks/bench_imu.py`` from the repository root.
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcal_ros.core.metrics import rms, tensor_floor, tensor_rms, tmi_rms  # noqa: E402
 from magcal_ros.core.recording import ImuSamples  # noqa: E402

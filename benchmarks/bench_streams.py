@@ -15,7 +15,6 @@ and without its time offset. Also the synchroniser's time per message.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +22,6 @@ from pathlib import Path
 import _first  # noqa: F401  (this checkout; before numpy: one BLAS thread, as the command and nodes run)
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from magcal_ros.core.field import earth_field  # noqa: E402
 from magcal_ros.core.geometry import ArrayGeometry  # noqa: E402

@@ -63,6 +63,8 @@ def test_a_column_of_stamps_parses_as_each_stamp_alone() -> None:
     assert parse_seconds_column(plain).tolist() == [parse_seconds(t) for t in plain]
     mixed = plain[:5] + ["1.7e9", " 0.02", "5", "1.", ".5", "1.1234567891"]
     assert parse_seconds_column(mixed).tolist() == [parse_seconds(t) for t in mixed]
+    with pytest.raises(InputError, match="1.2.3"):  # two points beside none: as many points as texts
+        parse_seconds_column(["0.5", "1.2.3", "4", "5.5"])
     for bad in (["999999999999.5", "1.0"], ["9000000000.0", "1.0"]):
         with pytest.raises(InputError, match="out of range"):
             parse_seconds_column(bad)

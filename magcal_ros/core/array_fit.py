@@ -603,12 +603,10 @@ def _solve_lm(
     cost = cur.cost + prior_cost(theta, att)
     done = False
     for steps in range(1, iterations + 1):
+        info, grad, _ = cur.reduced()
+        schur = (info + np.diag(prec))[np.ix_(free, free)]
+        rhs = (grad + prec * deviation(theta, att))[free]
         c_inv = _inv2(cur.c)
-        bc = np.matmul(cur.b, c_inv)
-        flat_b = cur.b.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
-        flat_bc = bc.transpose(1, 0, 2).reshape(cur.b.shape[1], -1)
-        schur = (cur.a_matrix() + np.diag(prec) - flat_bc @ flat_b.T)[np.ix_(free, free)]
-        rhs = (cur.g_theta + prec * deviation(theta, att) - np.einsum("npc,nc->p", bc, cur.g_d))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
         diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))

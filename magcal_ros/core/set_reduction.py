@@ -102,14 +102,14 @@ def choose_sets(directions: Array, order: NDArray[np.int64], target: int,
     # round(j (m - 1) / (k - 1)) for j < k (the first alone when k = 1), all cells at once.
     by_cell = np.argsort(cell, kind="stable")  # runs grouped by cell, in time order within each
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])  # where each cell's runs start in by_cell
-    k = take[cell[by_cell]]  # per grouped run: its cell's take and member count
-    m = counts[cell[by_cell]]
-    j = np.arange(len(by_cell)) - first[cell[by_cell]]  # rank within the cell
+    grouped = cell[by_cell]  # per grouped run: its cell
+    k, m, begin = take[grouped], counts[grouped], first[grouped]  # its cell's take, member count, start
+    j = np.arange(len(by_cell)) - begin  # rank within the cell
     keep = j < k  # the first k ranks of a cell stand for its k picks
     kk, mm, jj = k[keep], m[keep], j[keep]
     step = np.where(kk > 1, (mm - 1) / np.maximum(kk - 1, 1), 0.0)
     member = np.round(jj * step).astype(np.int64)
-    picked = np.sort(by_cell[first[cell[by_cell]][keep] + member])
+    picked = np.sort(by_cell[begin[keep] + member])
     positions = (starts[picked][:, None] + np.arange(run_length)[None, :]).reshape(-1)
     positions = positions[positions < n]
     return order[positions]

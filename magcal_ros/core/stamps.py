@@ -95,7 +95,7 @@ def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
     except TypeError:
         return None
     if len(pieces) != 2 * len(texts):
-        return None  # a text without a point, with two, or with a comma
+        return None  # points and texts differ in number, or a comma
     whole, frac = pieces[0::2], pieces[1::2]
     digits = "".join(whole) + "".join(frac)
     if not (digits.isascii() and digits.isdigit()):
@@ -104,6 +104,8 @@ def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
     fl = np.fromiter(map(len, frac), np.int64, len(frac))
     if wl.min() < 1 or wl.max() > 12 or fl.min() < 1 or fl.max() > 9:
         return None
+    if np.any(np.fromiter(map(len, texts), np.int64, len(texts)) != wl + fl + 1):
+        return None  # a text with two points beside one without: the pieces fell out of line
     seconds = np.array(whole, dtype=np.int64)
     if seconds.max() >= MAX_SECONDS:
         return None  # out of range: the one-by-one parse names it

@@ -295,8 +295,7 @@ class SetSynchronizer(AcceptanceRule):
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
         self.newest = max(self.newest, st.lastc)
-        if st.last_receipt is not None:
-            self.latest_arrival = max(self.latest_arrival or st.last_receipt, st.last_receipt)
+        self.arrived(st.last_receipt)
         faults = acceptance.reading_faults(v, self.max_reading)
         for name, mask in faults.items():
             stats.count(name, int(mask.sum()))
@@ -405,9 +404,9 @@ class SetSynchronizer(AcceptanceRule):
             t0 = min(t)
             anchor = avail[t.index(t0)]
             # A sensor has nothing queued: decide only what its next message cannot change.
-            dead = any(streams[k].lastc >= t0 + tol and streams[k].held is None
-                       for k in sensors if head[k] >= len(stamps[k]))
-            stale = self.waited(t0, (k for k in sensors if head[k] >= len(stamps[k])))
+            silent = [k for k in sensors if head[k] >= len(stamps[k])]
+            dead = any(streams[k].lastc >= t0 + tol and streams[k].held is None for k in silent)
+            stale = self.waited(t0, silent)
             crowded = max(len(stamps[k]) - head[k] for k in avail) > self.max_pending
             if final or dead or stale or crowded:
                 st.unmatched += 1

@@ -330,6 +330,11 @@ class AcceptanceRule:
             if s.clock is not None:
                 s.clock.pause_ns = self.pause_ns
 
+    def arrived(self, receipt: int | None) -> None:
+        """Note an accepted message's arrival (ns; None: unknown) for :attr:`latest_arrival`."""
+        if receipt is not None and (self.latest_arrival is None or receipt > self.latest_arrival):
+            self.latest_arrival = receipt
+
     def waited(self, t: int, silent: Iterable[int]) -> bool:
         """Whether a message at common stamp ``t`` (ns) has waited long enough for the ``silent`` sensors
         (nothing queued): the newest stamp is more than :attr:`lag_ns` past ``t``, and where arrivals are
@@ -435,8 +440,7 @@ class AcceptanceRule:
         s.last_receipt = receipt
         if c > self.newest:
             self.newest = c
-        if receipt is not None and (self.latest_arrival is None or receipt > self.latest_arrival):
-            self.latest_arrival = receipt
+        self.arrived(receipt)
         if fault is not None:
             self.stats.count(fault)
             payload = None
