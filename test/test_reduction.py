@@ -99,3 +99,44 @@ def test_budget_and_proxy() -> None:
     proxy = direction_proxy(raw)
     assert np.allclose(np.linalg.norm(proxy, axis=1), 1.0)
     assert np.allclose(proxy[0], np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0))  # minus the mid-range (5, 6, 5)
+
+
+def test_the_pass_over_every_set_on_spare_cores_gives_the_same_result_to_the_bit(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pass over every set runs its chunks (and the jackknife's parts) in threads when cores are
+    free and adds them up in their order: the calibration, its uncertainty and its envelope are
+    exactly those of one chunk after another."""
+    from magcal_ros.core import array_fit
+
+    sim = _array(13)
+    rec, _ = sim.run(tumble(3000, 2.0, 7), rng=8, rate=50.0, continuous=True)
+    monkeypatch.setitem(array_fit.refine_on_all.__kwdefaults__, "chunk", 97)  # several chunks in every part
+    out = {}
+    for workers in ("1", "2"):
+        monkeypatch.setenv("MAGCAL_WORKERS", workers)
+        out[workers] = calibrate_array(rec.vectors, sim.geometry, F, stamps=rec.stamps,
+                                       options=SolveOptions(max_solve_sets=1000))
+    one, two = out["1"], out["2"]
+    assert "refined on all" in two.summary()
+    np.testing.assert_array_equal(two.calibration.matrices, one.calibration.matrices)
+    np.testing.assert_array_equal(two.calibration.offsets, one.calibration.offsets)
+    assert _quantities(two) == _quantities(one)
+    assert two.envelope == one.envelope and two.inflation == one.inflation
+
+
+def test_pieces_run_side_by_side_with_spare_cores_and_one_by_one_without(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``map_in_threads`` keeps the items' order; with two workers two items are in flight at once (a
+    barrier both must reach; one at a time would never pass it), with ``MAGCAL_WORKERS=1`` none is."""
+    import threading
+
+    from magcal_ros.core.parallel import map_in_threads, workers
+
+    monkeypatch.setenv("MAGCAL_WORKERS", "2")
+    assert workers() == 2
+    barrier = threading.Barrier(2, timeout=120)
+    assert map_in_threads(lambda x: (barrier.wait(), x * x)[1], [1, 2, 3, 4]) == [1, 4, 9, 16]
+    monkeypatch.setenv("MAGCAL_WORKERS", "1")
+    main = threading.get_ident()
+    assert map_in_threads(lambda x: (threading.get_ident() == main, x), [3, 1]) == [(True, 3), (True, 1)]
+    monkeypatch.setenv("MAGCAL_WORKERS", "zero")
+    assert workers() == 1

@@ -8,6 +8,7 @@ under test run on the same data.
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -353,6 +354,66 @@ def test_a_long_csv_is_read_a_chunk_at_a_time_with_the_same_result(tmp_path: Pat
         with pytest.raises(InputError, match="line 51: "):
             read_csv(path)
         monkeypatch.undo()
+
+
+HALVES_SCRIPT = """
+import json, os, sys
+import numpy as np
+from magcal_ros.core import parallel
+from magcal_ros.errors import InputError
+from magcal_ros.io import csv_recording
+csv_recording.CHUNK_CHARS, csv_recording.PARALLEL_CHARS = 700, 2000  # a few lines a chunk; halves from 2 kB
+forked = []
+def counted(nbytes, fill):
+    handle = parallel.fill_in_child(nbytes, fill)
+    forked.append(handle is not None)
+    return handle
+csv_recording.fill_in_child = counted
+out = {}
+for workers in ("1", "2"):
+    os.environ["MAGCAL_WORKERS"] = workers
+    try:
+        rec, stats = csv_recording.read_csv(sys.argv[1])
+        np.save(sys.argv[2] + workers + ".npy", np.concatenate([rec.stamps[:, None].astype(float), rec.vectors.reshape(len(rec), -1),
+                                                              rec.temperatures], axis=1))
+        out[workers] = stats.sets
+    except InputError as exc:
+        out[workers] = str(exc)
+print(json.dumps({"out": out, "forked": forked}))
+"""
+
+
+@pytest.mark.parametrize("bad_line", [None, 7, 55])
+def test_a_long_csv_parsed_in_two_halves_side_by_side_gives_the_one_process_result(tmp_path: Path,
+                                                                                   bad_line: int | None) -> None:
+    """With a second core a long CSV's second half is parsed in a forked child meanwhile (the ``magcal``
+    command runs one thread, so a fork copies no held lock): exactly the values, stamps and temperatures
+    one process reads, and a bad line in either half is still named by its line number. Run in a fresh
+    interpreter, as the command runs."""
+    import json
+    import subprocess
+    import sys
+
+    rec, _, _ = run(thermal_imu_spec(count=60))
+    path = tmp_path / "long.csv"
+    write_csv(path, Recording(rec.names, rec.stamps, rec.vectors, temperatures=rec.temperatures))
+    if bad_line is not None:  # a ragged line in the parent's half (7) or in the child's (55)
+        lines = path.read_text().splitlines()
+        lines[bad_line - 1] += ",1.0"
+        path.write_text("\n".join(lines) + "\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, "-c", HALVES_SCRIPT, str(path), str(tmp_path / "v")], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["forked"] == [False, True]  # one worker: no child; two: the second half in a child
+    if bad_line is None:
+        assert report["out"] == {"1": len(rec), "2": len(rec)}
+        one, two = np.load(tmp_path / "v1.npy"), np.load(tmp_path / "v2.npy")
+        np.testing.assert_array_equal(two, one)
+        np.testing.assert_array_equal(two[:, 1:13], rec.vectors.reshape(len(rec), -1))
+    else:
+        assert report["out"]["1"] == report["out"]["2"] and f"line {bad_line}: " in report["out"]["2"]
 
 
 def test_csv_single_temperature_column_unknown_imu_cells_and_ned(tmp_path: Path) -> None:

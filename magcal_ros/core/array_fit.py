@@ -33,6 +33,7 @@ from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
 from magcal_ros.core.batched import per_sensor, per_sensor_columns, row_norms
 from magcal_ros.core.forward_model import ForwardModel
+from magcal_ros.core.parallel import map_in_threads
 from magcal_ros.errors import CalibrationFailed, InputError
 
 Array = NDArray[np.float64]
@@ -348,8 +349,8 @@ class _Eval:
             a_blocks = np.zeros((s, p, p))
             for i in range(s):
                 a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i].T @ phi[:, i])
-            scores = np.empty((n, s, p))
-            scores[:, :, :lin] = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s, lin)
+            g_sum = np.empty((s, p))  # the gradient summed over the sets (each set's built when asked for)
+            g_sum[:, :lin] = np.einsum("nsa,nsj->saj", self.e, wphi).reshape(s, lin)
             wcol = None
             if lag_only:  # d pred / d tau (N, S, 3): its products with the linear columns and itself
                 col = per_sensor(k, d_tau)
@@ -358,10 +359,10 @@ class _Eval:
                     cross = np.einsum("na,nj->aj", wcol[:, i], phi[:, i]).reshape(lin)
                     a_blocks[i, :lin, lin] = a_blocks[i, lin, :lin] = cross
                     a_blocks[i, lin, lin] = float(np.sum(wcol[:, i] * col[:, i]))
-                scores[:, :, lin] = np.einsum("nsa,nsa->ns", wcol, self.e)
+                g_sum[:, lin] = np.einsum("nsa,nsa->s", wcol, self.e)
             self.a_blocks = a_blocks
-            self.set_scores = scores.reshape(n, s * p)
-            self._features = (wphi, wcol)  # the direction couplings B, built when asked for
+            self._set_scores: Array | None = None
+            self._features = (wphi, wcol)  # the direction couplings B and the scores, built when asked for
             b = None
         else:
             self._features = None
@@ -377,8 +378,9 @@ class _Eval:
             wj = jac * ws[:, :, None, None]
             self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])
             b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
-            self.set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
-        g_theta = np.ones(n) @ self.set_scores  # (S P,) summed over the sets
+            self._set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
+            g_sum = np.ones(n) @ self._set_scores
+        g_theta = g_sum.reshape(-1)  # (S P,) summed over the sets
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
             gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
@@ -397,11 +399,25 @@ class _Eval:
             self.c = self.c + pa[:, None, None] * np.eye(2)[None]  # basis^T basis = I
             self.g_d = self.g_d + pa[:, None] * np.einsum("nac,na->nc", self.basis, ea)
             self.cost += float(np.sum(pa[:, None] * ea * ea))
-            self.set_scores = np.concatenate([self.set_scores, per_set_g], axis=1)
+            self._set_scores = np.concatenate([self.set_scores, per_set_g], axis=1)
             self.g_theta = np.concatenate([g_theta.reshape(-1), g_global])
         else:
             self.g_theta = g_theta.reshape(-1)
         self._b = b
+
+    @property
+    def set_scores(self) -> Array:
+        """(N, S P + G) each set's contribution to the gradient, its direction held (whitened)."""
+        if self._set_scores is None:
+            wphi, wcol = self._features  # type: ignore[misc]
+            n, s, q = wphi.shape
+            p = self.shape[1]
+            scores = np.empty((n, s, p))
+            scores[:, :, : 3 * q] = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s, 3 * q)
+            if wcol is not None:
+                scores[:, :, 3 * q] = np.einsum("nsa,nsa->ns", wcol, self.e)
+            self._set_scores = scores.reshape(n, s * p)
+        return self._set_scores
 
     @property
     def b(self) -> Array:
@@ -435,7 +451,10 @@ class _Eval:
         p, lin = self.shape[1], 3 * q
         g = np.matmul(self.m, _chol2(c_inv)[:, None])  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
-        rows[:, :, :, :lin] = (g.transpose(0, 3, 1, 2)[..., None] * wphi[:, None, :, None, :]).reshape(n, 2, s, lin)
+        lin_rows = rows[:, :, :, :lin].reshape(n, 2, s, 3, q)  # a view (one axis split): written in place
+        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None, :, None, :], out=lin_rows)
+        if not np.may_share_memory(lin_rows, rows):
+            rows[:, :, :, :lin] = lin_rows.reshape(n, 2, s, lin)
         my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
         corr = np.empty((s, p))
         corr[:, :lin] = np.einsum("nsa,nsj->saj", my, wphi).reshape(s, lin)
@@ -1046,26 +1065,30 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, r
     cost = 0.0
     used = np.empty((len(x), s)) if weights is None else weights
     vertical = np.empty(len(x))
-    for k, part in enumerate(parts):
-        for lo in range(0, len(part), chunk):
-            sl = part[lo : lo + chunk]
-            xc = x[sl]
-            inc = SetInputs(inputs.currents[sl], None if inputs.temperatures is None else inputs.temperatures[sl],
-                            None if inputs.times is None else inputs.times[sl])
-            rc = None if rates is None else rates[sl]
-            b = corrected_directions(model, theta, xc, inc, rc)
-            d = _mean_direction(b, np.ones((len(sl), s)))
-            if weights is None:  # beyond the outlier bound at the fit's noise: out; large: weighs less
-                e = _prediction(model, theta, d, inc, rc) - xc
-                used[sl] = _weigh(np.einsum("nsa,nsa->ns", e, e) / sigma[None, :] ** 2, bound)
-            w = used[sl]
-            if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
-                d = _mean_direction(b, w)
-            vertical[sl] = d[:, 2]
-            info, grad, c = _Eval(model, theta, d, xc, inc, rc, w, sigma).reduced()  # each direction at its optimum
-            infos[k] += info
-            grads[k] += grad
-            cost += c
+
+    def one(sl: NDArray[np.int64]) -> tuple[Array, Array, float]:
+        """The reduced normal equations of the sets ``sl`` (their weights and verticals filled in)."""
+        xc = x[sl]
+        inc = SetInputs(inputs.currents[sl], None if inputs.temperatures is None else inputs.temperatures[sl],
+                        None if inputs.times is None else inputs.times[sl])
+        rc = None if rates is None else rates[sl]
+        b = corrected_directions(model, theta, xc, inc, rc)
+        d = _mean_direction(b, np.ones((len(sl), s)))
+        if weights is None:  # beyond the outlier bound at the fit's noise: out; large: weighs less
+            e = _prediction(model, theta, d, inc, rc) - xc
+            used[sl] = _weigh(np.einsum("nsa,nsa->ns", e, e) / sigma[None, :] ** 2, bound)
+        w = used[sl]
+        if s > 1 and np.any(w != 1.0):  # one sensor: its weight does not move its own direction
+            d = _mean_direction(b, w)
+        vertical[sl] = d[:, 2]
+        return _Eval(model, theta, d, xc, inc, rc, w, sigma).reduced()  # each direction at its optimum
+
+    tasks = [(k, part[lo : lo + chunk]) for k, part in enumerate(parts) for lo in range(0, len(part), chunk)]
+    # the chunks side by side on spare cores, added up in their order (the same sums as one by one)
+    for (k, _), (info, grad, c) in zip(tasks, map_in_threads(one, [sl for _, sl in tasks])):
+        infos[k] += info
+        grads[k] += grad
+        cost += c
     infos = 0.5 * (infos + infos.transpose(0, 2, 1))
     return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
 

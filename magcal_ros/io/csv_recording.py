@@ -33,7 +33,7 @@ from __future__ import annotations
 import csv
 import io
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -48,6 +48,7 @@ from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds, parse_seconds_column
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
 from magcal_ros.core.interference import check_currents
+from magcal_ros.core.parallel import as_array, fill_in_child
 from magcal_ros.core.temperature import check_temperatures
 from magcal_ros.core.units import MAX_READING, check_tesla
 from magcal_ros.errors import InputError
@@ -230,28 +231,80 @@ CHUNK_CHARS = 4 << 20
 """A long CSV body is parsed this many characters (whole lines) at a time: memory stays bounded."""
 
 
-def _body_chunks(text: str, start: int, end: int) -> Iterator[str]:
-    """Whole lines of ``text[start:end]``, about :data:`CHUNK_CHARS` at a time."""
+PARALLEL_CHARS = 16 << 20
+"""A CSV body at least this long is parsed in two halves side by side when a second core is free."""
+
+
+def _body_chunks(text: str, start: int, end: int) -> list[tuple[int, int]]:
+    """Offsets of whole lines of ``text[start:end]``, about :data:`CHUNK_CHARS` at a time."""
+    out = []
     while start < end:
         stop = text.find("\n", min(start + CHUNK_CHARS, end), end)
         stop = end if stop < 0 else stop
-        yield text[start:stop]
+        out.append((start, stop))
         start = stop + 1
+    return out
+
+
+Columns = tuple[NDArray[np.int64], NDArray[np.float64]]
 
 
 def _fast_columns(text: str, start: int, end: int, width: int, checked: list[int], nonfinite: NonFinite,
-                  optional: set[int]) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
-    """:func:`_fast_chunk` over the body ``text[start:end]`` a chunk at a time; None when any line is not
-    regular."""
-    parts = []
-    for body in _body_chunks(text, start, end):
-        part = _fast_chunk(body, width, checked, nonfinite, optional)
-        if part is None:
+                  optional: set[int]) -> Columns | None:
+    """:func:`_fast_chunk` over the body ``text[start:end]`` a chunk at a time (a long body's second half
+    in a forked child meanwhile, :mod:`magcal_ros.core.parallel`); None when any line is not regular."""
+    chunks = _body_chunks(text, start, end)
+
+    def parse(span: list[tuple[int, int]]) -> Columns | None:
+        parts = []
+        for a, b in span:
+            part = _fast_chunk(text[a:b], width, checked, nonfinite, optional)
+            if part is None:
+                return None
+            parts.append(part)
+        if not parts:
             return None
-        parts.append(part)
-    if not parts:
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    half = next((i for i, (a, _) in enumerate(chunks) if a - start >= (end - start) // 2), len(chunks))
+    if end - start < PARALLEL_CHARS or half in (0, len(chunks)):
+        return parse(chunks)
+    first, second = chunks[:half], chunks[half:]
+    rows = sum(text.count("\n", a, b) + 1 for a, b in second)
+
+    def fill(buf: memoryview) -> bool:
+        got = parse(second)
+        if got is None or len(got[0]) != rows:
+            return False
+        as_array(buf, np.int64, (rows,))[:] = got[0]
+        as_array(buf, np.float64, (rows, width - 1), 8 * rows)[:] = got[1]
+        return True
+
+    child = fill_in_child(8 * rows * width, fill)
+    if child is None:
+        return parse(chunks)
+    try:
+        head = parse(first)
+    except BaseException:
+        child.cancel()
+        raise
+    buf = child.result()
+    if head is None:
+        if buf is not None:
+            buf.close()
         return None
-    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    if buf is None:  # the child found an irregular line (or failed): this process looks again
+        tail = parse(second)
+        return None if tail is None else (np.concatenate([head[0], tail[0]]), np.concatenate([head[1], tail[1]]))
+    n = len(head[0])
+    stamps = np.empty(n + rows, np.int64)
+    data = np.empty((n + rows, width - 1))
+    stamps[:n], data[:n] = head
+    del head
+    stamps[n:] = as_array(buf, np.int64, (rows,))
+    data[n:] = as_array(buf, np.float64, (rows, width - 1), 8 * rows)
+    buf.close()
+    return stamps, data
 
 
 def _fast_chunk(body: str, width: int, checked: list[int], nonfinite: NonFinite,
