@@ -125,6 +125,10 @@ def test_the_envelope_grid_interpolated_along_roll_is_the_predicted_tmi_variance
         direct = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3)).reshape(*dirs.shape[:3], s)
         np.testing.assert_allclose(variance_grid(w, cov, inclination, pitch, roll), direct,
                                    rtol=1e-9, atol=1e-12 * direct.max())
+        # the envelope's one weighted sum over the sensors (one quadratic form): the same sum of the above
+        weights = np.array([0.5, 2.0, 1.25])
+        np.testing.assert_allclose(variance_grid(w, cov, inclination, pitch, roll, combine=weights)[..., 0],
+                                   direct @ weights, rtol=1e-9, atol=1e-12 * direct.max())
 
 
 def test_the_predicted_tmi_error_is_the_spread_of_the_tmi_over_calibrations_drawn_from_the_covariance():
@@ -651,6 +655,7 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
     sigma = np.array([0.01])
     rows, along, sq, d = _single_sensor_rows(model, theta, x, inputs)  # d: each set's direction at its optimum
+    rows, d = rows.T, d.T  # (sets along the last axis)
     ev = _Eval(model, theta, d, x, inputs, None, weights, sigma)
     np.testing.assert_allclose(sq, np.sum(ev.e[:, 0] ** 2, axis=1), rtol=1e-9)
     ws = weights[:, 0] / sigma[0] ** 2
@@ -660,6 +665,35 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     np.testing.assert_allclose(grad, ev.g_theta - np.einsum("npc,nc->p", ev.b, y), rtol=1e-9,
                                atol=1e-9 * np.abs(grad).max())
     assert cost == pytest.approx(ev.cost - float(np.sum(ev.g_d * y)), rel=1e-9)
+
+
+def test_the_one_sensor_fit_with_closed_form_directions_reaches_the_general_fits_optimum(monkeypatch) -> None:
+    """One sensor: the fit's Levenberg-Marquardt steps with each direction at its closed-form optimum (one
+    reduced row per set) end where the general steps (a 2 x 2 block per set eliminated) end, spikes
+    excluded alike, within a hundredth of the stated 1-sigma (the two costs differ only at second order in
+    the noise), with the same uncertainty."""
+    from magcal_ros.core import array_fit
+
+    rng = np.random.default_rng(21)
+    sim = ArraySimulation(ArrayGeometry.single(), (random_sensor_errors(rng, hard_iron_sd=300 * NT,
+                                                                       soft_iron_sd=0.02),),
+                          earth_field(F, 60.0, -5.0), noise=1 * NT)
+    rec, _ = sim.run(uniform_random(3000, 5), rng=6)
+    raw = rec.vectors.copy()
+    raw[::250, 0] += 400 * NT  # spikes for the robust rounds to exclude
+    runs = {}
+    for general in (False, True):
+        if general:
+            monkeypatch.setattr(array_fit, "_rank_one", lambda model: False)
+        runs[general] = calibrate_array(raw, sim.geometry, F, options=SolveOptions(max_solve_sets=0))
+    fast, slow = runs[False], runs[True]
+    a = {(q.sensor, q.name): (q.value, q.sigma) for q in slow.identifiability.quantities if q.sigma > 0}
+    b = {(q.sensor, q.name): (q.value, q.sigma) for q in fast.identifiability.quantities if q.sigma > 0}
+    assert a.keys() == b.keys() and len(a) >= 9
+    assert max(abs(b[k][0] - a[k][0]) / a[k][1] for k in a) < 0.01
+    assert max(abs(b[k][1] / a[k][1] - 1.0) for k in a) < 0.01
+    np.testing.assert_array_equal(fast.outliers, slow.outliers)
+    assert fast.outliers[0] >= 12
 
 
 def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chunks(monkeypatch):
@@ -716,9 +750,12 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
     sigma = rng.uniform(0.005, 0.02, s)
     fast = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
     reduced = fast.reduced()  # (before anything builds its B)
+    step = rng.normal(size=s * model.size)
+    pulled = fast.b_times(step)  # (from the features, no B built)
     monkeypatch.setattr(array_fit, "STRUCTURED", False)
     dense = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
-    for a, b in ((fast.a_blocks, dense.a_blocks), (fast.b, dense.b), (fast.set_scores, dense.set_scores),
+    for a, b in ((fast.a_blocks, dense.a_blocks), (pulled, np.einsum("npc,p->nc", dense.b, step)),
+                 (fast.b, dense.b), (fast.set_scores, dense.set_scores),
                  (fast.information(), dense.information()), (reduced[0], dense.information()),
                  *zip(reduced[:2], dense.reduced()[:2])):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())

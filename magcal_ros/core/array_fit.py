@@ -21,6 +21,7 @@ the excluded readings settle.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -433,6 +434,20 @@ class _Eval:
             self._b = b.reshape(n, s * p, 2)
         return self._b
 
+    def b_times(self, step: Array) -> Array:
+        """(N, 2) ``B_k^T step`` for each set: how a parameter step pulls each set's direction (from the
+        features when the blocks are structured, without building ``B``)."""
+        if self._b is not None or self._features is None:
+            return np.einsum("npc,p->nc", self.b, step)
+        wphi, wcol = self._features
+        s, q = wphi.shape[1], wphi.shape[2]
+        p, lin = self.shape[1], 3 * q
+        st = step.reshape(s, p)
+        pulled = np.einsum("nsj,saj->nsa", wphi, st[:, :lin].reshape(s, 3, q))  # (N, S, 3)
+        if wcol is not None:
+            pulled = pulled + wcol * st[None, :, lin, None]
+        return np.einsum("nsac,nsa->nc", self.m, pulled)
+
     def reduced(self) -> tuple[Array, Array, float]:
         """The normal equations with each set's direction at its optimum: (information ``A - sum_k B_k
         C_k^-1 B_k^T``, gradient ``g - sum_k B_k C_k^-1 g_k``, cost), whitened, no damping.
@@ -581,6 +596,30 @@ def _cost(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInpu
     return cost
 
 
+def _invertible(model: ForwardModel, theta: Array) -> bool:
+    """Finite parameters whose every sensor matrix ``K`` can be inverted (a correction exists)."""
+    return bool(np.all(np.isfinite(theta)) and np.all(np.abs(np.linalg.det(model.split(theta)[0][:, :, :3])) > 1e-12))
+
+
+def _damped_step(schur: Array, rhs: Array, free: NDArray[np.bool_], size: int, lam: float,
+                 accept: Callable[[Array], bool]) -> tuple[float, bool]:
+    """One Levenberg-Marquardt step on a reduced system: ``-(S + lam D)^-1 rhs`` on the ``free`` parameters
+    (``D`` the diagonal of ``S``), ``lam`` raised tenfold until ``accept(step)`` (size ``size``) takes one,
+    then lowered tenfold; returns (lam, whether a step was taken)."""
+    diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
+    while lam < 1e10:
+        step = np.zeros(size)
+        try:
+            step[free] = -np.linalg.solve(schur + lam * diag, rhs)
+        except (np.linalg.LinAlgError, ValueError):
+            lam *= 10
+            continue
+        if accept(step):
+            return max(lam / 10, 1e-12), True
+        lam *= 10
+    return lam, False
+
+
 def _solve_lm(
     model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
     sigma: Array, prior: ParameterPrior, iterations: int, tolerance: float, fixed: NDArray[np.bool_],
@@ -594,7 +633,12 @@ def _solve_lm(
     marked ``fixed`` (S, P) keep their values. With the global blocks (``att``) their parameters
     join the reduced system after the sensors'; a weak prior (:data:`~magcal_ros.core.attitude_blocks.
     WEAK_GLOBAL_SIGMA`) about ``global_start`` keeps the directions the data leave free finite.
+    One sensor whose readings are linear in the model (:func:`_rank_one`): :func:`_solve_rank_one`.
     """
+    if att is None and _rank_one(model):
+        theta, d, steps = _solve_rank_one(model, theta, x, inputs, weights, sigma, prior, iterations, tolerance,
+                                          fixed)
+        return theta, d, steps, None
     s, p = theta.shape
     ng = model.global_size if att is not None else 0
     free = np.concatenate([~fixed.reshape(-1), ~att.inputs.fixed(model) if att is not None else np.zeros(0, bool)])
@@ -615,48 +659,84 @@ def _solve_lm(
         diff = deviation(tv, a)
         return float(np.sum(prec * diff * diff))
 
-    def invertible(tv: Array) -> bool:
-        return bool(np.all(np.isfinite(tv)) and np.all(np.abs(np.linalg.det(model.split(tv)[0][:, :, :3])) > 1e-12))
-
-    cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
+    cur: _Eval | None = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
     cost = cur.cost + prior_cost(theta, att)
     done = False
     for steps in range(1, iterations + 1):
+        if cur is None:  # (evaluated here, not after the step: the last accepted step needs no evaluation)
+            cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
         info, grad, _ = cur.reduced()
         schur = (info + np.diag(prec))[np.ix_(free, free)]
         rhs = (grad + prec * deviation(theta, att))[free]
-        c_inv = _inv2(cur.c)
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
-        diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
-        improved = False
-        while lam < 1e10:
-            step = np.zeros(s * p + ng)
-            try:
-                step[free] = -scipy.linalg.solve(schur + lam * diag, rhs, assume_a="sym")
-            except (np.linalg.LinAlgError, ValueError):
-                lam *= 10
-                continue
-            dd = -np.einsum("nab,nb->na", c_inv, cur.g_d + np.einsum("npc,p->nc", cur.b, step))
+        at = cur
+        c_inv = _inv2(at.c)
+
+        def accept(step: Array) -> bool:
+            nonlocal theta, d, cost, att, done, cur
             t_new = theta + step[: s * p].reshape(s, p)
+            if not _invertible(model, t_new):
+                return False
+            dd = -np.einsum("nab,nb->na", c_inv, at.g_d + at.b_times(step))
             a_new = None if att is None else att.moved(step[s * p :], model)
-            d_new = d + np.einsum("nac,nc->na", cur.basis, dd)
+            d_new = d + np.einsum("nac,nc->na", at.basis, dd)
             d_new /= row_norms(d_new)[:, None]
-            if not invertible(t_new):
-                lam *= 10
-                continue
             new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)
-            if new_cost <= cost:
-                lam = max(lam / 10, 1e-12)
-                done = cost - new_cost <= tolerance * max(cost, 1e-300)
-                theta, d, cost, att = t_new, d_new, new_cost, a_new
-                cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
-                improved = True
-                break
-            lam *= 10
+            if new_cost > cost:
+                return False
+            done = cost - new_cost <= tolerance * max(cost, 1e-300)
+            theta, d, cost, att, cur = t_new, d_new, new_cost, a_new, None
+            return True
+
+        lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept)
         if not improved or done:
             break
     return theta, d, steps, att
+
+
+def _solve_rank_one(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, weights: Array, sigma: Array,
+                    prior: ParameterPrior, iterations: int, tolerance: float,
+                    fixed: NDArray[np.bool_]) -> tuple[Array, Array, int]:
+    """:func:`_solve_lm` for one sensor whose readings are linear in the model: each set's direction at its
+    optimum in closed form (its corrected reading's, :func:`_single_sensor_rows`, one reduced row per set
+    instead of a 2 x 2 block to eliminate) and the cost those rows linearise (each set's residual along the
+    normal of its direction's plane, as in :func:`_single_sensor_pass`). Returns (theta, directions, steps)."""
+    free = ~fixed.reshape(-1)
+    prec = prior.precision().reshape(-1)
+    mean = prior.flat_mean().reshape(-1)
+    ws = weights[:, 0] / sigma[0] ** 2
+
+    def evaluate(th: Array) -> tuple[Array, Array, Array, float]:
+        rows, along, _, d = _single_sensor_rows(model, th, x, inputs)
+        dev = th.reshape(-1) - mean
+        return rows, along, d, float(ws @ (along * along)) + float(np.sum(prec * dev * dev))
+
+    rows, along, d, cost = evaluate(theta)
+    lam, steps, done = 1e-4, 0, False
+    for steps in range(1, iterations + 1):
+        wr = rows * ws
+        schur = (wr @ rows.T + np.diag(prec))[np.ix_(free, free)]
+        rhs = (wr @ along + prec * (theta.reshape(-1) - mean))[free]
+        if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
+            break
+
+        def accept(step: Array) -> bool:
+            nonlocal theta, rows, along, d, cost, done
+            t_new = theta + step.reshape(theta.shape)
+            if not _invertible(model, t_new):
+                return False
+            new = evaluate(t_new)
+            if new[3] > cost:
+                return False
+            done = cost - new[3] <= tolerance * max(cost, 1e-300)
+            theta, (rows, along, d, cost) = t_new, new
+            return True
+
+        lam, improved = _damped_step(schur, rhs, free, theta.size, lam, accept)
+        if not improved or done:
+            break
+    return theta, np.ascontiguousarray(d.T), steps
 
 
 def _outliers(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
@@ -1110,8 +1190,9 @@ def _single_sensor_rows(model: ForwardModel, theta: Array, x: Array,
                         inputs: SetInputs) -> tuple[Array, Array, Array, Array]:
     """One sensor, readings linear in the model (no gain or lag block), readings ``x`` (N, 1, 3) F,
     each set's direction at its optimum ``d`` (the corrected reading ``b = K^-1 (x - rest)``
-    normalised): (rows of the reduced Jacobian (N, P), the residual along them (N,), the squared
-    residual (N,), ``d`` (N, 3)).
+    normalised): (rows of the reduced Jacobian, one column per set (P, N), the residual along them
+    (N,), the squared residual (N,), ``d`` (3, N)). Sets run along the last axis: every product below
+    is then a long contiguous loop.
 
     With its direction free, a set constrains the model only along the normal ``nu`` of the plane
     its direction's tangents map to, ``K^-T d``: the Schur complement of the direction is
@@ -1120,16 +1201,17 @@ def _single_sensor_rows(model: ForwardModel, theta: Array, x: Array,
     along ``nu``: ``(1 - |b|) / |K^-T d|``."""
     w = model.split(theta)[0][0]  # (3, q)
     k_inv = np.linalg.inv(w[:, :3])
-    rest = inputs.rest_features(1)[:, 0]  # (N, q - 3)
-    b = (x[:, 0] - rest @ w[:, 3:].T) @ k_inv.T
-    size = row_norms(b)
-    d = b / np.where(size > 0, size, 1.0)[:, None]
-    d[size == 0] = (0.0, 0.0, 1.0)
-    nu = d @ k_inv
-    nu_size = row_norms(nu)
-    e = (d - b) @ w[:, :3].T
-    rows = ((nu / nu_size[:, None])[:, :, None] * np.concatenate([d, rest], axis=1)[:, None, :]).reshape(len(d), -1)
-    return rows, (1.0 - size) / nu_size, np.einsum("na,na->n", e, e), d
+    rest = inputs.rest_features(1)[:, 0].T  # (q - 3, N)
+    b = k_inv @ (x[:, 0].T - w[:, 3:] @ rest)
+    size = np.sqrt(np.einsum("an,an->n", b, b))
+    d = b / np.where(size > 0, size, 1.0)
+    d[:, size == 0] = [[0.0], [0.0], [1.0]]
+    nu = k_inv.T @ d
+    nu_size = np.sqrt(np.einsum("an,an->n", nu, nu))
+    e = w[:, :3] @ (d - b)
+    phi = np.concatenate([d, rest])  # (q, N)
+    rows = ((nu / nu_size)[:, None, :] * phi[None, :, :]).reshape(-1, len(size))
+    return rows, (1.0 - size) / nu_size, np.einsum("an,an->n", e, e), d
 
 
 def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, sigma: float,
@@ -1150,14 +1232,14 @@ def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: Set
         if weights is None:
             used[sl, 0] = _weigh(sq / sigma**2, bound)
         ws = used[sl, 0] / sigma**2
-        vertical[sl] = d[:, 2]
-        wr = rows * ws[:, None]
+        vertical[sl] = d[2]
+        wr = rows * ws
         start = lo
         for k in range(int(np.searchsorted(ends, lo, side="right")), len(parts)):
             stop = min(int(ends[k]), lo + len(sl))
             a, z = start - lo, stop - lo
-            infos[k] += wr[a:z].T @ rows[a:z]
-            grads[k] += along[a:z] @ wr[a:z]
+            infos[k] += wr[:, a:z] @ rows[:, a:z].T
+            grads[k] += wr[:, a:z] @ along[a:z]
             start = stop
             if stop == lo + len(sl):
                 break
@@ -1174,7 +1256,7 @@ def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Ar
     for h_k, g_k in zip(infos, grads):
         h = basis.T @ (total - h_k) @ basis
         try:
-            step = basis @ scipy.linalg.solve(h, basis.T @ g_k, assume_a="sym")
+            step = basis @ np.linalg.solve(h, basis.T @ g_k)
         except (np.linalg.LinAlgError, ValueError):
             step = np.zeros(len(total))
         out.append(theta.reshape(-1) + step)
@@ -1238,9 +1320,8 @@ def refine_on_all(solution: JointSolution, raw: Array, currents: Array | None = 
     first = _full_pass(model, theta, x, inputs, rates_at(theta), sigma, chunk, parts)
     h_all = first.information + np.diag(prec)
     try:
-        step = -basis @ scipy.linalg.solve(basis.T @ h_all @ basis,
-                                           basis.T @ (first.gradient + prec * (theta.reshape(-1) - mean)),
-                                           assume_a="sym")
+        step = -basis @ np.linalg.solve(basis.T @ h_all @ basis,
+                                        basis.T @ (first.gradient + prec * (theta.reshape(-1) - mean)))
     except (np.linalg.LinAlgError, ValueError):
         step = np.zeros(s * model.size)
     best, best_pass = theta, first

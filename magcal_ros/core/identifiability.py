@@ -305,8 +305,10 @@ VARIANCE_CHUNK: int = 8192
 """Directions evaluated at a time by :func:`predicted_tmi_variance` (keeps the work in cache)."""
 
 
-def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int = VARIANCE_CHUNK) -> Array:
-    """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S).
+def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int = VARIANCE_CHUNK,
+                           combine: Array | None = None) -> Array:
+    """Predicted variance of ``|b_i| / F`` from the calibration alone at each direction: (A, S);
+    with ``combine`` (S,) the sum of the sensors' variances weighted by it: (A, 1), as cheap as one sensor.
 
     From ``b = M (r - o - E u)`` with ``r = K F d + E u + o``: a parameter error gives
     ``db = -M (dK F d + do + dE u)`` and the TMI error ``d^T db`` (no current, u = 0), which is
@@ -323,6 +325,8 @@ def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int =
         t = np.kron(mats[i], np.eye(4))
         forms[:, i, :] = t @ cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)] @ t.T
     fold = _FOLD.T @ forms.reshape(12, s, 12).transpose(1, 0, 2) @ _FOLD  # (S, 9, 9)
+    if combine is not None:  # a weighted sum of quadratic forms in the same numbers: one form
+        fold, s = np.einsum("s,sab->ab", np.asarray(combine, dtype=float), fold)[None], 1
     forms = fold.transpose(1, 0, 2).reshape(9, s * 9)
     d = np.asarray(directions, dtype=float)
     out = np.empty((len(d), s))
@@ -434,8 +438,10 @@ def _roll_basis(roll_deg: Array) -> Array:
     return np.column_stack([np.ones(len(r)), np.stack([np.cos(r), np.sin(r)], axis=2).reshape(len(r), -1)])
 
 
-def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, roll_deg: Array) -> Array:
-    """(P, R, Y, S) :func:`predicted_tmi_variance` at every attitude of :func:`attitude_directions`.
+def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, roll_deg: Array,
+                  combine: Array | None = None) -> Array:
+    """(P, R, Y, S) :func:`predicted_tmi_variance` at every attitude of :func:`attitude_directions`
+    (S = 1 with ``combine``: the sensors' variances summed with those weights).
 
     Along roll the variance is a trigonometric polynomial of degree :data:`ROLL_HARMONICS`, so it
     is computed exactly (to rounding) from ``2 H + 1`` rolls and interpolated to the others: the
@@ -444,7 +450,7 @@ def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, ro
     probes = np.arange(2 * ROLL_HARMONICS + 1) * 360.0 / (2 * ROLL_HARMONICS + 1)
     dirs = attitude_directions(inclination, pitch_deg, probes)  # (P, K, Y, 3)
     p, k, y, _ = dirs.shape
-    at_probes = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3)).reshape(p, k, -1)  # (P, K, Y S)
+    at_probes = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3), combine=combine).reshape(p, k, -1)  # (P, K, Y S)
     coef = np.linalg.solve(_roll_basis(probes), at_probes.transpose(1, 0, 2).reshape(k, -1))  # (K, P Y S)
     var = (_roll_basis(roll_deg) @ coef).reshape(len(roll_deg), p, y, -1).transpose(1, 0, 2, 3)
     return np.clip(var, 0.0, None)
@@ -461,9 +467,9 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     f_noise = np.asarray(noise, dtype=float)
     grid_p = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
     grid_r = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
-    var = variance_grid(w, cov, inclination, grid_p, grid_r)  # (P, R, Y, S) in units of F^2
     sigma_f = f_noise / intensity  # noise in units of F, like the predicted variance
-    sq = 1.0 + (var @ (1.0 / sigma_f**2)) / len(sigma_f)  # the squared ratio, (P, R, Y)
+    # the squared ratio, (P, R, Y): the sensors' variances over their noise, averaged
+    sq = 1.0 + variance_grid(w, cov, inclination, grid_p, grid_r, combine=1.0 / sigma_f**2 / len(sigma_f))[..., 0]
     worst = np.sqrt(sq.max(axis=2))  # over yaw, (P, R)
     # fold signs: a box |p| <= P, |r| <= R
     npos, rpos = len(PITCH_GRID), len(ROLL_GRID)

@@ -115,7 +115,18 @@ def quadric_design(points: ArrayLike) -> Array:
 def _centred_quadric_design(x: Array, norms: Array) -> Array:
     """:func:`quadric_design` of points already centred, ``norms`` (N,) their distances from the centre."""
     a, b, c = (x / max(float(np.median(norms)), 1e-300)).T
-    return np.column_stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c, 2 * a, 2 * b, 2 * c, np.ones(len(x))])
+    out = np.empty((10, len(x)))  # filled a monomial at a time, each contiguous; returned as (N, 10)
+    np.multiply(a, a, out=out[0])
+    np.multiply(b, b, out=out[1])
+    np.multiply(c, c, out=out[2])
+    np.multiply(a, 2 * b, out=out[3])
+    np.multiply(a, 2 * c, out=out[4])
+    np.multiply(b, 2 * c, out=out[5])
+    np.multiply(a, 2.0, out=out[6])
+    np.multiply(b, 2.0, out=out[7])
+    np.multiply(c, 2.0, out=out[8])
+    out[9] = 1.0
+    return out.T
 
 
 def excitation(readings: ArrayLike) -> Excitation:

@@ -318,10 +318,10 @@ def stuck_axis(readings: Array) -> tuple[int, float, float] | None:
     r = np.asarray(readings, dtype=float)
     if not len(r):
         return None
-    for axis in range(3):
+    for axis, column in enumerate(np.array(r.T)):  # (each axis contiguous)
         # a value held in more than half the readings holds the middle of their sorted order
-        value = np.partition(r[:, axis], len(r) // 2)[len(r) // 2]
-        count = int(np.count_nonzero(r[:, axis] == value))
+        value = np.partition(column, len(r) // 2)[len(r) // 2]
+        count = int(np.count_nonzero(column == value))
         if count > STUCK_FRACTION * len(r):
             return axis, float(value), count / len(r)
     return None

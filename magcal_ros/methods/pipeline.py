@@ -211,8 +211,9 @@ def check_raw(raw: ArrayLike, geometry: ArrayGeometry) -> Array:
     r = np.asarray(raw, dtype=float)
     if r.ndim != 3 or r.shape[1:] != (geometry.size, 3):
         raise InputError(f"raw sets must have shape (N, {geometry.size}, 3), got {r.shape}")
-    bad = ~np.all(np.isfinite(r), axis=(1, 2))
-    if np.any(bad):
+    finite = np.isfinite(r)
+    if not finite.all():
+        bad = ~np.all(finite, axis=(1, 2))
         raise InputError(f"{int(bad.sum())} sets contain NaN or infinite values (first at index {int(np.argmax(bad))})")
     check_tesla(r, geometry.names, "raw sets")
     return r
