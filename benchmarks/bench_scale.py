@@ -10,7 +10,7 @@ then checked on fresh attitudes against the simulator's truth: TMI RMS against t
 and tensor RMS against the floor sqrt(2) sigma / d. At the smallest size the solve with every
 set in every stage (``--max-solve-sets 0``) runs too: what the reduction costs in accuracy.
 
-Single sensor: ``calibrate_array`` on 20,000 sets of one sensor (best of 3) against MAGYC's
+Single sensor: ``calibrate_array`` on 20,000 sets of one sensor (best of 10) against MAGYC's
 closed-form ellipsoid fit (Fang et al., 2011) on the same readings, run in a separate
 virtual environment (``magyc`` pins numpy < 2, so it never shares the package's). The
 environment is made on first use (needs the package index); ``--no-magyc`` skips it.
@@ -149,10 +149,12 @@ FANG = """
 import sys, time, numpy as np, magyc
 x = np.load(sys.argv[1])
 best = 1e9
-for _ in range(3):
+for _ in range(int(sys.argv[2])):
     t0 = time.perf_counter(); magyc.ellipsoid_fit_fang(x); best = min(best, time.perf_counter() - t0)
 print(best)
 """
+REPEATS = 10
+"""Runs of each single-sensor solve, magcal's and MAGYC's; the best counts (a shared host's neighbours come and go)."""
 
 
 def single(use_magyc: bool, count: int = 20_000) -> None:
@@ -160,7 +162,7 @@ def single(use_magyc: bool, count: int = 20_000) -> None:
     rec, _ = sim.run(smooth_tumble(count, 9), rng=10, rate=50.0, continuous=True)
     calibrate_array(rec.vectors[:2000], sim.geometry, F)  # warm-up (imports, caches)
     best, res = np.inf, None
-    for _ in range(3):
+    for _ in range(REPEATS):
         t0 = time.perf_counter()
         res = calibrate_array(rec.vectors, sim.geometry, F, stamps=rec.stamps)
         best = min(best, time.perf_counter() - t0)
@@ -181,7 +183,7 @@ def single(use_magyc: bool, count: int = 20_000) -> None:
             env.pop("OMP_NUM_THREADS", None)
             if threads == "1":
                 env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = "1"
-            times[threads] = float(subprocess.run([str(py), "-c", FANG, str(path)], capture_output=True, text=True,
+            times[threads] = float(subprocess.run([str(py), "-c", FANG, str(path), str(REPEATS)], capture_output=True, text=True,
                                                   check=True, env=env).stdout.strip())
     fang = min(times.values())
     print(f"  MAGYC Fang ellipsoid fit {fang:.4f} s (BLAS threads default {times['default']:.4f} s, one "

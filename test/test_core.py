@@ -648,7 +648,7 @@ def one_sensor_problem(seed: int, n: int):  # type: ignore[no-untyped-def]
 def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost, residual) equal those
     of the general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
-    from magcal_ros.core.array_fit import _Eval, _single_sensor_rows
+    from magcal_ros.core.array_fit import _Eval, _rank_one_information, _single_sensor_rows
 
     model, theta, x, inputs, rng = one_sensor_problem(4, 400)
     n = len(x)
@@ -665,6 +665,10 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     np.testing.assert_allclose(grad, ev.g_theta - np.einsum("npc,nc->p", ev.b, y), rtol=1e-9,
                                atol=1e-9 * np.abs(grad).max())
     assert cost == pytest.approx(ev.cost - float(np.sum(ev.g_d * y)), rel=1e-9)
+    # the fit's closing information and each set's score, from the same rows
+    info_fit, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
+    np.testing.assert_allclose(info_fit, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
+    np.testing.assert_allclose(scores, ev.scores(), rtol=1e-9, atol=1e-9 * np.abs(ev.scores()).max())
 
 
 def test_the_one_sensor_fit_with_closed_form_directions_reaches_the_general_fits_optimum(monkeypatch) -> None:

@@ -931,8 +931,11 @@ def fit_array(
     weights = np.where(weights < 0.5, 0.0, weights)
     e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
     sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
-    final = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
-    info, scores = final.information(), final.scores()
+    if att is None and _rank_one(model):
+        info, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
+    else:
+        final = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
+        info, scores = final.information(), final.scores()
     if att is None:
         return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
     red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model))
@@ -1212,6 +1215,15 @@ def _single_sensor_rows(model: ForwardModel, theta: Array, x: Array,
     phi = np.concatenate([d, rest])  # (q, N)
     rows = ((nu / nu_size)[:, None, :] * phi[None, :, :]).reshape(-1, len(size))
     return rows, (1.0 - size) / nu_size, np.einsum("an,an->n", e, e), d
+
+
+def _rank_one_information(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, weights: Array,
+                          sigma: float) -> tuple[Array, Array]:
+    """One sensor linear in the model (:func:`_single_sensor_rows`): the information (P, P) and each set's
+    score (N, P) with its direction at its optimum, what :class:`_Eval` gives by eliminating 2 x 2 blocks."""
+    rows, along, _, _ = _single_sensor_rows(model, theta, x, inputs)
+    wr = rows * (weights[:, 0] / sigma**2)
+    return wr @ rows.T, (wr * along).T
 
 
 def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, sigma: float,
