@@ -379,17 +379,34 @@ for workers in ("1", "2"):
         out[workers] = stats.sets
     except InputError as exc:
         out[workers] = str(exc)
+if len(sys.argv) > 3:  # interrupted while the child parses: the parent's half raises
+    parent, real = os.getpid(), csv_recording._fast_chunk
+    def failing(*args):
+        if os.getpid() == parent:
+            raise KeyboardInterrupt
+        return real(*args)
+    csv_recording._fast_chunk = failing
+    try:
+        csv_recording.read_csv(sys.argv[1])
+    except KeyboardInterrupt:
+        out["interrupted"] = True
+    try:
+        os.waitpid(-1, os.WNOHANG)
+        out["left"] = "a child"
+    except ChildProcessError:
+        out["left"] = "none"
 print(json.dumps({"out": out, "forked": forked}))
 """
 
 
-@pytest.mark.parametrize("bad_line", [None, 7, 55])
+@pytest.mark.parametrize("bad_line", [None, 7, 55, "interrupted"])
 def test_a_long_csv_parsed_in_two_halves_side_by_side_gives_the_one_process_result(tmp_path: Path,
-                                                                                   bad_line: int | None) -> None:
+                                                                                   bad_line: int | str | None) -> None:
     """With a second core a long CSV's second half is parsed in a forked child meanwhile (the ``magcal``
     command runs one thread, so a fork copies no held lock): exactly the values, stamps and temperatures
-    one process reads, and a bad line in either half is still named by its line number. Run in a fresh
-    interpreter, as the command runs."""
+    one process reads, and a bad line in either half is still named by its line number; interrupted
+    (Ctrl-C) while the child parses, the child is stopped and reaped. Run in a fresh interpreter, as the
+    command runs."""
     import json
     import subprocess
     import sys
@@ -397,17 +414,21 @@ def test_a_long_csv_parsed_in_two_halves_side_by_side_gives_the_one_process_resu
     rec, _, _ = run(thermal_imu_spec(count=60))
     path = tmp_path / "long.csv"
     write_csv(path, Recording(rec.names, rec.stamps, rec.vectors, temperatures=rec.temperatures))
-    if bad_line is not None:  # a ragged line in the parent's half (7) or in the child's (55)
+    if isinstance(bad_line, int):  # a ragged line in the parent's half (7) or in the child's (55)
         lines = path.read_text().splitlines()
         lines[bad_line - 1] += ",1.0"
         path.write_text("\n".join(lines) + "\n")
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    done = subprocess.run([sys.executable, "-c", HALVES_SCRIPT, str(path), str(tmp_path / "v")], env=env,
+    extra = ["interrupt"] if bad_line == "interrupted" else []
+    done = subprocess.run([sys.executable, "-c", HALVES_SCRIPT, str(path), str(tmp_path / "v"), *extra], env=env,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert report["forked"] == [False, True]  # one worker: no child; two: the second half in a child
-    if bad_line is None:
+    assert report["forked"][:2] == [False, True]  # one worker: no child; two: the second half in a child
+    if bad_line == "interrupted":
+        assert report["forked"] == [False, True, True]
+        assert report["out"]["interrupted"] is True and report["out"]["left"] == "none"
+    elif bad_line is None:
         assert report["out"] == {"1": len(rec), "2": len(rec)}
         one, two = np.load(tmp_path / "v1.npy"), np.load(tmp_path / "v2.npy")
         np.testing.assert_array_equal(two, one)

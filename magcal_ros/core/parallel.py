@@ -93,24 +93,29 @@ class ForkedFill:
     def __init__(self, pid: int, buf: mmap.mmap) -> None:
         self.pid = pid
         self.buf = buf
+        self.reaped = False
 
     def result(self) -> mmap.mmap | None:
         """Wait for the child: the shared memory it filled, or None when its input was not as expected
         or it failed (the caller then does that share itself)."""
         _, status = os.waitpid(self.pid, 0)
+        self.reaped = True
         if os.waitstatus_to_exitcode(status) == 0:
             return self.buf
         self.buf.close()
         return None
 
     def cancel(self) -> None:
-        """Stop and reap the child (this process failed before asking for the result)."""
-        try:
-            os.kill(self.pid, 9)
-            os.waitpid(self.pid, 0)
-        except OSError:
-            pass
-        self.buf.close()
+        """Stop and reap the child (this process failed, or was interrupted, before it had the result)."""
+        if not self.reaped:  # (a reaped child's number may be another process's by now)
+            try:
+                os.kill(self.pid, 9)
+                os.waitpid(self.pid, 0)
+            except OSError:
+                pass
+            self.reaped = True
+        if not self.buf.closed:
+            self.buf.close()
 
 
 def as_array(buf: mmap.mmap | memoryview, dtype: type, shape: tuple[int, ...], offset: int = 0) -> np.ndarray:

@@ -285,10 +285,10 @@ def _fast_columns(text: str, start: int, end: int, width: int, checked: list[int
         return parse(chunks)
     try:
         head = parse(first)
-    except BaseException:
+        buf = child.result()
+    except BaseException:  # (Ctrl-C too: the child is stopped and reaped, not left behind)
         child.cancel()
         raise
-    buf = child.result()
     if head is None:
         if buf is not None:
             buf.close()
