@@ -774,3 +774,21 @@ def test_the_chi_square_quantiles_are_scipys(dof: float) -> None:
     for p in (1e-5, 0.01, 0.5, 0.9):
         assert chi2_isf(p, dof) == pytest.approx(stats.chi2.isf(p, dof), rel=1e-12)
     assert chi2_isf(0.5, dof) == pytest.approx(stats.chi2.median(dof), rel=1e-12)
+
+
+def test_the_one_rq_decomposition_gives_an_upper_factor_with_a_positive_diagonal_for_one_matrix_or_a_stack():
+    """``K = U Q`` (the sensor model's decomposition, the identifiability's and the frame's gauge): ``U``
+    upper triangular with a positive diagonal, ``Q`` orthogonal, for one matrix and a stack alike."""
+    from magcal_ros.core.rotation import rq_positive
+
+    rng = np.random.default_rng(3)
+    stack = np.eye(3) + rng.normal(0, 0.3, (50, 3, 3))
+    stack[::7] *= -1.0  # a negative determinant: Q takes the sign
+    upper, q = rq_positive(stack)
+    np.testing.assert_allclose(upper @ q, stack, atol=1e-12)
+    np.testing.assert_allclose(q @ np.swapaxes(q, 1, 2), np.broadcast_to(np.eye(3), (50, 3, 3)), atol=1e-12)
+    assert np.all(np.tril(upper, -1) == 0.0) or np.abs(np.tril(upper, -1)).max() < 1e-12
+    assert np.all(np.diagonal(upper, axis1=1, axis2=2) > 0)
+    one_upper, one_q = rq_positive(stack[4])
+    np.testing.assert_allclose(one_upper, upper[4], atol=1e-14)
+    np.testing.assert_allclose(one_q, q[4], atol=1e-14)

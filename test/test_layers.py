@@ -70,17 +70,18 @@ def test_the_layer_check_catches_a_planted_upward_import(tmp_path: Path) -> None
 
 
 def test_the_command_line_starts_without_the_slow_scipy_modules() -> None:
-    """``scipy.stats`` and ``scipy.optimize`` take about a second each to import, ``scipy.spatial`` a
-    third: a calibration needs none of them (its chi-square quantiles come from ``scipy.special``), so
-    ``magcal`` (its whole parser) and the solver do not load them at start (the few functions that use
-    them import them when called)."""
+    """``scipy.stats`` and ``scipy.optimize`` take about a second each to import, ``scipy.spatial`` and
+    ``scipy.linalg`` a third: a calibration needs none of them (its chi-square quantiles come from
+    ``scipy.special``, its solves and decompositions from numpy), so ``magcal`` (its whole parser) and
+    the solver do not load them at start (the few functions that use them import them when called)."""
     import os
     import subprocess
     import sys
 
     code = ("import sys, magcal_ros.app.cli, magcal_ros.methods.pipeline, magcal_ros.core.array_fit; "
             "magcal_ros.app.cli.build_parser(); "
-            "print(sorted(m for m in ('scipy.stats', 'scipy.optimize', 'scipy.spatial') if m in sys.modules))")
+            "print(sorted(m for m in ('scipy.stats', 'scipy.optimize', 'scipy.spatial', 'scipy.linalg') "
+            "if m in sys.modules))")
     env = dict(os.environ, PYTHONPATH=str(PACKAGE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.strip() == "[]"

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 from scipy.special import gammainccinv
 from numpy.typing import NDArray
 
@@ -35,6 +34,7 @@ from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
 from magcal_ros.core.batched import per_sensor, per_sensor_columns, row_norms
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.parallel import map_in_threads
+from magcal_ros.core.rotation import rq_positive
 from magcal_ros.errors import CalibrationFailed, InputError
 
 Array = NDArray[np.float64]
@@ -966,7 +966,7 @@ def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bo
     keep = np.flatnonzero(~fixed) + sp
     h_gg = info[np.ix_(keep, keep)] + np.eye(len(keep)) * att_blocks.WEAK_GLOBAL_SIGMA ** -2.0
     h_sg = info[:sp][:, keep]
-    k = scipy.linalg.solve(h_gg, h_sg.T, assume_a="sym")  # H_gg^-1 H_gs
+    k = np.linalg.solve(h_gg, h_sg.T)  # H_gg^-1 H_gs
     red = info[:sp, :sp] - h_sg @ k
     return 0.5 * (red + red.T), scores[:, :sp] - scores[:, keep] @ k
 
@@ -1001,8 +1001,7 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
     """Rotate the platform frame so that the virtual centre sensor ``mean(K_i)`` is upper
     triangular (Li et al.'s convention: the centre sensor's own axes made orthogonal)."""
     k = solution.w[:, :, :3]
-    upper, qmat = scipy.linalg.rq(k.mean(axis=0))
-    qmat = np.sign(np.diag(upper))[:, None] * qmat
+    qmat = rq_positive(k.mean(axis=0))[1]
     model = solution.model
     theta = solution.theta.copy()
     w = theta[:, : 3 * model.q].reshape(model.sensors, 3, model.q)
@@ -1012,7 +1011,9 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
     extra: dict[str, Any] = {}
     if solution.globals is not None and solution.full_information is not None and solution.full_scores is not None:
         # the global parameters do not turn with the frame (A's angles are about the IMU axes)
-        full = scipy.linalg.block_diag(tinv, np.eye(model.global_size))
+        full = np.zeros((len(tinv) + model.global_size,) * 2)
+        full[: len(tinv), : len(tinv)] = tinv
+        full[len(tinv) :, len(tinv) :] = np.eye(model.global_size)
         extra = {"globals": solution.globals.rotated(qmat), "full_information": full.T @ solution.full_information @ full,
                  "full_scores": solution.full_scores @ full, "attitude": solution.attitude,
                  "attitude_sigma": solution.attitude_sigma,

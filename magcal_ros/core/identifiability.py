@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.forward_model import ForwardModel
+from magcal_ros.core.rotation import rq_positive
 from magcal_ros.core.units import NT
 from magcal_ros.errors import InputError
 
@@ -78,18 +79,6 @@ class Quantity:
         return f"{self.sensor} {self.name} {self.value:.4g} +- {sigma} {self.unit}"
 
 
-def _rq_positive(k: Array) -> tuple[Array, Array]:
-    """``K = U Q`` for a stack (B, 3, 3): ``U`` upper triangular with a positive diagonal, ``Q``
-    orthogonal (unique for a non-singular ``K``; from a QR decomposition of the flipped transpose)."""
-    flip = np.eye(3)[::-1]
-    q1, r1 = np.linalg.qr(np.swapaxes(k, 1, 2) @ flip)  # K^T J = Q1 R1, so K = (J R1^T J)(J Q1^T)
-    upper = flip @ np.swapaxes(r1, 1, 2) @ flip
-    q = flip @ np.swapaxes(q1, 1, 2)
-    signs = np.sign(np.diagonal(upper, axis1=1, axis2=2))
-    signs[signs == 0] = 1.0
-    return upper * signs[:, None, :], signs[:, :, None] * q
-
-
 def _phys_many(thetas: Array, f: float, model: ForwardModel) -> Array:
     """Physical vectors (B, Q) of B parameter vectors (B, P) of one sensor, in :func:`quantity_names`
     order: offsets (T), scales, angles (rad), misalignment (rad), interference D (T/A, platform frame,
@@ -104,7 +93,7 @@ def _phys_many(thetas: Array, f: float, model: ForwardModel) -> Array:
     k = w_row[:, :, :3] * np.where(det < 0, -1.0, 1.0)[:, None, None]
     if not np.all(np.isfinite(k)) or np.any(det == 0):
         raise InputError("K must be a finite 3x3 matrix with positive determinant")
-    upper, q = _rq_positive(k)
+    upper, q = rq_positive(k)
     scale = np.linalg.norm(upper, axis=2)
     a = upper / scale[:, :, None]
     angles = np.stack([np.arcsin(np.clip(a[:, 0, 2], -1, 1)), np.arctan2(a[:, 0, 1], a[:, 0, 0]),

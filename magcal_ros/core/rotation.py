@@ -33,6 +33,20 @@ def azimuth(gamma: float) -> Array:
     return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def rq_positive(k: ArrayLike) -> tuple[Array, Array]:
+    """``K = U Q`` for a matrix or a stack (..., 3, 3): ``U`` upper triangular with a positive diagonal,
+    ``Q`` orthogonal (unique for a non-singular ``K``; from a QR decomposition of the flipped transpose,
+    the whole stack at once)."""
+    kk = np.asarray(k, dtype=float)
+    flip = np.eye(3)[::-1]
+    q1, r1 = np.linalg.qr(np.swapaxes(kk, -1, -2) @ flip)  # K^T J = Q1 R1, so K = (J R1^T J)(J Q1^T)
+    upper = flip @ np.swapaxes(r1, -1, -2) @ flip
+    q = flip @ np.swapaxes(q1, -1, -2)
+    signs = np.sign(np.diagonal(upper, axis1=-2, axis2=-1))
+    signs[signs == 0] = 1.0
+    return upper * signs[..., None, :], signs[..., :, None] * q
+
+
 def euler_to_matrix(alpha: float, beta: float, gamma: float) -> Array:
     """Sensor-to-platform matrix ``T = Ta(alpha) Tb(beta) Tg(gamma)`` (angles in rad)."""
     return heel(alpha) @ pitch(beta) @ azimuth(gamma)

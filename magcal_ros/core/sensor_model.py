@@ -17,10 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core.rotation import euler_to_matrix, matrix_to_euler
+from magcal_ros.core.rotation import euler_to_matrix, matrix_to_euler, rq_positive
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
@@ -103,10 +102,7 @@ class SensorErrors:
         kk = np.asarray(k, dtype=float)
         if kk.shape != (3, 3) or not np.all(np.isfinite(kk)) or np.linalg.det(kk) <= 0:
             raise InputError("K must be a finite 3x3 matrix with positive determinant")
-        upper, q = scipy.linalg.rq(kk)
-        signs = np.sign(np.diag(upper))
-        upper = upper * signs[None, :]
-        q = signs[:, None] * q
+        upper, q = rq_positive(kk)
         scale = np.linalg.norm(upper, axis=1)
         a = upper / scale[:, None]
         phi = float(np.arcsin(np.clip(a[0, 2], -1, 1)))
