@@ -432,3 +432,70 @@ def test_bad_stamps_in_a_row_never_take_a_sensor_off_the_common_timeline() -> No
             sets += len(sync.engine.add_all(index, stamp, 1e-5, 2e-5, 3e-5, t + 1_000_000))
     assert sets >= 396  # the two bad stamps cost their own sets, nothing more
     assert sync.stats.glitch + sync.stats.duplicate >= 1 and sync.stats.sets == sets
+
+
+def _table(rng: np.random.Generator, n: int, sensors: int, start: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` rows at 20 ms (with jitter) from ``start`` ns: stamps and (n, S, 3) readings tagged by row."""
+    stamps = start + np.cumsum(rng.integers(19 * MS, 21 * MS, n)).astype(np.int64)
+    values = np.zeros((n, sensors, 3))
+    values[:, :, 0] = np.arange(n)[:, None] * 1e-9 + start * 1e-18
+    values[:, :, 1] = np.arange(sensors)[None, :] * 1e-6
+    return stamps, values
+
+
+@pytest.mark.parametrize("reject_zero", [False, True])
+def test_a_tables_rows_form_the_sets_and_counts_each_sensors_messages_form(reject_zero: bool) -> None:
+    """``add_rows`` (a CSV's rows: every sensor at each stamp) gives exactly the sets, counts and stamp
+    history that offering each sensor's messages (``add_batch``) gives, block after block: clean blocks
+    (formed at once), and blocks with a NaN and an out-of-range reading, a repeated and an older stamp, a
+    glitch, a restart and a zero stamp, which take the rule's way."""
+    rng = np.random.default_rng(4)
+    sensors = 3
+    blocks = []
+    clean, values = _table(rng, 500, sensors, 10 * NS)
+    blocks.append((clean, values))  # clean
+    s, v = _table(rng, 300, sensors, int(clean[-1]))
+    v[40, 1] = np.nan  # a NaN reading of one sensor
+    v[41, 2, 0] = 1.0  # out of range (1 T)
+    blocks.append((s, v))
+    s2, v2 = _table(rng, 200, sensors, int(s[-1]))
+    blocks.append((s2, v2))  # clean again after the faults (nothing left queued?)
+    s3, v3 = _table(rng, 200, sensors, int(s2[-1]))
+    s3[10] = s3[9]  # repeated
+    s3[20] = s3[18]  # older
+    blocks.append((s3, v3))
+    s3, v3 = _table(rng, 200, sensors, int(s3[-1]))
+    s3[100] += 400 * NS  # a glitch, far off the sequence
+    blocks.append((s3, v3))
+    s3, v3 = _table(rng, 200, sensors, int(s3[-1]))
+    s3[-1] += 400 * NS  # a glitch in a block's last row: in order within its block, held as a suspect
+    blocks.append((s3, v3))
+    s3, v3 = _table(rng, 200, sensors, int(s3[-2]))
+    blocks.append((s3, v3))
+    s4, v4 = _table(rng, 200, sensors, int(s3[-1]) - 30 * NS)  # a restart: 30 s back
+    if reject_zero:
+        s4[5] = 0
+    blocks.append((s4, v4))
+    s5, v5 = _table(rng, 300, sensors, int(s4[-1]))
+    blocks.append((s5, v5))
+    rows = SetSynchronizer(sensors, 0, max_pending=10_000, reject_zero=reject_zero, max_reading=1e-3)
+    each = SetSynchronizer(sensors, 0, max_pending=10_000, reject_zero=reject_zero, max_reading=1e-3)
+    fast_blocks = 0
+    for i, (stamps, vals) in enumerate(blocks):
+        final = i == len(blocks) - 1
+        before = rows.stats.sets
+        rows.add_rows(stamps, vals)
+        fast_blocks += len(rows._formed) > 0 and rows.stats.sets - before == len(stamps)
+        for k in range(sensors):
+            each.add_batch(k, stamps, vals[:, k])
+        a, b = rows.pop(final), each.pop(final)
+        np.testing.assert_array_equal(a.stamps, b.stamps)
+        np.testing.assert_array_equal(a.vectors, b.vectors)
+        assert rows.stats == each.stats, (i, rows.stats, each.stats)
+        for k in range(sensors):
+            x, y = rows.streams[k], each.streams[k]
+            assert (x.last, x.lastc, x.base, list(x.intervals), x.period) == (y.last, y.lastc, y.base,
+                                                                                list(y.intervals), y.period)
+    assert fast_blocks >= 2  # the clean blocks were formed at once
+    assert rows.stats.nonfinite == 1 and rows.stats.out_of_range == 1 and rows.stats.duplicate >= 1
+    assert rows.stats.used + rows.stats.dropped() + rows.pending == sensors * sum(len(s) for s, _ in blocks)

@@ -168,6 +168,8 @@ class SetSynchronizer(AcceptanceRule):
         self._values: list[list[Vector]] = [[] for _ in range(sensors)]
         self._arrays: list[NDArray[np.float64]] = [np.empty((0, 3)) for _ in range(sensors)]
         self._head = [0] * sensors
+        self._formed: list[SetBatch] = []
+        """Sets :meth:`add_rows` formed, for the next :meth:`pop`."""
 
     # -- state ------------------------------------------------------------------------
     @property
@@ -267,9 +269,50 @@ class SetSynchronizer(AcceptanceRule):
         at = np.arange(first, len(full))
         return not np.any(SUSPECT_PERIODS[1] * full[at] > SUSPECT_PERIODS[0] * median[at - PERIOD_WINDOW])
 
+    def add_rows(self, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
+        """Queue the rows of a table: every sensor's message at each of ``stamps`` (n,) ns, ``vectors``
+        (n, S, 3) T, in order. Each sensor's messages are what :meth:`add_batch` takes; where nothing
+        is queued and every sensor's acceptance passes every row as it is (stamps newer than all
+        before, no suspect, every reading usable, one timeline), the rows are the sets the rule
+        forms, and they are formed here at once (released by the next :meth:`pop`)."""
+        s = np.asarray(stamps, dtype=np.int64).reshape(-1)
+        v = np.asarray(vectors, dtype=float).reshape(len(s), self.size, 3)
+        if not len(s):
+            return
+        sensors = range(self.size)
+        plain = (all(len(self._stamps[k]) == self._head[k] and self.streams[k].held is None
+                     and self.streams[k].base == 0 for k in sensors)
+                 and not (self.reject_zero and s[0] <= 0) and bool(np.all(s[1:] > s[:-1]))
+                 and all(s[0] > self.streams[k].last and self._plain(k, s) for k in sensors)
+                 and not any(np.logical_or.reduce(list(acceptance.reading_faults(v[:, k], self.max_reading).values())).any()
+                             for k in sensors))
+        if not plain:
+            for k in sensors:
+                self.add_batch(k, s, v[:, k])
+            return
+        for k in sensors:  # each sensor's acceptance, as add_batch would keep it; nothing to queue
+            self._accept_batch(k, s, v[:, k], None)
+        self.stats.sets += len(s)
+        self.stats.used += self.size * len(s)
+        self._formed.append(SetBatch(np.repeat(s[:, None], self.size, axis=1), v.copy()))
+
     def _batch_fast(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
                     r: NDArray[np.int64] | None) -> None:
         """Vectorised acceptance of a batch without suspects (same outcome as :meth:`accept`)."""
+        accepted = self._accept_batch(index, s, v, r)
+        if accepted is None:
+            return
+        kept, values, caps = accepted
+        st = self.streams[index]
+        self._raws[index].extend(kept.tolist())
+        self._stamps[index].extend((kept + st.base).tolist() if st.base else kept.tolist())
+        self._caps[index].extend(caps.tolist())
+        self._arrays[index] = np.concatenate([self._arrays[index], values])
+
+    def _accept_batch(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64], r: NDArray[np.int64] | None
+                      ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]] | None:
+        """The acceptance of :meth:`_batch_fast` (counts, the sensor's stamp history): the accepted
+        usable messages' stamps, readings and window caps, or None when none is left."""
         stats, st = self.stats, self.streams[index]
         if self.reject_zero:
             faults = acceptance.stamp_faults(s)
@@ -280,7 +323,7 @@ class SetSynchronizer(AcceptanceRule):
                 s, v = s[~bad], v[~bad]
                 r = None if r is None else r[~bad]
         if not len(s):
-            return
+            return None
         prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
         ordered = s > prev
         stats.duplicate += int(np.count_nonzero(s == prev))
@@ -289,7 +332,7 @@ class SetSynchronizer(AcceptanceRule):
         if r is not None:
             r = r[ordered]
         if not len(s):
-            return
+            return None
         caps = self._batch_caps(index, s)
         st.last = int(s[-1])
         st.lastc = st.last + st.base
@@ -300,11 +343,7 @@ class SetSynchronizer(AcceptanceRule):
         for name, mask in faults.items():
             stats.count(name, int(mask.sum()))
         finite = ~np.logical_or.reduce(list(faults.values()))  # usable readings
-        kept = s[finite]
-        self._raws[index].extend(kept.tolist())
-        self._stamps[index].extend((kept + st.base).tolist() if st.base else kept.tolist())
-        self._caps[index].extend(caps[finite].tolist())
-        self._arrays[index] = np.concatenate([self._arrays[index], v[finite]])
+        return s[finite], v[finite], caps[finite]
 
     def _batch_scalar(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
                       r: NDArray[np.int64] | None) -> None:
@@ -353,15 +392,18 @@ class SetSynchronizer(AcceptanceRule):
                 self._queue_rows(k, self.release_held(k))
         formed = self._advance(final)
         s = self.size
+        batches, self._formed = self._formed, []  # (sets add_rows formed come first: older than any queued)
         if formed:
             idx = np.asarray(formed, dtype=np.int64).reshape(-1, s)
             stamps = np.stack([np.asarray(self._raws[k], dtype=np.int64)[idx[:, k]] for k in range(s)], axis=1)
             vectors = np.stack([self._arrays[k][idx[:, k]] for k in range(s)], axis=1)
-            batch = SetBatch(stamps, vectors)
-        else:
-            batch = empty_batch(s)
+            batches.append(SetBatch(stamps, vectors))
         self._compact(keep_values=False)
-        return batch
+        if not batches:
+            return empty_batch(s)
+        if len(batches) == 1:
+            return batches[0]
+        return SetBatch(np.concatenate([b.stamps for b in batches]), np.concatenate([b.vectors for b in batches]))
 
     # -- the rule ---------------------------------------------------------------------
     def _advance(self, final: bool) -> list[tuple[int, ...]]:

@@ -450,11 +450,12 @@ def read_csv(
     kept_parts = []
     for a in range(0, len(data), SYNC_ROWS):  # a block at a time, as a bag is read: memory stays bounded
         b = slice(a, a + SYNC_ROWS)
+        tags = np.where(row_ok[b, None], row[b, None] * np.array([1.0, 0.0, 0.0]), np.nan)
+        offered = np.empty((len(tags), len(names), 3))
         for k in range(len(names)):
             faulty = np.logical_or.reduce(list(reading_faults(vectors[b, k]).values()))
-            tag = row[b, None] * np.array([1.0, 0.0, 0.0])
-            tags = np.where(row_ok[b, None], tag, np.nan)
-            sync.add_batch(k, stamps[b], np.where(faulty[:, None], vectors[b, k], tags))
+            offered[:, k] = np.where(faulty[:, None], vectors[b, k], tags)
+        sync.add_rows(stamps[b], offered)  # a row is every sensor's message at its stamp
         sets = sync.pop(final=a + SYNC_ROWS >= len(data))
         kept_parts.append(np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64))
     kept = np.concatenate(kept_parts) if kept_parts else np.empty(0, np.int64)
