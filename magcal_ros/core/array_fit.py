@@ -233,9 +233,12 @@ def direction_rates(directions: Array, times: Array) -> Array:
     typical = float(np.median(positive))
     segment = np.concatenate([[0], np.cumsum((dt > RATE_GAP * typical) | (dt <= 0))])
     sorted_out = np.zeros((n, 3))
-    for lo in range(0, n, RATE_BLOCK):  # a block of sets at a time: memory stays bounded on long recordings
+
+    def block(lo: int) -> None:  # a block of sets at a time: memory stays bounded on long recordings
         rows = np.arange(lo, min(lo + RATE_BLOCK, n))
         sorted_out[rows] = _local_slopes(ts, ds, segment, typical, rows)
+
+    map_in_threads(block, range(0, n, RATE_BLOCK))  # (blocks apart: spare cores take some)
     out[order] = sorted_out
     return out
 
