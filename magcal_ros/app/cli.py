@@ -870,7 +870,8 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:  # type: ignore[typ
     p.add_argument("--max-solve-sets", type=int, metavar="N", default=None,
                    help="sets the expensive stages use at most (default 1000 per sensor): a longer recording "
                    "is solved on a subset keeping its attitude coverage and time span, then refined in one "
-                   "pass over every set (the summary says so); 0: every set in every stage")
+                   "pass over every set (the summary says so; that pass and reading a long CSV use a second core "
+                   "when there is one, the same result; MAGCAL_WORKERS=1 keeps one); 0: every set in every stage")
     p.add_argument("--max-residual", type=float, metavar="TESLA",
                    help="accept a residual (per axis) up to this, instead of the noise-aware rule (17x the "
                    "noise the data show, or 5%% of F for sets in no time order)")
