@@ -140,13 +140,16 @@ def test_the_correction_node_corrects_for_temperature_in_the_imu_frame(warm: Arr
     assert len(rows) >= 0.95 * len(rec)
     b = np.stack([c[t] for t in sorted(c)])
     expected = true.apply(rec.vectors[rows], temperatures=rec.temperatures[rows])
-    own = np.all(np.isclose(b, expected, rtol=1e-9, atol=1e-18), axis=(1, 2))
-    # A set formed before its own temperature arrived (a loaded machine delays one topic more than
-    # another) takes the latest one received, an earlier set's: exactly that correction, and rarely.
-    for i in np.flatnonzero(~own):
+    own_sensor = np.all(np.isclose(b, expected, rtol=1e-9, atol=1e-18), axis=2)  # (sets, sensors)
+    own = own_sensor.all(axis=1)
+    # A set formed before a sensor's own temperature arrived (a loaded machine delays one topic more
+    # than another; each sensor's temperature is a topic of its own) takes that sensor's latest
+    # temperature received, an earlier set's: exactly that sensor's correction, and rarely.
+    for i, k in zip(*np.nonzero(~own_sensor)):
         r = int(rows[i])
-        earlier = true.apply(np.repeat(rec.vectors[r : r + 1], r, axis=0), temperatures=rec.temperatures[:r])
-        assert np.any(np.all(np.isclose(b[i], earlier, rtol=1e-9, atol=1e-18), axis=(1, 2))), (r, b[i], expected[i])
+        earlier = true.apply(np.repeat(rec.vectors[r : r + 1], r, axis=0), temperatures=rec.temperatures[:r])[:, k]
+        assert np.any(np.all(np.isclose(b[i, k], earlier, rtol=1e-9, atol=1e-18), axis=1)), (r, k, b[i, k],
+                                                                                             expected[i, k])
     assert own.sum() >= 0.95 * len(rows), f"{(~own).sum()} of {len(rows)} sets with an earlier set's temperature"
     rot = true.output_rotation
     err = b - warm_data.field[rows] @ rot.T
