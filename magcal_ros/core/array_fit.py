@@ -409,32 +409,31 @@ class _Eval:
             self.g_theta = g_theta.reshape(-1)
         self._b = b
 
+    def _by_features(self, v: Array) -> Array:
+        """(N, S P, ...) each set's structured Jacobian rows times ``v`` (N, S, 3, ...) (whitened, ``J^T W v``
+        per set): the features times ``v`` in each axis's linear columns, then the lag's column."""
+        wphi, wcol = self._features  # type: ignore[misc]
+        n, s, q = wphi.shape
+        tail = v.shape[3:]
+        out = np.empty((n, s, self.shape[1]) + tail)
+        out[:, :, : 3 * q] = (v[:, :, :, None] * wphi.reshape((n, s, 1, q) + (1,) * len(tail))).reshape(
+            (n, s, 3 * q) + tail)
+        if wcol is not None:
+            out[:, :, 3 * q] = np.einsum("nsa,nsa...->ns...", wcol, v)
+        return out.reshape((n, s * self.shape[1]) + tail)
+
     @property
     def set_scores(self) -> Array:
         """(N, S P + G) each set's contribution to the gradient, its direction held (whitened)."""
         if self._set_scores is None:
-            wphi, wcol = self._features  # type: ignore[misc]
-            n, s, q = wphi.shape
-            p = self.shape[1]
-            scores = np.empty((n, s, p))
-            scores[:, :, : 3 * q] = (self.e[:, :, :, None] * wphi[:, :, None, :]).reshape(n, s, 3 * q)
-            if wcol is not None:
-                scores[:, :, 3 * q] = np.einsum("nsa,nsa->ns", wcol, self.e)
-            self._set_scores = scores.reshape(n, s * p)
+            self._set_scores = self._by_features(self.e)
         return self._set_scores
 
     @property
     def b(self) -> Array:
         """(N, S P + G, 2) the couplings ``J^T W M`` of the parameters with each set's direction."""
         if self._b is None:
-            wphi, wcol = self._features  # type: ignore[misc]
-            n, s, q = wphi.shape
-            p = self.shape[1]
-            b = np.empty((n, s, p, 2))
-            b[:, :, : 3 * q] = (wphi[:, :, None, :, None] * self.m[:, :, :, None, :]).reshape(n, s, 3 * q, 2)
-            if wcol is not None:
-                b[:, :, 3 * q] = np.einsum("nsa,nsac->nsc", wcol, self.m)
-            self._b = b.reshape(n, s * p, 2)
+            self._b = self._by_features(self.m)
         return self._b
 
     def b_times(self, step: Array) -> Array:
@@ -469,10 +468,9 @@ class _Eval:
         p, lin = self.shape[1], 3 * q
         g = np.matmul(self.m, _chol2(c_inv)[:, None])  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
-        lin_rows = rows[:, :, :, :lin].reshape(n, 2, s, 3, q)  # a view (one axis split): written in place
-        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None, :, None, :], out=lin_rows)
-        if not np.may_share_memory(lin_rows, rows):
-            rows[:, :, :, :lin] = lin_rows.reshape(n, 2, s, lin)
+        # written in place: splitting the contiguous last axis of the view is a view too
+        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None, :, None, :],
+                    out=rows[:, :, :, :lin].reshape(n, 2, s, 3, q))
         my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
         corr = np.empty((s, p))
         corr[:, :lin] = np.einsum("nsa,nsj->saj", my, wphi).reshape(s, lin)

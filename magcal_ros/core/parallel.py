@@ -63,7 +63,7 @@ def can_fork() -> bool:
     return hasattr(os, "fork") and workers() > 1 and _single_threaded()
 
 
-def fill_in_child(nbytes: int, fill: Callable[[memoryview], bool]) -> "ForkedFill | None":
+def fill_in_child(nbytes: int, fill: Callable[[memoryview], bool]) -> ForkedFill | None:
     """Start ``fill(buffer)`` in a forked child, writing its result into ``nbytes`` of memory shared
     with this process; ``fill`` returns False when its input is not what it expected. Returns a handle
     to :meth:`ForkedFill.result` once this process has done its own share, or None when no child can

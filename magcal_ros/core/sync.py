@@ -283,15 +283,14 @@ class SetSynchronizer(AcceptanceRule):
         plain = (all(len(self._stamps[k]) == self._head[k] and self.streams[k].held is None
                      and self.streams[k].base == 0 for k in sensors)
                  and not (self.reject_zero and s[0] <= 0) and bool(np.all(s[1:] > s[:-1]))
-                 and all(s[0] > self.streams[k].last and self._plain(k, s) for k in sensors)
-                 and not any(np.logical_or.reduce(list(acceptance.reading_faults(v[:, k], self.max_reading).values())).any()
-                             for k in sensors))
-        if not plain:
+                 and all(s[0] > self.streams[k].last and self._plain(k, s) for k in sensors))
+        faults = [acceptance.reading_faults(v[:, k], self.max_reading) for k in sensors] if plain else []
+        if not plain or any(mask.any() for f in faults for mask in f.values()):
             for k in sensors:
                 self.add_batch(k, s, v[:, k])
             return
         for k in sensors:  # each sensor's acceptance, as add_batch would keep it; nothing to queue
-            self._accept_batch(k, s, v[:, k], None)
+            self._accept_batch(k, s, v[:, k], None, faults[k])
         self.stats.sets += len(s)
         self.stats.used += self.size * len(s)
         self._formed.append(SetBatch(np.repeat(s[:, None], self.size, axis=1), v.copy()))
@@ -309,10 +308,13 @@ class SetSynchronizer(AcceptanceRule):
         self._caps[index].extend(caps.tolist())
         self._arrays[index] = np.concatenate([self._arrays[index], values])
 
-    def _accept_batch(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64], r: NDArray[np.int64] | None
+    def _accept_batch(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64], r: NDArray[np.int64] | None,
+                      known: Mapping[str, NDArray[np.bool_]] | None = None,
                       ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]] | None:
         """The acceptance of :meth:`_batch_fast` (counts, the sensor's stamp history): the accepted
-        usable messages' stamps, readings and window caps, or None when none is left."""
+        usable messages' stamps, readings and window caps, or None when none is left. ``known``: the
+        readings' faults (:func:`~magcal_ros.core.acceptance.reading_faults`) when already found, for a
+        batch whose every stamp is accepted."""
         stats, st = self.stats, self.streams[index]
         if self.reject_zero:
             faults = acceptance.stamp_faults(s)
@@ -339,7 +341,7 @@ class SetSynchronizer(AcceptanceRule):
         st.last_receipt = None if r is None else int(r[-1])
         self.newest = max(self.newest, st.lastc)
         self.arrived(st.last_receipt)
-        faults = acceptance.reading_faults(v, self.max_reading)
+        faults = acceptance.reading_faults(v, self.max_reading) if known is None else known
         for name, mask in faults.items():
             stats.count(name, int(mask.sum()))
         finite = ~np.logical_or.reduce(list(faults.values()))  # usable readings

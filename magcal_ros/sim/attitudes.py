@@ -119,12 +119,13 @@ def tumble(count: int, step_deg: float = 3.0, rng: np.random.Generator | int | N
     about a slowly wandering axis by about ``step_deg`` per sample."""
     gen = np.random.default_rng(rng)
     axis = gen.normal(size=3)
-    out = [_tf().Rotation.random(random_state=gen)]
+    rotation = _tf().Rotation
+    out = [rotation.random(random_state=gen)]
     for _ in range(count - 1):
         axis = 0.97 * axis + 0.25 * gen.normal(size=3)
-        step = _tf().Rotation.from_rotvec(np.radians(step_deg) * axis / np.linalg.norm(axis))
+        step = rotation.from_rotvec(np.radians(step_deg) * axis / np.linalg.norm(axis))
         out.append(out[-1] * step)
-    return _tf().Rotation.concatenate(out).as_matrix()
+    return rotation.concatenate(out).as_matrix()
 
 
 SCHEDULES = {
