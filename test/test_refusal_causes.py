@@ -68,6 +68,30 @@ def test_a_stuck_axis_is_named_with_the_sensor_to_leave_out() -> None:
         calibrate_array(raw, ArrayGeometry.single("mag1"), F, stamps=rec.stamps)
 
 
+def test_a_stuck_axis_is_found_however_its_value_interleaves_with_others() -> None:
+    """The stuck test first rules out axes whose readings pair up into distinct neighbours; a value
+    held in more than half the readings, spread out as evenly as it can be (every other set, an odd
+    count, the last set), is still found, and one held in half or fewer is not."""
+    from magcal_ros.core import quality
+
+    rng = np.random.default_rng(4)
+    for n in list(range(1, 14)) + [101, 1000]:
+        for _ in range(300 if n < 14 else 20):
+            r = rng.normal(size=(n, 2, 3)) * 1e-5
+            held = rng.random((n, 2, 3)) < rng.uniform(0.3, 0.8)
+            if rng.random() < 0.5:  # the most spread-out arrangement of (n + 1) // 2 values
+                held[:, 1, 2] = np.arange(n) % 2 == 0
+            r[held] = 2.5e-5
+            for sensor in range(2):
+                counts = [np.unique(r[:, sensor, a], return_counts=True)[1].max() for a in range(3)]
+                expected = next((a for a in range(3) if counts[a] > n / 2), None)
+                found = quality.stuck_axis(r[:, sensor])
+                assert (None if found is None else found[0]) == expected, (n, sensor, counts, found)
+            cause = quality.saturation(("a", "b"), r)[1]
+            first = next((i for i in range(2) if quality.stuck_axis(r[:, i]) is not None), None)
+            assert (cause is not None and "stuck" in cause) == (first is not None)
+
+
 @pytest.mark.parametrize("name", ["cross", "cube8"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_a_uniform_field_is_not_called_non_uniform(name: str, seed: int) -> None:

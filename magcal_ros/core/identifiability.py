@@ -305,28 +305,40 @@ def predicted_tmi_variance(w: Array, cov: Array, directions: Array, chunk: int =
     ``(d^T M) (x) [d, 1] = (d (x) [d, 1]) (M (x) I_4)``, every sensor's form acts on the same
     numbers per direction, the 9 distinct ones of ``d (x) [d, 1]``: one product for all sensors.
     """
+    forms = _variance_forms(w, cov, combine)
+    d = np.asarray(directions, dtype=float)
+    out = np.empty((len(d), len(forms)))
+    for lo in range(0, len(d), chunk):
+        out[lo : lo + chunk] = _quadratic_forms(forms, d[lo : lo + chunk].T).T
+    return np.clip(out, 0, None)
+
+
+def _variance_forms(w: Array, cov: Array, combine: Array | None = None) -> Array:
+    """(S, 9, 9) each sensor's quadratic form of :func:`predicted_tmi_variance` in the 9 distinct
+    numbers of ``d (x) [d, 1]`` (``d_a d_b`` for a <= b, then ``d``); (1, 9, 9) their sum weighted by ``combine``."""
     s, _, q = w.shape
     p = cov.shape[0] // s  # parameters per sensor: W first, then any non-linear ones
     mats = np.linalg.inv(w[:, :, :3])
     keep = (np.arange(3)[:, None] * q + np.arange(4)[None, :]).reshape(-1)  # K and o entries
-    forms = np.empty((12, s, 12))
+    forms = np.empty((s, 12, 12))
     for i in range(s):
-        t = np.kron(mats[i], np.eye(4))
-        forms[:, i, :] = t @ cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)] @ t.T
-    fold = _FOLD.T @ forms.reshape(12, s, 12).transpose(1, 0, 2) @ _FOLD  # (S, 9, 9)
+        t = (mats[i][:, None, :, None] * np.eye(4)[None, :, None, :]).reshape(12, 12)  # M (x) I_4
+        forms[i] = t @ cov[i * p : (i + 1) * p, i * p : (i + 1) * p][np.ix_(keep, keep)] @ t.T
+    fold = _FOLD.T @ forms @ _FOLD  # (S, 9, 9)
     if combine is not None:  # a weighted sum of quadratic forms in the same numbers: one form
-        fold, s = np.einsum("s,sab->ab", np.asarray(combine, dtype=float), fold)[None], 1
-    forms = fold.transpose(1, 0, 2).reshape(9, s * 9)
-    d = np.asarray(directions, dtype=float)
-    out = np.empty((len(d), s))
-    for lo in range(0, len(d), chunk):
-        dt = d[lo : lo + chunk].T  # (3, A): rows contiguous
-        z = np.empty((len(dt[0]), 9))
-        for k, (i, j) in enumerate(zip(*_PAIRS)):
-            np.multiply(dt[i], dt[j], out=z[:, k])
-        z[:, 6:] = dt.T
-        out[lo : lo + chunk] = np.einsum("asj,aj->as", (z @ forms).reshape(len(z), s, 9), z)
-    return np.clip(out, 0, None)
+        fold = np.einsum("s,sab->ab", np.asarray(combine, dtype=float), fold)[None]
+    return fold
+
+
+def _quadratic_forms(forms: Array, dt: Array) -> Array:
+    """(S, A) the forms (S, 9, 9) of :func:`_variance_forms` at directions given by component, ``dt`` (3, A)."""
+    z = np.empty((9, dt.shape[1]))  # the 9 numbers, each contiguous
+    for k, (i, j) in enumerate(zip(*_PAIRS)):
+        np.multiply(dt[i], dt[j], out=z[k])
+    z[6:] = dt
+    fz = (forms.reshape(-1, 9) @ z).reshape(len(forms), 9, -1)  # (S, 9, A)
+    fz *= z
+    return fz.sum(axis=1)
 
 
 _PAIRS = (np.array([0, 1, 2, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2]))
@@ -352,26 +364,26 @@ def attitude_directions(inclination: float, pitch_deg: Array, roll_deg: Array, y
     World NED field of ``inclination`` (rad); platform to world ``R = Rz(yaw) Ry(pitch)
     Rx(roll)``; the platform-frame field is ``R^T B``. Returns (P, R, Y, 3).
     """
+    return np.moveaxis(_attitude_components(inclination, pitch_deg, roll_deg, yaw_steps), 0, -1)
+
+
+def _attitude_components(inclination: float, pitch_deg: Array, roll_deg: Array, yaw_steps: int = 12) -> Array:
+    """:func:`attitude_directions` component first: (3, P, R, Y), each component contiguous."""
     b = np.array([np.cos(inclination), 0.0, np.sin(inclination)])
     yaw = np.arange(yaw_steps) * 2 * np.pi / yaw_steps
-    p = np.radians(np.asarray(pitch_deg, dtype=float))
-    r = np.radians(np.asarray(roll_deg, dtype=float))
-    cy, sy = np.cos(yaw), np.sin(yaw)
+    p = np.radians(np.asarray(pitch_deg, dtype=float))[:, None, None]
+    r = np.radians(np.asarray(roll_deg, dtype=float))[None, :, None]
     # world -> body: Rx(roll)^T Ry(pitch)^T Rz(yaw)^T b
-    v1 = np.stack([cy * b[0] + sy * b[1], -sy * b[0] + cy * b[1], np.full_like(yaw, b[2])], axis=-1)  # (Y, 3)
-    cp, sp = np.cos(p), np.sin(p)
-    v2 = np.stack([
-        cp[:, None] * v1[None, :, 0] - sp[:, None] * v1[None, :, 2],
-        np.broadcast_to(v1[None, :, 1], (len(p), len(yaw))),
-        sp[:, None] * v1[None, :, 0] + cp[:, None] * v1[None, :, 2],
-    ], axis=-1)  # (P, Y, 3)
-    cr, sr = np.cos(r), np.sin(r)
-    v3 = np.stack([
-        np.broadcast_to(v2[:, None, :, 0], (len(p), len(r), len(yaw))),
-        cr[None, :, None] * v2[:, None, :, 1] + sr[None, :, None] * v2[:, None, :, 2],
-        -sr[None, :, None] * v2[:, None, :, 1] + cr[None, :, None] * v2[:, None, :, 2],
-    ], axis=-1)  # (P, R, Y, 3)
-    return v3
+    x1, y1, z1 = np.cos(yaw) * b[0], -np.sin(yaw) * b[0], b[2]  # (Y,): Rz^T b (b has no east part)
+    cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    out = np.empty((3, p.shape[0], r.shape[1], yaw_steps))
+    out[0] = cp * x1 - sp * z1  # Ry^T: (P, 1, Y), the same at every roll
+    z2 = sp * x1 + cp * z1
+    np.multiply(cr, y1, out=out[1])  # Rx^T: (P, R, Y)
+    out[1] += sr * z2
+    np.multiply(cr, z2, out=out[2])
+    out[2] -= sr * y1
+    return out
 
 
 @dataclass(frozen=True)
@@ -427,6 +439,12 @@ def _roll_basis(roll_deg: Array) -> Array:
     return np.column_stack([np.ones(len(r)), np.stack([np.cos(r), np.sin(r)], axis=2).reshape(len(r), -1)])
 
 
+_PROBES = np.arange(2 * ROLL_HARMONICS + 1) * 360.0 / (2 * ROLL_HARMONICS + 1)
+"""Rolls (deg) at which the variance is computed; the others are interpolated."""
+_FROM_PROBES = np.linalg.inv(_roll_basis(_PROBES))
+"""(2 H + 1, 2 H + 1): the roll polynomial's coefficients from its values at :data:`_PROBES`."""
+
+
 def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, roll_deg: Array,
                   combine: Array | None = None) -> Array:
     """(P, R, Y, S) :func:`predicted_tmi_variance` at every attitude of :func:`attitude_directions`
@@ -436,13 +454,25 @@ def variance_grid(w: Array, cov: Array, inclination: float, pitch_deg: Array, ro
     is computed exactly (to rounding) from ``2 H + 1`` rolls and interpolated to the others: the
     work of a few rolls instead of every one.
     """
-    probes = np.arange(2 * ROLL_HARMONICS + 1) * 360.0 / (2 * ROLL_HARMONICS + 1)
-    dirs = attitude_directions(inclination, pitch_deg, probes)  # (P, K, Y, 3)
-    p, k, y, _ = dirs.shape
-    at_probes = predicted_tmi_variance(w, cov, dirs.reshape(-1, 3), combine=combine).reshape(p, k, -1)  # (P, K, Y S)
-    coef = np.linalg.solve(_roll_basis(probes), at_probes.transpose(1, 0, 2).reshape(k, -1))  # (K, P Y S)
-    var = (_roll_basis(roll_deg) @ coef).reshape(len(roll_deg), p, y, -1).transpose(1, 0, 2, 3)
-    return np.clip(var, 0.0, None)
+    return np.clip(_variance_by_yaw(w, cov, inclination, pitch_deg, roll_deg, combine), 0.0, None).transpose(3, 2, 0, 1)
+
+
+def _variance_by_yaw(w: Array, cov: Array, inclination: float, pitch_deg: Array, roll_deg: Array,
+                     combine: Array | None) -> Array:
+    """:func:`variance_grid` before clipping, yaw first: (Y, S, R, P), each (R, P) contiguous."""
+    comps = _attitude_components(inclination, pitch_deg, _PROBES)  # (3, P, K, Y)
+    _, p, k, y = comps.shape
+    at_probes = _quadratic_forms(_variance_forms(w, cov, combine), comps.reshape(3, -1))  # (S, P K Y)
+    np.maximum(at_probes, 0.0, out=at_probes)  # as predicted_tmi_variance
+    interpolate = _roll_basis(roll_deg) @ _FROM_PROBES  # (R, K)
+    return interpolate @ np.ascontiguousarray(at_probes.reshape(-1, p, k, y).transpose(3, 0, 2, 1))  # (Y, S, K, P)
+
+
+_GRID_P = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
+_GRID_R = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
+_GRID_WEIGHT = (np.cos(np.radians(_GRID_P)) * np.gradient(_GRID_P))[:, None] * np.gradient(_GRID_R)[None, :]
+"""(P, R) weight of each pitch and roll of the signed grids, uniform over rotations: the yaw-pitch-roll
+measure is cos(pitch) d(yaw) d(pitch) d(roll), and the grids are not evenly spaced."""
 
 
 def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: float) -> Envelope:
@@ -454,12 +484,13 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     signs of pitch and roll) is. Among valid boxes the one with the largest solid angle wins.
     """
     f_noise = np.asarray(noise, dtype=float)
-    grid_p = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
-    grid_r = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
+    grid_p, grid_r = _GRID_P, _GRID_R
     sigma_f = f_noise / intensity  # noise in units of F, like the predicted variance
-    # the squared ratio, (P, R, Y): the sensors' variances over their noise, averaged
-    sq = 1.0 + variance_grid(w, cov, inclination, grid_p, grid_r, combine=1.0 / sigma_f**2 / len(sigma_f))[..., 0]
-    worst = np.sqrt(sq.max(axis=2))  # over yaw, (P, R)
+    # the squared ratio less one, (Y, R, P): the sensors' variances over their noise, averaged
+    var = _variance_by_yaw(w, cov, inclination, grid_p, grid_r, combine=1.0 / sigma_f**2 / len(sigma_f))[:, 0]
+    np.maximum(var, 0.0, out=var)
+    yaws = len(var)
+    worst = np.sqrt(1.0 + var.max(axis=0).T)  # over yaw, (P, R)
     # fold signs: a box |p| <= P, |r| <= R
     npos, rpos = len(PITCH_GRID), len(ROLL_GRID)
     folded = np.maximum.reduce([
@@ -468,26 +499,20 @@ def envelope(w: Array, cov: Array, noise: Array, intensity: float, inclination: 
     ])
     cum = np.maximum.accumulate(np.maximum.accumulate(folded, axis=0), axis=1)  # worst inside box
     valid = cum <= ENVELOPE_RATIO
-    best, best_area = (0, 0), -1.0
-    for i, pdeg in enumerate(PITCH_GRID):
-        js = np.flatnonzero(valid[i])
-        if not len(js):
-            continue
-        j = int(js[-1])
-        area = (np.sin(np.radians(pdeg)) + 0.01) * (ROLL_GRID[j] + 1.0)
-        if area > best_area:
-            best, best_area = (i, j), area
-    i, j = best
+    # per pitch limit its widest valid roll limit; the box of largest solid angle (the first on a tie)
+    has = valid.any(axis=1)
+    widest = len(ROLL_GRID) - 1 - np.argmax(valid[:, ::-1], axis=1)
+    area = np.where(has, (np.sin(np.radians(PITCH_GRID)) + 0.01) * (ROLL_GRID[widest] + 1.0), -1.0)
+    i = int(np.argmax(area))
+    j = int(widest[i]) if has[i] else 0
     inside = float(cum[i, j]) if valid[i, j] else float(folded[0, 0])
     pitch_lim = float(PITCH_GRID[i]) if valid[i, j] else 0.0
     roll_lim = float(ROLL_GRID[j]) if valid[i, j] else 0.0
-    # Uniform over rotations: the yaw-pitch-roll measure is cos(pitch) d(yaw) d(pitch) d(roll),
-    # and the grids are not evenly spaced.
-    weight = (np.cos(np.radians(grid_p)) * np.gradient(grid_p))[:, None] * np.gradient(grid_r)[None, :]  # (P, R)
-    over_yaw = sq.sum(axis=2)  # every yaw weighs the same
-    sphere = float(np.sqrt(np.sum(weight * over_yaw) / (np.sum(weight) * sq.shape[2])))
+    weight = _GRID_WEIGHT
+    over_yaw = yaws + var.sum(axis=0).T  # the squared ratio summed over yaw (every yaw weighs the same)
+    sphere = float(np.sqrt(np.sum(weight * over_yaw) / (np.sum(weight) * yaws)))
     out = (np.abs(grid_p)[:, None] > pitch_lim) | (np.abs(grid_r)[None, :] > roll_lim)
-    outside = float(np.sqrt(np.sum((weight * over_yaw)[out]) / (np.sum(weight[out]) * sq.shape[2]))) \
+    outside = float(np.sqrt(np.sum((weight * over_yaw)[out]) / (np.sum(weight[out]) * yaws))) \
         if out.any() else 1.0
     return Envelope(pitch_lim, roll_lim, float(np.degrees(inclination)), inside, sphere, outside)
 

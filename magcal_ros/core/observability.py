@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core.batched import column_means, row_norms
+from magcal_ros.core.batched import axis_major
 from magcal_ros.errors import InputError, ObservabilityError
 
 Array = NDArray[np.float64]
@@ -107,15 +107,16 @@ def gram_singular_values(design: Array) -> Array:
 
 def quadric_design(points: ArrayLike) -> Array:
     """Design matrix (N, 10) of a general quadric in normalised coordinates."""
-    x = np.asarray(points, dtype=float)
-    x = x - column_means(x)
-    return _centred_quadric_design(x, row_norms(x))
+    x = axis_major(points)
+    x = x - x.mean(axis=1)[:, None]
+    return _centred_quadric_design(x, np.sqrt(np.einsum("an,an->n", x, x)))
 
 
-def _centred_quadric_design(x: Array, norms: Array) -> Array:
-    """:func:`quadric_design` of points already centred, ``norms`` (N,) their distances from the centre."""
-    a, b, c = (x / max(float(np.median(norms)), 1e-300)).T
-    out = np.empty((10, len(x)))  # filled a monomial at a time, each contiguous; returned as (N, 10)
+def _centred_quadric_design(xt: Array, norms: Array) -> Array:
+    """:func:`quadric_design` of points already centred, by coordinate ``xt`` (3, N), ``norms`` (N,)
+    their distances from the centre."""
+    a, b, c = xt / max(float(np.median(norms)), 1e-300)
+    out = np.empty((10, len(norms)))  # filled a monomial at a time, each contiguous; returned as (N, 10)
     np.multiply(a, a, out=out[0])
     np.multiply(b, b, out=out[1])
     np.multiply(c, c, out=out[2])
@@ -139,16 +140,17 @@ def excitation(readings: ArrayLike) -> Excitation:
     n = len(r)
     if n < 3:
         return Excitation(n, np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.0, 0.0)
-    scale = float(np.mean(row_norms(r))) or 1.0
-    centred = r - column_means(r)
-    evals, evecs = np.linalg.eigh(centred.T @ centred / n)
+    rt = axis_major(r)  # (3, N): every pass below runs along contiguous rows
+    scale = float(np.mean(np.sqrt(np.einsum("an,an->n", rt, rt)))) or 1.0
+    centred = rt - rt.mean(axis=1)[:, None]
+    evals, evecs = np.linalg.eigh(centred @ centred.T / n)
     spread = np.sqrt(np.clip(evals[::-1], 0.0, None)) / scale
     normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
-    norms = row_norms(centred)
-    moved = centred if np.all(norms > 0) else centred[norms > 0]
+    norms = np.sqrt(np.einsum("an,an->n", centred, centred))
+    moved = centred if np.all(norms > 0) else centred[:, norms > 0]
     visited = 0
-    if len(moved):  # the cell of a direction: the nearest centre, the largest dot product (any length)
-        dots = sphere_cells() @ moved.T  # (cells, N)
+    if moved.shape[1]:  # the cell of a direction: the nearest centre, the largest dot product (any length)
+        dots = sphere_cells() @ moved  # (cells, N)
         visited = int(np.count_nonzero((dots == dots.max(axis=0)).any(axis=1)))
     ratio = 0.0
     if n >= 10:

@@ -28,12 +28,14 @@ Rules (documented in docs/quality.md), per sensor, on the fit's residuals in tim
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.scalar_fit import clipped_readings
+from magcal_ros.core.batched import axis_major, well_conditioned
+from magcal_ros.core.scalar_fit import clipped_axes
 from magcal_ros.core.stamps import ns_to_seconds
 from magcal_ros.core.uncertainty import autocorrelation, bandwidth
 from magcal_ros.core.units import NT
@@ -79,8 +81,8 @@ def white_noise(series: Array) -> Array:
     x = np.asarray(series, dtype=float).reshape(len(series), -1)
     if len(x) < 5:
         return np.full(x.shape[1], np.nan)
-    d2 = np.diff(x, n=2, axis=0)
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    d2 = np.diff(axis_major(x), n=2, axis=1)  # (K, N - 2): each column's series contiguous
+    mad = np.median(np.abs(d2 - np.median(d2, axis=1)[:, None]), axis=1)
     return 1.4826 * mad / np.sqrt(6.0)
 
 
@@ -141,11 +143,18 @@ def in_time_order(directions: Array) -> bool:
     d = np.asarray(directions, dtype=float)
     if len(d) < 10:
         return False
-    step = np.median(np.arccos(np.clip(np.sum(d[1:] * d[:-1], axis=1), -1.0, 1.0)))
-    gen = np.random.default_rng(0)
-    a, b = gen.integers(0, len(d), (2, min(len(d), 2000)))
-    spread = np.median(np.arccos(np.clip(np.sum(d[a] * d[b], axis=1), -1.0, 1.0)))
+    step = np.median(np.arccos(np.clip(np.einsum("na,na->n", d[1:], d[:-1]), -1.0, 1.0)))
+    a, b = _pairs(len(d))
+    spread = np.median(np.arccos(np.clip(np.einsum("na,na->n", d[a], d[b]), -1.0, 1.0)))
     return bool(step < ORDER_FRACTION * spread)
+
+
+@functools.lru_cache(maxsize=8)
+def _pairs(n: int) -> NDArray[np.int64]:
+    """(2, min(n, 2000)) the same pseudo-random pairs of n items on every call (read-only)."""
+    out = np.random.default_rng(0).integers(0, n, (2, min(n, 2000)))
+    out.flags.writeable = False
+    return out
 
 
 def longest_runs(mask: Array) -> float:
@@ -214,7 +223,11 @@ def _fit_explained(y: Array, design: Array) -> tuple[float, Array | None]:
     total = float(np.sum((y - y.mean(axis=0)) ** 2))
     if total <= 0 or len(y) <= design.shape[1] + 2:
         return 0.0, None
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    gram = design.T @ design
+    if well_conditioned(gram[None])[0]:  # the normal equations: a tenth of the SVD's time
+        coef = np.linalg.solve(gram, design.T @ y)
+    else:  # (columns near dependence: the minimum-norm solution)
+        coef, *_ = np.linalg.lstsq(design, y, rcond=None)
     return float(1.0 - np.sum((y - design @ coef) ** 2) / total), coef
 
 
@@ -225,7 +238,10 @@ def _segment_sse(sums: Array) -> Array:
     mean = sums[:, 0, 1:] / n[:, None]
     centred = sums[:, 1:, 1:] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]  # d and y about their means
     cdd, cdy, cyy = centred[:, :3, :3], centred[:, :3, 3], centred[:, 3, 3]
-    fit = np.einsum("ka,kab,kb->k", cdy, np.linalg.pinv(cdd, rcond=1e-12, hermitian=True), cdy)
+    if np.all(well_conditioned(cdd)):
+        fit = np.einsum("ka,ka->k", cdy, np.linalg.solve(cdd, cdy[:, :, None])[:, :, 0])
+    else:
+        fit = np.einsum("ka,kab,kb->k", cdy, np.linalg.pinv(cdd, rcond=1e-12, hermitian=True), cdy)
     return np.where(sums[:, 0, 0] > 0, np.maximum(cyy - fit, 0.0), 0.0)
 
 
@@ -236,10 +252,10 @@ def _step_explained(y: Array, d: Array, splits: NDArray[np.int64]) -> float:
     total = float(np.sum((y - y.mean()) ** 2))
     if total <= 0 or len(y) <= 7 + 3:  # as _explained with the step's seven columns
         return 0.0
-    z = np.column_stack([np.ones(len(y)), d, y])
-    running = np.cumsum(z[:, :, None] * z[:, None, :], axis=0)
-    before = np.concatenate([np.zeros((1, 5, 5)), running])[splits]
-    sse = _segment_sse(before) + _segment_sse(running[-1][None] - before)
+    z = np.concatenate([np.ones((1, len(y))), np.asarray(d, dtype=float).T, y[None]])  # (5, N), each row contiguous
+    running = np.cumsum((z[:, None, :] * z[None, :, :]).reshape(25, -1), axis=1)
+    before = np.where(splits > 0, running[:, np.maximum(splits - 1, 0)], 0.0).T.reshape(-1, 5, 5)  # rows < split
+    sse = _segment_sse(before) + _segment_sse(running[:, -1].reshape(1, 5, 5) - before)
     return float(np.max(1.0 - sse / total))
 
 
@@ -266,7 +282,8 @@ def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: 
     d = np.asarray(directions, dtype=float)
     design = np.column_stack([np.ones(len(y)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
     time_part, coef = _fit_explained(y, design)
-    quad = np.column_stack([d, d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]]])
+    # (d_z^2 = 1 - d_x^2 - d_y^2 for unit directions: with the constant, it adds nothing)
+    quad = np.column_stack([d, d[:, [0, 0, 1, 1, 2]] * d[:, [0, 1, 1, 2, 0]]])
     attitude_part = _explained(y, quad)
     # A sudden change (iron moved) is a step, not a drift: the best single split, offset and gain.
     step_part = _step_explained(y[:, 0], d, np.linspace(len(y) * 0.05, len(y) * 0.95, 37).astype(int))
@@ -315,16 +332,30 @@ def stuck_axis(readings: Array) -> tuple[int, float, float] | None:
     """(axis, value T, fraction) of an axis of one sensor's readings (N, 3) that holds one exact value
     in more than :data:`STUCK_FRACTION` of them, or None. A turning sensor's axis sweeps the field;
     even one clipped at full scale on one side cannot stay there for most of a rotation."""
-    r = np.asarray(readings, dtype=float)
-    if not len(r):
-        return None
-    for axis, column in enumerate(np.array(r.T)):  # (each axis contiguous)
+    columns = axis_major(readings)  # (3, N)
+    n = columns.shape[1]
+    for axis in np.flatnonzero(_may_hold_half(columns)):
         # a value held in more than half the readings holds the middle of their sorted order
-        value = np.partition(column, len(r) // 2)[len(r) // 2]
-        count = int(np.count_nonzero(column == value))
-        if count > STUCK_FRACTION * len(r):
-            return axis, float(value), count / len(r)
+        value = np.partition(columns[axis], n // 2)[n // 2]
+        count = int(np.count_nonzero(columns[axis] == value))
+        if count > STUCK_FRACTION * n:
+            return int(axis), float(value), count / n
     return None
+
+
+def _may_hold_half(columns: Array) -> NDArray[np.bool_]:
+    """(K,) False where no value of a series ``columns`` (K, N) fills more than half of it.
+
+    Such a value fills both entries of one of the pairs (0, 1), (2, 3), ... (for an odd N: or the last
+    entry and one of the two before it), so a series whose pairs are distinct is ruled out at once."""
+    k, n = columns.shape
+    if n < 3:
+        return np.full(k, n > 0)
+    half = n // 2
+    out = (columns[:, 0 : 2 * half : 2] == columns[:, 1 : 2 * half : 2]).any(axis=1)
+    if n % 2:
+        out |= (columns[:, -1] == columns[:, -2]) | (columns[:, -1] == columns[:, -3])
+    return out
 
 
 def stuck(names: tuple[str, ...], index: int, axis: int, value: float, fraction: float) -> str:
@@ -341,11 +372,12 @@ def saturation(names: tuple[str, ...], raw: Array) -> tuple[NDArray[np.bool_], s
     """(N, S) True for readings clipped at a sensor's full scale, and the cause of a refusal when a
     sensor has an axis stuck at one value (:func:`stuck_axis`) or more clipped readings than outlier
     exclusion may take (:data:`MAX_OUTLIER_FRACTION`)."""
-    for i in range(len(names)):
+    columns = axis_major(raw)  # (S 3, N)
+    for i in np.flatnonzero(_may_hold_half(columns).reshape(-1, 3).any(axis=1)):
         found = stuck_axis(raw[:, i])
         if found is not None:
-            return np.zeros(raw.shape[:2], bool), stuck(names, i, *found)
-    clipped = np.stack([clipped_readings(raw[:, i]) for i in range(len(names))], axis=1)
+            return np.zeros(raw.shape[:2], bool), stuck(names, int(i), *found)
+    clipped = clipped_axes(columns).T
     for i, name in enumerate(names):
         if clipped[:, i].mean() > MAX_OUTLIER_FRACTION:
             return clipped, saturated(name, float(clipped[:, i].mean()))
@@ -365,6 +397,7 @@ def judge(
     directions: Array | None = None,
     clipped: NDArray[np.bool_] | None = None,
     rates: Array | None = None,
+    smooth: bool | None = None,
 ) -> Verdict:
     """Apply the gates to a fit.
 
@@ -373,7 +406,8 @@ def judge(
     ``implied_gain``: the sensors' mean gain when a reference intensity was given;
     ``intensity`` F (T); ``directions`` (N, 3) unit field directions (smoothness);
     ``clipped`` (N, S) the readings at full scale (default: from :func:`saturation`); ``rates``
-    (N, 3) the field direction's rate of change (1/s), to tell a timing error.
+    (N, 3) the field direction's rate of change (1/s), to tell a timing error; ``smooth`` whether
+    the sets follow a continuous motion (:func:`in_time_order` of ``directions`` when None).
     """
     s = len(names)
     verdict = Verdict(excluded=np.sum(weights == 0, axis=0).astype(float))
@@ -392,7 +426,9 @@ def judge(
 
     if clipped is None:
         clipped = saturation(names, raw)[0]
-    smooth = directions is not None and in_time_order(directions)
+    if smooth is None:
+        smooth = directions is not None and in_time_order(directions)
+    smooth = smooth and directions is not None
     shapes: list[ResidualShape | None] = [None] * s
     if smooth and stamps_ns is not None:
         shapes = [residual_shape(tmi_residuals[:, i], residuals[:, i], weights[:, i] > 0, t, directions,  # type: ignore[arg-type]

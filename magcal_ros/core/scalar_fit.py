@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core.batched import axis_major
 from magcal_ros.errors import CalibrationFailed, InputError
 
 Array = NDArray[np.float64]
@@ -105,8 +106,10 @@ def algebraic_fit(readings: ArrayLike, intensity: float | None = None) -> Scalar
     f = _target(r, intensity)
     centre = r.mean(axis=0)
     scale = float(np.median(np.linalg.norm(r - centre, axis=1)))
-    _, _, vt = np.linalg.svd(np.linalg.qr(quadric_design(r), mode="r"))
-    m, o = decode_quadric(vt[-1], centre, scale, f)
+    design = quadric_design(r)
+    # the smallest right singular vector: the Gram matrix's last eigenvector (the design is normalised,
+    # its condition number ~1/quadric ratio, so squaring it leaves ample precision)
+    m, o = decode_quadric(np.linalg.eigh(design.T @ design)[1][:, 0], centre, scale, f)
     res = np.linalg.norm((r - o) @ m.T, axis=1) - f
     return ScalarFit(m, o, f, float(np.sqrt(np.mean(res**2))), method="linear")
 
@@ -222,21 +225,31 @@ def gross_readings(readings: ArrayLike) -> NDArray[np.bool_]:
     or clipped at a full-scale value (:func:`clipped_readings`). Algebraic fits weigh a reading
     by its squared distance, so two such samples can bend a closed-form start beyond repair."""
     r = _readings(readings)
-    dist = np.linalg.norm(r - np.median(r, axis=0), axis=1)
+    dist = np.linalg.norm(r - np.median(axis_major(r), axis=1), axis=1)
     return (dist > GROSS_RADIUS * max(float(np.median(dist)), 1e-300)) | clipped_readings(r)
 
 
 def clipped_readings(readings: ArrayLike) -> NDArray[np.bool_]:
     """(N,) True for readings with an axis at a full-scale value: the axis's largest or smallest
     value, repeated exactly in at least :data:`FULL_SCALE_FRACTION` of the readings (and 5)."""
-    r = _readings(readings)
-    out = np.zeros(len(r), bool)
-    least = max(5, int(np.ceil(FULL_SCALE_FRACTION * len(r))))
-    for axis in range(3):
-        for extreme in (r[:, axis].max(), r[:, axis].min()):
-            at = r[:, axis] == extreme
-            if at.sum() >= least:
-                out |= at
+    return clipped_sets(_readings(readings)[:, None, :])[:, 0]
+
+
+def clipped_sets(raw: Array) -> NDArray[np.bool_]:
+    """(N, S) :func:`clipped_readings` of every sensor of finite sets (N, S, 3) at once."""
+    return clipped_axes(axis_major(raw)).T
+
+
+def clipped_axes(columns: Array) -> NDArray[np.bool_]:
+    """(S, N) :func:`clipped_sets` from the sets' :func:`~magcal_ros.core.batched.axis_major` form (S 3, N)."""
+    k, n = columns.shape
+    out = np.zeros((k // 3, n), bool)
+    least = max(5, int(np.ceil(FULL_SCALE_FRACTION * n)))
+    for extreme in (columns.max(axis=1), columns.min(axis=1)):
+        at = columns == extreme[:, None]
+        full = np.count_nonzero(at, axis=1) >= least  # (S 3,): that extreme is a full scale
+        if full.any():
+            out |= (at & full[:, None]).reshape(k // 3, 3, n).any(axis=1)
     return out
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.batched import column_means
+from magcal_ros.core.batched import column_means, symmetric_inverse
 
 Array = NDArray[np.float64]
 
@@ -96,8 +96,8 @@ def _gauge_inverse(h_post: Array, gauge_constraints: Array | None) -> Array:
         _, sv, vt = np.linalg.svd(gauge_constraints)
         rank = int(np.sum(sv > 1e-12 * sv[0]))
         basis = vt[rank:].T  # null space of the constraints
-        return basis @ np.linalg.pinv(basis.T @ h_post @ basis, hermitian=True) @ basis.T
-    return np.linalg.pinv(h_post, hermitian=True)
+        return basis @ symmetric_inverse(basis.T @ h_post @ basis) @ basis.T
+    return symmetric_inverse(h_post)
 
 
 def covariance(

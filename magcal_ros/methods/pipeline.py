@@ -564,10 +564,12 @@ def _refine(sol: JointSolution, full: _AllSets, prior: ParameterPrior | None, bl
 def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDArray[np.int64],
              prior: ParameterPrior | None, channels: tuple[str, ...], currents: Array,
              jackknife: bool = True, blocks: BlockInputs | None = None,
-             like: Covariance | None = None, leave_out: Array | None = None) -> tuple[ident.Identifiability, Any]:
+             like: Covariance | None = None, leave_out: Array | None = None,
+             in_order: bool | None = None) -> tuple[ident.Identifiability, Any]:
     """Covariance (time-correlated, gauge-fixed or prior-held) and identifiability of a solution.
 
-    ``jackknife``: for a recording in time order, widen the covariance by the block jackknife.
+    ``jackknife``: for a recording in time order, widen the covariance by the block jackknife
+    (``in_order``: whether it is, :func:`quality.in_time_order` of the directions when None).
     ``like``: the covariance of the subset this solution was refined from: its widening for the
     time correlation applies, and the jackknife is ``leave_out`` (K, P) (every set's, in time order).
     Parameters the fit kept fixed (held at zero, the lag gauge) get no variance.
@@ -584,7 +586,9 @@ def _analyse(sol: JointSolution, raw: Array, geometry: ArrayGeometry, order: NDA
         like = replace(like, inflation=like.inflation / like.jackknife, jackknife=1.0)
     cov = covariance(sol.information, sol.scores[order], series, prec, constraints, like)
     factor = 1.0
-    if jackknife and len(order) >= JACKKNIFE_MIN_SETS and quality.in_time_order(sol.directions[order]):
+    if in_order is None and jackknife and len(order) >= JACKKNIFE_MIN_SETS:
+        in_order = quality.in_time_order(sol.directions[order])
+    if jackknife and len(order) >= JACKKNIFE_MIN_SETS and in_order:
         if like is None:
             factor = _jackknife_inflation(raw, sol, order, currents, prior, cov.matrix, blocks)
         elif leave_out is not None and len(leave_out) > 1:
@@ -884,15 +888,17 @@ def calibrate_array(
     stage("uncertainty")
     refining = full is not None and (joint or start_failed is not None)
     if not refining:  # (refined, the jackknife comes from every set's refinement instead)
-        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks)
+        smooth = quality.in_time_order(sol.directions[order])
+        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, in_order=smooth)
     excluded = None
     vertical = sol.directions[:, 2]
     if refining:  # the subset's result, refined on every set
         stage(f"refine on all {full.count} sets")
         refined = _refine(sol, full, param_prior, blocks, bool(channels), prior is None)
         sol, excluded, vertical = refined.solution, refined.excluded, refined.vertical
+        smooth = quality.in_time_order(sol.directions[order])
         ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, like=cov,
-                            leave_out=refined.leave_out)
+                            leave_out=refined.leave_out, in_order=smooth)
     unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
     if unsolved:
         return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
@@ -947,7 +953,7 @@ def calibrate_array(
     verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
                             None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
                             implied, sol.intensity, sol.directions[order], clipped[order],
-                            None if rates is None else rates[order])
+                            None if rates is None else rates[order], smooth=smooth)
     if verdict.cause:
         raise CalibrationFailed(verdict.cause)
     warnings = list(verdict.warnings) + ([field.describe()] if field is not None and field.detected else [])
