@@ -648,16 +648,23 @@ def one_sensor_problem(seed: int, n: int):  # type: ignore[no-untyped-def]
 def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     """One sensor: the rank-one terms of the full pass (normal matrix, gradient, cost, residual) equal those
     of the general per-set 2 x 2 elimination, with a current channel, weights below one and excluded sets."""
-    from magcal_ros.core.array_fit import _Eval, _rank_one_information, _single_sensor_rows
+    from magcal_ros.core.array_fit import (
+        _Eval,
+        _kron_rows,
+        _rank_one_information,
+        _rank_one_parts,
+        _single_sensor_pass,
+    )
 
     model, theta, x, inputs, rng = one_sensor_problem(4, 400)
     n = len(x)
     weights = np.where(rng.random((n, 1)) < 0.1, 0.0, rng.uniform(0.5, 1.0, (n, 1)))
     sigma = np.array([0.01])
-    rows, along, sq, d = _single_sensor_rows(model, theta, x, inputs)  # d: each set's direction at its optimum
-    rows, d = rows.T, d.T  # (sets along the last axis)
+    k, d, size, unit, along, rest = _rank_one_parts(model, theta, x, inputs)  # d: each set's direction at its optimum
+    rows, d = _kron_rows(unit, d, rest).T, d.T  # (sets along the first axis)
     ev = _Eval(model, theta, d, x, inputs, None, weights, sigma)
-    np.testing.assert_allclose(sq, np.sum(ev.e[:, 0] ** 2, axis=1), rtol=1e-9)
+    np.testing.assert_allclose((1 - size) ** 2 * np.sum((d @ k.T) ** 2, axis=1), np.sum(ev.e[:, 0] ** 2, axis=1),
+                               rtol=1e-9)
     ws = weights[:, 0] / sigma[0] ** 2
     info, grad, cost = (rows * ws[:, None]).T @ rows, (ws * along) @ rows, float(np.sum(ws * along**2))
     np.testing.assert_allclose(info, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
@@ -669,6 +676,16 @@ def test_the_single_sensor_pass_is_the_general_elimination_of_each_direction():
     info_fit, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
     np.testing.assert_allclose(info_fit, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
     np.testing.assert_allclose(scores, ev.scores(), rtol=1e-9, atol=1e-9 * np.abs(ev.scores()).max())
+    # the pass over every set: in time order (slices) and shuffled (gathers), parts split across chunks
+    for order in (np.arange(n), rng.permutation(n)):
+        parts = np.array_split(order, 3)
+        ps = _single_sensor_pass(model, theta, x, inputs, sigma[0], 150, parts, weights, 1e9)
+        np.testing.assert_allclose(ps.information, ev.information(), rtol=1e-9, atol=1e-9 * np.abs(info).max())
+        np.testing.assert_allclose(ps.gradient, grad, rtol=1e-9, atol=1e-9 * np.abs(grad).max())
+        assert ps.cost == pytest.approx(cost, rel=1e-9)
+        np.testing.assert_allclose(ps.vertical, d[:, 2], rtol=1e-12)
+        part_info = [((rows * ws[:, None])[pt]).T @ rows[pt] for pt in parts]
+        np.testing.assert_allclose(ps.part_information, part_info, rtol=1e-9, atol=1e-9 * np.abs(info).max())
 
 
 def test_the_one_sensor_fit_with_closed_form_directions_reaches_the_general_fits_optimum(monkeypatch) -> None:

@@ -336,6 +336,25 @@ def test_check_tesla_bounds() -> None:
     check_tesla(v, NAMES, "x")
 
 
+def test_check_tesla_decides_by_the_median_when_half_the_readings_lie_outside() -> None:
+    """The check counts the readings beyond each end of the range before it takes a median: with half
+    or nearly half of them outside (odd and even counts, at one end or both), it decides as the median does."""
+    lo, hi = EARTH_FIELD_RANGE
+    unit = np.array([0.6, 0.0, 0.8])
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 4, 5, 10, 11):
+        for _ in range(200):
+            f = rng.choice([0.5 * lo, 2 * lo, 0.5 * hi, 2 * hi], n) * rng.uniform(0.9, 1.1, n)
+            v = np.tile(unit * 5e-5, (n, 4, 1))
+            v[:, 1] = unit * f[:, None]
+            inside = lo <= float(np.median(f)) <= hi
+            if inside:
+                check_tesla(v, NAMES, "x")
+            else:
+                with pytest.raises(InputError, match=r"median \|B\| of mag2"):
+                    check_tesla(v, NAMES, "x")
+
+
 @pytest.mark.parametrize(("unit", "scale"), [("nT", 1e9), ("uT", 1e6), ("Gauss", 1e4)])
 def test_readings_not_in_tesla_are_refused(tmp_path: Path, base: dict[str, Any], unit: str, scale: float) -> None:
     rec = base["rec"]

@@ -700,7 +700,7 @@ def _solve_rank_one(model: ForwardModel, theta: Array, x: Array, inputs: SetInpu
                     prior: ParameterPrior, iterations: int, tolerance: float,
                     fixed: NDArray[np.bool_]) -> tuple[Array, Array, int]:
     """:func:`_solve_lm` for one sensor whose readings are linear in the model: each set's direction at its
-    optimum in closed form (its corrected reading's, :func:`_single_sensor_rows`, one reduced row per set
+    optimum in closed form (its corrected reading's, :func:`_rank_one_parts`, one reduced row per set
     instead of a 2 x 2 block to eliminate) and the cost those rows linearise (each set's residual along the
     normal of its direction's plane, as in :func:`_single_sensor_pass`). Returns (theta, directions, steps)."""
     free = ~fixed.reshape(-1)
@@ -708,17 +708,20 @@ def _solve_rank_one(model: ForwardModel, theta: Array, x: Array, inputs: SetInpu
     mean = prior.flat_mean().reshape(-1)
     ws = weights[:, 0] / sigma[0] ** 2
 
+    root = np.sqrt(ws)
+
     def evaluate(th: Array) -> tuple[Array, Array, Array, float]:
-        rows, along, _, d = _single_sensor_rows(model, th, x, inputs)
+        """Rows and residuals scaled by the root of their weight, directions, cost."""
+        _, d, _, unit, along, rest = _rank_one_parts(model, th, x, inputs)
+        along *= root
         dev = th.reshape(-1) - mean
-        return rows, along, d, float(ws @ (along * along)) + float(np.sum(prec * dev * dev))
+        return _kron_rows(unit * root, d, rest), along, d, float(along @ along) + float(np.sum(prec * dev * dev))
 
     rows, along, d, cost = evaluate(theta)
     lam, steps, done = 1e-4, 0, False
     for steps in range(1, iterations + 1):
-        wr = rows * ws
-        schur = (wr @ rows.T + np.diag(prec))[np.ix_(free, free)]
-        rhs = (wr @ along + prec * (theta.reshape(-1) - mean))[free]
+        schur = (rows @ rows.T + np.diag(prec))[np.ix_(free, free)]
+        rhs = (rows @ along + prec * (theta.reshape(-1) - mean))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
 
@@ -1191,73 +1194,98 @@ def _weigh(q: Array, bound: float) -> Array:
     return np.where(w < 0.5, 0.0, w)
 
 
-def _single_sensor_rows(model: ForwardModel, theta: Array, x: Array,
-                        inputs: SetInputs) -> tuple[Array, Array, Array, Array]:
-    """One sensor, readings linear in the model (no gain or lag block), readings ``x`` (N, 1, 3) F,
-    each set's direction at its optimum ``d`` (the corrected reading ``b = K^-1 (x - rest)``
-    normalised): (rows of the reduced Jacobian, one column per set (P, N), the residual along them
-    (N,), the squared residual (N,), ``d`` (3, N)). Sets run along the last axis: every product below
-    is then a long contiguous loop.
+def _rank_one_parts(model: ForwardModel, theta: Array, x: Array,
+                    inputs: SetInputs) -> tuple[Array, Array, Array, Array, Array, Array | None]:
+    """One sensor, readings linear in the model (no gain or lag block), readings ``x`` (N, 1, 3) F, each
+    set's direction at its optimum ``d`` (the corrected reading ``b = K^-1 (x - rest)`` normalised):
+    (``K`` (3, 3), ``d`` (3, N), ``|b|`` (N,), the unit normals ``nu / |nu|`` (3, N), the residual along
+    them (N,), the rest of the features ``[u, dT]`` (q - 4, N) or None without any). Sets run along the
+    last axis: every product below is then a long contiguous loop.
 
     With its direction free, a set constrains the model only along the normal ``nu`` of the plane
     its direction's tangents map to, ``K^-T d``: the Schur complement of the direction is
-    ``w J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u]`` (rank one per set), where
-    :class:`_Eval` eliminates a 2 x 2 block per set. The residual is ``e = K d + rest - x = K (d - b)``,
-    along ``nu``: ``(1 - |b|) / |K^-T d|``."""
-    w = model.split(theta)[0][0]  # (3, q)
-    k_inv = np.linalg.inv(w[:, :3])
-    rest = inputs.rest_features(1)[:, 0].T  # (q - 3, N)
-    b = k_inv @ (x[:, 0].T - w[:, 3:] @ rest)
+    ``w J^T nu nu^T J`` with ``nu^T J = nu (x) phi``, ``phi = [d, 1, u, dT]`` (rank one per set, the
+    rows of :func:`_kron_rows`), where :class:`_Eval` eliminates a 2 x 2 block per set. The residual is
+    ``e = K d + rest - x = K (d - b) = (1 - |b|) K d``, along ``nu``: ``(1 - |b|) / |K^-T d|``."""
+    w = np.asarray(theta, dtype=float).reshape(3, model.q)
+    k = w[:, :3]
+    k_inv = np.linalg.inv(k)
+    xt = x[:, 0].T  # (3, N)
+    rest = None
+    if model.q == 4:  # the offset alone
+        b = k_inv @ xt
+        b -= (k_inv @ w[:, 3])[:, None]
+    else:
+        rest = inputs.rest_features(1)[:, 0, 1:].T  # (q - 4, N)
+        b = k_inv @ (xt - w[:, 3:4] - w[:, 4:] @ rest)
     size = np.sqrt(np.einsum("an,an->n", b, b))
-    d = b / np.where(size > 0, size, 1.0)
-    d[:, size == 0] = [[0.0], [0.0], [1.0]]
+    if size.min() > 0:
+        d = np.divide(b, size, out=b)
+    else:
+        d = b / np.where(size > 0, size, 1.0)
+        d[:, size == 0] = [[0.0], [0.0], [1.0]]
     nu = k_inv.T @ d
     nu_size = np.sqrt(np.einsum("an,an->n", nu, nu))
-    e = w[:, :3] @ (d - b)
-    phi = np.concatenate([d, rest])  # (q, N)
-    rows = ((nu / nu_size)[:, None, :] * phi[None, :, :]).reshape(-1, len(size))
-    return rows, (1.0 - size) / nu_size, np.einsum("an,an->n", e, e), d
+    nu /= nu_size
+    return k, d, size, nu, (1.0 - size) / nu_size, rest
+
+
+def _kron_rows(unit: Array, d: Array, rest: Array | None) -> Array:
+    """(P, N) the rows ``nu (x) phi`` of :func:`_rank_one_parts` from (possibly scaled) normals ``unit`` (3, N)."""
+    q = 4 + (0 if rest is None else len(rest))
+    out = np.empty((3, q, unit.shape[1]))
+    np.multiply(unit[:, None, :], d[None, :, :], out=out[:, :3])
+    out[:, 3] = unit
+    if rest is not None:
+        np.multiply(unit[:, None, :], rest[None, :, :], out=out[:, 4:])
+    return out.reshape(-1, unit.shape[1])
 
 
 def _rank_one_information(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, weights: Array,
                           sigma: float) -> tuple[Array, Array]:
-    """One sensor linear in the model (:func:`_single_sensor_rows`): the information (P, P) and each set's
+    """One sensor linear in the model (:func:`_rank_one_parts`): the information (P, P) and each set's
     score (N, P) with its direction at its optimum, what :class:`_Eval` gives by eliminating 2 x 2 blocks."""
-    rows, along, _, _ = _single_sensor_rows(model, theta, x, inputs)
+    _, d, _, unit, along, rest = _rank_one_parts(model, theta, x, inputs)
+    rows = _kron_rows(unit, d, rest)
     wr = rows * (weights[:, 0] / sigma**2)
     return wr @ rows.T, (wr * along).T
 
 
 def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, sigma: float,
                         chunk: int, parts: list[NDArray[np.int64]], weights: Array | None, bound: float) -> _Pass:
-    """:func:`_full_pass` for one sensor (see :func:`_single_sensor_rows`): each chunk of the parts,
+    """:func:`_full_pass` for one sensor (see :func:`_rank_one_parts`): each chunk of the parts,
     in their order, at once."""
     n, p = len(x), model.size
     order = np.concatenate(parts)
     ends = np.cumsum([len(pt) for pt in parts])
+    in_place = n > 0 and bool(np.all(order[1:] - order[:-1] == 1)) and order[0] == 0  # (slices, not copies)
     infos = np.zeros((len(parts), p, p))
     grads = np.zeros((len(parts), p))
     cost = 0.0
     used = np.empty((n, 1)) if weights is None else weights
     vertical = np.empty(n)
     for lo in range(0, len(order), chunk):
-        sl = order[lo : lo + chunk]
-        rows, along, sq, d = _single_sensor_rows(model, theta, x[sl], SetInputs(inputs.currents[sl]))
-        if weights is None:
-            used[sl, 0] = _weigh(sq / sigma**2, bound)
-        ws = used[sl, 0] / sigma**2
+        sl = slice(lo, min(lo + chunk, n)) if in_place else order[lo : lo + chunk]
+        xs = x[sl] if in_place else np.take(x, sl, axis=0)
+        us = inputs.currents[sl] if in_place else np.take(inputs.currents, sl, axis=0)
+        k, d, size, unit, along, rest = _rank_one_parts(model, theta, xs, SetInputs(us))
+        if weights is None:  # the squared residual (1 - |b|)^2 |K d|^2, at the fit's noise
+            kd = k @ d
+            used[sl, 0] = _weigh((1.0 - size) ** 2 * np.einsum("an,an->n", kd, kd) / sigma**2, bound)
+        root = np.sqrt(used[sl, 0]) / sigma  # rows scaled by the root of their weight: products of one matrix
+        rows = _kron_rows(unit * root, d, rest)
+        along *= root
         vertical[sl] = d[2]
-        wr = rows * ws
         start = lo
-        for k in range(int(np.searchsorted(ends, lo, side="right")), len(parts)):
-            stop = min(int(ends[k]), lo + len(sl))
+        for kk in range(int(np.searchsorted(ends, lo, side="right")), len(parts)):
+            stop = min(int(ends[kk]), lo + len(along))
             a, z = start - lo, stop - lo
-            infos[k] += wr[:, a:z] @ rows[:, a:z].T
-            grads[k] += wr[:, a:z] @ along[a:z]
+            infos[kk] += rows[:, a:z] @ rows[:, a:z].T
+            grads[kk] += rows[:, a:z] @ along[a:z]
             start = stop
-            if stop == lo + len(sl):
+            if stop == lo + len(along):
                 break
-        cost += float(np.sum(ws * along * along))
+        cost += float(along @ along)
     infos = 0.5 * (infos + infos.transpose(0, 2, 1))
     return _Pass(cost, infos.sum(axis=0), grads.sum(axis=0), used, infos, grads, vertical)
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.batched import column_extremes, row_norms
+from magcal_ros.core.batched import axis_major
 
 Array = NDArray[np.float64]
 
@@ -46,12 +46,13 @@ def direction_proxy(raw: Array) -> Array:
     """(N, 3) rough unit field direction per set from raw sets (N, S, 3): the sensors' mean
     reading minus the centre of its cloud (mid-range per axis). Good enough to sort sets into
     coarse attitude cells before any calibration."""
-    mean = np.asarray(raw, dtype=float).mean(axis=1)
-    if not len(mean):
-        return mean
-    low, high = column_extremes(mean)
-    v = mean - 0.5 * (low + high)
-    return v / np.maximum(row_norms(v), 1e-300)[:, None]
+    r = np.asarray(raw, dtype=float)
+    if not len(r):
+        return r.mean(axis=1)
+    v = axis_major(r).reshape(-1, 3, len(r)).mean(axis=0)  # (3, N): each axis contiguous
+    v -= 0.5 * (v.min(axis=1) + v.max(axis=1))[:, None]
+    v /= np.maximum(np.sqrt(np.einsum("an,an->n", v, v)), 1e-300)
+    return v.T
 
 
 def cube_cell(directions: Array, cells: int = CUBE_CELLS) -> NDArray[np.int64]:
@@ -80,8 +81,8 @@ def choose_sets(directions: Array, order: NDArray[np.int64], target: int,
         return order.copy()
     starts = np.arange(0, n, run_length)
     budget = max(1, target // run_length)
-    d = np.asarray(directions, dtype=float)[order]
-    sums = np.add.reduceat(d, starts, axis=0)
+    d = np.take(axis_major(directions), order, axis=1)  # (3, N) in time order
+    sums = np.add.reduceat(d, starts, axis=1).T
     cell = cube_cell(sums / np.maximum(np.linalg.norm(sums, axis=1, keepdims=True), 1e-300))
     counts = np.bincount(cell, minlength=6 * CUBE_CELLS**2)
     # water filling: the largest per-cell quota whose total fits the budget

@@ -50,6 +50,9 @@ def check_tesla(vectors: ArrayLike, names: Sequence[str], where: str) -> None:
         finite = column if np.isfinite(column).all() else column[np.isfinite(column)]
         if len(finite) == 0:
             continue
+        middle = (len(finite) + 1) // 2  # the median's lower middle value, counted from either end
+        if np.count_nonzero(finite < lo) < middle and np.count_nonzero(finite > hi) < middle:
+            continue  # both middle values, and so the median, lie in the range
         median = float(np.median(finite))
         if not lo <= median <= hi:
             raise InputError(

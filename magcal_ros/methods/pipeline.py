@@ -701,7 +701,14 @@ def _inclination(opts: SolveOptions, vertical: Array) -> float:
     (``vertical`` (N,): the z component of each set's field direction, platform frame)."""
     if opts.inclination_deg is not None:
         return float(np.radians(opts.inclination_deg))
-    return float(np.median(np.arcsin(np.clip(vertical, -1.0, 1.0))))
+    return float(np.arcsin(np.median(np.clip(vertical, -1.0, 1.0)))) if len(vertical) % 2 else \
+        float(np.mean(np.arcsin(_middle_two(np.clip(vertical, -1.0, 1.0)))))  # (arcsin is monotonic)
+
+
+def _middle_two(x: Array) -> Array:
+    """The two middle values of an even number of values (whose mean is their median)."""
+    k = len(x) // 2
+    return np.partition(x, [k - 1, k])[k - 1 : k + 1]
 
 
 def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
