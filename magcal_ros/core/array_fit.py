@@ -899,9 +899,13 @@ def fit_array(
     def h_of(a: _Att | None) -> Array | None:
         return None if a is None else a.h()
 
-    pred = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h_of(att)), inputs, rates,
-                       h_of(att))
-    sigma = np.maximum(_robust_sigma(pred - x, weights, dof), 1e-12)
+    if att is None and _rank_one(model):  # the start's residuals, each direction at its optimum
+        k, d, size, _, _, _ = _rank_one_parts(model, theta, x, inputs)
+        e = ((1.0 - size) * (k @ d)).T[:, None, :]
+    else:
+        e = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h_of(att)), inputs, rates,
+                        h_of(att)) - x
+    sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
         theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
                                      fixed, att, g_start)
@@ -1011,7 +1015,7 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
     w = theta[:, : 3 * model.q].reshape(model.sensors, 3, model.q)
     w[:, :, :3] = np.einsum("sij,kj->sik", k, qmat)  # K_i Q^T
     theta[:, : 3 * model.q] = w.reshape(model.sensors, -1)
-    tinv = np.linalg.inv(rotation_map(qmat, model))
+    tinv = rotation_map(qmat.T, model)  # the inverse map (Q orthogonal)
     extra: dict[str, Any] = {}
     if solution.globals is not None and solution.full_information is not None and solution.full_scores is not None:
         # the global parameters do not turn with the frame (A's angles are about the IMU axes)
@@ -1294,7 +1298,14 @@ def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Ar
                basis: Array) -> Array:
     """(K, S P) the solution without each part: ``theta + (H - H_k)^-1 g_k`` within ``basis``
     (``total`` = H with the prior; the whole gradient is zero at ``theta``)."""
-    out = []
+    h_all = basis.T @ (total - np.asarray(infos)) @ basis  # (K, b, b): every part at once
+    try:
+        steps = np.linalg.solve(h_all, (np.asarray(grads) @ basis)[:, :, None])[:, :, 0] @ basis.T
+        if np.all(np.isfinite(steps)):
+            return theta.reshape(-1) + steps
+    except (np.linalg.LinAlgError, ValueError):
+        pass
+    out = []  # (one part at a time: a singular one leaves no step)
     for h_k, g_k in zip(infos, grads):
         h = basis.T @ (total - h_k) @ basis
         try:

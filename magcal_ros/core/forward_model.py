@@ -165,7 +165,7 @@ class ForwardModel:
 
     def matrix_indices(self) -> Array:
         """Indices of the 9 entries of ``K_i`` (row-major)."""
-        return np.array([self.w_index(a, b) for a in range(3) for b in range(3)])
+        return (np.arange(3)[:, None] * self.q + np.arange(3)[None, :]).reshape(-1)
 
     def block_of(self, index: int) -> str:
         """The block a parameter index belongs to."""

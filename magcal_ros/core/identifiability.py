@@ -151,10 +151,10 @@ def held_parameter(name: str, model: ForwardModel) -> int | None:
     return None
 
 
-def _to_unit(values: Array, unit: str) -> Array:
-    scale = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.pi, "nT/A": 1.0 / NT, "nT/K": 1.0 / NT,
-             "ppm/K": 1e6, "ms": 1e3}[unit]
-    return values * scale
+_UNIT_SCALE: dict[str, float] = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.pi, "nT/A": 1.0 / NT,
+                                  "nT/K": 1.0 / NT, "ppm/K": 1e6, "ms": 1e3}
+"""What one SI unit of each quantity is in the unit it is reported in."""
+
 
 
 @dataclass(frozen=True)
@@ -261,12 +261,10 @@ def analyse(
                 status = ("undetermined" if undetermined
                           else "weak" if effect > WEAK_EFFECT * noise[i] else "determined")
             else:
-                prior_j = float(_to_unit(np.array([psig[j]]), unit)[0])
+                prior_j = float(psig[j]) * _UNIT_SCALE[unit]
                 status = "kept" if sig[j] > KEPT_FRACTION * psig[j] else "updated"
-            out.append(Quantity(
-                sensor, label, unit, float(_to_unit(np.array([values[i, j]]), unit)[0]),
-                float(_to_unit(np.array([sig[j]]), unit)[0]), float(effect), status, prior_j,
-            ))
+            out.append(Quantity(sensor, label, unit, float(values[i, j]) * _UNIT_SCALE[unit],
+                                float(sig[j]) * _UNIT_SCALE[unit], float(effect), status, prior_j))
     return Identifiability(out, np.asarray(noise, dtype=float), prior_cov is not None, cov)
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.batched import axis_major, well_conditioned
+from magcal_ros.core.batched import WELL_CONDITIONED, axis_major, well_conditioned
 from magcal_ros.core.scalar_fit import clipped_axes
 from magcal_ros.core.stamps import ns_to_seconds
 from magcal_ros.core.uncertainty import autocorrelation, bandwidth
@@ -237,11 +237,14 @@ def _segment_sse(sums: Array) -> Array:
     n = np.maximum(sums[:, 0, 0], 1e-300)
     mean = sums[:, 0, 1:] / n[:, None]
     centred = sums[:, 1:, 1:] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]  # d and y about their means
+    try:  # the last Cholesky pivot of [d, y]'s scatter is what d leaves of y's: the SSE
+        pivots = np.diagonal(np.linalg.cholesky(centred), axis1=1, axis2=2) ** 2
+        if np.all(pivots[:, :3] > WELL_CONDITIONED * np.diagonal(centred, axis1=1, axis2=2)[:, :3]):
+            return np.where(sums[:, 0, 0] > 0, pivots[:, 3], 0.0)
+    except np.linalg.LinAlgError:  # (d constant in a segment, or y fitted exactly by it)
+        pass
     cdd, cdy, cyy = centred[:, :3, :3], centred[:, :3, 3], centred[:, 3, 3]
-    if np.all(well_conditioned(cdd)):
-        fit = np.einsum("ka,ka->k", cdy, np.linalg.solve(cdd, cdy[:, :, None])[:, :, 0])
-    else:
-        fit = np.einsum("ka,kab,kb->k", cdy, np.linalg.pinv(cdd, rcond=1e-12, hermitian=True), cdy)
+    fit = np.einsum("ka,kab,kb->k", cdy, np.linalg.pinv(cdd, rcond=1e-12, hermitian=True), cdy)
     return np.where(sums[:, 0, 0] > 0, np.maximum(cyy - fit, 0.0), 0.0)
 
 
