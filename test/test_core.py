@@ -131,6 +131,97 @@ def test_the_envelope_grid_interpolated_along_roll_is_the_predicted_tmi_variance
                                    direct @ weights, rtol=1e-9, atol=1e-12 * direct.max())
 
 
+def test_the_envelope_is_the_widest_box_whose_worst_attitude_stays_within_1_5x_the_noise():
+    """The envelope, against a plain search of the grid: per attitude the ratio ``sqrt(1 + var / sigma^2)``
+    (sensors averaged), a box ``|pitch| <= P, |roll| <= R`` valid when its worst attitude (any yaw, both signs)
+    is within 1.5x, the valid box of largest solid angle, and the ratios over the sphere and outside the box
+    (uniform over rotations), for calibrations determined near level flight only and over a wider manoeuvre."""
+    from magcal_ros.core.array_fit import information_at
+    from magcal_ros.core.identifiability import (
+        ENVELOPE_RATIO,
+        PITCH_GRID,
+        ROLL_GRID,
+        attitude_directions,
+        envelope,
+        variance_grid,
+    )
+
+    rng = np.random.default_rng(3)
+    s = 2
+    w = np.zeros((s, 3, 4))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.02, (s, 3, 3))
+    w[:, :, 3] = rng.normal(0, 0.005, (s, 3))
+    noise = np.array([1.0, 1.5]) * NT
+    pitch = np.concatenate([-PITCH_GRID[:0:-1], PITCH_GRID])
+    roll = np.concatenate([-ROLL_GRID[:0:-1], ROLL_GRID])
+    weight = (np.cos(np.radians(pitch)) * np.gradient(pitch))[:, None] * np.gradient(roll)[None, :]
+    inclination = 1.0
+    found = []
+    for flown_pitch, flown_roll, sets in ((6, 3, 3000), (25, 12, 600), (90, 180, 400)):
+        flown = attitude_directions(inclination, np.linspace(-flown_pitch, flown_pitch, 7),
+                                    np.linspace(-flown_roll, flown_roll, 7), yaw_steps=24).reshape(-1, 3)
+        flown = flown[rng.integers(0, len(flown), sets)]
+        info = information_at(w, flown, noise / F)
+        cov = np.linalg.pinv(info + 1e-4 * np.eye(len(info)), hermitian=True)
+        env = envelope(w, cov, noise, F, inclination)
+        var = variance_grid(w, cov, inclination, pitch, roll, combine=(F / noise) ** 2 / s)[..., 0]  # (P, R, Y)
+        ratio = np.sqrt(1.0 + var)
+        best, best_area = (0.0, 0.0, None), -1.0
+        for p_lim in PITCH_GRID:
+            for r_lim in ROLL_GRID:
+                box = (np.abs(pitch) <= p_lim)[:, None] & (np.abs(roll) <= r_lim)[None, :]
+                worst = ratio[box].max()
+                area = (np.sin(np.radians(p_lim)) + 0.01) * (r_lim + 1.0)
+                if worst <= ENVELOPE_RATIO and area > best_area:
+                    best, best_area = (p_lim, r_lim, worst), area
+        assert (env.pitch_deg, env.roll_deg) == best[:2], (flown_pitch, env, best)
+        if best[2] is not None:
+            assert env.ratio_inside == pytest.approx(best[2], rel=1e-9)
+        sq = (ratio**2).mean(axis=2)
+        assert env.ratio_sphere == pytest.approx(np.sqrt(np.sum(weight * sq) / np.sum(weight)), rel=1e-9)
+        out = (np.abs(pitch)[:, None] > env.pitch_deg) | (np.abs(roll)[None, :] > env.roll_deg)
+        if out.any():
+            assert env.ratio_outside == pytest.approx(np.sqrt(np.sum((weight * sq)[out]) / np.sum(weight[out])), rel=1e-9)
+        found.append((env.pitch_deg, env.roll_deg))
+    assert found[0] < found[1] and found[2] == (90.0, 180.0), found  # narrow, wider, the whole sphere
+
+
+def test_the_gates_least_squares_are_the_minimum_norm_fits_whatever_the_conditioning():
+    """The residual-shape gate's fits (the fraction of a residual that time, the attitude or a step
+    explains) solve well-conditioned normal equations directly and fall back to the minimum-norm solution
+    otherwise: both give the SVD's fractions and coefficients; the attitude's quadratic without ``d_z^2``
+    spans what it spans with it (unit directions); a step's segments by Cholesky equal their direct fits."""
+    from magcal_ros.core import quality
+
+    rng = np.random.default_rng(8)
+    n = 600
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    y = rng.normal(size=(n, 2)) + d[:, :1] * 3.0 + d[:, 1:2] * d[:, 2:] * 2.0
+    designs = {"well conditioned": np.column_stack([np.ones(n), d, rng.normal(size=(n, 4))]),
+               "dependent columns": np.column_stack([np.ones(n), d, d[:, :1] * 2.0 + 1.0]),
+               "a constant column twice": np.column_stack([np.ones(n), np.ones(n), d])}
+    for name, x in designs.items():
+        frac, coef = quality._fit_explained(y, x)
+        ref, *_ = np.linalg.lstsq(x, y, rcond=None)
+        total = np.sum((y - y.mean(axis=0)) ** 2)
+        assert frac == pytest.approx(1 - np.sum((y - x @ ref) ** 2) / total, abs=1e-12), name
+        np.testing.assert_allclose(coef, ref, rtol=1e-7, atol=1e-9, err_msg=name)
+    full = np.column_stack([np.ones(n), d, d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]]])
+    ref, *_ = np.linalg.lstsq(full, y[:, :1], rcond=None)
+    total = np.sum((y[:, 0] - y[:, 0].mean()) ** 2)
+    assert quality.residual_shape(y[:, 0], np.zeros((n, 3)), np.ones(n, bool), np.arange(n, dtype=float), d, None,
+                                  1.0).attitude_explained == pytest.approx(
+        1 - np.sum((y[:, :1] - full @ ref) ** 2) / total, abs=1e-12)
+    splits = np.array([60, 200, 333, 540])
+    z = y[:, 0]
+    step = quality._step_explained(z, d, splits)
+    direct = max(1 - sum(np.sum((part - np.column_stack([np.ones(len(dd)), dd]) @ np.linalg.lstsq(
+        np.column_stack([np.ones(len(dd)), dd]), part, rcond=None)[0]) ** 2) for part, dd in ((z[:k], d[:k]), (z[k:], d[k:])))
+        / np.sum((z - z.mean()) ** 2) for k in splits)
+    assert step == pytest.approx(direct, abs=1e-12)
+
+
 def test_the_predicted_tmi_error_is_the_spread_of_the_tmi_over_calibrations_drawn_from_the_covariance():
     """The envelope's predicted TMI variance at a direction is the variance of ``|b| - F`` when the
     calibration's parameters scatter with the stated covariance (drawn, corrected, measured), for

@@ -262,6 +262,29 @@ def test_a_sensor_is_refused_as_saturated_when_more_than_a_quarter_of_its_readin
 
 
 # -- what a manoeuvre must at least be -----------------------------------------------------------
+def test_the_coverage_counts_the_cells_of_the_directions_visited() -> None:
+    """Coverage: the share of the 42 direction cells (each the directions nearest one centre) that hold a
+    reading's direction about the readings' centre, against a plain nearest-centre search: random caps
+    of every size, every centre itself (all 42), and one direction (one cell)."""
+    from magcal_ros.core.observability import SPHERE_CELLS, sphere_cells
+
+    centres = sphere_cells()
+    rng = np.random.default_rng(11)
+    offset = np.array([3e-6, -2e-6, 1e-6])
+    for cap in (0.1, 0.5, 1.0, 1.7, np.pi):
+        d = rng.normal(size=(3000, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d = d[np.arccos(np.clip(d @ centres[5], -1, 1)) <= cap]
+        d = np.concatenate([d, -d[:1]])  # (a point opposite: the readings' centre stays near the offset)
+        readings = 3e-5 * d + offset
+        moved = readings - readings.mean(axis=0)
+        expected = len(np.unique(np.argmax(moved @ centres.T, axis=1))) / SPHERE_CELLS
+        assert excitation(readings).coverage == pytest.approx(expected), cap
+    assert excitation(3e-5 * centres + offset).coverage == 1.0
+    line = np.outer(np.linspace(1.0, 2.0, 50), centres[7])  # along one direction from its mean
+    assert excitation(3e-5 * line + offset).coverage == pytest.approx(2 / SPHERE_CELLS)  # both ends of the line
+
+
 def test_a_calibration_needs_12_sets() -> None:
     from magcal_ros.core.observability import sphere_cells
 
