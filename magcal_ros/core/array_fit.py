@@ -602,11 +602,20 @@ def _invertible(model: ForwardModel, theta: Array) -> bool:
     return bool(np.all(np.isfinite(theta)) and np.all(np.abs(np.linalg.det(model.split(theta)[0][:, :, :3])) > 1e-12))
 
 
+SETTLED: float = 1e-2
+"""A fit has settled when a step it refused promised to lower the whitened cost (its sum of squared
+residuals over their noise, and the prior's) by no more than this: the step would move the parameters
+by a tenth of their standard deviation. (With a noisy sensor the reduced rows are the cost's
+gradient only to first order in the noise: near the optimum their steps need not lower it.)"""
+
+
 def _damped_step(schur: Array, rhs: Array, free: NDArray[np.bool_], size: int, lam: float,
-                 accept: Callable[[Array], bool]) -> tuple[float, bool]:
+                 accept: Callable[[Array], bool], negligible: float = 0.0) -> tuple[float, bool]:
     """One Levenberg-Marquardt step on a reduced system: ``-(S + lam D)^-1 rhs`` on the ``free`` parameters
     (``D`` the diagonal of ``S``), ``lam`` raised tenfold until ``accept(step)`` (size ``size``) takes one,
-    then lowered tenfold; returns (lam, whether a step was taken)."""
+    then lowered tenfold; returns (lam, whether a step was taken). The cost is ``c + 2 rhs.step +
+    step.S.step`` to second order: once a step the cost refused promised a decrease of ``negligible`` or
+    less, the search ends (converged; a larger ``lam`` only promises less)."""
     diag = np.diag(np.diag(schur)) + 1e-12 * np.trace(schur) / len(schur) * np.eye(len(schur))
     while lam < 1e10:
         step = np.zeros(size)
@@ -617,6 +626,9 @@ def _damped_step(schur: Array, rhs: Array, free: NDArray[np.bool_], size: int, l
             continue
         if accept(step):
             return max(lam / 10, 1e-12), True
+        moved = step[free]
+        if -(2.0 * float(rhs @ moved) + float(moved @ schur @ moved)) <= negligible:
+            return lam, False
         lam *= 10
     return lam, False
 
@@ -690,7 +702,7 @@ def _solve_lm(
             theta, d, cost, att, cur = t_new, d_new, new_cost, a_new, None
             return True
 
-        lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept)
+        lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept, max(tolerance * cost, SETTLED))
         if not improved or done:
             break
     return theta, d, steps, att
@@ -737,7 +749,7 @@ def _solve_rank_one(model: ForwardModel, theta: Array, x: Array, inputs: SetInpu
             theta, (rows, along, d, cost) = t_new, new
             return True
 
-        lam, improved = _damped_step(schur, rhs, free, theta.size, lam, accept)
+        lam, improved = _damped_step(schur, rhs, free, theta.size, lam, accept, max(tolerance * cost, SETTLED))
         if not improved or done:
             break
     return theta, np.ascontiguousarray(d.T), steps
@@ -1063,10 +1075,11 @@ def information_at(w: Array, directions: Array, sigma: Array, model: ForwardMode
 
 
 
-SMALL_STEP: float = 1e-3
-"""A refinement step no larger than this in every parameter (units of F: a gain of 0.1 %, an
-offset of F / 1000) is taken without checking the cost again: the model's second-order
-terms over such a step are below 1e-6 F, far below any fluxgate's noise."""
+SECOND_ORDER: float = 0.05
+"""A refinement step is taken without checking the cost again when the model's second-order terms
+over it (the square of its largest parameter change, units of F) stay below this fraction of the
+sensors' noise (units of F): a step of 1e-3 (a gain of 0.1 %, an offset of F / 1000) for a fluxgate's
+1 nT in 50 uT, of 0.05 for a consumer sensor's 6 %."""
 REFINE_CHUNK: int = 20_000
 """Sets per chunk of :func:`refine_on_all` (bounds its memory: about 2 kB per set and sensor)."""
 
@@ -1340,7 +1353,7 @@ def refine_on_all(solution: JointSolution, raw: Array, currents: Array | None = 
 
     Outliers are re-decided at the subset's noise; the directions are eliminated as in the
     fit. The step is kept only when it lowers the full cost (at the same weights), unless it
-    is below :data:`SMALL_STEP`. ``gauge`` (C, S P): linear constraints the step keeps (the
+    is small (:data:`SECOND_ORDER`). ``gauge`` (C, S P): linear constraints the step keeps (the
     frame's rotation when no prior fixes it). ``parts``: index arrays of the sets (default:
     one part), for the leave-one-part-out estimates.
     """
@@ -1379,7 +1392,7 @@ def refine_on_all(solution: JointSolution, raw: Array, currents: Array | None = 
         step = np.zeros(s * model.size)
     best, best_pass = theta, first
     grads = first.part_gradient  # each part's gradient at the solution kept (linear in the step)
-    if np.any(step) and np.all(np.isfinite(step)) and np.max(np.abs(step)) <= SMALL_STEP:
+    if np.any(step) and np.all(np.isfinite(step)) and np.max(np.abs(step)) ** 2 <= SECOND_ORDER * float(np.min(sigma)):
         best = theta + step.reshape(s, model.size)  # linear to far below the noise: no second pass
         grads = first.part_gradient + np.einsum("kpq,q->kp", first.part_information, step)
     elif np.any(step) and np.all(np.isfinite(step)):

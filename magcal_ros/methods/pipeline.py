@@ -285,20 +285,27 @@ def _crude_start(r: Array, f: float | None) -> tuple[Array, Array, float]:
     return gains[:, None, None] * np.eye(3)[None], offsets, intensity
 
 
-def _sensor_like(matrix: Array, offset: Array) -> bool:
+def _sensor_like(matrix: Array, offset: Array, quadric_ratio: float) -> bool:
     """True when a closed-form correction is one a sensor can have (:func:`check_sensor`, positive
-    determinant) with gains within :data:`START_SPREAD` of each other: a start the joint fit can take
-    as it is (a stretched one comes from a manoeuvre that leaves the closed form astray)."""
+    determinant) with gains within :data:`START_SPREAD` of each other, or any gains when the manoeuvre
+    determines the quadric well (``quadric_ratio``, :class:`Excitation`'s, at least
+    :data:`START_QUADRIC_RATIO`): a start the joint fit can take as it is (a stretched one from a
+    narrow manoeuvre, a wobbly yaw circle, comes from a quadric the closed form got astray)."""
     try:
         check_sensor("start", matrix, offset)
     except InputError:
         return False
     sv = np.linalg.svd(matrix, compute_uv=False)
-    return bool(np.linalg.det(matrix) > 0 and sv[0] < START_SPREAD * sv[-1])
+    return bool(np.linalg.det(matrix) > 0 and (sv[0] < START_SPREAD * sv[-1] or quadric_ratio >= START_QUADRIC_RATIO))
 
 
 START_SPREAD: float = 1.5
-"""Largest ratio of a one-sensor closed-form start's gains for the joint fit to start from it directly."""
+"""Largest ratio of a one-sensor closed-form start's gains for the joint fit to start from it directly
+after a narrow manoeuvre."""
+START_QUADRIC_RATIO: float = 0.1
+"""A manoeuvre whose quadric design's 9th/1st singular value reaches this determines a closed-form start
+whatever its gains (a consumer sensor's differ by 2x): a wide tumble gives 0.15-0.3, a yaw circle with
+20-45 deg of wobble 0.01-0.05."""
 
 
 def _plausible(sol: JointSolution, geometry: ArrayGeometry) -> bool:
@@ -830,7 +837,7 @@ def calibrate_array(
     if prior is not None:
         matrices, offsets, start_interference, intensity = _prior_start(prior, geometry, r, f_ref, channels)
     elif s == 1 and joint and trimmed is not None and clean_reading[:, 0].sum() >= MIN_SAMPLES \
-            and _sensor_like(trimmed.matrix, trimmed.offset):
+            and _sensor_like(trimmed.matrix, trimmed.offset, exc.quadric_ratio):
         # One sensor: the joint fit is its maximum-likelihood fit, so the method's own start (a scalar
         # fit, then the sensor aligned onto itself) would solve it twice over; the closed form will do
         # when it is a sensor's correction (collapsed, as on a narrow noisy manoeuvre, it is not).
