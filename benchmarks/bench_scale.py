@@ -2,6 +2,7 @@
 
     python benchmarks/bench_scale.py                 # 20k, 200k, 500k sets; single sensor 20k
     python benchmarks/bench_scale.py --sizes 20000 200000 --no-magyc
+    python benchmarks/bench_scale.py --single-only --single-csv compass.csv   # and on a real recording
 
 For each size, a four-sensor array tumbling smoothly at 50 sets/s is written as CSV and
 ``magcal calibrate`` runs on it as a user would (its own process, best of two runs): wall time, CPU time and
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -178,10 +180,21 @@ def fang_workers(py: Path, path: Path) -> dict[str, subprocess.Popen]:
     return workers
 
 
-def single(use_magyc: bool, count: int = 20_000) -> None:
-    sim = array(1)
-    rec, _ = sim.run(smooth_tumble(count, 9), rng=10, rate=50.0, continuous=True)
-    calibrate_array(rec.vectors[:2000], sim.geometry, F)  # warm-up (imports, caches)
+def single(use_magyc: bool, count: int = 20_000, csv: Path | None = None) -> None:
+    """magcal's one-sensor solve against MAGYC's Fang fit: on ``count`` simulated sets (F given), or on the
+    recording ``csv`` (one sensor, no reference field: as ``magcal calibrate`` runs it without one)."""
+    if csv is None:
+        sim = array(1)
+        rec, _ = sim.run(smooth_tumble(count, 9), rng=10, rate=50.0, continuous=True)
+        geometry, field, what = sim.geometry, F, f"{count} sets"
+    else:
+        from magcal_ros.io.csv_recording import read_csv
+
+        rec, _ = read_csv(csv)
+        if rec.vectors.shape[1] != 1:
+            raise SystemExit(f"{csv}: {rec.vectors.shape[1]} sensors; the comparison is for one")
+        geometry, field, what = ArrayGeometry.single(rec.names[0]), None, f"{len(rec.vectors)} sets of {csv.name}"
+    calibrate_array(rec.vectors[:2000], geometry, field)  # warm-up (imports, caches)
     py = magyc_python() if use_magyc else None
     if use_magyc and py is None:
         print("  MAGYC not available (no package index?)")
@@ -195,7 +208,7 @@ def single(use_magyc: bool, count: int = 20_000) -> None:
             for _ in range(REPEATS):
                 for _ in range(2):
                     t0 = time.perf_counter()
-                    res = calibrate_array(rec.vectors, sim.geometry, F, stamps=rec.stamps)
+                    res = calibrate_array(rec.vectors, geometry, field, stamps=rec.stamps)
                     best = min(best, time.perf_counter() - t0)
                 for threads, proc in workers.items():
                     proc.stdin.write("5\n")
@@ -205,8 +218,8 @@ def single(use_magyc: bool, count: int = 20_000) -> None:
             for proc in workers.values():
                 proc.stdin.close()
                 proc.wait()
-    print(f"\nsingle sensor, {count} sets: magcal {best:.4f} s, best of {2 * REPEATS} "
-          f"({res.summary().split(':')[1].split(',')[0].strip()})")
+    print(f"\nsingle sensor, {what}: magcal {best:.4f} s, best of {2 * REPEATS} "
+          f"({re.search(r'TMI RMS [^,]*', res.summary()).group(0)})")
     if workers:
         least = min(fang.values())
         print(f"  MAGYC Fang ellipsoid fit {least:.4f} s, best of {5 * REPEATS} in turns with magcal's (BLAS threads default "
@@ -217,9 +230,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sizes", type=int, nargs="+", default=[20_000, 200_000, 500_000])
     p.add_argument("--no-magyc", action="store_true", help="skip the MAGYC comparison")
+    p.add_argument("--single-csv", type=Path, metavar="CSV", help="also compare on this one-sensor recording "
+                   "(magcal's CSV: stamp, <name>.x, <name>.y, <name>.z in T)")
+    p.add_argument("--single-only", action="store_true", help="only the single-sensor comparisons")
     a = p.parse_args()
-    scale(a.sizes)
+    if not a.single_only:
+        scale(a.sizes)
     single(not a.no_magyc)
+    if a.single_csv is not None:
+        single(not a.no_magyc, csv=a.single_csv)
 
 
 if __name__ == "__main__":
