@@ -7,7 +7,8 @@
 CPU against a bare node (``--compare-only``, first part of a full run): ``correction_node`` and
 a bare rclpy node (this file, ``--bare``: the same four raw subscriptions and the same seven
 publications, ``<name>/corrected`` x 4, ``field``, ``gradient``, ``gradient_stamped``, filled
-with the received messages and constants, no maths) run side by side as their own processes,
+with the received messages and constants, no maths; rclpy's default QoS event handlers, as a plain
+node has them, where the correction node's outputs have none) run side by side as their own processes,
 fed by one publisher process at each rate, so both see the same traffic and the same machine
 load. For each rate and each set of listeners, in repeated runs: CPU seconds per wall second of
 each node process (user + system, from psutil, over the publishing window plus 0.5 s to drain),

@@ -235,3 +235,18 @@ def test_a_node_started_with_a_bad_name_says_why_in_one_line() -> None:
         _make("calibration", run)
     with in_process("-p", "sensor_names:=[mag 1]") as run, pytest.raises(InputError, match="not a valid relative ROS"):
         _make("correction", run)
+
+
+def test_the_correction_nodes_outputs_carry_no_qos_event_handlers_and_its_inputs_keep_theirs() -> None:
+    """The executor polls every QoS event handler of the node each time it wakes (thousands of times a
+    second at 4 x 1000 Hz): the outputs have none (a subscriber asking for more than they offer is warned
+    by its own handler); the raw subscriptions keep rclpy's defaults (incompatible QoS and type)."""
+    with in_process("-p", "uncorrected_sensors:=[mag1, mag2, mag3, mag4]") as run:
+        node = _make("correction", run)
+        ours = [p for p in node.publishers if p.topic_name not in ("/parameter_events", "/rosout")]
+        names = {p.topic_name for p in ours}
+        assert {"/mag1/corrected", "/mag4/corrected", "/field", "/gradient", "/gradient_stamped",
+                "/magcal_correction/status", "/diagnostics"} <= names, names
+        assert all(len(p.event_handlers) == 0 for p in ours), [(p.topic_name, len(p.event_handlers)) for p in ours]
+        raw = [s for s in node.subscriptions if s.topic_name.endswith("/raw")]
+        assert len(raw) == 4 and all(len(s.event_handlers) >= 2 for s in raw)

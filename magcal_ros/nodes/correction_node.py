@@ -77,6 +77,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -116,6 +117,14 @@ GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
 }
 """The gradient topics published for each kind of array geometry."""
 UNKNOWN_COVARIANCE = common.UNKNOWN_COVARIANCE
+
+
+def no_events() -> PublisherEventCallbacks:
+    """No QoS event handlers for an output publisher. The executor polls every handler of every entity
+    each time it wakes (thousands of times a second at 4 x 1000 Hz): the outputs' handlers (incompatible
+    QoS and type, two per publisher) were most of that work. A subscriber that asks for more than an
+    output offers is still told, by its own handler; the raw subscriptions keep theirs."""
+    return PublisherEventCallbacks(use_default_callbacks=False)
 
 
 @dataclass(frozen=True)
@@ -297,9 +306,10 @@ class CorrectionNode(Node):
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
         self._out_qos = common.output_qos(depth)
         self._limits = common.declare_health(self)
-        self._field_pub = self.create_publisher(MagneticField, topics.FIELD, self._out_qos)
-        self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10)
-        self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
+        self._field_pub = self.create_publisher(MagneticField, topics.FIELD, self._out_qos, event_callbacks=no_events())
+        self._status_pub = self.create_publisher(DiagnosticStatus, "~/status", 10, event_callbacks=no_events())
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10,
+                                                      event_callbacks=no_events())
         self._now = common.clock_reader(self)
         self._arrival = common.arrival_reader(self)
         self._published = 0
@@ -596,7 +606,8 @@ class CorrectionNode(Node):
         self._health = ArrayHealth(state.names, self._sync, self._limits, common.now_ns(self))
         self._drops.reset()
         self._corrected_pubs = [
-            self.create_publisher(MagneticField, topics.corrected(n), self._out_qos) for n in state.names
+            self.create_publisher(MagneticField, topics.corrected(n), self._out_qos, event_callbacks=no_events())
+            for n in state.names
         ]
         self._out_state = None
         self._subs = [
@@ -619,7 +630,8 @@ class CorrectionNode(Node):
             self.destroy_publisher(pub)
         types = {topics.GRADIENT: Float64MultiArray, topics.GRADIENT_STAMPED: JointState,
                  topics.BASELINE_GRADIENT: Vector3Stamped}
-        self._gradient_pubs = {t: self.create_publisher(types[t], t, self._out_qos) for t in GRADIENT_TOPICS[kind]}
+        self._gradient_pubs = {t: self.create_publisher(types[t], t, self._out_qos, event_callbacks=no_events())
+                               for t in GRADIENT_TOPICS[kind]}
         self._out_state = None
 
     def _connect_currents(self, inputs: common.CurrentInputs) -> None:
