@@ -913,7 +913,7 @@ def fit_array(
 
     if att is None and _rank_one(model):  # the start's residuals, each direction at its optimum
         k, d, size, _, _, _ = _rank_one_parts(model, theta, x, inputs)
-        e = ((1.0 - size) * (k @ d)).T[:, None, :]
+        e = _rank_one_residuals(k, d, size).T[:, None, :]
     else:
         e = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h_of(att)), inputs, rates,
                         h_of(att)) - x
@@ -1247,6 +1247,11 @@ def _rank_one_parts(model: ForwardModel, theta: Array, x: Array,
     return k, d, size, nu, (1.0 - size) / nu_size, rest
 
 
+def _rank_one_residuals(k: Array, d: Array, size: Array) -> Array:
+    """(3, N) each set's residual ``e = (1 - |b|) K d`` from :func:`_rank_one_parts`'s ``K``, ``d``, ``|b|``."""
+    return (1.0 - size) * (k @ d)
+
+
 def _kron_rows(unit: Array, d: Array, rest: Array | None) -> Array:
     """(P, N) the rows ``nu (x) phi`` of :func:`_rank_one_parts` from (possibly scaled) normals ``unit`` (3, N)."""
     q = 4 + (0 if rest is None else len(rest))
@@ -1286,9 +1291,9 @@ def _single_sensor_pass(model: ForwardModel, theta: Array, x: Array, inputs: Set
         xs = x[sl] if in_place else np.take(x, sl, axis=0)
         us = inputs.currents[sl] if in_place else np.take(inputs.currents, sl, axis=0)
         k, d, size, unit, along, rest = _rank_one_parts(model, theta, xs, SetInputs(us))
-        if weights is None:  # the squared residual (1 - |b|)^2 |K d|^2, at the fit's noise
-            kd = k @ d
-            used[sl, 0] = _weigh((1.0 - size) ** 2 * np.einsum("an,an->n", kd, kd) / sigma**2, bound)
+        if weights is None:  # by the squared residual at the fit's noise
+            e = _rank_one_residuals(k, d, size)
+            used[sl, 0] = _weigh(np.einsum("an,an->n", e, e) / sigma**2, bound)
         root = np.sqrt(used[sl, 0]) / sigma  # rows scaled by the root of their weight: products of one matrix
         rows = _kron_rows(unit * root, d, rest)
         along *= root
@@ -1312,17 +1317,17 @@ def _leave_out(theta: Array, total: Array, infos: Array | list[Array], grads: Ar
     """(K, S P) the solution without each part: ``theta + (H - H_k)^-1 g_k`` within ``basis``
     (``total`` = H with the prior; the whole gradient is zero at ``theta``)."""
     h_all = basis.T @ (total - np.asarray(infos)) @ basis  # (K, b, b): every part at once
+    g_all = np.asarray(grads) @ basis  # (K, b)
     try:
-        steps = np.linalg.solve(h_all, (np.asarray(grads) @ basis)[:, :, None])[:, :, 0] @ basis.T
+        steps = np.linalg.solve(h_all, g_all[:, :, None])[:, :, 0] @ basis.T
         if np.all(np.isfinite(steps)):
             return theta.reshape(-1) + steps
     except (np.linalg.LinAlgError, ValueError):
         pass
     out = []  # (one part at a time: a singular one leaves no step)
-    for h_k, g_k in zip(infos, grads):
-        h = basis.T @ (total - h_k) @ basis
+    for h, g in zip(h_all, g_all):
         try:
-            step = basis @ np.linalg.solve(h, basis.T @ g_k)
+            step = basis @ np.linalg.solve(h, g)
         except (np.linalg.LinAlgError, ValueError):
             step = np.zeros(len(total))
         out.append(theta.reshape(-1) + step)

@@ -156,7 +156,6 @@ _UNIT_SCALE: dict[str, float] = {"nT": 1.0 / NT, "ppm": 1e6, "deg": 180.0 / np.p
 """What one SI unit of each quantity is in the unit it is reported in."""
 
 
-
 @dataclass(frozen=True)
 class EffectScales:
     """What turns a quantity's 1-sigma into its effect on the field: the RMS current of each

@@ -109,18 +109,11 @@ def gram_singular_values(design: Array) -> Array:
     return np.sqrt(np.clip(np.linalg.eigvalsh(design.T @ design)[::-1], 0.0, None))
 
 
-def quadric_design(points: ArrayLike) -> Array:
-    """Design matrix (N, 10) of a general quadric in normalised coordinates."""
-    x = axis_major(points)
-    x = x - x.mean(axis=1)[:, None]
-    return _centred_quadric_design(x, np.sqrt(np.einsum("an,an->n", x, x)))
-
-
-def _centred_quadric_design(xt: Array, norms: Array) -> Array:
-    """:func:`quadric_design` of points already centred, by coordinate ``xt`` (3, N), ``norms`` (N,)
-    their distances from the centre."""
-    a, b, c = xt / max(float(np.median(norms)), 1e-300)
-    out = np.empty((10, len(norms)))  # filled a monomial at a time, each contiguous; returned as (N, 10)
+def centred_quadric_design(xt: Array, scale: float) -> Array:
+    """Design matrix (N, 10) of a general quadric in normalised coordinates: points already centred, by
+    coordinate ``xt`` (3, N), divided by ``scale`` (the median of their distances from the centre)."""
+    a, b, c = xt / max(scale, 1e-300)
+    out = np.empty((10, xt.shape[1]))  # filled a monomial at a time, each contiguous; returned as (N, 10)
     np.multiply(a, a, out=out[0])
     np.multiply(b, b, out=out[1])
     np.multiply(c, c, out=out[2])
@@ -158,6 +151,6 @@ def excitation(readings: ArrayLike) -> Excitation:
         visited = int(np.count_nonzero((dots == dots.max(axis=0)).any(axis=1)))  # tie at 1e-7 counts both
     ratio = 0.0
     if n >= 10:
-        sv = gram_singular_values(_centred_quadric_design(centred, norms))
+        sv = gram_singular_values(centred_quadric_design(centred, float(np.median(norms))))
         ratio = float(sv[8] / sv[0]) if sv[0] > 0 else 0.0
     return Excitation(n, spread, normal, visited / SPHERE_CELLS, ratio)

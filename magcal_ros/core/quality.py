@@ -335,13 +335,15 @@ def stuck_axis(readings: Array) -> tuple[int, float, float] | None:
     """(axis, value T, fraction) of an axis of one sensor's readings (N, 3) that holds one exact value
     in more than :data:`STUCK_FRACTION` of them, or None. A turning sensor's axis sweeps the field;
     even one clipped at full scale on one side cannot stay there for most of a rotation."""
-    return _stuck_in(axis_major(readings))
+    columns = axis_major(readings)
+    return _stuck_in(columns, _may_hold_half(columns))
 
 
-def _stuck_in(columns: Array) -> tuple[int, float, float] | None:
-    """:func:`stuck_axis` of one sensor's readings by axis (3, N), each contiguous."""
+def _stuck_in(columns: Array, candidates: NDArray[np.bool_]) -> tuple[int, float, float] | None:
+    """:func:`stuck_axis` of one sensor's readings by axis (3, N), each contiguous, looking only at the
+    axes ``candidates`` (3,) marks (:func:`_may_hold_half`)."""
     n = columns.shape[1]
-    for axis in np.flatnonzero(_may_hold_half(columns)):
+    for axis in np.flatnonzero(candidates):
         # a value held in more than half the readings holds the middle of their sorted order
         value = np.partition(columns[axis], [max(n // 2 - 1, 0), n // 2])[n // 2]  # (two kth: NumPy's faster path)
         count = int(np.count_nonzero(columns[axis] == value))
@@ -380,8 +382,9 @@ def saturation(names: tuple[str, ...], raw: Array) -> tuple[NDArray[np.bool_], s
     sensor has an axis stuck at one value (:func:`stuck_axis`) or more clipped readings than outlier
     exclusion may take (:data:`MAX_OUTLIER_FRACTION`)."""
     columns = axis_major(raw)  # (S 3, N)
-    for i in np.flatnonzero(_may_hold_half(columns).reshape(-1, 3).any(axis=1)):
-        found = _stuck_in(columns[3 * i : 3 * i + 3])
+    candidates = _may_hold_half(columns).reshape(-1, 3)
+    for i in np.flatnonzero(candidates.any(axis=1)):
+        found = _stuck_in(columns[3 * i : 3 * i + 3], candidates[i])
         if found is not None:
             return np.zeros(raw.shape[:2], bool), stuck(names, int(i), *found)
     clipped = clipped_axes(columns).T

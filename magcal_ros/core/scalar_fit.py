@@ -100,13 +100,15 @@ def algebraic_fit(readings: ArrayLike, intensity: float | None = None) -> Scalar
     normalised design matrix (||v|| = 1 instead of the printed constant column, which
     admits the trivial solution) and decodes it exactly into ``M`` and ``o``.
     """
-    from magcal_ros.core.observability import quadric_design
+    from magcal_ros.core.observability import centred_quadric_design
 
     r = _readings(readings)
     f = _target(r, intensity)
-    centre = r.mean(axis=0)
-    scale = float(np.median(np.linalg.norm(r - centre, axis=1)))
-    design = quadric_design(r)
+    rt = axis_major(r)  # (3, N)
+    centre = rt.mean(axis=1)
+    xt = rt - centre[:, None]
+    scale = float(np.median(np.sqrt(np.einsum("an,an->n", xt, xt))))
+    design = centred_quadric_design(xt, scale)
     # the smallest right singular vector: the Gram matrix's last eigenvector (the design is normalised,
     # its condition number ~1/quadric ratio, so squaring it leaves ample precision)
     m, o = decode_quadric(np.linalg.eigh(design.T @ design)[1][:, 0], centre, scale, f)

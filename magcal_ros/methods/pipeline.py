@@ -708,14 +708,14 @@ def _inclination(opts: SolveOptions, vertical: Array) -> float:
     (``vertical`` (N,): the z component of each set's field direction, platform frame)."""
     if opts.inclination_deg is not None:
         return float(np.radians(opts.inclination_deg))
-    return float(np.arcsin(np.median(np.clip(vertical, -1.0, 1.0)))) if len(vertical) % 2 else \
-        float(np.mean(np.arcsin(_middle_two(np.clip(vertical, -1.0, 1.0)))))  # (arcsin is monotonic)
+    return float(np.mean(np.arcsin(_middle(np.clip(vertical, -1.0, 1.0)))))  # (arcsin is monotonic)
 
 
-def _middle_two(x: Array) -> Array:
-    """The two middle values of an even number of values (whose mean is their median)."""
-    k = len(x) // 2
-    return np.partition(x, [k - 1, k])[k - 1 : k + 1]
+def _middle(x: Array) -> Array:
+    """The middle value of an odd number of values, the two middle ones of an even number: their mean is
+    the median."""
+    low, high = (len(x) - 1) // 2, len(x) // 2
+    return np.partition(x, [low, high])[low : high + 1]
 
 
 def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
@@ -901,18 +901,17 @@ def calibrate_array(
         raise ObservabilityError(_refusal(ana, sol, env))
     stage("uncertainty")
     refining = full is not None and (joint or start_failed is not None)
-    if not refining:  # (refined, the jackknife comes from every set's refinement instead)
-        smooth = quality.in_time_order(sol.directions[order])
-        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, in_order=smooth)
     excluded = None
     vertical = sol.directions[:, 2]
-    if refining:  # the subset's result, refined on every set
+    like = leave_out = None
+    if refining:  # the subset's result, refined on every set (the jackknife from every set's refinement)
         stage(f"refine on all {full.count} sets")
         refined = _refine(sol, full, param_prior, blocks, bool(channels), prior is None)
         sol, excluded, vertical = refined.solution, refined.excluded, refined.vertical
-        smooth = quality.in_time_order(sol.directions[order])
-        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, like=cov,
-                            leave_out=refined.leave_out, in_order=smooth)
+        like, leave_out = cov, refined.leave_out
+    smooth = quality.in_time_order(sol.directions[order])
+    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, like=like,
+                        leave_out=leave_out, in_order=smooth)
     unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
     if unsolved:
         return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
