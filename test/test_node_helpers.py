@@ -470,3 +470,27 @@ def test_a_flood_of_stop_signals_neither_deadlocks_nor_recurses_the_quiet_handle
         finally:
             proc.kill()
         assert proc.returncode == 0 and "done" in out, out[-2000:]
+
+
+def test_a_node_stops_on_its_stop_flag_when_nothing_wakes_its_executor() -> None:
+    """A stop that rclpy's own signal handler did not turn into a shutdown (seen once under load: a node
+    on a simulated clock that no longer advanced waited for ever) still ends the spin: the executor's
+    wait wakes within ``STOP_POLL`` of wall time and reads the flag. Here the flag is set with no signal
+    at all, on a node with nothing to wake it (no timers, no traffic)."""
+    from magcal_ros.app.ros_driver import pick_domain_id, ros_environment
+
+    code = (
+        "import threading, time\n"
+        "from rclpy.executors import SingleThreadedExecutor\n"
+        "from rclpy.node import Node\n"
+        "from magcal_ros.nodes import common\n"
+        "from magcal_ros.nodes.entry import StopFlag\n"
+        "stop = StopFlag()\n"
+        "threading.Timer(1.0, lambda: stop(0, None)).start()\n"
+        "t0 = time.monotonic()\n"
+        "code = common.run_node(lambda argv: Node('idle_node'), SingleThreadedExecutor, [], stop)\n"
+        "print('stopped', code, round(time.monotonic() - t0, 1))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], env=ros_environment(pick_domain_id()), capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0 and "stopped 0" in done.stdout, done.stdout + done.stderr

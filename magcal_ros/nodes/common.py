@@ -711,7 +711,11 @@ def run_node(
         try:
             executor = make_executor()
             executor.add_node(node)
-            executor.spin()
+            # spin until rclpy's handler shuts the context down, or the stop flag is seen: the wait wakes
+            # within STOP_POLL of wall time even when nothing else wakes it (a node on a simulated clock
+            # that stopped), so a stop signal rclpy's handler missed still ends the spin
+            while rclpy.ok(context=executor.context) and not stop.is_set():
+                executor.spin_once(timeout_sec=STOP_POLL)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
@@ -723,6 +727,8 @@ def run_node(
         _clean_up(node, rclpy)
 
 
+STOP_POLL: float = 0.5
+"""Longest wait (s, wall time) of the node's executor before it looks at the stop flag again."""
 CLEANUP_TIMEOUT: float = 15.0
 """Seconds the clean-up after the spin (the node's ``close``, ``destroy_node``, rclpy shutdown) may
 take before the process prints every thread's stack and exits with code 1 instead of hanging."""
