@@ -278,20 +278,26 @@ def test_both_paths_follow_the_rule_where_the_period_cap_decides(seed: int) -> N
 
 
 @pytest.mark.parametrize("path", ["live", "bag"])
-def test_a_restart_is_a_jump_back_of_more_than_a_second(path: str) -> None:
-    """Exactly 1 s back (RESTART_JUMP) is an out-of-order stamp; one nanosecond more is a restart
-    (once the next stamp goes on from there)."""
-    jump = NS
-    for back, restarts in ((jump, 0), (jump + 1, 1)):
-        stamps = [100 * NS, 100 * NS + 10 * MS, 100 * NS + 10 * MS - back, 100 * NS + 20 * MS - back]
-        sync = SetSynchronizer(2, MS)
-        if path == "live":
-            for t in stamps:
-                sync.add(0, t, 1.0, 0.0, 0.0)
-        else:
-            sync.add_batch(0, np.array(stamps, dtype=np.int64), np.ones((4, 3)))
-            sync.pop()
-        assert (sync.stats.restarts, sync.stats.out_of_order) == (restarts, 2 * (1 - restarts)), back
+def test_a_step_back_of_any_size_is_a_restart_and_a_single_late_stamp_is_not(path: str) -> None:
+    """Stamps that go on from a stamp behind their sequence stepped back, by 20 ms (two periods) as by a
+    minute: a restart. One late stamp whose successor goes on with the old sequence is dropped: out of
+    order within RESTART_JUMP (1 s) behind, a glitch further back."""
+    for back in (20 * MS, 500 * MS, NS, NS + 1, 60 * NS):
+        for single in (False, True):
+            stamps = [100 * NS + 10 * MS * i for i in range(12)]
+            late = stamps[-1] + 10 * MS - back
+            stamps += [late, stamps[-1] + 20 * MS] if single else [late, late + 10 * MS]
+            sync = SetSynchronizer(2, MS)
+            if path == "live":
+                for t in stamps:
+                    sync.add(0, t, 1.0, 0.0, 0.0)
+            else:
+                sync.add_batch(0, np.array(stamps, dtype=np.int64), np.ones((len(stamps), 3)))
+                sync.pop()
+            st = sync.stats
+            behind = back - 10 * MS  # behind the previous stamp
+            expected = (0, int(behind <= NS), int(behind > NS)) if single else (1, 0, 0)
+            assert (st.restarts, st.out_of_order, st.glitch) == expected, (back, single)
 
 
 def test_a_message_waits_for_its_partners_at_most_the_default_lag() -> None:
@@ -299,13 +305,15 @@ def test_a_message_waits_for_its_partners_at_most_the_default_lag() -> None:
     1 ns more and it is given up while its partner stays silent."""
     lag = int(DEFAULT_LAG * NS)
     assert lag == 5 * NS
-    sync = SetSynchronizer(2, MS)
     step = lag // 50
-    for k in range(51):  # 5 s of stamps, 100 ms apart (a jump of 5 s would be a restart)
-        sync.add(0, 5 * NS + k * step, 1.0, 0.0, 0.0)
-    assert (sync.pending, sync.stats.unmatched) == (51, 0)
-    sync.add(0, 5 * NS + lag + 1, 1.0, 0.0, 0.0)
-    assert (sync.pending, sync.stats.unmatched) == (51, 1)
+    for early, given_up in ((0, 0), (1, 1)):
+        sync = SetSynchronizer(2, MS)
+        sync.add(0, 5 * NS - early, 1.0, 0.0, 0.0)
+        for k in range(1, 50):  # 5 s of stamps, 100 ms apart (a jump of 5 s would be a restart)
+            sync.add(0, 5 * NS + k * step, 1.0, 0.0, 0.0)
+        assert (sync.pending, sync.stats.unmatched) == (50, 0)
+        sync.add(0, 5 * NS + lag, 1.0, 0.0, 0.0)
+        assert (sync.pending, sync.stats.unmatched) == (51 - given_up, given_up), early
 
 
 @pytest.mark.parametrize("engine", ["exact", "interpolate"])

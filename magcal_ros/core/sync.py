@@ -52,21 +52,28 @@ from numpy.typing import NDArray
 from magcal_ros.core import acceptance
 from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_interpolate import MAX_GAP_PERIODS, InterpolatingSynchronizer
+from magcal_ros.core.sample_clock import SampleClock
+from magcal_ros.core.sync_revision import ExactMonitor
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
     DEFAULT_SYNC_TOLERANCE,
     DROP_FIELDS,
+    LEAD_WINDOW,
     MAX_TIME_OFFSET,
     NEVER,
     NO_CAP,
     PERIOD_WINDOW,
     RESTART_JUMP,
     SUSPECT_PERIODS,
+    TAIL,
+    Accepted,
     AcceptanceRule,
+    Batch,
     SetBatch,
     SyncedSet,
     SyncStats,
     Vector,
+    arrival_order,
     empty_batch,
     tolerance_ns,
 )
@@ -170,6 +177,15 @@ class SetSynchronizer(AcceptanceRule):
         self._head = [0] * sensors
         self._formed: list[SetBatch] = []
         """Sets :meth:`add_rows` formed, for the next :meth:`pop`."""
+        self._starts: list[set[int]] = [set() for _ in range(sensors)]
+        """Common stamps of queued messages that start a new segment of their sensor (for :meth:`queued`)."""
+        self._faulty: list[list[tuple[int, int]]] = [[] for _ in range(sensors)]
+        """(stamp, common stamp) of accepted messages with a faulty reading since the last consumed message of
+        each sensor: no set holds them, but their stamps count for a sample clock (:meth:`queued`)."""
+        self._consumed: list[int] = [NEVER] * sensors
+        """Common stamp of each sensor's last consumed message."""
+        self.monitor: ExactMonitor | None = None
+        """Judges the rule's decisions where mode ``auto`` chose it (:mod:`~magcal_ros.core.sync_revision`)."""
 
     # -- state ------------------------------------------------------------------------
     @property
@@ -190,7 +206,30 @@ class SetSynchronizer(AcceptanceRule):
             self._stamps[k], self._raws[k], self._caps[k], self._values[k] = [], [], [], []
             self._arrays[k] = np.empty((0, 3))
             self._head[k] = 0
+            self._starts[k] = set()
+            self._faulty[k] = []
         self.forget()
+
+    def queued(self) -> list[Accepted]:
+        """Per sensor, its queued messages as acceptance let them through (no segment starts among them);
+        the queues are emptied (for another rule to take them)."""
+        out: list[Accepted] = []
+        for k in range(self.size):
+            h = self._head[k]
+            raws, commons, caps = self._raws[k][h:], self._stamps[k][h:], self._caps[k][h:]
+            streaming = len(self._values[k]) == len(self._stamps[k])
+            values = self._values[k][h:] if streaming else [tuple(v) for v in self._arrays[k][h:].tolist()]
+            starts = self._starts[k]
+            after = self._stamps[k][h - 1] if h else self._consumed[k]
+            rows = [(r, c, v, cap, c in starts) for r, c, v, cap in zip(raws, commons, values, caps)]
+            rows += [(r, c, None, NO_CAP, c in starts) for r, c in self._faulty[k] if c > after]
+            rows.sort(key=lambda row: row[1])
+            out.append(rows)
+            self._faulty[k] = []
+            self._stamps[k], self._raws[k], self._caps[k], self._values[k] = [], [], [], []
+            self._arrays[k] = np.empty((0, 3))
+            self._head[k] = 0
+        return out
 
     # -- streaming --------------------------------------------------------------------
     def add_all(self, index: int, stamp_ns: int, x: float, y: float, z: float,
@@ -219,11 +258,14 @@ class SetSynchronizer(AcceptanceRule):
     def _queue(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
         clock = self.streams[index].clock
         for stamp, common, value, cap, restart in accepted:
+            if restart:
+                self._starts[index].add(common)
             if clock is not None:
                 if restart:
                     self.restart_clock(index)
                 clock.offer(common)
             if value is None:
+                self._faulty[index].append((stamp, common))
                 continue
             self._stamps[index].append(common)
             self._raws[index].append(stamp)
@@ -240,34 +282,69 @@ class SetSynchronizer(AcceptanceRule):
         r = None if receipts is None else np.asarray(receipts, dtype=np.int64).reshape(-1)
         if not len(s):
             return
-        if self.streams[index].held is None and self._plain(index, s):
+        if not self.streams[index].busy and self._plain(index, s, r):
             self._batch_fast(index, s, v, r)
         else:
             self._batch_scalar(index, s, v, r)
 
-    def _plain(self, index: int, s: NDArray[np.int64]) -> bool:
-        """True when no message of ``s`` is a suspect (the vectorised path then equals the scalar one)."""
+    def _plain_streams(self, batches: Sequence[Batch]) -> bool:
+        return all(not self.streams[k].busy and self._plain(k, s, r) for k, (s, _, r) in enumerate(batches))
+
+    def _offered(self, index: int, accepted: Accepted, kept: Accepted) -> None:
+        kept += accepted
+
+    def _offered_all(self, kept: list[Accepted]) -> None:
+        for k, rows in enumerate(kept):
+            self._queue_rows(k, rows)
+
+    def _plain(self, index: int, s: NDArray[np.int64], r: NDArray[np.int64] | None = None) -> bool:
+        """True when no message of ``s`` (receipts ``r``) is a suspect, a step or part of a backlog: the
+        vectorised path then equals the scalar one (anything else takes the scalar path)."""
         st = self.streams[index]
         if self.reject_zero:
-            s = s[s > 0]
+            keep = s > 0
+            s, r = s[keep], None if r is None else r[keep]
         if not len(s):
             return True
         prev = np.maximum.accumulate(np.concatenate([[st.last], s[:-1]]))
-        if np.any(prev - s > self.restart_ns):
+        if np.any(s < prev):  # a stamp behind its sequence, by any amount
             return False
-        acc = s[s > prev]
+        new = s > prev
+        acc = s[new]
         if not len(acc):
             return True
         iv = np.diff(np.concatenate([[st.last], acc])) if st.last != NEVER else np.diff(acc)
         hist = np.asarray(st.intervals, dtype=np.int64)
         full = np.concatenate([hist, iv])
+        unknown = full[len(hist):PERIOD_WINDOW]  # intervals before a period is known
+        if np.any(unknown > self.restart_ns):
+            return False
         first = max(len(hist), PERIOD_WINDOW)
         if len(full) <= first:
             return True
         w = np.sort(sliding_window_view(full, PERIOD_WINDOW), axis=1)
         median = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2  # of full[i : i + 8]
         at = np.arange(first, len(full))
-        return not np.any(SUSPECT_PERIODS[1] * full[at] > SUSPECT_PERIODS[0] * median[at - PERIOD_WINDOW])
+        d, period = full[at], median[at - PERIOD_WINDOW]
+        if np.any(SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period) or np.any(4 * d < period):
+            return False
+        gap = 2 * d > 3 * period  # whole periods missing: lost samples, unless the arrivals saw no gap
+        if r is None or not gap.any():
+            return True
+        if st.last_receipt is None and st.last != NEVER:
+            return False
+        racc = r[new]
+        leads = np.concatenate([np.asarray(st.leads, dtype=np.int64), acc + st.base - racc])
+        previous = np.concatenate([[st.last_receipt if st.last_receipt is not None else racc[0]], racc[:-1]])
+        first_new = len(st.leads) + len(acc) - len(iv)  # the lead of full[len(hist)] in ``leads``
+        for j in np.flatnonzero(gap).tolist():
+            i = first_new + int(at[j]) - len(hist)  # in ``leads``; in ``acc``: i - len(st.leads)
+            a = i - len(st.leads)
+            dr = int(racc[a] - previous[a])
+            if i > 0 and 4 * dr >= period[j] and 2 * (d[j] - dr) > period[j] and \
+                    2 * (leads[i] - leads[max(0, i - LEAD_WINDOW):i].max()) > period[j]:
+                return False
+        return True
 
     def add_rows(self, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
         """Queue the rows of a table: every sensor's message at each of ``stamps`` (n,) ns, ``vectors``
@@ -280,7 +357,7 @@ class SetSynchronizer(AcceptanceRule):
         if not len(s):
             return
         sensors = range(self.size)
-        plain = (all(len(self._stamps[k]) == self._head[k] and self.streams[k].held is None
+        plain = (all(len(self._stamps[k]) == self._head[k] and not self.streams[k].busy
                      and self.streams[k].base == 0 for k in sensors)
                  and not (self.reject_zero and s[0] <= 0) and bool(np.all(s[1:] > s[:-1]))
                  and all(s[0] > self.streams[k].last and self._plain(k, s) for k in sensors))
@@ -339,12 +416,20 @@ class SetSynchronizer(AcceptanceRule):
         st.last = int(s[-1])
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
+        if r is not None:
+            st.leads.extend((s[-LEAD_WINDOW:] + st.base - r[-LEAD_WINDOW:]).tolist())
+        st.since += len(s)
+        if st.since > PERIOD_WINDOW:
+            st.before = None
+        st.tail = (st.tail + (s[-TAIL:] + st.base).tolist())[-TAIL:]
         self.newest = max(self.newest, st.lastc)
         self.arrived(st.last_receipt)
         faults = acceptance.reading_faults(v, self.max_reading) if known is None else known
         for name, mask in faults.items():
             stats.count(name, int(mask.sum()))
         finite = ~np.logical_or.reduce(list(faults.values()))  # usable readings
+        if not finite.all():
+            self._faulty[index].extend(zip(s[~finite].tolist(), (s[~finite] + st.base).tolist()))
         return s[finite], v[finite], caps[finite]
 
     def _batch_scalar(self, index: int, s: NDArray[np.int64], v: NDArray[np.float64],
@@ -358,6 +443,8 @@ class SetSynchronizer(AcceptanceRule):
         self._queue_rows(index, out)
 
     def _queue_rows(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
+        self._starts[index].update(a[1] for a in accepted if a[4])
+        self._faulty[index].extend((a[0], a[1]) for a in accepted if a[2] is None)
         rows = [a for a in accepted if a[2] is not None]
         if not rows:
             return
@@ -372,6 +459,7 @@ class SetSynchronizer(AcceptanceRule):
         caps = np.full(len(s), NO_CAP, dtype=np.int64)
         if st.last == NEVER:
             first, s_iv = 1, np.diff(s)
+            st.grid_first, st.grid_periods = int(s[0]), 0
         else:
             first, s_iv = 0, np.diff(np.concatenate([[st.last], s]))
         # The first few need the short history: compute them one by one, like accept().
@@ -383,6 +471,10 @@ class SetSynchronizer(AcceptanceRule):
             w = np.sort(sliding_window_view(iv, PERIOD_WINDOW)[1:], axis=1)  # windows ending at new ones
             period = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2
             caps[first + head :] = period // 2
+            before = np.concatenate([[st.period if st.period else 0], period[:-1]]).astype(np.float64)
+            new = s_iv[head:]
+            steps = np.where(before > 0, np.round(new / np.where(before > 0, before, 1.0)), 1.0)
+            st.grid_periods += int(np.maximum(steps, 1.0).sum())
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])
         return caps
@@ -409,57 +501,75 @@ class SetSynchronizer(AcceptanceRule):
 
     # -- the rule ---------------------------------------------------------------------
     def _advance(self, final: bool) -> list[tuple[int, ...]]:
-        """Apply the set rule to the queues; returns the member indices of each set formed."""
-        stamps, caps, head, streams = self._stamps, self._caps, self._head, self.streams
-        tol, st = self.tolerance_ns, self.stats
-        sensors = range(self.size)
+        """Apply the set rule to the queues; returns the member indices of each set formed. Stops where the
+        :attr:`monitor` ends exact matching (the rest stays queued for the rule that takes over)."""
         formed: list[tuple[int, ...]] = []
         scalar_steps = 0  # steps of the one-set-at-a-time rule before trying a run again
-        while True:
+        while self.monitor is None or self.monitor.reason is None:
             if scalar_steps:
                 scalar_steps -= 1
-            elif min(len(stamps[k]) - head[k] for k in sensors) >= RUN_BLOCK:
-                n = self._matched_run()
-                if n:
-                    formed.extend(zip(*(range(head[k], head[k] + n) for k in sensors)))
-                    for k in sensors:
-                        head[k] += n
-                if n < RUN_BLOCK // 2:
+            elif min(len(q) - h for q, h in zip(self._stamps, self._head)) >= RUN_BLOCK:
+                if self._form_run(formed) < RUN_BLOCK // 2:
                     scalar_steps = RUN_BLOCK
                 continue
-            try:  # every sensor has a head: the common case, kept tight
-                t = [stamps[k][head[k]] for k in sensors]
-            except IndexError:
-                pass
-            else:
-                t0 = min(t)
-                if max(t) - t0 <= min(tol, min([caps[k][head[k]] for k in sensors])):
-                    formed.append(tuple(head))
-                    for k in sensors:
-                        head[k] += 1
-                else:
-                    st.unmatched += 1
-                    head[t.index(t0)] += 1
-                continue
-            avail = [k for k in sensors if head[k] < len(stamps[k])]
-            if not avail:
+            if not self._decide_next(formed, final):
                 break
-            t = [stamps[k][head[k]] for k in avail]
-            t0 = min(t)
-            anchor = avail[t.index(t0)]
-            # A sensor has nothing queued: decide only what its next message cannot change.
-            silent = [k for k in sensors if head[k] >= len(stamps[k])]
-            dead = any(streams[k].lastc >= t0 + tol and streams[k].held is None for k in silent)
-            stale = self.waited(t0, silent)
-            crowded = max(len(stamps[k]) - head[k] for k in avail) > self.max_pending
-            if final or dead or stale or crowded:
-                st.unmatched += 1
-                head[anchor] += 1
-                continue
-            break
-        st.sets += len(formed)
-        st.used += self.size * len(formed)
+        self.stats.sets += len(formed)
+        self.stats.used += self.size * len(formed)
         return formed
+
+    def _form_run(self, formed: list[tuple[int, ...]]) -> int:
+        """Form the run of matching sets at the heads (up to the end of the monitor's block); how many."""
+        head, sensors = self._head, range(self.size)
+        n = self._matched_run()
+        if self.monitor is not None:
+            n = min(n, self.monitor.room)
+        if n:
+            formed.extend(zip(*(range(head[k], head[k] + n) for k in sensors)))
+            if self.monitor is not None:
+                self.monitor.formed([self._stamps[k][head[k]:head[k] + n] for k in sensors], self.tolerance_ns)
+            for k in sensors:
+                head[k] += n
+        return n
+
+    def _decide_next(self, formed: list[tuple[int, ...]], final: bool) -> bool:
+        """One decision of the rule at the heads (a set, or the anchor dropped); False when none can be
+        made yet."""
+        stamps, caps, head, sensors = self._stamps, self._caps, self._head, range(self.size)
+        try:  # every sensor has a head: the common case, kept tight
+            t = [stamps[k][head[k]] for k in sensors]
+        except IndexError:
+            return self._decide_short(final)
+        t0 = min(t)
+        window = min(self.tolerance_ns, min([caps[k][head[k]] for k in sensors]))
+        if max(t) - t0 <= window:
+            formed.append(tuple(head))
+            for k in sensors:
+                head[k] += 1
+            if self.monitor is not None:
+                self.monitor.formed([[x] for x in t], window)
+            return True
+        self.stats.unmatched += 1
+        head[t.index(t0)] += 1
+        return True
+
+    def _decide_short(self, final: bool) -> bool:
+        """A decision while some sensor has nothing queued: only what its next message cannot change."""
+        stamps, head, streams, sensors = self._stamps, self._head, self.streams, range(self.size)
+        avail = [k for k in sensors if head[k] < len(stamps[k])]
+        if not avail:
+            return False
+        t = [stamps[k][head[k]] for k in avail]
+        t0 = min(t)
+        silent = [k for k in sensors if head[k] >= len(stamps[k])]
+        dead = any(streams[k].lastc >= t0 + self.tolerance_ns and not streams[k].busy for k in silent)
+        stale = self.waited(t0, silent)
+        crowded = max(len(stamps[k]) - head[k] for k in avail) > self.max_pending
+        if final or dead or stale or crowded:
+            self.stats.unmatched += 1
+            head[avail[t.index(t0)]] += 1
+            return True
+        return False
 
     def _matched_run(self) -> int:
         """How many sets the rule forms in a row from the current heads (every queue holding at least
@@ -486,6 +596,9 @@ class SetSynchronizer(AcceptanceRule):
         for k in range(self.size):
             h = self._head[k]
             if h and (h >= 4096 or not keep_values or h == len(self._stamps[k])):
+                self._consumed[k] = after = self._stamps[k][h - 1]
+                if self._faulty[k]:
+                    self._faulty[k] = [f for f in self._faulty[k] if f[1] > after]
                 del self._stamps[k][:h]
                 del self._raws[k][:h]
                 del self._caps[k][:h]
@@ -494,6 +607,13 @@ class SetSynchronizer(AcceptanceRule):
                 else:
                     self._arrays[k] = self._arrays[k][h:]
                 self._head[k] = 0
+
+
+def _as_batch(batch: Any) -> Batch:
+    stamps, vectors, receipts = batch
+    s = np.asarray(stamps, dtype=np.int64).reshape(-1)
+    return s, np.asarray(vectors, dtype=float).reshape(-1, 3), \
+        None if receipts is None else np.asarray(receipts, dtype=np.int64).reshape(-1)
 
 
 # --------------------------------------------------------------------------- choosing the mode
@@ -618,7 +738,9 @@ class StreamSynchronizer:
         self.engine: SetSynchronizer | InterpolatingSynchronizer | None = None
         self.reason = ""
         """Why the mode in use was chosen (empty while choosing)."""
-        self._held: list[list[tuple[int, float, float, float, int | None]]] = [[] for _ in range(sensors)]
+        self._held: list[list[tuple[int, float, float, float, int | None, int]]] = [[] for _ in range(sensors)]
+        self._arrivals = 0
+        """Messages held while choosing (their order, for the replay)."""
         self._held_batches: list[list[tuple[Any, Any, Any]]] = [[] for _ in range(sensors)]
         if mode != "auto" or any(offsets):
             chosen = "interpolate" if any(offsets) else mode
@@ -728,18 +850,41 @@ class StreamSynchronizer:
         return bool(np.median(steps) > MAX_INTERPOLATION_STEP)
 
     def _decide(self) -> None:
-        mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns,
-                                coarse=self._coarse())
+        coarse = self._coarse()
+        mode, why = choose_mode(self._candidates(), self._tolerance, self.names, self.time_offsets_ns, coarse=coarse)
         self._start(mode, why)
+        if mode == "exact" and isinstance(self.engine, SetSynchronizer):
+            self.engine.monitor = ExactMonitor(self.names, coarse)
+
+    def _revised(self) -> bool:
+        """Whether exact matching, chosen by mode ``auto``, just ended (:mod:`~magcal_ros.core.sync_revision`):
+        the messages it still queued, and everything after, go to interpolation, with each sensor's
+        acceptance (placements, steps held) as it was and its sample clock learnt afresh."""
+        old = self.engine
+        if not isinstance(old, SetSynchronizer) or old.monitor is None or old.monitor.reason is None:
+            return False
+        why = old.monitor.reason
+        self._start("interpolate", f"exact matching ended ({why}), interpolating from then on")
+        new = self.engine
+        assert isinstance(new, InterpolatingSynchronizer)
+        new.streams, new.newest, new.latest_arrival = old.streams, old.newest, old.latest_arrival
+        for st in new.streams:
+            st.clock = SampleClock(pause_ns=self.pause_ns)
+        queued = sorted((row[1], k, i, row) for k, rows in enumerate(old.queued()) for i, row in enumerate(rows))
+        for _, k, _, row in queued:  # in time, as they came: a sensor that follows another's restart waits for it
+            new._clock_in(k, [row])
+        return True
 
     def _replay(self) -> list[SyncedSet]:
-        """Feed what was held while choosing into the chosen rule, each sensor in its own order."""
+        """Feed what was held while choosing into the chosen rule: messages in the order they came (each
+        sensor's in its own order), then batches sensor by sensor."""
         engine = self.engine
         assert engine is not None
         out: list[SyncedSet] = []
+        held = sorted((m[5], k, m) for k, h in enumerate(self._held) for m in h)
+        for _, k, (stamp, x, y, z, receipt, _) in held:
+            out += engine.add_all(k, stamp, x, y, z, receipt)
         for k in range(self.size):
-            for stamp, x, y, z, receipt in self._held[k]:
-                out += engine.add_all(k, stamp, x, y, z, receipt)
             for s, v, r in self._held_batches[k]:
                 engine.add_batch(k, s, v, r)
         self._held = [[] for _ in range(self.size)]
@@ -747,18 +892,33 @@ class StreamSynchronizer:
         return out
 
     # -- input ------------------------------------------------------------------------
+    def _replay_held(self) -> None:
+        """Feed the messages held while choosing into the chosen rule as batches (:meth:`add_streams`: in the
+        order they came where that matters, as :meth:`_replay` offers them one at a time)."""
+        assert self.engine is not None
+        batches = []
+        for h in self._held:
+            stamps = np.array([m[0] for m in h], dtype=np.int64)
+            vectors = np.array([m[1:4] for m in h], dtype=float).reshape(-1, 3)
+            receipts = np.array([m[4] for m in h], dtype=np.int64)
+            batches.append((stamps, vectors, receipts))
+        self._held = [[] for _ in range(self.size)]
+        self.engine.add_streams(batches)
+
     def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
             receipt_ns: int | None = None) -> list[SyncedSet]:
         """Offer one message of sensor ``index`` (``receipt_ns``: when it arrived, node clock); the sets
         it completes, in order (usually none or one)."""
         engine = self.engine
         if engine is not None:
-            return engine.add_all(index, stamp_ns, x, y, z, receipt_ns)
-        self._held[index].append((stamp_ns, x, y, z, receipt_ns))
+            out = engine.add_all(index, stamp_ns, x, y, z, receipt_ns)
+            return out + self._formed_after_revision(False)
+        self._held[index].append((stamp_ns, x, y, z, receipt_ns, self._arrivals))
+        self._arrivals += 1
         if not self._ready(False):
             return []
         self._decide()
-        return self._replay()
+        return self._replay() + self._formed_after_revision(False)
 
     def add_batch(self, index: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
                   receipts: NDArray[np.int64] | None = None) -> None:
@@ -771,19 +931,58 @@ class StreamSynchronizer:
         self._held_batches[index].append((s, np.asarray(vectors, dtype=float).reshape(-1, 3),
                                           None if receipts is None else np.asarray(receipts, dtype=np.int64)))
 
+    def add_streams(self, batches: Sequence[Batch]) -> None:
+        """Queue a stretch of every sensor's messages: per sensor ``(stamps (n,) ns, vectors (n, 3) T,
+        receipts (n,) ns or None)``, each in its order; :meth:`pop` releases the sets. Where every
+        message's arrival is known they are offered in the order they arrived (by receipt), as a live
+        node offers them, wherever the order can matter (while the mode is chosen, and around a
+        suspect stamp), so that a recording gives the sets a node would; each sensor's batch at once
+        otherwise."""
+        batches = [_as_batch(b) for b in batches]
+        if self.engine is None:
+            if any(b[2] is None for b in batches):
+                for k, (st, v, r) in enumerate(batches):
+                    self.add_batch(k, st, v, r)
+                return
+            fed = [0] * self.size
+            for k, i in arrival_order([b[2] for b in batches]):  # type: ignore[misc]
+                st, v, r = batches[k]
+                x, y, z = v[i].tolist()
+                self._held[k].append((int(st[i]), x, y, z, int(r[i]), self._arrivals))  # type: ignore[index]
+                self._arrivals += 1
+                fed[k] = i + 1
+                if self._ready(False):
+                    break
+            else:
+                return
+            self._decide()
+            self._replay_held()
+            batches = [(st[f:], v[f:], None if r is None else r[f:]) for (st, v, r), f in zip(batches, fed)]
+        assert self.engine is not None
+        self.engine.add_streams(batches)
+
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets decided so far (everything, dropping what is left, when ``final``)."""
+        streamed: list[SyncedSet] = []
         if self.engine is None:
             if not self._ready(final):
                 return empty_batch(self.size)
             self._decide()
-            streamed = self._replay()
-            assert self.engine is not None
-            batch = self.engine.pop(final)
-            if streamed:
-                batch = _join(_batch_of(streamed, self.size), batch)
-            return batch
-        return self.engine.pop(final)
+            streamed += self._replay()
+        assert self.engine is not None
+        batch = self.engine.pop(final)
+        if self._revised():
+            batch = _join(batch, self.engine.pop(final))
+        if streamed:
+            batch = _join(_batch_of(streamed, self.size), batch)
+        return batch
+
+    def _formed_after_revision(self, final: bool) -> list[SyncedSet]:
+        """Live: where exact matching just ended, the sets interpolation forms from what it queued."""
+        if not self._revised():
+            return []
+        assert isinstance(self.engine, InterpolatingSynchronizer)
+        return self.engine._form(final)
 
     def reset(self) -> None:
         """Drop everything queued or held (counted as unmatched) and choose the mode afresh (``auto``)."""
@@ -865,7 +1064,7 @@ def synchronise_streams(
     offsets = dict(zip(names, time_offsets)) if time_offsets is not None else None
     sync = stream_synchronizer(names, tolerance, mode, max_gap, offsets, lag_ns=2**62, max_pending=2**62,
                                reject_zero=reject_zero, max_reading=max_reading)
-    for k, (stamps, vectors) in enumerate(streams):
-        sync.add_batch(k, stamps, vectors, None if receipts is None else receipts[k])
+    sync.add_streams([(stamps, vectors, None if receipts is None else receipts[k])
+                      for k, (stamps, vectors) in enumerate(streams)])
     batch = sync.pop(final=True)
     return batch, sync.stats, str(sync.mode)

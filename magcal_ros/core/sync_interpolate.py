@@ -39,6 +39,7 @@ from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
     NEVER,
     RESTART_JUMP,
+    Accepted,
     AcceptanceRule,
     SetBatch,
     SyncedSet,
@@ -87,8 +88,8 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._head = [0] * sensors
         self._prev: int | None = None
         """Instant of the last set formed."""
-        self._fence = [NEVER] * sensors
-        """Per sensor, the instant of the first sample after its latest restart: no set bridges it."""
+        self._fence: list[set[int]] = [set() for _ in range(sensors)]
+        """Per sensor, the instants of the first samples after its restarts still queued: no set bridges them."""
         self._fresh = [False] * sensors
 
     # -- state ------------------------------------------------------------------------
@@ -131,7 +132,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._out = []
         self._head = [0] * self.size
         self._prev = None
-        self._fence = [NEVER] * self.size
+        self._fence = [set() for _ in range(self.size)]
         self._fresh = [False] * self.size
         self.forget()
 
@@ -165,6 +166,9 @@ class InterpolatingSynchronizer(AcceptanceRule):
             accepted = accept(index, t, (row[0], row[1], row[2]), faults[i], r[i])
             if accepted:
                 clock_in(index, accepted)
+
+    def _offered(self, index: int, accepted: Accepted, kept: Accepted) -> None:
+        self._clock_in(index, accepted)
 
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets decided so far (everything, dropping what is left, when ``final``)."""
@@ -211,7 +215,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
         q.append(tau)
         self._vals[index].append(value)
         if self._fresh[index]:  # the first sample of a new segment (a restart)
-            self._fence[index] = tau
+            self._fence[index].add(tau)
             self._fresh[index] = False
         if index == 0:  # in the reference's own clock, whatever placed it on the common time line
             clock = self.streams[0].clock
@@ -252,7 +256,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
                     verdict = 1  # this sensor's samples start after t
                     break
                 span = taus[j] - taus[j - 1]
-                if span > self.gap_limit(k) or taus[j] == fences[k]:  # too far apart, or across a restart
+                if span > self.gap_limit(k) or taus[j] in fences[k]:  # too far apart, or across a restart
                     verdict = 2
                     break
                 picks.append((j - 1, j, (t - taus[j - 1]) / span))
@@ -326,6 +330,10 @@ class InterpolatingSynchronizer(AcceptanceRule):
         for k in range(self.size):
             h = self._head[k]
             if h and (h >= 4096 or h == len(self._tau[k])):
+                fence = self._fence[k]
+                if fence:  # restarts no set can reach any more
+                    first = self._tau[k][h] if h < len(self._tau[k]) else None
+                    self._fence[k] = {f for f in fence if first is None or f >= first}
                 del self._tau[k][:h]
                 del self._vals[k][:h]
                 if k == 0:

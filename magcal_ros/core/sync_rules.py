@@ -35,7 +35,8 @@ its sample clock takes that sensor's correction after the restart, not one of it
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections import deque
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -67,8 +68,25 @@ NO_CAP = 2**62
 NEVER = -(2**62)
 Vector = tuple[float, float, float]
 
-OK, DUPLICATE, OUT_OF_ORDER, BEHIND, AHEAD = range(5)
-"""Verdicts of :meth:`SensorStream.classify`."""
+OK, DUPLICATE, BEHIND, AHEAD, CROWDED, BURST = range(6)
+"""Verdicts of :meth:`SensorStream.classify` (BURST: a held stamp inside a backlog delivered at once)."""
+LEAD_WINDOW: int = 256
+"""Messages over which a sensor's stamp lead over its arrivals is taken at its largest (the least delayed
+arrival): long enough for a backlog to catch up, short enough to follow a receipt clock that drifts from
+the stamps' (counted in messages, so a pause does not age it)."""
+PLACE_MESSAGES: int = 16
+"""Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
+jitter averages out)."""
+MAX_PLACE_MESSAGES: int = 4096
+"""... or this many, where the arrivals never catch up (a stalled link's backlog, arrivals too jittery)."""
+TAIL: int = 16
+"""The last stamps of a segment that anchor its grid where a step leaves it (their jitter averaged)."""
+SHARED_STEP: int = NS_PER_S // 2
+"""Sensors whose stamps step within this time (ns) of each other by the same jump share one stamping
+clock ..."""
+SHARED_MARGIN: int = 50_000_000
+"""... when their placements agree within this (ns) and the shared jump keeps the sample grid: each is
+placed by its own arrivals, which a loaded computer delays by tens of milliseconds."""
 
 
 @dataclass
@@ -106,6 +124,9 @@ class SyncStats:
     """Messages with a negative header stamp (before 1970: a clock or driver fault)."""
     out_of_range: int = 0
     """Messages with a finite reading beyond :data:`~magcal_ros.core.units.MAX_READING` (T)."""
+    burst: int = 0
+    """Messages stamped far closer together than their sensor samples: a backlog stamped as it was
+    delivered, whose stamps say nothing of when its samples were taken."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
@@ -142,7 +163,7 @@ class SyncStats:
 DISORDER_MIN: int = 10
 """Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap", "negative_stamp", "out_of_range")
+                                "glitch", "gap", "negative_stamp", "out_of_range", "burst")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -156,6 +177,7 @@ _PHRASES = {
     "gap": "sets dropped for a gap longer than max_gap in another sensor's samples",
     "negative_stamp": "negative (before 1970) stamps dropped",
     "out_of_range": "readings beyond any magnetometer's range dropped",
+    "burst": "messages of a backlog stamped on delivery dropped",
 }
 
 
@@ -215,12 +237,17 @@ def median_int(values: list[int]) -> int:
     return v[m] if len(v) % 2 else (v[m - 1] + v[m]) // 2
 
 
+Message = tuple[int, Any, "str | None", "int | None"]
+"""One message of a sensor as acceptance holds it: (stamp ns, payload, reading fault or None, receipt ns or None)."""
+
+
 class SensorStream:
     """Acceptance state of one sensor: its previous stamp, short period, a held suspect, its
-    placement on the common timeline (``base``: common = stamp + base) and its sample clock."""
+    placement on the common timeline (``base``: common = stamp + base), the lead of its stamps
+    over their arrivals, and its sample clock."""
 
-    __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "placed_at",
-                 "before", "follows")
+    __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
+                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -232,16 +259,35 @@ class SensorStream:
         self.intervals: list[int] = []
         self.period: int | None = None
         """Median of the last :data:`PERIOD_WINDOW` intervals (ns), None before the first."""
-        self.held: tuple[int, Any, bool, int | None, bool] | None = None
-        """A suspect: (stamp, payload, reading fault or None, receipt, behind)."""
+        self.held: tuple[int, Any, str | None, int | None, int] | None = None
+        """A suspect: (stamp, payload, reading fault or None, receipt, kind: BEHIND, AHEAD, CROWDED or BURST)."""
         self.clock = clock
-        self.placed_at: int | None = None
-        """Common time of this sensor's latest restart placement (None: never restarted)."""
         self.before: tuple[int, int] | None = None
-        """(last stamp, base) of the segment before the latest restart, while the stamps may still
-        return to it (two bad stamps in a row look like a restart until the old sequence goes on)."""
+        """(last stamp, base) of the segment before the latest step, for its first :data:`PERIOD_WINDOW`
+        messages (without arrivals, two bad stamps in a row look like a step until the old sequence
+        goes on); then forgotten: a segment keeps its placement."""
         self.follows: int | None = None
         """The sensor whose stamps the latest restart's share (placed by its shift), None: placed alone."""
+        self.leads: deque[int] = deque(maxlen=LEAD_WINDOW)
+        """``common stamp - receipt`` (ns) of the last :data:`LEAD_WINDOW` messages taken with an arrival: their
+        largest is how far the stamps run ahead of the least delayed arrivals."""
+        self.placing: list[Message] | None = None
+        """The first messages of a new segment, held until their arrivals place it."""
+        self.since = 0
+        """Messages taken since the latest step (for :attr:`before`)."""
+        self.placed_at: int | None = None
+        """Common stamp (ns) where the latest step placed this sensor's new segment (None: never)."""
+        self.grid_first = NEVER
+        """First stamp (ns) of the current segment ..."""
+        self.grid_periods = 0
+        """... and the sample periods from it to the last stamp (each interval in whole short periods)."""
+        self.tail: list[int] = []
+        """The last :data:`TAIL` common stamps (ns) of the current segment."""
+
+    @property
+    def busy(self) -> bool:
+        """Whether messages are held (a suspect, or a new segment being placed)."""
+        return self.held is not None or self.placing is not None
 
     def suspect_period(self) -> int | None:
         """The period the suspect rule uses: the short median once the window is full."""
@@ -253,29 +299,114 @@ class SensorStream:
             return self.clock.period_ns
         return self.suspect_period()
 
-    def classify(self, stamp: int, restart_ns: int) -> int:
-        """OK, DUPLICATE, OUT_OF_ORDER, or a suspect BEHIND / AHEAD (see the module docstring)."""
+    def grid_period(self) -> float | None:
+        """The sample period (ns) over the current segment: its span over the periods it holds (lost samples
+        counted), a precision the short median lacks when a step is placed many periods on; the short
+        median while the segment holds fewer than :data:`PERIOD_WINDOW` periods. The same on every path
+        (the sample clock is fed only where a path needs it)."""
+        if self.grid_periods >= PERIOD_WINDOW:
+            return (self.last - self.grid_first) / self.grid_periods
+        return self.suspect_period()
+
+    def anchor(self, period: float) -> float:
+        """The common time (ns) of the last sample on the segment's grid of ``period``: the last stamp with
+        the jitter of the last few averaged out."""
+        tail = self.tail
+        last = tail[-1]
+        return last + sum((c - last) - round((c - last) / period) * period for c in tail) / len(tail)
+
+    def unseen(self, stamp: int, receipt: int | None, period: int) -> bool | None:
+        """Whether the arrivals did not see the time that ``stamp`` (ns, in this segment, ``receipt`` ns)
+        says passed since the previous one: the stamps stepped forward. Both its lead over its arrival
+        beyond the largest recent one (an arrival is never early; a late one makes it smaller) and its
+        interval beyond the arrivals' exceed half the ``period`` (ns); never while the arrivals come
+        bunched (a backlog delivered at once says nothing of time). None while unknown."""
+        last = self.last_receipt
+        if receipt is None or last is None or not self.leads:
+            return None
+        if 4 * (receipt - last) < period:
+            return False
+        return 2 * (stamp - self.last - (receipt - last)) > period and \
+            2 * (stamp + self.base - receipt - max(self.leads)) > period
+
+    def note_lead(self, common: int, receipt: int | None) -> None:
+        """Raise the lead envelope with one taken message's common stamp and receipt (ns)."""
+        if receipt is None:
+            return
+        self.leads.append(common - receipt)
+
+    def crowded(self, interval: int, period: int) -> bool:
+        """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
+        was delivered): under a quarter of the short ``period``, while the sensor's recent intervals are
+        regular (their median deviation under a quarter period: a stream of irregular stamps has no
+        backlog to tell)."""
+        if 4 * interval >= period:
+            return False
+        return 4 * median_int([abs(i - period) for i in self.intervals]) < period
+
+    def classify(self, stamp: int, receipt: int | None, restart_ns: int) -> int:
+        """OK, DUPLICATE, CROWDED, or a suspect BEHIND / AHEAD (see the module docstring)."""
         last = self.last
         if stamp <= last:
-            if last - stamp > restart_ns:
-                return BEHIND
-            return DUPLICATE if stamp == last else OUT_OF_ORDER
-        if last != NEVER:
-            period = self.suspect_period()
-            if period is not None and SUSPECT_PERIODS[1] * (stamp - last) > SUSPECT_PERIODS[0] * period:
-                return AHEAD
-            if period is None and stamp - last > restart_ns:  # before a period is known: a jump as far as a restart's
-                return AHEAD
+            return DUPLICATE if stamp == last else BEHIND
+        if last == NEVER:
+            return OK
+        d = stamp - last
+        period = self.suspect_period()
+        if period is None:  # before a period is known: a jump as far as a restart's
+            return AHEAD if d > restart_ns else OK
+        if self.crowded(d, period):
+            return CROWDED
+        if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
+            return AHEAD
+        if 2 * d > 3 * period and self.unseen(stamp, receipt, period):  # lost samples, unless the arrivals saw no gap
+            return AHEAD
         return OK
 
     def record(self, interval: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period)."""
+        before = self.period
+        self.grid_periods += max(1, int(round(interval / before))) if before else 1
         iv = self.intervals
         iv.append(interval)
         if len(iv) > PERIOD_WINDOW:
             del iv[0]
         self.period = median_int(iv)
         return self.period // 2
+
+
+Batch = tuple[NDArray[np.int64], NDArray[np.float64], "NDArray[np.int64] | None"]
+"""One sensor's messages in its order: stamps (n,) ns, vectors (n, 3) T, receipts (n,) ns or None."""
+
+
+def arrival_order(receipts: Sequence[NDArray[np.int64]]) -> list[tuple[int, int]]:
+    """(sensor, message) pairs of every sensor's messages in the order they arrived: by receipt (ns), each
+    sensor's in its own order, a lower sensor index first at equal receipts."""
+    k = np.concatenate([np.full(len(r), j, np.int64) for j, r in enumerate(receipts)])
+    i = np.concatenate([np.arange(len(r), dtype=np.int64) for r in receipts])
+    t = np.concatenate([np.asarray(r, dtype=np.int64) for r in receipts])
+    order = np.lexsort((i, k, t))
+    return list(zip(k[order].tolist(), i[order].tolist()))
+
+
+
+def _on_grid(common: int, grid: tuple[float, float] | None) -> bool:
+    """Whether a common stamp (ns) falls on a sample ``grid`` (anchor ns, period ns) to a quarter period."""
+    if grid is None:
+        return False
+    steps = (common - grid[0]) / grid[1]
+    return abs(steps - round(steps)) <= 0.25
+
+
+def caught_up(held: list[Message], period: int | None) -> bool:
+    """Whether the arrivals of a new segment's held messages have caught up with their stamps: over the last
+    four, the stamps' lead over the arrivals grew by less than a period (a backlog delivered at once
+    arrives late and catches up: its lead grows by a period a message)."""
+    if len(held) < 5:
+        return False
+    a, b = held[-5], held[-1]
+    grew = (b[0] - b[3]) - (a[0] - a[3])  # type: ignore[operator]
+    return grew < (period or NS_PER_S)
 
 
 Accepted = list[tuple[int, int, Any, int, bool]]
@@ -317,8 +448,8 @@ class AcceptanceRule:
         return SensorStream(SampleClock(pause_ns=self.pause_ns) if self.clocked else None)
 
     def forget(self) -> None:
-        """Forget every sensor's history (held suspects are counted as glitches)."""
-        self.stats.glitch += sum(s.held is not None for s in self.streams)
+        """Forget every sensor's history (held suspects and unplaced messages are counted as glitches)."""
+        self.stats.glitch += self.held
         self.streams = [self._new_stream() for _ in range(self.size)]
         self.newest = NEVER
         self.latest_arrival = None
@@ -356,88 +487,222 @@ class AcceptanceRule:
 
     @property
     def held(self) -> int:
-        """Suspect messages held."""
-        return sum(s.held is not None for s in self.streams)
+        """Messages held: suspects, and the first messages of new segments being placed."""
+        return sum((s.held is not None) + len(s.placing or ()) for s in self.streams)
 
     def fault(self, x: float, y: float, z: float) -> str | None:
         """The fault of a reading (T) under this rule's :attr:`max_reading`, None when usable."""
         return acceptance.reading_fault(x, y, z, self.max_reading)
 
+    # -- streams ----------------------------------------------------------------------
+    def add_batch(self, index: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+                  receipts: NDArray[np.int64] | None = None) -> None:
+        raise NotImplementedError
+
+    def add_streams(self, batches: Sequence[Batch]) -> None:
+        """Queue a stretch of every sensor's messages (per sensor ``(stamps, vectors, receipts)``, see
+        :data:`Batch`): in the order they arrived where every arrival is known and the order can matter
+        (a decision that looks at another sensor: a step), each sensor's batch at once otherwise."""
+        if any(b[2] is None for b in batches) or self._plain_streams(batches):
+            for k, (stamps, vectors, receipts) in enumerate(batches):
+                self.add_batch(k, stamps, vectors, receipts)
+            return
+        faults = [acceptance.reading_fault_list(v, self.max_reading) for _, v, _ in batches]
+        rows = [v.tolist() for _, v, _ in batches]
+        stamps = [b[0].tolist() for b in batches]
+        receipts = [b[2].tolist() for b in batches]  # type: ignore[union-attr]
+        kept: list[Accepted] = [[] for _ in batches]
+        for k, i in arrival_order([b[2] for b in batches]):  # type: ignore[misc]
+            x, y, z = rows[k][i]
+            accepted = self.accept(k, stamps[k][i], (x, y, z), faults[k][i], receipts[k][i])
+            if accepted:
+                self._offered(k, accepted, kept[k])
+        self._offered_all(kept)
+
+    def _plain_streams(self, batches: Sequence[Batch]) -> bool:
+        """Whether each sensor's batch can be taken on its own (nothing in them looks at another sensor)."""
+        return False
+
+    def _offered(self, index: int, accepted: "Accepted", kept: "Accepted") -> None:
+        """Queue what one message let through (``kept``: this sensor's, for :meth:`_offered_all`)."""
+        raise NotImplementedError
+
+    def _offered_all(self, kept: "list[Accepted]") -> None:
+        """After :meth:`add_streams` offered every message."""
+
+    # -- one message ------------------------------------------------------------------
     def accept(self, index: int, stamp: int, payload: Any, fault: str | None, receipt: int | None) -> Accepted:
         """Offer one message of sensor ``index`` (``fault``: its reading's, see :meth:`fault`); the
-        messages it lets through (a held suspect first)."""
+        messages it lets through (held ones first)."""
         if stamp <= 0 and self.reject_zero:
             self.stats.count(acceptance.stamp_fault(stamp) or "zero_stamp")
             return []
         s = self.streams[index]
         out: Accepted = []
-        held = s.held
-        if held is not None:
-            before, behind = held[0], held[4]
-            if behind:  # a restart if the next stamp goes on from it, else a glitch
-                s.held = None
-                if before < stamp <= before + self.restart_ns:
-                    self._take(index, before, held[1], held[2], held[3], True, out)
-                else:
-                    self.stats.glitch += 1
-            elif before - s.last > self.restart_ns:  # far ahead: a restart (forward) if the next stamp goes on from it
-                if before < stamp <= before + self.restart_ns:
-                    s.held = None
-                    self._take(index, before, held[1], held[2], held[3], True, out)
-                elif stamp > s.last:  # the sequence went on below it: a single bad stamp
-                    s.held = None
-                    self.stats.glitch += 1
-            elif stamp >= before:  # ahead: kept once a later stamp confirms it
-                s.held = None
-                self._take(index, before, held[1], held[2], held[3], False, out)
-            elif stamp > s.last:  # the sequence went on below it: a single late stamp
-                s.held = None
-                self.stats.glitch += 1
-        verdict = s.classify(stamp, self.restart_ns)
+        message = (stamp, payload, fault, receipt)
+        if s.placing is not None and self._placing(index, message, out):
+            return out
+        if s.held is not None and self._decide(index, message, out):
+            return out
+        verdict = s.classify(stamp, receipt, self.restart_ns)
         if verdict == OK:
-            self._take(index, stamp, payload, fault, receipt, False, out)
+            self._take(index, message, False, out)
         elif verdict == DUPLICATE:
             self.stats.duplicate += 1
-        elif verdict == OUT_OF_ORDER:
-            self.stats.out_of_order += 1
         else:
-            if s.held is not None:
-                self.stats.glitch += 1
-            s.held = (stamp, payload, fault, receipt, verdict == BEHIND)
+            s.held = (stamp, payload, fault, receipt, verdict)
         return out
+
+    def _decide(self, index: int, message: Message, out: Accepted) -> bool:
+        """Decide the held suspect of sensor ``index`` with its next ``message``; whether that message was
+        taken up by the decision (else it goes through the rule itself)."""
+        s = self.streams[index]
+        held = s.held
+        assert held is not None
+        kind = held[4]
+        if message[0] == held[0]:  # the suspect again
+            self.stats.duplicate += 1
+            return True
+        if kind == BEHIND:
+            return self._decide_behind(index, message, out)
+        step = message[0] - held[0]
+        period = s.suspect_period()
+        if step > 0 and period is not None and s.crowded(step, period):  # a backlog delivered at once
+            self.stats.burst += 1
+            s.held = (*message, BURST)
+            return True
+        s.held = None
+        if kind == BURST:  # the last of a backlog
+            self.stats.burst += 1
+            return False
+        if kind == CROWDED:  # one short interval: the stamps' jitter
+            self._take(index, held[:4], False, out)
+            return False
+        if step > 0 and (step <= self.restart_ns or held[0] - s.last <= self.restart_ns):  # the held one goes on
+            if self._stepped_ahead(s, held):
+                self._step(index, [held[:4], message], out)
+                return True
+            self._take(index, held[:4], False, out)  # a pause or lost samples
+            return False
+        self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
+        return False
+
+    def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
+        """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
+        or the sensor paused): where arrivals are known, when they did not see the time pass; without
+        them, when it is more than ``restart_ns`` ahead."""
+        unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
+        if unseen is None:
+            return held[0] - s.last > self.restart_ns
+        return unseen
+
+    def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
+        """The held suspect is behind its sequence: a step back when ``message`` goes on from it below the
+        old sequence (or, a period or two back, on its grid rather than the old one's), else a single
+        late or bad stamp."""
+        s = self.streams[index]
+        held = s.held
+        assert held is not None
+        s.held = None
+        stamp, h = message[0], held[0]
+        after = stamp - h
+        if 0 < after <= self.restart_ns:
+            period = s.suspect_period()
+            if stamp <= s.last or (period is not None and 4 * (stamp - s.last) < 3 * period
+                                   and period <= 2 * after <= 3 * period):
+                self._step(index, [held[:4], message], out)
+                return True
+        self.stats.count("out_of_order" if s.last - h <= self.restart_ns else "glitch")
+        return False
 
     def release_held(self, index: int) -> Accepted:
-        """End of stream for sensor ``index``: a suspect ahead is kept, one behind is a glitch."""
+        """End of stream for sensor ``index``: a new segment is placed with what there is; a suspect
+        ahead is kept, one behind (or the last of a backlog) dropped."""
         s = self.streams[index]
-        held, s.held = s.held, None
         out: Accepted = []
+        if s.placing is not None:
+            self._place_held(index, out)
+        held, s.held = s.held, None
         if held is not None:
-            if held[4] or held[0] - s.last > self.restart_ns:  # behind, or unconfirmed far ahead
+            if held[4] == BURST:
+                self.stats.burst += 1
+            elif held[4] == CROWDED:
+                self._take(index, held[:4], False, out)
+            elif held[4] == BEHIND or held[0] - s.last > self.restart_ns:  # behind, or unconfirmed far ahead
                 self.stats.glitch += 1
             else:
-                self._take(index, held[0], held[1], held[2], held[3], False, out)
+                self._take(index, held[:4], False, out)
         return out
 
-    def _take(self, index: int, stamp: int, payload: Any, fault: str | None, receipt: int | None, restart: bool,
-              out: Accepted) -> None:
+    # -- steps ------------------------------------------------------------------------
+    def _step(self, index: int, messages: list[Message], out: Accepted) -> None:
+        """Sensor ``index``'s stamps stepped: ``messages`` start its new segment. Where their arrivals are
+        known they are held until :data:`PLACE_MESSAGES` have come (the least delayed places the segment);
+        otherwise the segment is placed at once."""
         s = self.streams[index]
-        if restart:
-            s.before = (s.last, s.base)
-            self._place(index, stamp, receipt)
+        if not s.leads or any(m[3] is None for m in messages):
+            self._place(index, [messages[0][0]], None)
+            self._take(index, messages[0], True, out)
+            for m in messages[1:]:
+                self._take(index, m, False, out)
+            return
+        s.placing = list(messages)
+
+    def _placing(self, index: int, message: Message, out: Accepted) -> bool:
+        """Add ``message`` to the new segment being placed (placing it once there are enough); whether it
+        was taken up (a message that does not go on from the segment ends the placing and goes through
+        the rule)."""
+        s = self.streams[index]
+        held = s.placing
+        assert held is not None
+        step = message[0] - held[-1][0]
+        period = s.suspect_period()
+        limit = self.restart_ns if period is None else min(self.restart_ns, SUSPECT_PERIODS[0] * period // 2)
+        if message[3] is None or not (0 < step <= limit):
+            self._place_held(index, out)
+            return False
+        held.append(message)
+        if len(held) >= PLACE_MESSAGES and (caught_up(held, period) or len(held) >= MAX_PLACE_MESSAGES):
+            self._place_held(index, out)
+        return True
+
+    def _place_held(self, index: int, out: Accepted) -> None:
+        """Place the held new segment of sensor ``index`` by its least delayed arrival and let it through."""
+        s = self.streams[index]
+        held = s.placing
+        assert held is not None and s.leads
+        s.placing = None
+        first = held[0]
+        lead = max(s.leads)
+        # each message's arrival says where the segment lies; a late one says too late: the earliest wins
+        estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
+        self._place(index, [m[0] for m in held], estimate)
+        self._take(index, first, True, out)
+        for m in held[1:]:
+            self._take(index, m, False, out)
+
+    def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
+        stamp, payload, fault, receipt = message
+        s = self.streams[index]
+        if restart or s.last == NEVER:
             s.intervals, s.period = [], None
-            cap = NO_CAP
-        elif s.before is not None and 0 < stamp - s.before[0] <= self.restart_ns and stamp > s.last:
-            # The old sequence goes on: what looked like a restart was a few bad stamps. Back to
-            # the old placement (the messages in between stay where they were put).
-            s.base = s.before[1]
-            s.before = None
-            s.intervals, s.period = [], None
+            s.since = 0
+            s.grid_first, s.grid_periods = stamp, 0
+            s.tail = []
             cap = NO_CAP
         else:
             cap = NO_CAP if s.last == NEVER else s.record(stamp - s.last)
+            s.since += 1
+            if s.since > PERIOD_WINDOW:
+                s.before = None
         s.last = stamp
         s.lastc = c = stamp + s.base
         s.last_receipt = receipt
+        tail = s.tail
+        tail.append(c)
+        if len(tail) > TAIL:
+            del tail[0]
+        s.note_lead(c, receipt)
         if c > self.newest:
             self.newest = c
         self.arrived(receipt)
@@ -446,33 +711,72 @@ class AcceptanceRule:
             payload = None
         out.append((stamp, c, payload, cap, restart))
 
-    def _place(self, index: int, stamp: int, receipt: int | None) -> None:
-        """Place sensor ``index``'s new segment starting at ``stamp`` on the common timeline."""
+    def _place(self, index: int, stamps: list[int], estimate: int | None) -> None:
+        """Place sensor ``index``'s new segment, whose first stamps are ``stamps``, on the common timeline: its
+        first sample at ``estimate`` (ns, from its arrivals; None: unknown, one period after its last
+        sample) on its old sample grid (each stamp's jitter averaged out), unless that is where another
+        sensor's stamps (or its own old segment's) put it."""
         s = self.streams[index]
         s.follows = None
-        period = s.best_period()
-        if receipt is not None and s.last_receipt is not None:
-            estimate = s.lastc + max(receipt - s.last_receipt, 0)
+        period = s.grid_period()
+        margin = self.restart_ns // 2
+        stamp = stamps[0]
+        grid = None
+        if not period:
+            base = (s.lastc if estimate is None else estimate) - stamp
         else:
-            estimate = s.lastc + int(period or 0)
-        for j, other in enumerate(self.streams):  # the same jump as another sensor's: the same clock
-            if j != index and abs(stamp + other.base - estimate) <= self.restart_ns // 2:
-                s.base = other.base
-                s.follows = self._leader(index, j)
-                break
-        else:
-            for j, other in enumerate(self.streams):  # back in line with another sensor's latest stamps
-                if j != index and other.lastc != NEVER and abs(stamp + other.base - other.lastc) <= self.restart_ns // 2:
-                    s.base = other.base
-                    s.follows = self._leader(index, j)
-                    s.placed_at = stamp + s.base
-                    return
-            if period:
-                steps = max(1, int(round((estimate - s.lastc) / period)))
-                estimate = s.lastc + int(round(steps * period))
-            s.base = max(estimate, s.lastc + 1) - stamp
-            self.stats.restarts += 1
-        s.placed_at = stamp + s.base
+            if estimate is not None:
+                margin = min(margin, int(period) // 2)
+            anchor = s.anchor(period)
+            grid = (anchor, period)
+            steps = 1 if estimate is None else max(1, round((estimate - anchor) / period))
+            first = anchor + steps * period  # the sensor kept sampling: whole periods after its last sample
+            base = int(round(sum(first + round((t - stamp) / period) * period - t for t in stamps) / len(stamps)))
+        base = max(base, s.lastc + 1 - stamp)
+        estimate = stamp + base
+        old = s.base
+        s.before = (s.last, old) if s.before is None else s.before
+        s.base = base
+        shared = self._shared_base(index, stamp, estimate, margin, grid)
+        s.placed_at = estimate
+        if shared is not None:
+            s.base, s.follows = shared
+            if s.base == s.before[1]:
+                s.before = None
+            return
+        self.stats.restarts += 1
+
+    def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
+                     grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
+        """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
+        another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
+        when it stands alone. ``margin``: how far apart (ns) a placement by arrivals may be from where the
+        stamps say (half a period; without arrivals, half of ``restart_ns``); with one that did not step,
+        half of that and at most a millisecond (the stamps are back in line with its own). With a sensor
+        whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
+        :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
+        a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
+        places both alike."""
+        s = self.streams[index]
+        by_arrival = margin < self.restart_ns // 2
+        for j, other in enumerate(self.streams):
+            if j == index or other.last == NEVER:
+                continue
+            off = abs(stamp + other.base - estimate)
+            recent = other.placed_at is not None and abs(estimate - other.placed_at) <= SHARED_STEP
+            if not by_arrival:
+                near = off <= margin
+            elif recent:
+                near = off <= margin or (off <= SHARED_MARGIN and _on_grid(stamp + other.base, grid))
+            else:
+                near = off <= min(margin // 2, NS_PER_S // 1000)
+            if near:
+                return other.base, self._leader(index, j)
+        before = s.before
+        if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
+                abs(stamp + before[1] - estimate) <= margin:
+            return before[1], None
+        return None
 
     def _leader(self, index: int, j: int) -> int:
         """The sensor whose clock sensor ``index`` follows when placed by sensor ``j``'s shift."""

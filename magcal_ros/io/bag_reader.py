@@ -296,6 +296,17 @@ class _Pending:
         return cls([[] for _ in range(sensors)], [[] for _ in range(sensors)])
 
 
+def _joined(parts: list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]],
+            ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+    """One sensor's messages from the batches of one chunk (several connections of one topic), in order."""
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        return np.empty(0, np.int64), np.empty((0, 3)), np.empty(0, np.int64)
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]))
+
+
 class SetReader:
     """Stream synchronized raw sets out of an open bag, in chunks.
 
@@ -403,12 +414,13 @@ class SetReader:
         yield n
 
     def _decode(self, pending: _Pending) -> None:
-        for k, msgs in enumerate(pending.messages):
-            self._queue(k, *decode_magnetic_fields(msgs, self.path), np.asarray(pending.times[k], dtype=np.int64))
+        self.sync.add_streams([self._checked(k, *decode_magnetic_fields(msgs, self.path),
+                                             np.asarray(pending.times[k], dtype=np.int64))
+                               for k, msgs in enumerate(pending.messages)])
 
-    def _queue(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
-               receipts: NDArray[np.int64]) -> None:
-        """Hand one sensor's decoded messages (in its order) to the synchronizer."""
+    def _checked(self, k: int, stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+                 receipts: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+        """One sensor's decoded messages (in its order) for the synchronizer, once its units are checked."""
         if self.nonfinite == "error":
             bad = ~np.all(np.isfinite(vectors), axis=1)
             if np.any(bad):
@@ -422,7 +434,7 @@ class SetReader:
             if len(finite):
                 check_tesla(finite[:, None, :], [self.names[k]], self.path)
                 self._units_checked[k] = True
-        self.sync.add_batch(k, stamps, vectors, receipts)
+        return stamps, vectors, receipts
 
     def _feed_mcap(self, storages: list[Any]) -> Iterator[int]:
         """Queue messages chunk by chunk through the mcap message indexes."""
@@ -437,6 +449,8 @@ class SetReader:
             )
             for ch in chunks:
                 n = 0
+                parts: list[list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]]] = \
+                    [[] for _ in range(self.sync.size)]
                 for cid, batch in _mcap_chunk(st, ch, ids, self.path).items():
                     gid = local[cid]
                     n += len(batch.times)
@@ -446,12 +460,13 @@ class SetReader:
                         vectors = np.empty((len(batch.times), 3))
                         for rows, where in zip(batch.rows, batch.order):
                             stamps[where], vectors[where] = decode_magnetic_field_rows(rows, self.path)
-                        self._queue(k, stamps, vectors, batch.times)
+                        parts[k].append(self._checked(k, stamps, vectors, batch.times))
                     if gid in copy_ids:
                         conn = self.wanted[gid]
                         times = batch.times.tolist()
                         for rows, where in zip(batch.rows, batch.order):
                             self._extras.extend((conn, times[i], r.tobytes()) for i, r in zip(where.tolist(), rows))
+                self.sync.add_streams([_joined(p) for p in parts])
                 yield n
 
     def _release(self, n: int, final: bool) -> Iterator[SetBatch]:

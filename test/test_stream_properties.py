@@ -1,0 +1,223 @@
+"""Generated streams against a truth oracle: every published set stands for one true instant.
+
+Hypothesis draws arrays of one to four sensors, each on its own sample clock (rate, phase, drift,
+jitter, loss) and breaking its rules at random (steps of the stamps back or forward of any size
+from 1.5 periods to minutes, glitches, repeats, pauses, stalls delivering a backlog, NaN and
+1e30 T readings; :mod:`stream_oracle`). The same messages go through the set rule offline (each
+sensor's batch, receipts as bag times) and live (one message at a time in arrival order), and:
+
+- every published set's members stand for one true instant, within the exact window plus the
+  stamps' jitter (the readings encode the instant they were sampled at);
+- every message ends in a set or a drop counter (or is still pending, live): nothing is lost
+  without being counted;
+- where every sensor sampled cleanly around a reference sample (away from any fault), a set is
+  published there (the rule does not drop what it could use: after a restart, a step, a backlog);
+- live and offline publish the same sets.
+
+CI runs a fixed number of examples derandomised (the same every run); ``MAGCAL_PROPERTY_EXAMPLES``
+runs more (``benchmarks/bench_stream_properties.py`` prints the figures of a longer run).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from stream_oracle import SensorPlan, Stream, arrivals, make_stream, set_instants
+
+from magcal_ros.core.sync import stream_synchronizer, synchronise_streams
+from magcal_ros.core.units import NS_PER_S
+
+EXAMPLES = int(os.environ.get("MAGCAL_PROPERTY_EXAMPLES", "25"))
+TOLERANCE = 1e-3
+"""The default exact window (s)."""
+CLEAN = 1.0
+"""Seconds around a fault (or the start) where a reference sample need not make a set."""
+COVERAGE = 0.97
+"""Fraction of the clean reference samples that must make a set."""
+
+
+@dataclass
+class Case:
+    plans: list[SensorPlan]
+    duration: float
+    seed: int
+
+    @property
+    def period(self) -> float:
+        return 1.0 / min(p.rate for p in self.plans)
+
+
+def _signed(draw: st.DrawFn, low: float, high: float) -> float:
+    """A size between ``low`` and ``high`` seconds, log-uniform, either sign."""
+    size = float(np.exp(draw(st.floats(np.log(low), np.log(high)))))
+    return size if draw(st.booleans()) else -size
+
+
+@st.composite
+def faults(draw: st.DrawFn, plan: SensorPlan, duration: float) -> SensorPlan:
+    """Up to three faults of one sensor, one at a time (each a second or more after the last one ended),
+    none in its first two seconds."""
+    period = 1.0 / plan.rate
+    free = 2.0
+    for _ in range(draw(st.integers(0, 3))):
+        at = free + draw(st.floats(0.0, 4.0))
+        if at > duration - 3.0:
+            break
+        kind = draw(st.sampled_from(["step", "step", "glitch", "duplicate", "silence", "stall", "restamped", "bad"]))
+        length = draw(st.floats(0.2, 3.0))
+        if kind == "step":
+            plan.steps.append((at, _signed(draw, 1.5 * period, 120.0)))
+        elif kind == "glitch":
+            plan.glitches.append((at, _signed(draw, 3.0 * period, 120.0)))
+        elif kind == "duplicate":
+            plan.duplicates.append(at)
+        elif kind == "silence":
+            plan.silences.append((at, at + length))
+        elif kind in ("stall", "restamped"):
+            plan.stalls.append((at, length, kind == "restamped"))
+        else:
+            plan.bad.append(at)
+        free = at + (length if kind in ("silence", "stall", "restamped") else 0.0) + 1.0
+    return plan
+
+
+@st.composite
+def cases(draw: st.DrawFn) -> Case:
+    sensors = draw(st.integers(1, 4))
+    rate = draw(st.sampled_from([20.0, 50.0, 100.0, 200.0]))
+    period = 1.0 / rate
+    synchronous = draw(st.booleans())
+    jitter = draw(st.sampled_from([0.0, 0.02, 0.08])) * period
+    duration = draw(st.floats(12.0, 30.0))
+    plans = []
+    for _ in range(sensors):
+        plan = SensorPlan(rate=rate, phase=0.0 if synchronous else draw(st.floats(0.0, 0.95 * period)),
+                          ppm=0.0 if synchronous else draw(st.floats(-100.0, 100.0)), jitter=jitter,
+                          loss=draw(st.sampled_from([0.0, 0.0, 0.02])))
+        plans.append(draw(faults(plan, duration)))
+    return Case(plans, duration, draw(st.integers(0, 2**31 - 1)))
+
+
+def streams_of(case: Case) -> list[Stream]:
+    rng = np.random.default_rng(case.seed)
+    return [make_stream(p, case.duration, rng) for p in case.plans]
+
+
+def offline(streams: list[Stream]):  # type: ignore[no-untyped-def]
+    names = [f"mag{k + 1}" for k in range(len(streams))]
+    return synchronise_streams([(s.stamps, s.vectors) for s in streams], mode="auto",
+                               receipts=[s.receipts for s in streams], names=names,
+                               max_reading=2e-3)
+
+
+def live(streams: list[Stream]):  # type: ignore[no-untyped-def]
+    names = [f"mag{k + 1}" for k in range(len(streams))]
+    sync = stream_synchronizer(names, max_reading=2e-3)
+    sets = []
+    for receipt, k, i in arrivals(streams):
+        s = streams[k]
+        x, y, z = s.vectors[i].tolist()
+        sets += sync.add(k, int(s.stamps[i]), x, y, z, receipt)
+    return sets, sync
+
+
+def bound(case: Case) -> float:
+    """How far apart (s) a set's members may stand: the exact window (capped at half a period) plus
+    the jitter of two stamps."""
+    return min(TOLERANCE, 0.5 * case.period) + 2.0 * case.plans[0].jitter + 2e-6
+
+
+def disturbed(case: Case) -> list[tuple[float, float]]:
+    """Intervals (s) around every fault of every sensor, where sets may be lost for cause."""
+    out = [(-1.0, CLEAN + 40 * case.period)]
+    for p in case.plans:
+        out += [(t - CLEAN, t + CLEAN + 40 * case.period) for t, _ in p.steps]
+        out += [(t - CLEAN, t + CLEAN) for t, _ in p.glitches]
+        out += [(t - CLEAN, t + CLEAN) for t in p.duplicates + p.bad]
+        out += [(a - CLEAN, b + CLEAN + 40 * case.period) for a, b in p.silences]
+        out += [(a - CLEAN, a + n + CLEAN + 40 * case.period) for a, n, _ in p.stalls]
+    out.append((case.duration - CLEAN, case.duration + 1.0))
+    return out
+
+
+def clean_reference(case: Case, streams: list[Stream], mode: str) -> np.ndarray:
+    """True instants of the reference sensor's trusted samples away from every fault, with every other
+    sensor's trusted samples at the same instant (exact matching: within :func:`bound`) or around it
+    (interpolation: within 1.5 periods each side)."""
+    t = streams[0].instants[streams[0].trusted]
+    keep = np.ones(len(t), bool)
+    for a, b in disturbed(case):
+        keep &= ~((t >= a) & (t <= b))
+    for s in streams[1:]:
+        own = np.sort(s.instants[s.trusted])
+        period = 1.0 / case.plans[0].rate
+        i = np.searchsorted(own, t)
+        before = np.where(i > 0, t - own[np.maximum(i - 1, 0)], np.inf)
+        after = np.where(i < len(own), own[np.minimum(i, len(own) - 1)] - t, np.inf)
+        if mode == "exact":
+            keep &= np.minimum(before, after) <= bound(case)
+        else:
+            keep &= (before <= 1.5 * period) & (after <= 1.5 * period)
+    return t[keep]
+
+
+def check_sets(case: Case, vectors: np.ndarray, label: str) -> np.ndarray:
+    """Every set's members stand for one instant; the instants of the sets (the reference member's)."""
+    if not len(vectors):
+        return np.zeros(0)
+    instants = np.array([set_instants(v) for v in vectors])
+    spread = instants.max(axis=1) - instants.min(axis=1)
+    worst = int(np.argmax(spread))
+    assert spread[worst] <= bound(case), (f"{label}: set {worst} of {len(vectors)} pairs readings "
+                                          f"{spread[worst] * 1e3:.3f} ms apart (bound {bound(case) * 1e3:.3f} ms): "
+                                          f"{instants[worst]}")
+    return instants[:, 0]
+
+
+def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mode: str) -> None:
+    label = f"offline ({mode})"
+    wanted = clean_reference(case, streams, mode)
+    if len(wanted) < 20:
+        return
+    period = 1.0 / case.plans[0].rate
+    got = np.sort(published)
+    i = np.clip(np.searchsorted(got, wanted), 1, max(len(got) - 1, 1))
+    near = np.minimum(np.abs(got[i - 1] - wanted), np.abs(got[np.minimum(i, len(got) - 1)] - wanted)) \
+        if len(got) else np.full(len(wanted), np.inf)
+    made = near <= 0.25 * period
+    assert made.mean() >= COVERAGE, (f"{label}: sets at {made.mean():.1%} of {len(wanted)} clean reference samples; "
+                                     f"first missing at {wanted[~made][:5]} s")
+
+
+@settings(max_examples=EXAMPLES, derandomize=True, database=None, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(cases())
+def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
+    streams = streams_of(case)
+    offered = sum(len(s.stamps) for s in streams)
+    batch, stats, mode = offline(streams)
+    assert stats.used + stats.dropped() == offered, stats.describe()
+    published = check_sets(case, batch.vectors, f"offline ({mode})")
+    check_coverage(case, streams, published, mode)
+    sets, sync = live(streams)
+    assert sync.stats.used + sync.stats.dropped() + sync.pending == offered
+    check_sets(case, np.array([s.values for s in sets]).reshape(-1, len(streams), 3), "live")
+    n = len(sets)
+    assert n >= len(batch) - 5 * len(streams), (n, len(batch))
+    assert np.array_equal(batch.stamps[:n], np.array([s.stamps for s in sets], dtype=np.int64).reshape(n, -1))
+    assert np.array_equal(batch.vectors[:n], np.array([s.values for s in sets]).reshape(n, -1, 3))
+    assert sync.mode == mode
+
+
+def test_the_oracle_sees_a_wrong_pairing() -> None:
+    """The invariant is not vacuous: one sensor's stamps a period late make every set wrong."""
+    case = Case([SensorPlan(rate=50.0) for _ in range(2)], 5.0, 1)
+    streams = streams_of(case)
+    streams[1].stamps += NS_PER_S // 50
+    batch, _, _ = offline(streams)
+    spreads = [float(np.ptp(set_instants(v))) for v in batch.vectors]
+    assert len(spreads) > 200 and min(spreads) > 0.019
