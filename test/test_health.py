@@ -71,15 +71,27 @@ def test_drops_above_the_fraction_are_a_warning_with_the_losses_named() -> None:
 
 
 def test_stale_currents_are_counted_per_channel_and_warned_once_per_period() -> None:
+    from magcal_ros.core import side_streams as side
+    from magcal_ros.core.interference import LatestCurrents
     from magcal_ros.nodes.health import CurrentHealth
 
     health = CurrentHealth(("t1/battery", "t2/battery"), ("/t1/battery", "/ns/t2/battery"), 500 * MS)
+    store = LatestCurrents(2, 500 * MS, check=side.CURRENT.check)
+    for k in range(9):
+        store.add(0, 1000 * MS + 100 * MS * k, 10.0 + k)
+    store.add(0, 1900 * MS, 1e30)  # out of range: no value, counted
+    store.add(0, 2000 * MS, 12.5)
     assert health.count([True, True]) and not health.count([True, False]) and not health.count([False, False])
-    text, values = health.assess([10, 0], [12.5, None], "withheld")
+    text, values = health.assess(store, "withheld")
     assert text == ("stale current (no value within 500 ms before the set), sets withheld: t1/battery on "
-                    "/t1/battery: 1 sets, t2/battery on /ns/t2/battery (none received yet): 2 sets")
+                    "/t1/battery: 1 sets, t2/battery on /ns/t2/battery (none received yet): 2 sets; current samples "
+                    "dropped: 1 of t1/battery on /t1/battery (1 out of range)")
+    drops = {f"{n}.current_{c}": "1" if (n, c) == ("t1/battery", "out_of_range") else "0"
+             for n in ("t1/battery", "t2/battery") for c in ("out_of_range", "glitch", "nonfinite")}
     assert values == {"t1/battery.stale_current": "1", "t1/battery.current_received": "10", "t1/battery.current_A": "12.5",
-                      "t2/battery.stale_current": "2", "t2/battery.current_received": "0", "t2/battery.current_A": ""}
-    again, values = health.assess([11, 0], [12.0, None], "withheld")  # nothing new: no warning, counts kept
-    assert again is None and values["t2/battery.stale_current"] == "2"
-    assert CurrentHealth((), (), 0).assess([], [], "withheld") == (None, {})
+                      "t2/battery.stale_current": "2", "t2/battery.current_received": "0", "t2/battery.current_A": "",
+                      **drops}
+    store.add(0, 2100 * MS, 12.0)
+    again, values = health.assess(store, "withheld")  # nothing new: no warning, counts kept
+    assert again is None and values["t2/battery.stale_current"] == "2" and values["t1/battery.current_received"] == "11"
+    assert CurrentHealth((), (), 0).assess(LatestCurrents(0, 0), "withheld") == (None, {})

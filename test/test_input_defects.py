@@ -238,8 +238,11 @@ def test_list_options_may_start_with_a_minus_sign(rec: dict[str, Any]) -> None:
 
 
 @pytest.mark.parametrize("value", ["1e300", "-25000"])
-def test_a_current_beyond_any_vehicle_is_one_line_and_nothing_is_written(rec: dict[str, Any], value: str) -> None:
-    """A current of 1e300 A corrected the field to 1e292 T; 25,000 (mA written as A) is refused too."""
+def test_one_current_beyond_any_vehicle_is_dropped_and_a_column_in_milliamps_refused(rec: dict[str, Any],
+                                                                                    value: str) -> None:
+    """One current of 1e300 A (it corrected the field to 1e292 T) or -25,000 A in a recording: that row is
+    no value, dropped and counted, and the rest calibrates; a column in mA (every value 1000x) is a units
+    error, refused in one line with nothing written."""
     d = rec["dir"]
     csv = d / "thr.csv"
     if not csv.exists():
@@ -250,8 +253,20 @@ def test_a_current_beyond_any_vehicle_is_one_line_and_nothing_is_written(rec: di
     bad = d / "thr_bad.csv"
     bad.write_text("\n".join(lines) + "\n")
     out = d / "thr_out.yaml"
-    line = one_line_error(magcal("calibrate", bad, "-o", out, "--reference-field", F))
-    assert f"current {float(value):g} A is beyond +-10000 A: currents must be in A" in line and "thr_bad.csv" in line
+    proc = magcal("calibrate", bad, "-o", out, "--reference-field", F)
+    ok(proc)
+    assert "4 messages of rows whose current or temperature is out of range dropped" in proc.stderr
+    assert out.exists()
+    lines = csv.read_text().splitlines()
+    for row in range(1, len(lines)):
+        cells = lines[row].split(",")
+        cells[col] = f"{float(cells[col]) * 1000 + 1e4 + 1:.17g}"
+        lines[row] = ",".join(cells)
+    milli = d / "thr_milli.csv"
+    milli.write_text("\n".join(lines) + "\n")
+    out = d / "thr_milli.yaml"
+    line = one_line_error(magcal("calibrate", milli, "-o", out, "--reference-field", F))
+    assert "and most others are out of range: currents must be in A" in line and "thr_milli.csv" in line
     assert not out.exists()
 
 

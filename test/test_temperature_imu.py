@@ -29,7 +29,8 @@ from magcal_ros.core.imu import (
     quat_to_matrix,
 )
 from magcal_ros.core.interference import CurrentSamples, match_currents
-from magcal_ros.core.matching import LatestValues, MatchStats, match_latest
+from magcal_ros.core.side_streams import TEMPERATURE
+from magcal_ros.core.matching import accept_streams, LatestValues, MatchStats, match_latest
 from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.temperature import TemperatureSamples, TemperatureStats
 from magcal_ros.errors import InputError
@@ -118,18 +119,31 @@ def test_every_side_stream_follows_the_currents_rule() -> None:
     assert isinstance(stats, MatchStats) and isinstance(imu_stats, MatchStats)
 
 
-def test_live_temperatures_follow_the_offline_rule_whatever_the_arrival_order() -> None:
+def test_live_temperatures_follow_the_offline_rule_whatever_the_stream_holds() -> None:
+    """A temperature stream with neighbours swapped, a sample stamped three years ahead and values out of
+    range: live (one sample at a time) and offline (the recorded stream) give every set the same value,
+    and the sample far ahead costs itself only (later values are used)."""
     rng = np.random.default_rng(4)
     stamps = np.sort(rng.choice(100, 80, replace=False)) * S
     values = rng.uniform(0, 30, 80)
-    store = LatestValues(1, 10 * S, keep_ns=1000 * S)
-    for k in rng.permutation(80):
-        store.add(0, int(stamps[k]), float(values[k]))
+    order = np.arange(80)
+    for k in range(0, 78, 7):  # a few neighbours delivered the other way round
+        order[[k, k + 1]] = order[[k + 1, k]]
+    stamps, values = stamps[order], values[order]
+    stamps[40] += 3 * 365 * 86_400 * S  # stamped three years ahead
+    values[[10, 60]] = [-300.0, 1e30]
+    store = LatestValues(1, 10 * S, keep_ns=1000 * S, check=TEMPERATURE.check)
+    for t, v in zip(stamps, values):
+        store.add(0, int(t), float(v))
+    accepted, counts = accept_streams([TemperatureSamples("a", stamps, values)], TEMPERATURE.check)
+    assert store.counts[0] == counts[0]
+    assert (counts[0].glitch, counts[0].out_of_range, counts[0].accepted) == (1, 2, 77)
     sets = rng.integers(0, 120, 40) * S + 123
-    offline, fresh = match_latest(sets, [TemperatureSamples("a", stamps, values)], 10 * S)
+    offline, fresh = match_latest(sets, accepted, 10 * S)
     for t, v, f in zip(sets, offline[:, 0], fresh[:, 0]):
         got, ok_ = store.at(int(t))
         assert ok_ == [bool(f)] and (not f or got[0] == v)
+    assert fresh[sets > stamps[41]].any()  # values after the glitch are used
 
 
 # -- the IMU -------------------------------------------------------------------------------------

@@ -390,8 +390,8 @@ def _with_temperatures(args: argparse.Namespace, rec: Recording, needed: bool = 
         raise InputError(f"{args.input}: the calibration corrects for temperature, but the bag has no "
                          f"{', '.join(topics.absolute(topics.temperature(n)) for n in rec.names)} "
                          "(sensor_msgs/msg/Temperature): name the temperature topics with --temperature-topics")
-    if stats is not None and stats.dropped:
-        _note(stats.describe())
+    if stats is not None and stats.note():
+        _note(stats.note())
     return rec
 
 
@@ -403,8 +403,8 @@ def _with_imu(args: argparse.Namespace, rec: Recording) -> Recording:
     if is_csv(args.input):
         raise InputError("--imu names a bag topic; a CSV recording gives the IMU as imu.qx,...,imu.wz columns")
     rec, stats = with_bag_imu(args.input, rec, args.imu, args.imu_tolerance, args.imu_frame)
-    if stats.dropped:
-        _note(stats.describe())
+    if stats.note():
+        _note(stats.note())
     return rec
 
 
@@ -423,8 +423,8 @@ def _with_currents(args: argparse.Namespace, rec: Recording) -> Recording:
     if not wanted:
         return rec
     rec, stats = with_bag_currents(args.input, rec, wanted, args.current_tolerance)
-    if stats.dropped:
-        print(f"  note: {stats.describe()}", file=sys.stderr)
+    if stats.note():
+        _note(stats.note())
     return rec
 
 
@@ -797,10 +797,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     for note in report.notes:
         _note(note)
     _report_sync(report.stats)
-    if report.currents is not None and report.currents.dropped:
-        print(f"  note: {report.currents.describe()}", file=sys.stderr)
-    if report.temperatures is not None and report.temperatures.dropped:
-        _note(report.temperatures.describe())
+    for side in (report.currents, report.temperatures):
+        if side is not None and side.note():
+            _note(side.note())
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {_sensors(len(cal.geometry.names))} -> {args.output} "

@@ -285,12 +285,13 @@ def correct_bag(
         _, conns = resolve_sensor_topics(reader, inp, names)
         samples = read_current_samples(reader, inp, currents) if calibration.channels else []
         samples = sorted(samples, key=lambda c: calibration.channels.index(c.channel))
-        current_stats = CurrentStats(calibration.channels, tol) if calibration.channels else None
+        current_stats = (CurrentStats(calibration.channels, tol, [c.counts for c in samples if c.counts])
+                         if calibration.channels else None)
         temperatures, temperature_stats = [], None
         if calibration.has_temperature_terms:
             found = list(temperature_topics) if temperature_topics else _bag_temperature_topics(reader, inp, names)
             temperatures = read_temperature_samples(reader, inp, names, found)
-            temperature_stats = TemperatureStats(names, temp_tol)
+            temperature_stats = TemperatureStats(names, temp_tol, [t.counts for t in temperatures if t.counts])
         outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
                                                 topics.BASELINE_GRADIENT]}
         if copy_topics == "all":

@@ -13,8 +13,9 @@ it), refined because the attitude changes fast. A vehicle turning at 30 deg/s tu
 deg in the 10 ms between two samples of a 100 Hz IMU, and 0.3 deg of the Earth's field is
 about 250 nT, hundreds of times a fluxgate's noise. So:
 
-- when samples bracket the set instant (one at most ``tolerance`` before, one at most
-  ``tolerance`` after), the orientation is interpolated on the sphere of rotations (slerp:
+- when samples bracket the set instant at most ``tolerance`` apart (a gap longer than that
+  is not bridged: the same live, where the set would wait for the next sample no longer),
+  the orientation is interpolated on the sphere of rotations (slerp:
   constant angular velocity between the two samples; its error is of second order in the
   sample interval) and the angular velocity linearly;
 - otherwise (the end of a recording, a gap after the set) the latest sample within
@@ -37,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.matching import MatchStats, latest_before
 from magcal_ros.core.recording import ImuSamples
+from magcal_ros.core.side_streams import SideAcceptance, SideCounts, imu_check, usable_imu
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
@@ -151,6 +153,8 @@ class ImuStream:
     orientation: Array
     angular_velocity: Array
     frame_id: str = ""
+    counts: SideCounts | None = None
+    """What the recorded samples came to, when they went through the stream's acceptance."""
 
     def __post_init__(self) -> None:
         t = np.asarray(self.stamps)
@@ -180,7 +184,7 @@ def _at(stamps: NDArray[np.int64], q: Array, w: Array, t: NDArray[np.int64],
     nxt = np.minimum(at + 1, len(stamps) - 1)
     t0, t1 = stamps[at], stamps[nxt]
     exact = t0 == t
-    bracket = fresh & ~exact & (nxt > at) & (t1 > t) & (t1 - t <= tolerance_ns)
+    bracket = fresh & ~exact & (nxt > at) & (t1 > t) & (t1 - t0 <= tolerance_ns)
     span = np.where(bracket, t1 - t0, 1).astype(float)
     frac = np.where(bracket, (t - t0) / span, 0.0)
     dt = np.where(fresh, (t - t0) / NS_PER_S, 0.0)
@@ -235,29 +239,38 @@ class LatestImu:
         self._q: list[tuple[float, float, float, float]] = []
         self._w: list[tuple[float, float, float]] = []
         self.received = 0
-        """Samples received (with an orientation or an angular velocity)."""
+        """Samples kept (with an orientation or an angular velocity)."""
         self.frame_id = ""
+        self._rule = SideAcceptance(imu_check)
 
     def add(self, stamp_ns: int, orientation: ArrayLike, angular_velocity: ArrayLike, frame_id: str = "") -> None:
-        """Keep one sample (quaternion x, y, z, w IMU -> ENU or NaN; rad/s IMU frame or NaN)."""
-        q = np.asarray(orientation, dtype=float).reshape(4)
-        w = np.asarray(angular_velocity, dtype=float).reshape(3)
-        q_ok, w_ok = bool(np.all(np.isfinite(q))), bool(np.all(np.isfinite(w)))
-        if q_ok:
-            norm = float(np.linalg.norm(q))
-            if abs(norm - 1.0) > 1e-3:  # not a rotation: no orientation
-                q_ok = False
-            else:
-                q = q / norm
-        if not (q_ok or w_ok):
-            return
-        k = bisect.bisect_right(self._stamps, stamp_ns)
-        self._stamps.insert(k, int(stamp_ns))
-        self._q.insert(k, tuple(q.tolist()) if q_ok else (np.nan,) * 4)  # type: ignore[arg-type]
-        self._w.insert(k, tuple(w.tolist()) if w_ok else (np.nan,) * 3)  # type: ignore[arg-type]
-        self.received += 1
+        """Offer one sample (quaternion x, y, z, w IMU -> ENU or NaN; rad/s IMU frame or NaN): kept when the
+        stream's acceptance lets it through (:mod:`~magcal_ros.core.side_streams`: an orientation that is not
+        a unit quaternion, an angular velocity beyond any gyro, are none; a stamp far off the stream's
+        sequence is a glitch)."""
+        sample = (np.asarray(orientation, dtype=float).reshape(4).tolist(),
+                  np.asarray(angular_velocity, dtype=float).reshape(3).tolist())
         if frame_id:
             self.frame_id = frame_id
+        for stamp, kept in self._rule.offer(int(stamp_ns), sample):
+            q, w = usable_imu([kept])
+            self._keep(stamp, q[0], w[0])
+
+    @property
+    def counts(self) -> SideCounts:
+        """What the stream's samples came to (values, drops by cause)."""
+        return self._rule.counts
+
+    def due(self, stamp_ns: int) -> bool:
+        """Whether a sample the stream's rhythm says is stamped at or before ``stamp_ns`` has not come."""
+        return self._rule.due(stamp_ns)
+
+    def _keep(self, stamp_ns: int, q: Array, w: Array) -> None:
+        k = bisect.bisect_right(self._stamps, stamp_ns)
+        self._stamps.insert(k, int(stamp_ns))
+        self._q.insert(k, tuple(q.tolist()))  # type: ignore[arg-type]
+        self._w.insert(k, tuple(w.tolist()))  # type: ignore[arg-type]
+        self.received += 1
         old = max(bisect.bisect_left(self._stamps, self._stamps[-1] - self.keep_ns), len(self._stamps) - self.most)
         if old > 0:
             del self._stamps[:old], self._q[:old], self._w[:old]

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.matching import LatestValues, MatchStats, checked_samples, match_latest
+from magcal_ros.core.side_streams import CURRENT, SideCounts, refuse_units
 from magcal_ros.core.stamps import seconds_to_ns
 from magcal_ros.errors import InputError
 
@@ -37,17 +38,12 @@ DEFAULT_CURRENT_TOLERANCE: float = 0.5
 """Largest age (s) of a channel's latest current value at a set's stamp; older is stale."""
 MIN_CURRENT_VARIATION: float = 1e-3
 """A channel whose current varies by less than this RMS (A) never varies."""
-MAX_CURRENT: float = 1e4
-"""Largest magnitude (A) of a current a vehicle's channel can carry; beyond it the values are not
-amperes (mA?) or a broken reading."""
 
 
 def check_currents(values: ArrayLike, where: str) -> None:
-    """:class:`InputError` naming ``where`` when a finite current exceeds :data:`MAX_CURRENT` in magnitude."""
-    v = np.asarray(values, dtype=float)
-    big = v[np.isfinite(v) & (np.abs(v) > MAX_CURRENT)]
-    if big.size:
-        raise InputError(f"{where}: current {big[0]:g} A is beyond +-{MAX_CURRENT:g} A: currents must be in A")
+    """:class:`InputError` naming ``where`` when most finite currents exceed :data:`MAX_CURRENT` in magnitude
+    (not amperes); a single one beyond is a bad sample, no value (:mod:`~magcal_ros.core.side_streams`)."""
+    refuse_units(CURRENT, np.asarray(values, dtype=float).reshape(-1).tolist(), where)
 
 
 # -- currents matched to sets ---------------------------------------------------------------
@@ -58,6 +54,8 @@ class CurrentSamples:
     channel: str
     stamps: NDArray[np.int64]
     values: Array
+    counts: SideCounts | None = None
+    """What the recorded samples came to, when they went through the channel's acceptance."""
 
     def __post_init__(self) -> None:
         t, v = checked_samples(f"channel {self.channel}: need integer ns stamps and one current", self.stamps,

@@ -1,8 +1,9 @@
 """Side streams matched to sets: the one rule for currents, temperatures and the IMU.
 
 A set stamped ``t`` takes a stream's latest value stamped in ``[t - tolerance, t]``: never a
-value newer than the set, of equal stamps the one recorded last, non-finite values are no
-values. A set without such a value is *stale* for that stream; what happens to it (dropped
+value newer than the set, of equal stamps the one recorded last. Only samples the stream's
+acceptance lets through are values (:mod:`magcal_ros.core.side_streams`: a number in the
+stream's range, a stamp not far off its sequence), offline and live alike. A set without such a value is *stale* for that stream; what happens to it (dropped
 offline, withheld or not collected live) is counted per stream (:class:`MatchStats`).
 The IMU refines the rule where it matters (:mod:`magcal_ros.core.imu`): a fast-turning
 vehicle's attitude is interpolated to the set instant when samples bracket it.
@@ -22,6 +23,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core.side_streams import Check, SideAcceptance, SideCounts, accepted_samples
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
@@ -62,11 +64,16 @@ def finite_sorted(stamps: ArrayLike, values: ArrayLike) -> tuple[NDArray[np.int6
     return st[ok][order], v[ok][order]
 
 
-def match_latest(set_stamps: ArrayLike, samples: Sequence[Samples], tolerance_ns: int) -> tuple[Array, NDArray[np.bool_]]:
+def match_latest(set_stamps: ArrayLike, samples: Sequence[Samples], tolerance_ns: int,
+                 check: Check | None = None) -> tuple[Array, NDArray[np.bool_]]:
     """Every stream's value at every set: ``(values (N, m), fresh (N, m))`` by the module's rule.
 
-    A stale set's value is 0 (and ``fresh`` False).
+    ``check``: the streams' value check (:mod:`~magcal_ros.core.side_streams`); each stream's samples
+    then pass its acceptance in their recorded order (see :func:`accept_streams` for the counts). A
+    stale set's value is 0 (and ``fresh`` False).
     """
+    if check is not None:
+        samples = accept_streams(samples, check)[0]
     t = np.asarray(set_stamps).astype(np.int64).reshape(-1)
     out = np.zeros((len(t), len(samples)))
     fresh = np.zeros((len(t), len(samples)), bool)
@@ -77,6 +84,25 @@ def match_latest(set_stamps: ArrayLike, samples: Sequence[Samples], tolerance_ns
         at, fresh[:, j] = latest_before(st, t, tolerance_ns)
         out[:, j] = np.where(fresh[:, j], val[at], 0.0)
     return out, fresh
+
+
+@dataclass(frozen=True)
+class AcceptedSamples:
+    """A side stream's samples its acceptance let through: ``stamps`` (n,) int64 ns, ``values`` (n,)."""
+
+    stamps: NDArray[np.int64]
+    values: Array
+
+
+def accept_streams(samples: Sequence[Samples], check: Check) -> tuple[list[AcceptedSamples], list[SideCounts]]:
+    """Each recorded stream through its acceptance in its recorded order: the samples let through, and
+    per stream what was dropped."""
+    out, counts = [], []
+    for s in samples:
+        stamps, values, c = accepted_samples(check, np.asarray(s.stamps).tolist(), np.asarray(s.values).tolist())
+        out.append(AcceptedSamples(np.asarray(stamps, np.int64), np.asarray(values, dtype=float)))
+        counts.append(c)
+    return out, counts
 
 
 @dataclass
@@ -93,6 +119,8 @@ class MatchStats:
 
     streams: tuple[str, ...]
     tolerance_ns: int
+    samples: list[SideCounts] = field(default_factory=list)
+    """Per stream, what its samples came to (drops by cause: out of range, far off its stamps)."""
     sets: int = 0
     """Sets looked at."""
     dropped: int = 0
@@ -111,6 +139,14 @@ class MatchStats:
         for j, n in enumerate(np.sum(~f, axis=0)):
             self.stale[j] += int(n)
         return ok
+
+    def note(self) -> str:
+        """What users should hear: the sets dropped (:meth:`describe`) and the samples that were no value, or
+        empty when nothing was lost."""
+        parts = [self.describe()] if self.dropped else []
+        parts += [line for c, name in zip(self.samples, self.streams)
+                  if (line := c.describe(f"{name} {self.NOUN}".strip()))]
+        return "; ".join(parts)
 
     def describe(self) -> str:
         """``12 of 900 sets dropped without a current of every channel within 0.5 s before the set (a: 12)``."""
@@ -136,33 +172,43 @@ class LatestValues:
     """Scalar streams as a live node receives them, matched to each set by the module's rule: a
     stream's value at a set stamped ``t`` is its latest value stamped in ``[t - tolerance_ns, t]``.
 
-    Values may arrive in any order, before or after the set; each stream keeps those of the
-    last ``keep_ns`` (behind its newest stamp) and at most ``most`` of them. Non-finite values
-    are no values. Stamps are int ns.
+    Every sample passes its stream's acceptance first (``check``: the value check,
+    :mod:`~magcal_ros.core.side_streams`; :attr:`counts` per stream). Values may arrive in any order,
+    before or after the set; each stream keeps those of the last ``keep_ns`` (behind its newest
+    stamp) and at most ``most`` of them. Stamps are int ns.
     """
 
-    def __init__(self, streams: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096) -> None:
+    def __init__(self, streams: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096,
+                 check: Check | None = None) -> None:
         self.tolerance_ns = int(tolerance_ns)
         self.keep_ns = max(int(keep_ns), 2 * self.tolerance_ns)
         self.most = most
         self._stamps: list[list[int]] = [[] for _ in range(streams)]
         self._values: list[list[float]] = [[] for _ in range(streams)]
+        self._rules = [SideAcceptance(check or _finite) for _ in range(streams)]
         self.received = [0] * streams
-        """Values received per stream (finite ones)."""
+        """Values kept per stream (samples its acceptance let through)."""
 
     @property
     def channels(self) -> int:
         """Number of streams."""
         return len(self._stamps)
 
+    @property
+    def counts(self) -> list[SideCounts]:
+        """Per stream, what its samples came to (values, drops by cause)."""
+        return [r.counts for r in self._rules]
+
     def add(self, stream: int, stamp_ns: int, value: float) -> None:
-        """Keep one value of ``stream`` stamped ``stamp_ns``."""
-        if not np.isfinite(value):
-            return
+        """Offer one sample of ``stream`` stamped ``stamp_ns``: kept when its acceptance lets it through."""
+        for stamp, v in self._rules[stream].offer(int(stamp_ns), value):
+            self._keep(stream, stamp, float(v))
+
+    def _keep(self, stream: int, stamp_ns: int, value: float) -> None:
         st, val = self._stamps[stream], self._values[stream]
         k = bisect.bisect_right(st, stamp_ns)  # after equal stamps: the one received last wins
         st.insert(k, int(stamp_ns))
-        val.insert(k, float(value))
+        val.insert(k, value)
         self.received[stream] += 1
         old = bisect.bisect_left(st, st[-1] - self.keep_ns)
         old = max(old, len(st) - self.most)
@@ -174,6 +220,11 @@ class LatestValues:
         val = self._values[stream]
         return val[-1] if val else None
 
+    def due(self, stamp_ns: int) -> bool:
+        """Whether some stream has a sample due at a set stamped ``stamp_ns`` that has not come
+        (:meth:`~magcal_ros.core.side_streams.SideAcceptance.due`): the set should wait for it."""
+        return any(r.due(stamp_ns) for r in self._rules)
+
     def at(self, stamp_ns: int) -> tuple[list[float], list[bool]]:
         """Every stream's value at a set stamped ``stamp_ns`` and whether it is fresh (a value
         stamped in ``[t - tolerance, t]``); a stale stream's value is 0."""
@@ -184,3 +235,8 @@ class LatestValues:
             values.append(val[k] if ok else 0.0)
             fresh.append(ok)
         return values, fresh
+
+
+def _finite(value: float) -> str | None:
+    """The check of a stream with no range of its own: any number."""
+    return None if np.isfinite(value) else "nonfinite"

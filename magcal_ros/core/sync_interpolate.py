@@ -37,7 +37,6 @@ from numpy.typing import NDArray
 from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
-    NEVER,
     RESTART_JUMP,
     Accepted,
     AcceptanceRule,

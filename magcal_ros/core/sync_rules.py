@@ -127,6 +127,8 @@ class SyncStats:
     burst: int = 0
     """Messages stamped far closer together than their sensor samples: a backlog stamped as it was
     delivered, whose stamps say nothing of when its samples were taken."""
+    side_value: int = 0
+    """Messages of CSV rows whose current or temperature is out of its range (no value)."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
@@ -163,7 +165,7 @@ class SyncStats:
 DISORDER_MIN: int = 10
 """Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap", "negative_stamp", "out_of_range", "burst")
+                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -178,6 +180,7 @@ _PHRASES = {
     "negative_stamp": "negative (before 1970) stamps dropped",
     "out_of_range": "readings beyond any magnetometer's range dropped",
     "burst": "messages of a backlog stamped on delivery dropped",
+    "side_value": "messages of rows whose current or temperature is out of range dropped",
 }
 
 
@@ -247,7 +250,7 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail")
+                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -283,6 +286,9 @@ class SensorStream:
         """... and the sample periods from it to the last stamp (each interval in whole short periods)."""
         self.tail: list[int] = []
         """The last :data:`TAIL` common stamps (ns) of the current segment."""
+        self.burst_from = NEVER
+        """First stamp (ns) of the current run of crowded stamps: a backlog spans less than a period; a run
+        longer than that is a faster rate."""
 
     @property
     def busy(self) -> bool:
@@ -567,15 +573,23 @@ class AcceptanceRule:
             return self._decide_behind(index, message, out)
         step = message[0] - held[0]
         period = s.suspect_period()
-        if step > 0 and period is not None and s.crowded(step, period):  # a backlog delivered at once
+        if step > 0 and period is not None and s.crowded(step, period) and kind != CROWDED:
+            # After a gap, stamps closer than the sensor samples: a backlog delivered at once ...
+            if kind != BURST:
+                s.burst_from = held[0]
             self.stats.burst += 1
-            s.held = (*message, BURST)
+            s.held = None
+            if message[0] - s.burst_from <= period:
+                s.held = (*message, BURST)
+                return True
+            s.intervals, s.period = [], None  # ... or, spanning a period, the sensor's rate went up: learnt again
+            self._take(index, message, False, out)
             return True
         s.held = None
         if kind == BURST:  # the last of a backlog
             self.stats.burst += 1
             return False
-        if kind == CROWDED:  # one short interval: the stamps' jitter
+        if kind == CROWDED:  # short intervals with no gap before them: jitter, or a faster rate (learnt)
             self._take(index, held[:4], False, out)
             return False
         if step > 0 and (step <= self.restart_ns or held[0] - s.last <= self.restart_ns):  # the held one goes on

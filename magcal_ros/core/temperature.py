@@ -23,14 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.matching import MatchStats, checked_samples
-from magcal_ros.errors import InputError
+from magcal_ros.core.side_streams import TEMPERATURE, SideCounts, refuse_units
 
 Array = NDArray[np.float64]
 
 DEFAULT_TEMPERATURE_TOLERANCE: float = 10.0
 """Largest age (s) of a sensor's latest temperature at a set's stamp; older is stale."""
-TEMPERATURE_RANGE: tuple[float, float] = (-60.0, 150.0)
-"""Temperatures (deg C) a fluxgate on a vehicle can have; outside: not deg C, or a broken reading."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +38,8 @@ class TemperatureSamples:
     sensor: str
     stamps: NDArray[np.int64]
     values: Array
+    counts: SideCounts | None = None
+    """What the recorded samples came to, when they went through the stream's acceptance."""
 
     def __post_init__(self) -> None:
         t, v = checked_samples(f"{self.sensor}: need integer ns stamps and one temperature", self.stamps, self.values)
@@ -56,10 +56,6 @@ class TemperatureStats(MatchStats):
 
 
 def check_temperatures(values: Array, where: str) -> None:
-    """:class:`InputError` naming ``where`` when finite temperatures lie outside :data:`TEMPERATURE_RANGE`."""
-    v = np.asarray(values, dtype=float)
-    finite = v[np.isfinite(v)]
-    lo, hi = TEMPERATURE_RANGE
-    if len(finite) and (finite.min() < lo or finite.max() > hi):
-        bad = finite[(finite < lo) | (finite > hi)][0]
-        raise InputError(f"{where}: temperature {bad:g} is outside {lo:g} .. {hi:g}: temperatures must be in deg C")
+    """:class:`InputError` naming ``where`` when most finite temperatures lie outside :data:`TEMPERATURE_RANGE`
+    (not deg C: kelvin?); a single one outside is a bad sample, no value (:mod:`~magcal_ros.core.side_streams`)."""
+    refuse_units(TEMPERATURE, np.asarray(values, dtype=float).reshape(-1).tolist(), where)

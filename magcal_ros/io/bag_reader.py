@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core.imu import ImuStream, ned_to_enu
 from magcal_ros.core.interference import CurrentSamples, check_currents
+from magcal_ros.core import side_streams as side
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.sync import (
@@ -565,10 +566,13 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
             raise InputError(f"{path}: {wanted[index[cid]]}: {exc}") from None
         stamps[index[cid]].append(stamp)
         values[index[cid]].append(current)
-    for t, v in zip(wanted, values):
+    out = []
+    for t, st, v in zip(wanted, stamps, values):
         check_currents(np.array(v), f"{path}: {t}")
-    return [CurrentSamples(topic_names.current_channel(t), np.array(st, np.int64), np.array(v, float))
-            for t, st, v in zip(wanted, stamps, values)]
+        kept_t, kept_v, counts = side.accepted_samples(side.CURRENT.check, st, v)
+        out.append(CurrentSamples(topic_names.current_channel(t), np.array(kept_t, np.int64), np.array(kept_v, float),
+                                  counts))
+    return out
 
 
 def typed_connections(reader: "Reader", path: str | os.PathLike[str], wanted: Sequence[str], types: Sequence[str],
@@ -628,10 +632,12 @@ def read_temperature_samples(reader: "Reader", path: str | os.PathLike[str], nam
             raise InputError(f"{path}: {unique[index[cid]]}: {exc}") from None
         stamps[index[cid]].append(stamp)
         values[index[cid]].append(celsius)
-    for t, v in zip(unique, values):
+    kept = []
+    for t, st, v in zip(unique, stamps, values):
         check_temperatures(np.array(v), f"{path}: {t}")
-    return [TemperatureSamples(n, np.array(stamps[unique.index(t)], np.int64), np.array(values[unique.index(t)]))
-            for n, t in zip(names, wanted)]
+        kept.append(side.accepted_samples(side.TEMPERATURE.check, st, v))
+    return [TemperatureSamples(n, np.array(kept[unique.index(t)][0], np.int64), np.array(kept[unique.index(t)][1]),
+                               kept[unique.index(t)][2]) for n, t in zip(names, wanted)]
 
 
 def read_imu_stream(reader: "Reader", path: str | os.PathLike[str], topic: str, frame: str = "enu") -> ImuStream:
@@ -656,8 +662,13 @@ def read_imu_stream(reader: "Reader", path: str | os.PathLike[str], topic: str, 
     orientation = np.array(q, dtype=float).reshape(-1, 4)
     if frame == "ned":
         orientation = ned_to_enu(orientation)
+    rate = np.array(w, dtype=float).reshape(-1, 3)
+    samples = list(zip(orientation.tolist(), rate.tolist()))
+    side.refuse_units(side.IMU, samples, f"{path}: {wanted}")
+    kept_t, kept, counts = side.accepted_samples(side.IMU.check, stamps, samples)
+    q_kept, w_kept = side.usable_imu(kept)
     try:
-        return ImuStream(np.array(stamps, np.int64), orientation, np.array(w, dtype=float).reshape(-1, 3), frame_id)
+        return ImuStream(np.array(kept_t, np.int64), q_kept, w_kept, frame_id, counts)
     except InputError as exc:
         raise InputError(f"{path}: {wanted}: {exc}") from None
 

@@ -47,6 +47,7 @@ from magcal_ros.core.imu import imu_frame, ned_to_enu
 from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds, parse_seconds_column
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
+from magcal_ros.core import side_streams as side
 from magcal_ros.core.interference import check_currents
 from magcal_ros.core.parallel import as_array, fill_in_child
 from magcal_ros.core.temperature import check_temperatures
@@ -435,8 +436,12 @@ def read_csv(
     elif layout.temperatures:
         temperatures = extra[:, layout.columns(TEMPERATURE_PREFIX + n for n in names)]
     if temperatures is not None:
-        check_temperatures(temperatures, str(path))
+        check_temperatures(temperatures, str(path))  # a column in kelvin is a units error ...
+        temperatures, out_t = no_value(side.TEMPERATURE, temperatures)  # ... one sample out of range is no value
     check_currents(currents, str(path))
+    currents, out_of_range = no_value(side.CURRENT, currents)
+    if temperatures is not None:
+        out_of_range |= out_t
     # Each sensor's messages carry their row number (scaled into the accepted range of a
     # reading), so the sets the rule keeps name their rows (and so their currents and
     # temperatures); a faulty reading goes in as it is, to be dropped and counted by the rule;
@@ -459,6 +464,7 @@ def read_csv(
         sets = sync.pop(final=a + SYNC_ROWS >= len(data))
         kept_parts.append(np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64))
     kept = np.concatenate(kept_parts) if kept_parts else np.empty(0, np.int64)
+    _count_side_rows(sync.stats, out_of_range, vectors)
     if len(kept) == 0:
         raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
     imu = None
@@ -468,12 +474,36 @@ def read_csv(
         if frame == "ned":
             q = ned_to_enu(q)
         w = (extra[:, layout.columns(IMU_RATE_COLUMNS)] if layout.has_rate else np.full((len(data), 3), np.nan))[kept]
+        samples = list(zip(q.tolist(), w.tolist()))
+        side.refuse_units(side.IMU, [x for x in samples if side.imu_check(x) != "nonfinite"], str(path))
+        q, w = side.usable_imu(samples)  # an orientation that is not a unit quaternion, a rate beyond any gyro: none
         try:
             imu = ImuSamples(q, w)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
     return Recording(names, stamps[kept], vectors[kept], channels, currents[kept],
                      None if temperatures is None else temperatures[kept], imu), sync.stats
+
+
+def no_value(kind: side.SideKind, values: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A side column's values (N, k) with those out of ``kind``'s range made NaN (no value: the row is dropped
+    and counted, not refused), and the rows that had one."""
+    v = np.array(values, dtype=float)
+    lo, hi = (side.TEMPERATURE_RANGE if kind is side.TEMPERATURE else (-side.MAX_CURRENT, side.MAX_CURRENT))
+    out = np.isfinite(v) & ((v < lo) | (v > hi))
+    v[out] = np.nan
+    return v, out.reshape(len(v), -1).any(axis=1)
+
+
+def _count_side_rows(stats: SyncStats, bad_rows: NDArray[np.bool_], vectors: NDArray[np.float64]) -> None:
+    """The messages of rows dropped for a current or temperature out of its range count as such (the rule
+    counted their usable readings as non-finite: the rows went in as NaN)."""
+    if not bad_rows.any():
+        return
+    usable = sum(int((~np.logical_or.reduce(list(reading_faults(vectors[bad_rows, k]).values()))).sum())
+                 for k in range(vectors.shape[1]))
+    stats.nonfinite -= usable
+    stats.side_value += usable
 
 
 def format_rows(stamps: NDArray[np.int64], columns: NDArray[np.float64]) -> str:

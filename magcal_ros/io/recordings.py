@@ -167,7 +167,7 @@ def with_bag_currents(
     with open_bag(p) as reader:
         samples = read_current_samples(reader, p, topics)
     currents, fresh = match_currents(recording.stamps, samples, tol)
-    stats = CurrentStats(tuple(s.channel for s in samples), tol)
+    stats = CurrentStats(tuple(s.channel for s in samples), tol, [s.counts for s in samples if s.counts])
     keep = stats.keep(fresh)
     if not np.any(keep):
         raise InputError(f"{p}: {stats.describe()}: no set left; check the topics' stamps or widen the tolerance")
@@ -206,7 +206,7 @@ def with_bag_temperatures(
             return recording, None
         samples = read_temperature_samples(reader, p, recording.names, found)
     values, fresh = match_latest(recording.stamps, samples, tol)
-    stats = TemperatureStats(recording.names, tol)
+    stats = TemperatureStats(recording.names, tol, [s.counts for s in samples if s.counts])
     keep = stats.keep(fresh)
     if not np.any(keep):
         raise InputError(f"{p}: {stats.describe()}: no set left; check the topics' stamps or widen the tolerance")
@@ -236,7 +236,7 @@ def with_bag_imu(
     with open_bag(p) as reader:
         stream = read_imu_stream(reader, p, topic, frame)
     imu, fresh = match_imu(recording.stamps, stream, tol)
-    stats = ImuStats((topic,), tol)
+    stats = ImuStats((topic,), tol, [stream.counts] if stream.counts else [])
     keep = stats.keep(fresh[:, None])
     if not np.any(keep):
         raise InputError(f"{p}: {stats.describe()}: no set left; check the topic's stamps or widen the tolerance")

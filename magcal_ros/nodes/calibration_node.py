@@ -86,6 +86,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import MagneticField
 from std_srvs.srv import Trigger
 
+from magcal_ros.core import side_streams as side
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_field
@@ -450,7 +451,7 @@ class CalibrationNode(Node):
             )
             for i, n in enumerate(geo.names)
         ]
-        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns)
+        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns, check=side.CURRENT.check)
         self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
                                              inputs.tolerance_ns)
         clock = common.clock_reader(self)
@@ -464,7 +465,7 @@ class CalibrationNode(Node):
         from sensor_msgs.msg import Imu
 
         temp_tol = common.temperature_tolerance_ns(self.get_parameter("temperature_tolerance").value)
-        self._temperatures = LatestValues(geo.size, temp_tol)
+        self._temperatures = LatestValues(geo.size, temp_tol, check=side.TEMPERATURE.check)
         self._temperature_health = TemperatureHealth(
             geo.names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in geo.names), temp_tol)
         self._subs += common.subscribe_temperatures(self, geo.names, self._temperatures, self._raw_qos,
@@ -631,13 +632,9 @@ class CalibrationNode(Node):
             stats = self._sync.stats.as_dict()
             stats["pending"] = self._sync.pending
             self._health.output(stats["sets"], now)
-            store = self._currents
-            stale, current_values = self._current_health.assess(
-                store.received, [store.latest(j) for j in range(store.channels)], "not collected")
-            temps = self._temperatures
-            stale_t, temperature_values = self._temperature_health.assess(
-                temps.received, [temps.latest(j) for j in range(temps.channels)], "not collected")
-            stale_i, imu_values = self._imu_health.assess([self._imu.received], [None], "not collected")
+            stale, current_values = self._current_health.assess(self._currents, "not collected")
+            stale_t, temperature_values = self._temperature_health.assess(self._temperatures, "not collected")
+            stale_i, imu_values = self._imu_health.assess(self._imu, "not collected")
             stale = "; ".join(x for x in (stale, stale_t, stale_i) if x) or None
             health = self._health.assess(now, stats, "complete sets", stale)
             health.values.update(current_values)

@@ -84,6 +84,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState, MagneticField
 from std_msgs.msg import Float64MultiArray
 
+from magcal_ros.core import side_streams as side
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.calibration_health import CalibrationHealth
@@ -638,7 +639,7 @@ class CorrectionNode(Node):
         """Subscribe the current channels afresh (their values so far are dropped)."""
         for s in self._current_subs:
             self.destroy_subscription(s)
-        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns)
+        self._currents = LatestCurrents(len(inputs.channels), inputs.tolerance_ns, check=side.CURRENT.check)
         self._current_health = CurrentHealth(inputs.channels, tuple(self.resolve_topic_name(t) for t in inputs.topics),
                                              inputs.tolerance_ns)
         self._current_subs = common.subscribe_currents(self, inputs, self._currents, self._raw_qos,
@@ -649,7 +650,7 @@ class CorrectionNode(Node):
         for s in self._temperature_subs:
             self.destroy_subscription(s)
         names = state.names if state.temperatures else ()
-        self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns,
+        self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns, check=side.TEMPERATURE.check,
                                           keep_ns=max(2 * state.temperature_tolerance_ns, 2 * 10**9))
         self._temperature_health = TemperatureHealth(
             names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in names), state.temperature_tolerance_ns)
@@ -754,14 +755,10 @@ class CorrectionNode(Node):
         self._health.output(self._published, now)
         state = self._state
         extras = [f"not calibrated: {', '.join(state.missing)} (see uncorrected_sensors)"] if state.missing else []
-        store = self._currents
-        stale, current_values = self._current_health.assess(
-            store.received, [store.latest(j) for j in range(store.channels)], "withheld")
+        stale, current_values = self._current_health.assess(self._currents, "withheld")
         if stale:
             extras.append(stale)
-        temps = self._temperatures
-        stale, temperature_values = self._temperature_health.assess(
-            temps.received, [temps.latest(j) for j in range(temps.channels)], "withheld")
+        stale, temperature_values = self._temperature_health.assess(self._temperatures, "withheld")
         if stale:
             extras.append(stale)
         assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)

@@ -189,6 +189,9 @@ class StreamHealth:
     """Suffix of the key of the newest value (``<name>.<noun>_<unit>``); empty: no such key."""
     STALE_KEY = "{name}.stale_{noun}"
     RECEIVED_KEY = "{name}.{noun}_received"
+    DROPPED_KEY = "{name}.{noun}_{cause}"
+    """Samples that were no value, by cause (``out_of_range``, ``glitch``: far off the stream's stamps,
+    ``nonfinite``)."""
 
     def __init__(self, names: tuple[str, ...], topics: tuple[str, ...], tolerance_ns: int) -> None:
         self.channels = names
@@ -196,6 +199,7 @@ class StreamHealth:
         self.tolerance_ns = tolerance_ns
         self.stale = [0] * len(names)
         self._reported = [0] * len(names)
+        self._dropped = [0] * len(names)
 
     def count(self, fresh: list[bool]) -> bool:
         """Count one set (``fresh`` per stream); True when every stream is fresh."""
@@ -206,28 +210,47 @@ class StreamHealth:
                 ok = False
         return ok
 
-    def assess(self, received: list[int], latest: list[float | None], what: str) -> tuple[str | None, dict[str, str]]:
-        """(WARN text naming the streams that were stale since the last call, or None; values).
+    def assess(self, store: Any, what: str) -> tuple[str | None, dict[str, str]]:
+        """(WARN text naming the streams that were stale, or dropped samples, since the last call, or None;
+        values).
 
-        ``received``: values received per stream; ``latest``: newest value or None;
-        ``what``: what happened to such sets (``withheld``, ``not collected``)."""
+        ``store``: the streams' live store (values kept per stream ``received``, the newest value by
+        ``latest(j)``, what each stream's samples came to ``counts``: :mod:`~magcal_ros.core.side_streams`);
+        ``what``: what happened to stale sets (``withheld``, ``not collected``)."""
+        received, counts = _per_stream(store.received), _per_stream(store.counts)
         values: dict[str, str] = {}
-        late = []
+        late, bad = [], []
         noun = self.NOUN
         for j, name in enumerate(self.channels):
             values[self.STALE_KEY.format(name=name, noun=noun)] = str(self.stale[j])
             values[self.RECEIVED_KEY.format(name=name, noun=noun)] = str(received[j])
+            c = counts[j]
+            for cause in ("out_of_range", "glitch", "nonfinite"):
+                values[self.DROPPED_KEY.format(name=name, noun=noun, cause=cause)] = str(getattr(c, cause))
             if self.UNIT:
-                values[f"{name}.{noun}_{self.UNIT}"] = "" if latest[j] is None else f"{latest[j]:.6g}"
+                latest = store.latest(j)
+                values[f"{name}.{noun}_{self.UNIT}"] = "" if latest is None else f"{latest:.6g}"
             new = self.stale[j] - self._reported[j]
             if new:
                 never = " (none received yet)" if not received[j] else ""
                 late.append(f"{name} on {self.topics[j]}{never}: {new} sets")
+            dropped = c.dropped() - self._dropped[j]
+            if dropped:
+                bad.append(f"{dropped} of {name} on {self.topics[j]} ({c.describe(name).split('(')[-1].rstrip(')')})")
         self._reported = list(self.stale)
-        if not late:
-            return None, values
-        return (f"stale {noun} (no value within {_duration(self.tolerance_ns)} before the set), sets {what}: "
-                + ", ".join(late)), values
+        self._dropped = [c.dropped() for c in counts]
+        parts = []
+        if late:
+            parts.append(f"stale {noun} (no value within {_duration(self.tolerance_ns)} before the set), sets {what}: "
+                         + ", ".join(late))
+        if bad:
+            parts.append(f"{noun} samples dropped: " + ", ".join(bad))
+        return ("; ".join(parts) or None), values
+
+
+def _per_stream(x: Any) -> list[Any]:
+    """A store's per-stream list (a single stream's value as a list of one)."""
+    return list(x) if isinstance(x, list) else [x]
 
 
 class CurrentHealth(StreamHealth):
@@ -255,3 +278,4 @@ class ImuHealth(StreamHealth):
     NOUN = "IMU"
     STALE_KEY = "{name}.stale"
     RECEIVED_KEY = "{name}.received"
+    DROPPED_KEY = "{name}.{cause}"

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from magcal_ros.core.temperature import TEMPERATURE_RANGE
+from magcal_ros.core.side_streams import TEMPERATURE_RANGE
 from magcal_ros.errors import InputError
 
 Array = NDArray[np.float64]
