@@ -145,8 +145,8 @@ def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argpar
     p.set_defaults(func=cmd_batch)
 
 
-def _options(args: argparse.Namespace, bag: bool) -> tuple[list[str], list[str]]:
-    """``magcal correct`` and ``magcal calibrate`` options of one recording (only those given)."""
+def _common_options(args: argparse.Namespace, bag: bool) -> list[str]:
+    """Synchronisation, non-finite and side-stream options ``correct`` and ``calibrate`` share (only those given)."""
     from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE
     from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 
@@ -165,31 +165,40 @@ def _options(args: argparse.Namespace, bag: bool) -> tuple[list[str], list[str]]
         common.append("--drop-nonfinite")
     if bag and args.currents:
         common += ["--currents", args.currents, "--current-tolerance", repr(args.current_tolerance)]
-    correct = list(common)
+    return common
+
+
+def _correct_only_options(args: argparse.Namespace, bag: bool) -> list[str]:
+    """Options only ``magcal correct`` takes (the bag-only ones for bags only)."""
+    out: list[str] = []
     if args.uncorrected:
-        correct += ["--uncorrected", args.uncorrected]
+        out += ["--uncorrected", args.uncorrected]
     if args.frame_id is not None:
-        correct += ["--frame-id", args.frame_id]
+        out += ["--frame-id", args.frame_id]
     if args.gradient_method is not None:
-        correct += ["--gradient-method", args.gradient_method]
+        out += ["--gradient-method", args.gradient_method]
     if bag and args.storage:
-        correct += ["--storage", args.storage]
+        out += ["--storage", args.storage]
     if bag and args.copy_topics:
-        correct += ["--copy-topics", args.copy_topics]
+        out += ["--copy-topics", args.copy_topics]
     if bag and args.copy_all:
-        correct.append("--copy-all")
+        out.append("--copy-all")
+    return out
+
+
+def _options(args: argparse.Namespace, bag: bool) -> tuple[list[str], list[str]]:
+    """``magcal correct`` and ``magcal calibrate`` options of one recording (only those given)."""
+    common = _common_options(args, bag)
     calibrate = list(common)
     if args.reference_field is not None:
         calibrate += ["--reference-field", repr(args.reference_field)]
     if args.site is not None:
         calibrate += [f"--site={args.site}"] + (["--date", args.date] if args.date else [])
-    return correct, calibrate
+    return common + _correct_only_options(args, bag), calibrate
 
 
-def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
-    """The batch's jobs (in input order) and notes; :class:`InputError` when the batch is refused."""
-    from magcal_ros.app import campaign as cp
-
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse option combinations and values no batch can use (:class:`InputError`, one line)."""
     if args.scheduler and args.workers:
         raise InputError("--workers sizes the local cluster; with --scheduler the cluster's own workers run the tasks")
     if (args.site or args.date) and not args.calibrate:
@@ -198,9 +207,13 @@ def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
         raise InputError("give either --reference-field or --site, not both")
     if args.reference_field is not None and not (1e-7 <= args.reference_field <= 1e-3):
         raise InputError(f"--reference-field {args.reference_field:g} T is not Earth-like (1e-7 .. 1e-3 T)")
-    outdir = Path(args.output).absolute()
-    if outdir.exists() and not outdir.is_dir():
-        raise InputError(f"output {args.output} exists and is not a directory")
+
+
+def _recordings(args: argparse.Namespace, outdir: Path) -> tuple[list[tuple[str, Path]], list[str]]:
+    """The recordings the inputs name, ``(name under OUTDIR, path)`` once each, and notes; refused when
+    there are none, two would write one name, or one would take a name the batch keeps for itself."""
+    from magcal_ros.app import campaign as cp
+
     found, notes = cp.find_recordings(args.inputs, args.list or [], outdir.resolve())
     unique: list[tuple[str, Path]] = []
     seen: set[tuple[str, Path]] = set()
@@ -218,6 +231,31 @@ def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
     bad = [n for n, _ in unique if cp.reserved(n)]
     if bad:
         raise InputError(f"recording {bad[0]} would write over the batch's own {bad[0]} in OUTDIR: rename it")
+    return unique, notes
+
+
+def _problem(path: Path, calibration: Path | None, missing: Callable[[], str], calibrate: bool) -> str:
+    """Why the recording at ``path`` cannot run at all ('' when it can)."""
+    from magcal_ros.app import campaign as cp
+
+    if not path.exists():
+        return f"{path} does not exist"
+    if not (cp.is_bag_dir(path) or cp.is_csv_path(path) or path.suffix in cp.STORAGE_SUFFIXES):
+        return f"{path}: not a recording: give a rosbag2 directory or a .csv file"
+    if calibration is None and not calibrate:
+        return missing()
+    return ""
+
+
+def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
+    """The batch's jobs (in input order) and notes; :class:`InputError` when the batch is refused."""
+    from magcal_ros.app import campaign as cp
+
+    _check_options(args)
+    outdir = Path(args.output).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(f"output {args.output} exists and is not a directory")
+    unique, notes = _recordings(args, outdir)
     cmap = cp.load_calibrations(args.calibration)
     pattern = cp.vehicle_pattern(args.vehicle_pattern)
     uncorrected = tuple(n.strip() for n in (args.uncorrected or "").split(",") if n.strip())
@@ -228,15 +266,8 @@ def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
         output = outdir / name
         if output.resolve() == path.resolve():
             raise InputError(f"output {output} would overwrite the input {path}: choose another OUTDIR")
-        problem = ""
-        if not path.exists():
-            problem = f"{path} does not exist"
-        elif not (cp.is_bag_dir(path) or cp.is_csv_path(path) or path.suffix in cp.STORAGE_SUFFIXES):
-            problem = f"{path}: not a recording: give a rosbag2 directory or a .csv file"
-        elif cal is None and not args.calibrate:
-            problem = cmap.missing(name, vehicle)
-        bag = not cp.is_csv_path(path)
-        correct, calibrate = _options(args, bag)
+        problem = _problem(path, cal, lambda: cmap.missing(name, vehicle), args.calibrate)  # noqa: B023 - called now
+        correct, calibrate = _options(args, bag=not cp.is_csv_path(path))
         jobs.append(cp.Job(
             name=name, input=str(path.absolute()), output=str(output), vehicle=vehicle,
             calibration=str(cal.absolute()) if cal is not None else "", record=str(cp.record_path(outdir, name)),

@@ -368,6 +368,39 @@ class Outputs:
     baseline_frames: set[str] = default(default_factory=set)
 
 
+def _wait_until(due: float) -> None:
+    """Sleep until the monotonic clock reads ``due`` (s); at once when it is past."""
+    delay = due - time.monotonic()
+    if delay > 0:
+        time.sleep(delay)
+
+
+class _SideStreams:
+    """The side sensors of a replay (currents, temperatures, the IMU): each set's values published with
+    the set's stamp, in order, up to a given count of sets (see :meth:`ArrayDriver.replay`)."""
+
+    def __init__(self, driver: ArrayDriver, stamps: Sequence[int], currents: NDArray[np.float64] | None,
+                 temperatures: NDArray[np.float64] | None,
+                 imu: tuple[NDArray[np.float64], NDArray[np.float64]] | None) -> None:
+        self.driver, self.stamps = driver, stamps
+        self.currents, self.temperatures, self.imu = currents, temperatures, imu
+        self.sent = 0
+
+    def send(self, upto: int) -> None:
+        """Publish the side values of the sets before ``upto`` not sent yet (none without side streams)."""
+        while self.sent < min(upto, len(self.stamps)):
+            k, d = self.sent, self.driver
+            if self.currents is not None:
+                for j, amperes in enumerate(self.currents[k]):
+                    d.publish_current(j, self.stamps[k], float(amperes))
+            if self.temperatures is not None:
+                for j, celsius in enumerate(self.temperatures[k]):
+                    d.publish_temperature(j, self.stamps[k], float(celsius))
+            if self.imu is not None:
+                d.publish_imu(self.stamps[k], self.imu[0][k], self.imu[1][k])
+            self.sent += 1
+
+
 class ArrayDriver:
     """An rclpy node in its own context and thread that feeds and watches the magcal nodes."""
 
@@ -789,41 +822,19 @@ class ArrayDriver:
         start = time.monotonic() + lead * period
         start_ns = time.time_ns() + lead * spacing
         originals = list(dict.fromkeys(m.stamp_ns for m in messages)) if sides else []
-        sent_currents = 0
-
-        def stamp_of(k: int) -> int:
-            return start_ns + k * spacing if restamp else originals[k]
-
-        def send_currents(upto: int) -> None:
-            nonlocal sent_currents
-            while sides and sent_currents < min(upto, len(originals)):
-                k = sent_currents
-                if currents is not None:
-                    for j, amperes in enumerate(currents[k]):
-                        self.publish_current(j, stamp_of(k), float(amperes))
-                if temperatures is not None:
-                    for j, celsius in enumerate(temperatures[k]):
-                        self.publish_temperature(j, stamp_of(k), float(celsius))
-                if imu is not None:
-                    self.publish_imu(stamp_of(k), imu[0][k], imu[1][k])
-                sent_currents += 1
-
-        def wait_until(due: float) -> None:
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-
+        stamps = [start_ns + k * spacing for k in range(len(originals))] if restamp else originals
+        side = _SideStreams(self, stamps, currents, temperatures, imu)
         ahead = start - lead * period
         for j in range(min(lead, len(originals))):  # paced like the sets: a burst can overflow the transport
-            wait_until(ahead + j * period)
-            send_currents(j + 1)
+            _wait_until(ahead + j * period)
+            side.send(j + 1)
         for m in messages:
             stamp = mapping.get(m.stamp_ns)
             if stamp is None:
                 k = len(mapping)
                 if period:
-                    wait_until(start + k * period)
-                send_currents(k + 1 + lead)
+                    _wait_until(start + k * period)
+                side.send(k + 1 + lead)
                 stamp = start_ns + k * spacing if restamp else m.stamp_ns
                 mapping[m.stamp_ns] = stamp
                 if progress is not None and (k + 1) % 500 == 0:
