@@ -7,9 +7,11 @@
    turning through random attitudes in a uniform 51 500 nT field, with two thrusters 0.7 m
    behind the array drawing random currents of 0-20 A while it turns (the survey runs them
    too), and writes the manoeuvre as a rosbag2 (``/magN/raw``, ``/thrusterN/battery``);
-2. starts ``correction_node`` and ``calibration_node`` as separate processes on a private
-   ROS domain (localhost discovery only); the calibration node collects the thrusters'
-   currents (``sensor_msgs/BatteryState``) with the sets;
+2. starts ``correction_node`` and ``calibration_node`` as separate processes, with localhost
+   discovery only, on the ``ROS_DOMAIN_ID`` you set (it says so), else on a domain it picks
+   that nothing on this machine uses (no DDS participant on it, no other run holding it);
+   the calibration node collects the thrusters' currents (``sensor_msgs/BatteryState``)
+   with the sets;
 3. replays fresh survey sets (thrusters running) through the uncalibrated correction node
    (before), replays the manoeuvre into the calibration node, calls ``~/start`` and
    ``~/calibrate`` (calibration and the thrusters' interference solved jointly), replays
@@ -204,16 +206,45 @@ def show_logs(nodes: Sequence[Any]) -> None:
         print(f"--- last lines of {p.log_path.name}:\n    {tail}", file=sys.stderr)
 
 
+MAX_DOMAIN_ID = 232
+"""The largest ROS domain id (the RTPS ports of a larger one would pass 65535)."""
+
+
+def demo_domain() -> tuple[int, str]:
+    """The ROS domain of the demo and how it was chosen: the ``ROS_DOMAIN_ID`` the user set, else a free
+    one leased by :func:`~magcal_ros.app.ros_driver.pick_domain_id`. RuntimeError (one line) for a
+    ``ROS_DOMAIN_ID`` that is not a domain id."""
+    import os
+
+    from magcal_ros.app.ros_driver import domain_in_use, pick_domain_id
+
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return pick_domain_id(), "a free one picked: no ROS_DOMAIN_ID set"
+    try:
+        domain = int(text)
+    except ValueError:
+        domain = -1
+    if not 0 <= domain <= MAX_DOMAIN_ID:
+        raise RuntimeError(f"ROS_DOMAIN_ID={text!r} is not a ROS domain id (0..{MAX_DOMAIN_ID}); unset it to let "
+                           "the demo pick a free one")
+    how = "your ROS_DOMAIN_ID"
+    if domain_in_use(domain):
+        how += ("; NOTE: DDS participants are already on it on this machine, the demo's nodes and topics join "
+                "theirs (unset ROS_DOMAIN_ID to let the demo pick a free domain)")
+    return domain, how
+
+
 def run(args: argparse.Namespace) -> int:
     """The demo; returns the exit code."""
-    from magcal_ros.app.ros_driver import ArrayDriver, pick_domain_id, ros_environment
+    from magcal_ros.app.ros_driver import ArrayDriver, ros_environment
     from magcal_ros.io.bag_writer import write_recording_bag
 
     clock = Clock()
+    domain, how = demo_domain()
+    env = ros_environment(domain)
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magcal_demo_"))
     work.mkdir(parents=True, exist_ok=True)
-    domain = pick_domain_id()
-    env = ros_environment(domain)
     sim, manoeuvre, check = simulate(args.sets, args.fresh, args.seed, thrusters=not args.no_thrusters)
     channels = list(sim.channels)
     bag = work / "manoeuvre_bag"
@@ -229,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         start_nodes(nodes, sim.geometry.names, channels, calibration_file, env, work, args.relative)
         clock.say(f"started correction_node (pid {nodes[0].pid}) and calibration_node (pid {nodes[1].pid}) "
-                  f"on ROS_DOMAIN_ID={domain}, localhost discovery")
+                  f"on ROS_DOMAIN_ID={domain} ({how}), localhost discovery")
         driver = ArrayDriver(sim.geometry.names, domain, node_name="magcal_demo",
                              currents=[(c, BATTERY_STATE) for c in channels])
         if not (driver.wait_for_subscribers(2, 30.0) and driver.wait_for_output_publishers(30.0)
