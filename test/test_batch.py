@@ -14,9 +14,12 @@ import html.parser
 import json
 import os
 import shutil
+import signal
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -121,6 +124,7 @@ class DaskCluster:
         with Client(self.address, timeout="60s") as client:
             client.wait_for_workers(2, timeout=120)
             self.worker_pids = set(client.run(os.getpid).values())
+            self.worker_addresses = sorted(client.scheduler_info()["workers"])
 
     def _start(self, argv: list[str], env: dict[str, str]) -> None:
         self.procs.append(subprocess.Popen(argv, stdout=self.log, stderr=self.log, env=env, cwd=self.folder))
@@ -387,10 +391,11 @@ def test_calibrate_first_from_each_recordings_own_manoeuvre(
     assert float(row["tmi_median_noise"]) == pytest.approx(0.674, rel=0.15), "its own calibration holds"
 
 
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_ctrl_c_stops_the_batch_closes_its_workers_and_leaves_no_partial_output(
-        campaign: dict[str, Path], tmp_path: Path) -> None:
-    import signal
-
+        campaign: dict[str, Path], tmp_path: Path, signum: signal.Signals, code: int) -> None:
+    """Ctrl-C (SIGINT) or a service manager's SIGTERM to the whole process group while tasks write: the
+    batch names the signal it got, exits 128 + its number, and leaves no partial output and no worker."""
     import psutil
 
     camp = tmp_path / "in"
@@ -407,13 +412,13 @@ def test_ctrl_c_stops_the_batch_closes_its_workers_and_leaves_no_partial_output(
         while not (out.exists() and any(p.name.endswith(".partial") for p in out.iterdir())):
             assert proc.poll() is None and time.monotonic() < deadline, "no task started writing"
             time.sleep(0.02)
-        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole process group
+        os.killpg(proc.pid, signum)  # what a terminal's Ctrl-C does: the whole process group
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
-    assert err.strip().splitlines() == ["magcal batch: stopped by SIGINT; unfinished output removed"], err
+    assert proc.returncode == code, err
+    assert err.strip().splitlines() == [f"magcal batch: stopped by {signum.name}; unfinished output removed"], err
     assert not [p for p in out.rglob("*") if ".partial" in p.name], "no partial output left"
     for name in ("long_bag", "long2_bag"):  # an output is there complete (renamed into place whole) or not at all;
         # the Ctrl-C may land between a task's output and its record: a re-run then redoes that one
@@ -433,3 +438,142 @@ def _session(pid: int) -> int | None:
         return os.getsid(pid)
     except OSError:
         return None
+
+
+class FakeScheduler:
+    """A TCP server on localhost that is not a Dask scheduler: ``http`` answers what it is sent with an
+    HTTP 400 and closes (as a web server does), ``silent`` accepts and says nothing, ``garbage`` sends
+    random bytes. Counts the connections it accepted."""
+
+    def __init__(self, mode: str) -> None:
+        self.mode = mode
+        self.accepted = 0
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self.server.getsockname()[1]}"
+        self.conns: list[socket.socket] = []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                conn, _ = self.server.accept()
+            except OSError:
+                return
+            self.accepted += 1
+            self.conns.append(conn)
+            threading.Thread(target=self._answer, args=(conn,), daemon=True).start()
+
+    def _answer(self, conn: socket.socket) -> None:
+        try:
+            if self.mode == "http":
+                conn.recv(65536)
+                conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\nConnection: close\r\n\r\n")
+                conn.close()
+            elif self.mode == "garbage":
+                conn.sendall(np.random.default_rng(1).bytes(4096))
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        self.server.close()
+        for conn in self.conns:
+            conn.close()
+
+
+def batch_process(*args: object) -> subprocess.Popen[str]:
+    """``magcal batch ARGS`` started in its own session (killed with its children when a test fails)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.Popen([sys.executable, "-m", "magcal_ros.app.cli", "batch", *map(str, args)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def finish(proc: subprocess.Popen[str], deadline: float) -> tuple[str, str]:
+    """stdout and stderr of ``proc`` once it ends; it and its children killed if it is not over within
+    ``deadline`` s (a hang: the test fails)."""
+    try:
+        return proc.communicate(timeout=deadline)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"still running after {deadline:g} s (killed): {err[-2000:]}")
+
+
+@pytest.mark.parametrize(("mode", "reason"), [
+    ("http", "answered, but not as a Dask scheduler: its reply is not Dask's protocol"),
+    ("garbage", "answered, but not as a Dask scheduler: its reply is not Dask's protocol"),
+    ("silent", "no Dask scheduler answered at {address} within 3 s"),
+    ("closed", "cannot reach the Dask scheduler at {address}: Connection refused"),
+])
+def test_a_scheduler_address_that_is_not_dask_is_refused_in_one_line(
+        campaign: dict[str, Path], tmp_path: Path, mode: str, reason: str) -> None:
+    """A web server, a port that accepts and says nothing, one that sends random bytes, one where nothing
+    listens: each is one line and exit 2, nothing run, within a bounded time (Dask's own handshake waits
+    for ever on a silent port; an HTTP reply read as Dask's frame header asked for exabytes)."""
+    server = FakeScheduler(mode) if mode != "closed" else None
+    if server is None:
+        with socket.socket() as unused:  # a port nothing listens on
+            unused.bind(("127.0.0.1", 0))
+            address = f"tcp://127.0.0.1:{unused.getsockname()[1]}"
+    else:
+        address = server.address
+    out = tmp_path / "out"
+    try:
+        proc = batch_process(campaign["campaign"] / "auv1", "-c", campaign["cal"], "-o", out, "--scheduler", address,
+                             "--connect-timeout", "3")
+        _, err = finish(proc, 120)
+    finally:
+        if server is not None:
+            server.close()
+    assert proc.returncode == 2, err
+    assert err.splitlines() == [err.strip()] and err.startswith("magcal batch: error: "), err
+    assert reason.format(address=address) in err and address in err, err
+    assert not out.exists(), "nothing run, nothing written"
+    assert server is None or server.accepted >= 1
+
+
+def test_a_dask_worker_is_not_taken_for_the_scheduler(
+        campaign: dict[str, Path], dask_cluster: DaskCluster, tmp_path: Path) -> None:
+    worker = dask_cluster.worker_addresses[0]
+    proc = magcal("batch", campaign["campaign"] / "auv1", "-c", campaign["cal"], "-o", tmp_path / "out",
+                  "--scheduler", worker, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == (f"magcal batch: error: {worker} is a Dask Worker, not a Dask scheduler: give the "
+                                   "scheduler's address"), proc.stderr
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_while_connecting_ends_the_batch_at_once(
+        campaign: dict[str, Path], tmp_path: Path, signum: signal.Signals, code: int) -> None:
+    """A scheduler that accepts and never answers, a connect timeout of ten minutes: SIGTERM (or Ctrl-C)
+    while the batch waits on it ends the batch with 128 + the signal and its one line (it ignored both
+    for 14 minutes)."""
+    server = FakeScheduler("silent")
+    try:
+        proc = batch_process(campaign["campaign"] / "auv1", "-c", campaign["cal"], "-o", tmp_path / "out",
+                             "--scheduler", server.address, "--connect-timeout", "600")
+        deadline = time.monotonic() + 120
+        while server.accepted < 1:
+            assert proc.poll() is None and time.monotonic() < deadline, "the batch never connected"
+            time.sleep(0.05)
+        os.kill(proc.pid, signum)
+        _, err = finish(proc, 60)
+    finally:
+        server.close()
+    assert proc.returncode == code, err
+    assert err.strip().splitlines() == [f"magcal batch: stopped by {signum.name}; unfinished output removed"], err
+
+
+def test_more_local_workers_than_the_machine_runs_are_refused_before_anything_starts(
+        campaign: dict[str, Path], tmp_path: Path) -> None:
+    """``--workers 1000000`` grew to 3.6 GB in 10 minutes without starting a worker: refused at once."""
+    from magcal_ros.app.batch import max_workers
+
+    limit, _ = max_workers()
+    out = tmp_path / "out"
+    proc = batch_process(campaign["campaign"] / "auv1", "-c", campaign["cal"], "-o", out, "--workers", "1000000")
+    _, err = finish(proc, 60)
+    assert proc.returncode == 2, err
+    assert err.strip().splitlines() == [f"magcal batch: error: --workers 1000000: this machine runs at most {limit} "
+                                        f"local worker processes ({max_workers()[1]}); give at most {limit}"], err
+    assert not out.exists()

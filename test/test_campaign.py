@@ -225,3 +225,23 @@ def test_the_reports_reference_comes_from_the_calibration_or_a_truth_file(tmp_pa
     plain = ArrayCalibration(ArrayGeometry.single("mag1"), np.eye(3)[None], np.zeros((1, 3)))
     calfile.write(tmp_path / "plain.yaml", plain)
     assert reference_of(str(tmp_path / "plain.yaml"), calfile.read(tmp_path / "plain.yaml")) == (None, None)
+
+
+def test_local_workers_are_bounded_by_the_machine_and_connect_timeout_goes_with_scheduler(
+        tree: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from magcal_ros.app import batch
+
+    cal = tree / "cals" / "cal_default.yaml"
+    monkeypatch.setattr(batch, "default_workers", lambda: 2)
+    monkeypatch.setattr(batch, "available_memory", lambda: 64 * 2**30)
+    assert batch.max_workers() == (8, "4 per core on its 2 cores")
+    plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--workers", 8))
+    with pytest.raises(InputError, match=r"^--workers 9: this machine runs at most 8 local worker processes \(4 per "
+                       r"core on its 2 cores\); give at most 8$"):
+        plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--workers", 9))
+    monkeypatch.setattr(batch, "available_memory", lambda: 5 * batch.WORKER_MEMORY + 1)  # memory holds 5
+    assert batch.max_workers()[0] == 5
+    monkeypatch.setattr(batch, "available_memory", lambda: batch.WORKER_MEMORY)  # never fewer than the cores
+    assert batch.max_workers()[0] == 2
+    with pytest.raises(InputError, match="^--connect-timeout applies to --scheduler$"):
+        plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--connect-timeout", 5))

@@ -24,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from magcal_ros.errors import InputError, MagcalError
+from magcal_ros.errors import InputError, MagcalError, Stopped
 
 if TYPE_CHECKING:
     from magcal_ros.app.campaign import Job, Outcome
@@ -69,13 +69,23 @@ files): per recording sets, drops, time span, TMI residual | |B| - F | (median, 
 percentile, and both over the calibration's noise), tensor noise, the calibration used; per
 vehicle their trend over time.
 
+Dask: --workers N local worker processes (at most 4 per core, fewer when the available memory
+holds fewer of 256 MiB; never fewer than the cores). --scheduler ADDRESS must answer as a Dask
+scheduler within --connect-timeout seconds (default 20), each step bounded: the TCP connection,
+Dask's handshake and first reply, the client's own connection; a web server, a silent port or
+anything else that is not a Dask scheduler is one line, exit 2, nothing run. Stop signals are
+taken at every stage, connecting included.
+
 exit codes: 0 every recording done (corrected now or skipped); 1 some failed (the report names
 them); 2 the batch refused (bad option, calibration, mapping or scheduler; nothing run);
-130, 143, 129 stopped by SIGINT, SIGTERM, SIGHUP."""
+130, 143, 129 stopped by SIGINT, SIGTERM, SIGHUP (the line names the signal)."""
 
 
 WORKER_START_TIMEOUT = 300.0
 """Seconds the local cluster's workers may take to start (imports on a loaded machine)."""
+CONNECT_TIMEOUT = 20.0
+"""Default seconds a Dask scheduler has to answer (``--connect-timeout``): each of the TCP connection,
+Dask's handshake and the first reply, and the client's own connection."""
 
 
 def _workers(text: str) -> int:
@@ -88,12 +98,55 @@ def _workers(text: str) -> int:
     return n
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (0 < value <= 86_400):
+        raise argparse.ArgumentTypeError("between 0 and 86400 seconds")
+    return value
+
+
 def default_workers() -> int:
     """The cores this process may run on."""
     try:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+WORKERS_PER_CORE = 4
+"""At most this many local worker processes per core: a task is one single-threaded ``magcal correct``."""
+WORKER_MEMORY = 256 * 2**20
+"""Bytes a local worker process needs at least (Python with numpy, Dask and one streaming correction)."""
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (``MemAvailable``), or None when unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def max_workers() -> tuple[int, str]:
+    """The most local worker processes this machine runs, and why: :data:`WORKERS_PER_CORE` per core,
+    fewer when the available memory holds fewer of :data:`WORKER_MEMORY`, never fewer than the cores."""
+    cores = default_workers()
+    limit, why = WORKERS_PER_CORE * cores, f"{WORKERS_PER_CORE} per core on its {cores} core{'s' if cores != 1 else ''}"
+    memory = available_memory()
+    if memory is not None and memory // WORKER_MEMORY < limit:
+        limit = max(cores, int(memory // WORKER_MEMORY))
+        why = (f"{WORKER_MEMORY / 2**20:.0f} MiB each of its {memory / 2**30:.1f} GiB available memory, "
+               f"at least one per core")
+    return limit, why
 
 
 def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
@@ -114,9 +167,13 @@ def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argpar
     p.add_argument("--list", action="append", metavar="FILE", help="a list file: one recording or directory per line")
     g = p.add_argument_group("Dask")
     g.add_argument("--workers", type=_workers, metavar="N",
-                   help=f"worker processes of the local cluster, one thread each (default: the cores, {default_workers()})")
+                   help=f"worker processes of the local cluster, one thread each (default: the cores, {default_workers()}; "
+                   f"at most {WORKERS_PER_CORE} per core, fewer when memory is short)")
     g.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on an existing Dask cluster (e.g. tcp://host:8786) whose workers see the same paths")
+    g.add_argument("--connect-timeout", type=_seconds, metavar="SECONDS",
+                   help="seconds the --scheduler has to answer as a Dask scheduler, handshake included "
+                   f"(default {CONNECT_TIMEOUT:g})")
     g = p.add_argument_group("campaign")
     g.add_argument("--force", action="store_true", help="redo recordings a previous run finished")
     g.add_argument("--vehicle-pattern", metavar="REGEX",
@@ -201,6 +258,13 @@ def _check_options(args: argparse.Namespace) -> None:
     """Refuse option combinations and values no batch can use (:class:`InputError`, one line)."""
     if args.scheduler and args.workers:
         raise InputError("--workers sizes the local cluster; with --scheduler the cluster's own workers run the tasks")
+    if args.connect_timeout is not None and not args.scheduler:
+        raise InputError("--connect-timeout applies to --scheduler")
+    if args.workers:
+        limit, why = max_workers()
+        if args.workers > limit:
+            raise InputError(f"--workers {args.workers}: this machine runs at most {limit} local worker processes "
+                             f"({why}); give at most {limit}")
     if (args.site or args.date) and not args.calibrate:
         raise InputError("--site and --date apply to --calibrate")
     if args.site and args.reference_field is not None:
@@ -331,7 +395,7 @@ def failure_reason(exc: BaseException) -> str:
 
 class StopSignals:
     """While a batch runs, a stop signal (SIGINT, SIGTERM, SIGHUP) only sets a flag; :meth:`check`
-    raises it as the CLI's ``Stopped`` at a point where the cluster can be closed cleanly
+    raises it as :class:`~magcal_ros.errors.Stopped` at a point where the cluster can be closed cleanly
     (raising inside Dask's own waits leaves its state broken)."""
 
     def __init__(self) -> None:
@@ -352,13 +416,115 @@ class StopSignals:
     def check(self) -> None:
         """Raise ``Stopped`` if a stop signal came."""
         if self.signum is not None:
-            from magcal_ros.app.cli import Stopped
-
             raise Stopped(self.signum)
 
     def __exit__(self, *exc: object) -> None:
         for s, handler in self.previous.items():
             signal.signal(s, handler)
+
+
+def in_thread(work: Callable[[], Any], seconds: float, stop: StopSignals, name: str) -> Any:
+    """``work()`` run in a daemon thread while this one takes stop signals (:meth:`StopSignals.check`,
+    every 0.1 s): its result, or what it raised; TimeoutError after ``seconds`` (the thread is left to
+    end by itself: what it waits on is bounded too)."""
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["result"] = work()
+        except BaseException as exc:  # noqa: BLE001 - handed to the waiting thread
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + seconds
+    while thread.is_alive():
+        stop.check()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{name}: no result within {seconds:g} s")
+        thread.join(0.1)
+    stop.check()
+    if "error" in box:
+        raise box["error"]
+    return box.get("result")
+
+
+def _tcp_location(address: str) -> tuple[str, int] | None:
+    """Host and port of a ``tcp://HOST:PORT`` (or ``HOST:PORT``) scheduler address; None for another
+    transport (tls://, ucx://, ...); :class:`InputError` for text that is not an address."""
+    from distributed.comm import registry
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        registry.get_backend(scheme)  # a transport Dask speaks
+        if scheme != "tcp":
+            return None
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError):
+        raise InputError(f"--scheduler {address!r} is not an address: give tcp://HOST:PORT") from None
+    if not host or not isinstance(port, int) or not 0 < port < 65536:
+        raise InputError(f"--scheduler {address!r} is not an address: give tcp://HOST:PORT")
+    return host, port
+
+
+def _scheduler_identity(address: str, timeout: float) -> dict[str, Any]:
+    """What the process at ``address`` says it is, asked as Dask asks (handshake, then the ``identity``
+    operation), the whole exchange within ``timeout`` s. Raises :class:`InputError` (one line) for an
+    address nothing listens on, or a reply that is not Dask's; TimeoutError when no reply comes."""
+    import asyncio
+    import socket
+
+    from distributed.comm import connect
+
+    location = _tcp_location(address)
+    if location is not None:  # a plain TCP connection first: "nothing listens" said at once, not after retries
+        try:
+            socket.create_connection(location, timeout=timeout).close()
+        except OSError as exc:
+            reason = exc.strerror or str(exc) or type(exc).__name__
+            raise InputError(f"cannot reach the Dask scheduler at {address}: {reason}") from None
+
+    async def ask() -> Any:
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(ask(), timeout))
+    except (asyncio.TimeoutError, TimeoutError):
+        raise TimeoutError(address) from None
+    except Exception as exc:  # noqa: BLE001 - whatever the bytes made of Dask's decoder: not Dask's reply
+        raise InputError(f"{address} answered, but not as a Dask scheduler: its reply is not Dask's protocol "
+                         f"({type(exc).__name__}); check the address and port") from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        kind = reply.get("type") if isinstance(reply, dict) else None
+        what = f"a Dask {kind}" if isinstance(kind, str) and kind else "not a Dask scheduler"
+        raise InputError(f"{address} is {what}, not a Dask scheduler: give the scheduler's address")
+    return reply
+
+
+def connect_scheduler(address: str, timeout: float, stop: StopSignals) -> tuple[Any, int]:
+    """A client of the Dask scheduler at ``address`` and its worker count. Every step is bounded by
+    ``timeout`` s (the TCP connection, Dask's handshake, the first reply, the client's own connection)
+    and takes stop signals; :class:`InputError` (one line) when nothing answers as a Dask scheduler."""
+    from distributed import Client
+
+    try:
+        identity = in_thread(lambda: _scheduler_identity(address, timeout), timeout + 5.0, stop,
+                             "magcal-scheduler-probe")
+        client = in_thread(lambda: Client(address, timeout=f"{timeout}s"), timeout + 5.0,
+                           stop, "magcal-scheduler-client")
+    except TimeoutError:
+        raise InputError(f"no Dask scheduler answered at {address} within {timeout:g} s (something may accept "
+                         "connections there but says nothing Dask says; --connect-timeout waits longer)") from None
+    except (OSError, ValueError) as exc:
+        text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise InputError(f"cannot reach the Dask scheduler at {address}: {text}") from None
+    return client, len(identity.get("workers") or {})
 
 
 def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
@@ -385,6 +551,7 @@ def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
             cluster.scale(n)
             deadline = time.monotonic() + WORKER_START_TIMEOUT
             while len(multiprocessing.active_children()) < n and time.monotonic() < deadline:
+                stop.check()  # SIGTERM and SIGHUP here; a Ctrl-C only once the workers exist
                 time.sleep(0.02)
         finally:
             if main:
@@ -408,23 +575,25 @@ def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
 
 
 def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
-                on_done: Callable[[Outcome], None]) -> str:
+                on_done: Callable[[Outcome], None], connect_timeout: float = CONNECT_TIMEOUT) -> str:
     """Run ``jobs`` as Dask tasks, calling ``on_done`` with each outcome as it finishes; returns
     where they ran (for the summary). :class:`InputError` when the scheduler cannot be reached;
-    a stop signal closes the cluster and raises the CLI's ``Stopped``."""
-    from distributed import Client, as_completed
+    a stop signal closes the cluster and raises :class:`~magcal_ros.errors.Stopped`."""
+    from distributed import as_completed
 
     from magcal_ros.app.batch_task import run_job
 
+    import logging
+
+    # A stop while workers start leaves Dask's start-up tasks failed and never awaited: asyncio would log
+    # each with its traceback at exit, after the one line that says what happened.
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     cluster: Any = None
     with StopSignals() as stop:
         try:
             if scheduler:
-                try:
-                    client = Client(scheduler, timeout="20s")
-                except (OSError, TimeoutError, ValueError) as exc:
-                    raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
-                where = f"the Dask cluster at {scheduler} ({len(client.scheduler_info().get('workers', {}))} workers)"
+                client, count = connect_scheduler(scheduler, connect_timeout, stop)
+                where = f"the Dask cluster at {scheduler} ({count} worker{'s' if count != 1 else ''})"
             else:
                 n = workers or default_workers()
                 cluster, client = _local_cluster(n, stop)
@@ -514,7 +683,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
         try:
             with bar:
-                where = run_on_dask(pending, args.workers, args.scheduler, on_done)
+                where = run_on_dask(pending, args.workers, args.scheduler, on_done,
+                                    args.connect_timeout or CONNECT_TIMEOUT)
         except KeyboardInterrupt:
             _clean_unfinished([j for j in pending if j.name not in outcomes])
             raise
