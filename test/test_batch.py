@@ -214,7 +214,13 @@ class DomTables(html.parser.HTMLParser):
         self.rows: dict[str, dict[str, str]] = {}
         self.points: dict[str, dict[str, float]] = {}
         self.vehicles: dict[str, dict[str, str]] = {}
+        self.charts: dict[str, dict[str, str]] = {}
+        self.ys: dict[str, dict[str, float]] = {}
+        """Per chart, each point's y (px), and each reference line's (keys 'floor', 'flag')."""
+        self.classes: dict[str, str] = {}
+        self.lists: dict[str, list[str]] = {}
         self._row: dict[str, str] | None = None
+        self._list = ""
         self._chart = ""
 
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
@@ -223,6 +229,7 @@ class DomTables(html.parser.HTMLParser):
             self.ready = a.get("data-ready")
         elif tag == "tr" and "data-name" in a:
             self._row = self.rows.setdefault(a["data-name"], {})
+            self.classes[a["data-name"]] = a.get("class", "")
         elif tag == "tr" and "data-vehicle" in a:
             self._row = self.vehicles.setdefault(a["data-vehicle"], {})
         elif tag == "td" and self._row is not None and "data-key" in a:
@@ -230,12 +237,24 @@ class DomTables(html.parser.HTMLParser):
         elif tag == "svg":
             self._chart = a.get("data-title", "")
             self.points.setdefault(self._chart, {})
+            self.charts[self._chart] = a
+            self.ys.setdefault(self._chart, {})
         elif tag == "circle" and "data-recording" in a:
             self.points[self._chart][a["data-recording"]] = float(a["data-value"])
+            self.ys[self._chart][a["data-recording"]] = float(a["cy"])
+        elif tag == "line" and a.get("class") in ("floor", "flag"):
+            self.ys[self._chart][a["class"]] = float(a["y1"])
+        elif tag == "ul" and "id" in a:
+            self._list = a["id"]
+            self.lists[self._list] = []
+        elif tag == "li" and self._list:
+            self.lists[self._list].append(a.get("data-name", ""))
 
     def handle_endtag(self, tag: str) -> None:
         if tag == "tr":
             self._row = None
+        elif tag == "ul":
+            self._list = ""
 
 
 def chromium_dom(page: Path) -> str:
@@ -577,3 +596,88 @@ def test_more_local_workers_than_the_machine_runs_are_refused_before_anything_st
     assert err.strip().splitlines() == [f"magcal batch: error: --workers 1000000: this machine runs at most {limit} "
                                         f"local worker processes ({max_workers()[1]}); give at most {limit}"], err
     assert not out.exists()
+
+
+def test_one_report_for_one_directorys_outputs_whatever_runs_wrote_them(
+        campaign: dict[str, Path], dask_cluster: DaskCluster, tmp_path: Path) -> None:
+    """Two batches of different inputs into one OUTDIR: the report of the second lists the first's outputs
+    too (it listed only its own); an output removed since is no longer listed. The second campaign's
+    folder holds a stray .db3 and a note beside its CSV: the CSV is corrected, the two are listed as
+    skipped (the .db3 made the folder one failed bag, its CSV never tried)."""
+    first_in, second_in, out = tmp_path / "first", tmp_path / "second", tmp_path / "out"
+    for name in ("auv1/m1_bag", "auv2/m1.csv"):
+        src = campaign["campaign"] / name
+        (first_in / name).parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, first_in / name)
+    (second_in / "auv3").mkdir(parents=True)
+    write_csv(second_in / "auv3" / "m3.csv", recording(T0 + 5 * DAY))
+    (second_in / "auv3" / "stray_0.db3").write_bytes(b"SQLite format 3\x00" + bytes(100))
+    (second_in / "auv3" / "notes.txt").write_text("dive log\n")
+    ok(magcal("batch", first_in, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    second = ok(magcal("batch", second_in, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    assert "batch: 1 recording: 1 corrected, 0 skipped, 0 failed" in second.stdout, second.stdout
+    assert "(with 2 more recordings earlier runs wrote there)" in second.stdout
+    assert "note: 2 files found that are not a recording, skipped (listed in the report): auv3/notes.txt, " \
+           "auv3/stray_0.db3" in second.stderr
+
+    def report() -> dict[str, dict[str, str]]:
+        with open(out / "report.csv", newline="") as fh:
+            return {r["recording"]: r for r in csv.DictReader(fh)}
+
+    rows = report()
+    assert {n: r["status"] for n, r in rows.items()} == {
+        "auv1/m1_bag": "skipped", "auv2/m1.csv": "skipped", "auv3/m3.csv": "corrected",
+        "auv3/notes.txt": "skipped", "auv3/stray_0.db3": "skipped"}
+    assert int(rows["auv1/m1_bag"]["sets"]) == SETS and int(rows["auv3/m3.csv"]["sets"]) == SETS
+    assert rows["auv3/stray_0.db3"]["reason"].startswith("not a recording: a rosbag2 storage file without")
+    assert rows["auv3/notes.txt"]["reason"] == "not a recording: neither a .csv file nor a rosbag2 directory"
+    dom = DomTables()
+    dom.feed((out / "report.html").read_text())
+    assert set(dom.rows) == {"auv1/m1_bag", "auv2/m1.csv", "auv3/m3.csv"}
+    assert dom.lists["others"] == ["auv3/notes.txt", "auv3/stray_0.db3"]
+    # An output removed is no longer the directory's: the next report leaves it out.
+    shutil.rmtree(out / "auv1" / "m1_bag")
+    third = ok(magcal("batch", second_in, "-c", campaign["cal"], "-o", out, "--scheduler", dask_cluster.address))
+    assert "(with 1 more recording earlier runs wrote there)" in third.stdout
+    assert set(report()) == {"auv2/m1.csv", "auv3/m3.csv", "auv3/notes.txt", "auv3/stray_0.db3"}
+
+
+def test_an_output_directory_that_cannot_be_written_is_refused_before_any_task_runs(
+        campaign: dict[str, Path]) -> None:
+    """A read-only OUTDIR ran every task before failing with exit 2: now one line, nothing run. As root the
+    batch runs without the capability to override file permissions (root writes anywhere)."""
+    import stat
+
+    shared = Path(tempfile.mkdtemp(prefix="magcal_readonly_"))
+    try:
+        shutil.copytree(campaign["campaign"] / "auv1", shared / "in")
+        shutil.copy2(campaign["cal"], shared / "cal.yaml")
+        out = shared / "out"
+        out.mkdir()
+        for p in [shared, *shared.rglob("*")]:
+            p.chmod(0o755 if p.is_dir() else 0o644)
+        out.chmod(stat.S_IRUSR | stat.S_IXUSR | stat.S_IRGRP | stat.S_IXGRP | stat.S_IROTH | stat.S_IXOTH)  # r-x
+        env = dict(os.environ, HOME=str(shared))
+        env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+
+        def unprivileged() -> None:
+            if os.geteuid() == 0:  # drop CAP_DAC_OVERRIDE and CAP_DAC_READ_SEARCH from what the batch gets
+                import ctypes
+
+                libc = ctypes.CDLL(None, use_errno=True)
+                for cap in (1, 2):
+                    if libc.prctl(24, cap, 0, 0, 0) != 0:  # PR_CAPBSET_DROP
+                        os._exit(99)
+
+        proc = subprocess.run([sys.executable, "-m", "magcal_ros.app.cli", "batch", str(shared / "in"), "-c",
+                               str(shared / "cal.yaml"), "-o", str(out), "--workers", "1"], env=env,
+                              capture_output=True, text=True, timeout=300, preexec_fn=unprivileged)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        assert proc.stderr.strip() == (f"magcal batch: error: output directory {out} cannot be written ({out}: "
+                                       "Permission denied); nothing run"), proc.stderr
+        assert proc.stdout == "", "no task ran"
+        assert list(out.iterdir()) == []
+    finally:
+        shared.chmod(0o755)
+        (shared / "out").chmod(0o755)
+        shutil.rmtree(shared, ignore_errors=True)

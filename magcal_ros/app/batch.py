@@ -13,6 +13,7 @@ the report: :mod:`magcal_ros.app.batch_report`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -22,12 +23,12 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from magcal_ros.errors import InputError, MagcalError, Stopped
 
 if TYPE_CHECKING:
-    from magcal_ros.app.campaign import Job, Outcome
+    from magcal_ros.app.campaign import Found, Job, Outcome
     from magcal_ros.app.progress import ProgressBar
 
 EPILOG_BATCH = """examples:
@@ -38,10 +39,12 @@ EPILOG_BATCH = """examples:
   magcal batch campaign/ -c cal.yaml -o out/ --force             # redo recordings already done
   magcal batch campaign/ -c prior.yaml -o out/ --calibrate --reference-field 5.15e-5
 
-inputs: rosbag2 directories (a metadata.yaml, or .db3/.mcap files) and .csv files; any other
-directory is walked: every recording below it (hidden entries and OUTDIR left out), its output
-at OUTDIR/<path relative to the walked directory>. A recording named directly goes to
-OUTDIR/<its name>. @FILE or --list FILE: one path per line (# comments; relative to FILE).
+inputs: rosbag2 directories (a directory is a bag only by its metadata.yaml) and .csv files; any
+other directory is walked: every recording below it (hidden entries and OUTDIR left out), its
+output at OUTDIR/<path relative to the walked directory>; the other files found there (notes, a
+stray .db3 without its metadata.yaml) are listed in the report as skipped, never run. A
+recording named directly goes to OUTDIR/<its name>. @FILE or --list FILE: one path per line
+(# comments; relative to FILE). OUTDIR is created and checked writable before anything runs.
 
 calibration (-c): one calibration file for every recording, or a mapping file:
   magcal_batch:
@@ -65,9 +68,10 @@ recordings are recorded in OUTDIR/.magcal_batch/; a re-run skips those whose inp
 calibration and options are unchanged (--force redoes them).
 
 report: OUTDIR/report.csv and OUTDIR/report.html (self-contained: inline SVG, no external
-files): per recording sets, drops, time span, TMI residual | |B| - F | (median, 95th
-percentile, and both over the calibration's noise), tensor noise, the calibration used; per
-vehicle their trend over time.
+files), one report for everything in OUTDIR: this run's recordings and every output an earlier
+run (of any inputs) wrote there that is still as written. Per recording sets, drops, time span,
+TMI residual | |B| - F | (median, 95th percentile, and both over the calibration's noise),
+tensor noise, the calibration used; per vehicle their trend over time.
 
 Dask: --workers N local worker processes (at most 4 per core, fewer when the available memory
 holds fewer of 256 MiB; never fewer than the cores). --scheduler ADDRESS must answer as a Dask
@@ -273,15 +277,16 @@ def _check_options(args: argparse.Namespace) -> None:
         raise InputError(f"--reference-field {args.reference_field:g} T is not Earth-like (1e-7 .. 1e-3 T)")
 
 
-def _recordings(args: argparse.Namespace, outdir: Path) -> tuple[list[tuple[str, Path]], list[str]]:
-    """The recordings the inputs name, ``(name under OUTDIR, path)`` once each, and notes; refused when
-    there are none, two would write one name, or one would take a name the batch keeps for itself."""
+def _recordings(args: argparse.Namespace, outdir: Path) -> tuple[list[tuple[str, Path]], Found]:
+    """The recordings the inputs name, ``(name under OUTDIR, path)`` once each, and all that was found;
+    refused when there are none, two would write one name, or one would take a name the batch keeps
+    for itself."""
     from magcal_ros.app import campaign as cp
 
-    found, notes = cp.find_recordings(args.inputs, args.list or [], outdir.resolve())
+    found = cp.find_recordings(args.inputs, args.list or [], outdir.resolve())
     unique: list[tuple[str, Path]] = []
     seen: set[tuple[str, Path]] = set()
-    for name, path in found:
+    for name, path in found.recordings:
         if (name, path.resolve()) not in seen:
             seen.add((name, path.resolve()))
             unique.append((name, path))
@@ -291,11 +296,13 @@ def _recordings(args: argparse.Namespace, outdir: Path) -> tuple[list[tuple[str,
         raise InputError("; ".join(clash[:3]) + more + ": give their parent directory instead (a walk keeps "
                          "relative names)")
     if not unique:
-        raise InputError(f"no recordings in {' '.join(args.inputs + (args.list or []))} (rosbag2 directories or .csv files)")
+        others = f"; {len(found.others)} other file{'s' if len(found.others) != 1 else ''}" if found.others else ""
+        raise InputError(f"no recordings in {' '.join(args.inputs + (args.list or []))} (rosbag2 directories with "
+                         f"their metadata.yaml, or .csv files{others})")
     bad = [n for n, _ in unique if cp.reserved(n)]
     if bad:
         raise InputError(f"recording {bad[0]} would write over the batch's own {bad[0]} in OUTDIR: rename it")
-    return unique, notes
+    return unique, found
 
 
 def _problem(path: Path, calibration: Path | None, missing: Callable[[], str], calibrate: bool) -> str:
@@ -311,15 +318,24 @@ def _problem(path: Path, calibration: Path | None, missing: Callable[[], str], c
     return ""
 
 
-def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
-    """The batch's jobs (in input order) and notes; :class:`InputError` when the batch is refused."""
+class Plan(NamedTuple):
+    """A batch planned: its jobs in input order, notes, and the files found that are not recordings
+    (outcomes ``skipped``, :attr:`~magcal_ros.app.campaign.Outcome.other`)."""
+
+    jobs: list[Job]
+    notes: list[str]
+    others: list[Outcome]
+
+
+def plan(args: argparse.Namespace) -> Plan:
+    """The batch's :class:`Plan`; :class:`InputError` when the batch is refused."""
     from magcal_ros.app import campaign as cp
 
     _check_options(args)
     outdir = Path(args.output).absolute()
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"output {args.output} exists and is not a directory")
-    unique, notes = _recordings(args, outdir)
+    unique, found = _recordings(args, outdir)
     cmap = cp.load_calibrations(args.calibration)
     pattern = cp.vehicle_pattern(args.vehicle_pattern)
     uncorrected = tuple(n.strip() for n in (args.uncorrected or "").split(",") if n.strip())
@@ -340,7 +356,9 @@ def plan(args: argparse.Namespace) -> tuple[list[Job], list[str]]:
             reference_field=args.reference_field, uncorrected=uncorrected, problem=problem,
         ))
     _check_calibrations(jobs, uncorrected)
-    return jobs, notes
+    others = [cp.Outcome(name, cp.vehicle_of(path, pattern), "skipped", str(path.absolute()),
+                         reason=cp.not_a_recording(path), other=True) for name, path in found.others]
+    return Plan(jobs, found.notes, others)
 
 
 def _check_calibrations(jobs: Sequence[Job], uncorrected: tuple[str, ...]) -> None:
@@ -640,17 +658,43 @@ def _clean_unfinished(jobs: Sequence[Job]) -> None:
                 recover(target)
 
 
-def cmd_batch(args: argparse.Namespace) -> int:
-    """Plan, skip what is done, run the rest on Dask, write the report; exit 1 if any recording failed."""
-    from magcal_ros.app import batch_report, campaign
-    from magcal_ros.app.campaign import Outcome, digest, finished
-    from magcal_ros.app.progress import ProgressBar
+def prepare_output(outdir: Path) -> list[Path]:
+    """Check, before anything runs, that OUTDIR takes the batch's files: create it and its records folder
+    when missing and write (then remove) a file in each. Returns the directories it created, outermost
+    first; :class:`InputError` naming the cause (a read-only directory ran every task before failing)."""
+    import tempfile
 
-    t0 = time.perf_counter()
-    jobs, notes = plan(args)
-    for note in notes:
-        print(f"  note: {note}", file=sys.stderr)
-    outdir = Path(args.output).absolute()
+    from magcal_ros.app.campaign import RECORDS_DIR
+
+    created: list[Path] = []
+    for folder in (outdir, outdir / RECORDS_DIR):
+        try:
+            missing = [d for d in (folder, *folder.parents) if not d.exists()]
+            folder.mkdir(parents=True, exist_ok=True)
+            created += reversed(missing)
+            fd, probe = tempfile.mkstemp(prefix=".magcal_batch_probe_", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            remove_empty(created)
+            where = exc.filename if exc.filename and Path(exc.filename) in (folder, *folder.parents) else folder
+            raise InputError(f"output directory {outdir} cannot be written ({where}: {exc.strerror or exc}); "
+                             "nothing run") from None
+    return created
+
+
+def remove_empty(created: Sequence[Path]) -> None:
+    """Remove the directories :func:`prepare_output` created that are still empty (innermost first)."""
+    for folder in reversed(created):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _triage(jobs: Sequence[Job], force: bool) -> tuple[dict[str, Outcome], list[Job]]:
+    """Outcomes known before anything runs (failed at once; done earlier and unchanged: skipped, unless
+    ``force``) and the jobs left to run."""
+    from magcal_ros.app.campaign import digest, finished
+
     outcomes: dict[str, Outcome] = {}
     pending = []
     digests: dict[str, str] = {}
@@ -658,22 +702,77 @@ def cmd_batch(args: argparse.Namespace) -> int:
         if job.problem:
             outcomes[job.name] = job.outcome("failed", reason=job.problem)
             continue
-        if not args.force:
+        if not force:
             key = digests.setdefault(job.calibration, digest(job.calibration) if job.calibration else "")
             earlier = finished(job, key)
             if earlier is not None:
                 outcomes[job.name] = replace(earlier, status="skipped", reason="")
                 continue
         pending.append(job)
-    skipped = sum(o.status == "skipped" for o in outcomes.values())
-    bar = ProgressBar(len(pending), "batch", unit="rec", enabled=False if args.quiet else None)
-    console = Console(bar, args.quiet)
+    return outcomes, pending
+
+
+def _announce(console: Console, outcomes: dict[str, Outcome], others: Sequence[Outcome]) -> None:
+    """The failures known before the run, the recordings skipped as done and the files that are none."""
     for o in outcomes.values():
         if o.status == "failed":
             console.done(o)
+    skipped = sum(o.status == "skipped" for o in outcomes.values())
     if skipped:
         console.line(f"  {skipped} recording{'s' if skipped != 1 else ''} already done, unchanged: skipped "
                      "(--force redoes them)")
+    if others:
+        names = ", ".join(o.name for o in others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
+        console.line(f"  note: {len(others)} file{'s' if len(others) != 1 else ''} found that "
+                     f"{'are' if len(others) != 1 else 'is'} not a recording, skipped (listed in the report): {names}",
+                     error=True)
+
+
+def _report(outdir: Path, ordered: list[Outcome], others: Sequence[Outcome]) -> list[Outcome]:
+    """Write OUTDIR's report: this run's recordings, the files it skipped as none, and every output an
+    earlier run (of any inputs) wrote there that is still as written. Returns the earlier ones."""
+    from magcal_ros.app import batch_report, campaign
+
+    mine = {o.name for o in ordered}
+    earlier = [replace(o, status="skipped", reason="") for name, o in campaign.recorded_outcomes(outdir).items()
+               if name not in mine]
+    rows = ordered + earlier + list(others)
+    batch_report.write_csv(outdir / campaign.REPORT_CSV, rows)
+    batch_report.write_html(outdir / campaign.REPORT_HTML, rows, str(outdir))
+    return earlier
+
+
+def _names(items: Sequence[Outcome]) -> str:
+    """Up to five names, and how many more."""
+    return ", ".join(o.name for o in items[:5]) + (f" and {len(items) - 5} more" if len(items) > 5 else "")
+
+
+def _summary_line(ordered: Sequence[Outcome], skipped: int) -> str:
+    """``batch: N recordings: C corrected, K skipped, F failed (NAMES)``."""
+    failed = [o for o in ordered if o.status == "failed"]
+    corrected = sum(o.status == "corrected" for o in ordered)
+    return (f"batch: {len(ordered)} recording{'s' if len(ordered) != 1 else ''}: {corrected} corrected, {skipped} "
+            f"skipped, {len(failed)} failed"
+            + (f" ({_names(failed)})" if failed else ""))
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Plan, check OUTDIR, skip what is done, run the rest on Dask, write the report; exit 1 if any
+    recording failed."""
+    from magcal_ros.app import campaign
+    from magcal_ros.app.progress import ProgressBar
+
+    t0 = time.perf_counter()
+    jobs, notes, others = plan(args)
+    for note in notes:
+        print(f"  note: {note}", file=sys.stderr)
+    outdir = Path(args.output).absolute()
+    created = prepare_output(outdir)
+    outcomes, pending = _triage(jobs, args.force)
+    skipped = sum(o.status == "skipped" for o in outcomes.values())
+    bar = ProgressBar(len(pending), "batch", unit="rec", enabled=False if args.quiet else None)
+    console = Console(bar, args.quiet)
+    _announce(console, outcomes, others)
     where = "nothing to run"
     if pending:
         def on_done(o: Outcome) -> None:
@@ -685,17 +784,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
             with bar:
                 where = run_on_dask(pending, args.workers, args.scheduler, on_done,
                                     args.connect_timeout or CONNECT_TIMEOUT)
+        except MagcalError:
+            remove_empty(created)  # refused before any task ran (a scheduler that is none)
+            raise
         except KeyboardInterrupt:
             _clean_unfinished([j for j in pending if j.name not in outcomes])
             raise
     ordered = [outcomes[j.name] for j in jobs]
-    outdir.mkdir(parents=True, exist_ok=True)
-    batch_report.write_csv(outdir / campaign.REPORT_CSV, ordered)
-    batch_report.write_html(outdir / campaign.REPORT_HTML, ordered, str(outdir))
-    failed = [o for o in ordered if o.status == "failed"]
-    corrected = sum(o.status == "corrected" for o in ordered)
-    names = ", ".join(o.name for o in failed[:5]) + (f" and {len(failed) - 5} more" if len(failed) > 5 else "")
-    print(f"batch: {len(ordered)} recordings: {corrected} corrected, {skipped} skipped, {len(failed)} failed"
-          + (f" ({names})" if failed else "") + f"; {time.perf_counter() - t0:.1f} s on {where}")
-    print(f"  report {outdir / campaign.REPORT_HTML} and {outdir / campaign.REPORT_CSV}")
-    return 1 if failed else 0
+    earlier = _report(outdir, ordered, others)
+    print(_summary_line(ordered, skipped) + f"; {time.perf_counter() - t0:.1f} s on {where}")
+    more = f" (with {len(earlier)} more recording{'s' if len(earlier) != 1 else ''} earlier runs wrote there)" \
+        if earlier else ""
+    print(f"  report {outdir / campaign.REPORT_HTML} and {outdir / campaign.REPORT_CSV}{more}")
+    return 1 if any(o.status == "failed" for o in ordered) else 0

@@ -7,7 +7,8 @@ those over the recordings' start times as inline SVG charts (no external file, s
 font), so a calibration drifting between missions shows at a glance: with Gaussian noise
 of standard deviation ``s`` per axis a calibration that holds gives a median near
 ``0.67 s`` and a 95th percentile near ``1.96 s`` (dashed lines). Every number in the page's
-tables carries its exact value in a ``data-value`` attribute.
+tables carries its exact value in a ``data-value`` attribute. Files a walk met that are not
+recordings are listed as skipped.
 """
 
 from __future__ import annotations
@@ -75,8 +76,8 @@ def _csv_text(key: str, value: object) -> str:
 
 
 def ordered(outcomes: Sequence[Outcome]) -> list[Outcome]:
-    """Recordings by vehicle, then start time (unknown last), then name."""
-    return sorted(outcomes, key=lambda o: (o.vehicle, o.start_ns is None, o.start_ns or 0, o.name))
+    """Recordings by vehicle, then start time (unknown last), then name; files that are none last."""
+    return sorted(outcomes, key=lambda o: (o.other, o.vehicle, o.start_ns is None, o.start_ns or 0, o.name))
 
 
 def write_csv(path: str | os.PathLike[str], outcomes: Sequence[Outcome]) -> None:
@@ -303,28 +304,43 @@ def _recording_table(outcomes: list[Outcome]) -> str:
             + "\n</tbody></table>")
 
 
-def render_html(outcomes: Sequence[Outcome], outdir: str, created: datetime | None = None) -> str:
-    """The report page as one self-contained HTML text."""
-    items = ordered(outcomes)
-    done = [o for o in items if o.status != "failed"]
-    failed = [o for o in items if o.status == "failed"]
+def _listing(key: str, heading: str, items: Sequence[Outcome], text: Callable[[Outcome], str]) -> list[str]:
+    """A titled list (``id`` ``key``) of recordings or files with one line each; nothing when empty."""
+    if not items:
+        return []
+    return ([f'<h2 class="{key}">{html.escape(heading)}</h2><ul id="{key}" class="{key}">']
+            + [f'<li data-name="{html.escape(o.name)}"><b>{html.escape(o.name)}</b>: {html.escape(text(o))}</li>'
+               for o in items]
+            + ["</ul>"])
+
+
+def _summary(items: Sequence[Outcome], others: Sequence[Outcome], outdir: str, created: datetime | None) -> str:
+    """The page's opening paragraph: the counts, where the outputs are, when."""
     corrected = sum(o.status == "corrected" for o in items)
     skipped = sum(o.status == "skipped" for o in items)
+    failed = sum(o.status == "failed" for o in items)
     when = (created or datetime.now(timezone.utc)).strftime("%Y-%m-%d %H:%M:%S UTC")
+    more = (f" {len(others)} file{'s' if len(others) != 1 else ''} found that {'are' if len(others) != 1 else 'is'} "
+            "not a recording: skipped." if others else "")
+    return (f'<p class="summary" id="summary" data-recordings="{len(items)}" data-corrected="{corrected}" '
+            f'data-skipped="{skipped}" data-failed="{failed}" data-others="{len(others)}">'
+            f"{len(items)} recordings: {corrected} corrected, {skipped} skipped (done by an earlier run, unchanged), "
+            f"{failed} failed.{more} Outputs in <code>{html.escape(outdir)}</code> (every output a run wrote there "
+            f"and that is still as written); written {when} by <code>magcal batch</code>.</p>")
+
+
+def render_html(outcomes: Sequence[Outcome], outdir: str, created: datetime | None = None) -> str:
+    """The report page as one self-contained HTML text."""
+    items = ordered([o for o in outcomes if not o.other])
+    others = ordered([o for o in outcomes if o.other])
+    done = [o for o in items if o.status != "failed"]
+    failed = [o for o in items if o.status == "failed"]
     parts = [
         "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
         "<title>magcal batch report</title>", f"<style>{CSS}</style></head><body>",
-        "<h1>Campaign report</h1>",
-        f'<p class="summary" id="summary" data-recordings="{len(items)}" data-corrected="{corrected}" '
-        f'data-skipped="{skipped}" data-failed="{len(failed)}">{len(items)} recordings: {corrected} corrected, '
-        f"{skipped} skipped (done by an earlier run, unchanged), {len(failed)} failed. Outputs in "
-        f"<code>{html.escape(outdir)}</code>; written {when} by <code>magcal batch</code>.</p>",
+        "<h1>Campaign report</h1>", _summary(items, others, outdir, created),
     ]
-    if failed:
-        parts.append('<h2 class="failed">Failed</h2><ul id="failed" class="failed">')
-        parts += [f'<li data-name="{html.escape(o.name)}"><b>{html.escape(o.name)}</b>: {html.escape(o.reason)}</li>'
-                  for o in failed]
-        parts.append("</ul>")
+    parts += _listing("failed", "Failed", failed, lambda o: o.reason)
     parts += [
         "<h2>Per vehicle over time</h2>",
         '<p class="muted">Each point is a recording at its first set\'s time, joined per vehicle. TMI residual: '
@@ -334,8 +350,11 @@ def render_html(outcomes: Sequence[Outcome], outdir: str, created: datetime | No
         "away from them. Tensor noise: the set-to-set noise of the six measured gradient components.</p>",
         _charts(done), _vehicle_table(done, failed),
         "<h2>Recordings</h2>", '<p class="muted">Click a column to sort.</p>', _recording_table(items),
+    ]
+    parts += _listing("others", "Skipped: not recordings", others, lambda o: o.reason)
+    parts += [
         '<script type="application/json" id="report-data">'
-        + json.dumps([o.as_json() for o in items]).replace("</", "<\\/") + "</script>",
+        + json.dumps([o.as_json() for o in items + others]).replace("</", "<\\/") + "</script>",
         f"<script>{SCRIPT}</script>", "</body></html>",
     ]
     return "\n".join(parts) + "\n"
