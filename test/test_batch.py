@@ -343,6 +343,10 @@ def test_the_report_renders_in_a_browser_with_the_outputs_numbers(
     # The drift shows in auv1's trend: first -> last median in noise units grows over tenfold.
     assert float(dom.vehicles["auv1"]["tmi_median_noise"]) > 10
     assert dom.rows[CORRUPT]["status"] == "failed" and CORRUPT not in medians
+    # The drifted recording (median about 10 noise sd) is flagged, the others are not.
+    assert dom.lists["flagged"] == ["auv1/m2_bag"] and "flagged" in dom.classes["auv1/m2_bag"]
+    assert rows["auv1/m2_bag"]["flag"].endswith("far above the floor (flagged over 5x)")
+    assert [n for n in GOOD if rows[n]["flag"]] == ["auv1/m2_bag"]
 
 
 def test_a_rerun_skips_finished_work(campaign: dict[str, Path], dask_cluster: DaskCluster, tmp_path: Path) -> None:
@@ -596,6 +600,95 @@ def test_more_local_workers_than_the_machine_runs_are_refused_before_anything_st
     assert err.strip().splitlines() == [f"magcal batch: error: --workers 1000000: this machine runs at most {limit} "
                                         f"local worker processes ({max_workers()[1]}); give at most {limit}"], err
     assert not out.exists()
+
+
+def _outcome(name: str, day: int, ratio: float, vehicle: str = "auv1") -> Any:
+    """A corrected recording whose median TMI residual is ``ratio`` noise sd (noise 1 nT)."""
+    from magcal_ros.app.campaign import Outcome
+
+    start = int((T0 + day * DAY) * 1e9)
+    return Outcome(name, vehicle, "corrected", f"/in/{name}", f"/out/{name}", "/cal.yaml", sets=SETS, drops=0,
+                   start_ns=start, end_ns=start + 30 * 10**9, intensity=F, noise=NOISE, tmi_median=ratio * NOISE,
+                   tmi_p95=3 * ratio * NOISE, tensor_noise=3.5 * NT * (1 + ratio / 100))
+
+
+def test_one_recording_far_above_the_floor_neither_flattens_the_others_nor_passes_unflagged(tmp_path: Path) -> None:
+    """Seven recordings at 0.6-0.8 noise sd and one at 1,265: on the report's linear axes the seven lay
+    flat on zero and the bad one was a plain "corrected". Now the axes are logarithmic (each point where
+    log10 puts it, the seven spread as their values differ, on the dashed noise-floor line), and the bad
+    one is flagged, the threshold stated, in the page, the CSV and the batch's lines."""
+    from magcal_ros.app import batch_report
+
+    good = [_outcome(f"m{k}.csv", k, r) for k, r in enumerate((0.60, 0.63, 0.66, 0.69, 0.72, 0.76, 0.80))]
+    bad = _outcome("m9.csv", 9, 1265.0)
+    page = tmp_path / "report.html"
+    batch_report.write_html(page, [*good, bad], str(tmp_path))
+    batch_report.write_csv(tmp_path / "report.csv", [*good, bad])
+    dom = DomTables()
+    dom.feed(page.read_text())
+    chart = dom.charts["TMI residual, median"]
+    lo, hi, top, height = (float(chart[k]) for k in ("data-lo", "data-hi", "data-top", "data-height"))
+    assert chart["data-scale"] == "log" and 10**lo <= 0.6 and 10**hi >= 1265
+    ys = dom.ys["TMI residual, median"]
+    for o in [*good, bad]:
+        want = top + height * (1 - (np.log10(o.tmi_median / NOISE) - lo) / (hi - lo))
+        assert ys[o.name] == pytest.approx(want, abs=0.06), o.name
+    spread = ys["m0.csv"] - ys["m6.csv"]
+    assert spread > 0.1 * height / (hi - lo), "0.6 .. 0.8 spread over a tenth of a decade, not flattened"
+    assert ys["m0.csv"] > ys["floor"] > ys["m6.csv"], "the floor (0.6745) among them"
+    assert ys["m6.csv"] > ys["flag"] > ys["m9.csv"], "the flag threshold between them and the bad one"
+    # Flagged, with its threshold, in the page and the CSV; the others not.
+    assert dom.lists["flagged"] == ["m9.csv"] and dom.classes["m9.csv"] == "corrected flagged"
+    assert all(dom.classes[o.name] == "corrected" for o in good)
+    with open(tmp_path / "report.csv", newline="") as fh:
+        flags = {r["recording"]: r["flag"] for r in csv.DictReader(fh)}
+    assert flags.pop("m9.csv") == "TMI median 1.26e+03x the noise: far above the floor (flagged over 5x)"
+    assert set(flags.values()) == {""}
+    assert 'data-flagged="1"' in page.read_text()
+
+
+_OVERLAPS = """<script>
+(function(){
+  var found = [];
+  document.querySelectorAll('svg.chart').forEach(function(svg){
+    var boxes = Array.prototype.map.call(svg.querySelectorAll('text'), function(t){
+      return [t.getBoundingClientRect(), t.textContent]; });
+    for (var i = 0; i < boxes.length; i++) { for (var j = i + 1; j < boxes.length; j++) {
+      var a = boxes[i][0], b = boxes[j][0];
+      if (a.left < b.right && b.left < a.right && a.top < b.bottom && b.top < a.bottom) {
+        found.push(svg.getAttribute('data-title') + ': ' + boxes[i][1] + ' / ' + boxes[j][1]); } } }
+  });
+  document.documentElement.setAttribute('data-texts', String(document.querySelectorAll('svg.chart text').length));
+  document.documentElement.setAttribute('data-overlaps', JSON.stringify(found));
+})();
+</script></body>"""
+
+
+@pytest.mark.parametrize("span_days", [0.01, 0.5, 3.0, 40.0, 900.0])
+def test_no_label_of_the_reports_charts_overlaps_another_in_a_browser(tmp_path: Path, span_days: float) -> None:
+    """The date labels of the time axes overlapped. Every text of every chart (title, value and time axis
+    labels, the reference lines' labels, the legend), measured where Chromium lays it out, overlaps no
+    other: campaigns of a quarter of an hour to two and a half years, three vehicles with long names."""
+    from magcal_ros.app import batch_report
+
+    outcomes = [_outcome(f"{v}/m{k}.csv", int(0), 0.7 + 0.01 * k + 400 * (k == 7), vehicle=v)
+                for v in ("auv_long_name_one", "glider_second_vehicle", "auv3") for k in range(9)]
+    outcomes = [replace_start(o, int((T0 + span_days * DAY * k / 26) * 1e9)) for k, o in enumerate(outcomes)]
+    page = tmp_path / "report.html"
+    batch_report.write_html(page, outcomes, str(tmp_path))
+    page.write_text(page.read_text().replace("</body>", _OVERLAPS))
+    dom = chromium_dom(page)
+    texts = int(dom.split('data-texts="', 1)[1].split('"', 1)[0])
+    overlaps = html.unescape(dom.split('data-overlaps="', 1)[1].split('"', 1)[0])
+    assert texts > 40, "every chart's labels measured"
+    assert json.loads(overlaps) == []
+
+
+def replace_start(o: Any, start_ns: int) -> Any:
+    """``o`` starting at ``start_ns``."""
+    from dataclasses import replace
+
+    return replace(o, start_ns=start_ns, end_ns=start_ns + 30 * 10**9)
 
 
 def test_one_report_for_one_directorys_outputs_whatever_runs_wrote_them(

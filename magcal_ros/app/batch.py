@@ -71,7 +71,9 @@ report: OUTDIR/report.csv and OUTDIR/report.html (self-contained: inline SVG, no
 files), one report for everything in OUTDIR: this run's recordings and every output an earlier
 run (of any inputs) wrote there that is still as written. Per recording sets, drops, time span,
 TMI residual | |B| - F | (median, 95th percentile, and both over the calibration's noise),
-tensor noise, the calibration used; per vehicle their trend over time.
+tensor noise, the calibration used; per vehicle their trend over time on logarithmic axes with
+the noise floor; a recording whose median is over 5 noise sd is flagged (FLAGGED on its line,
+the report's flag column and list).
 
 Dask: --workers N local worker processes (at most 4 per core, fewer when the available memory
 holds fewer of 256 MiB; never fewer than the cores). --scheduler ADDRESS must answer as a Dask
@@ -394,8 +396,11 @@ class Console:
         tmi = (f", TMI median {o.tmi_median / NT:.3g} nT" + (f" ({o.ratio(o.tmi_median):.2g}x noise)" if o.noise else "")
                if o.tmi_median is not None else "")
         tensor = f", tensor noise {o.tensor_noise / NT:.3g} nT/m" if o.tensor_noise is not None else ""
+        from magcal_ros.app.batch_report import flag_of
+
         took = f", {o.seconds:.1f} s" if o.seconds is not None and o.status == "corrected" else ""
-        self.line(f"  {o.status} {o.name}: {o.sets} sets, {o.drops} dropped{tmi}{tensor}{took}")
+        flag = f"; FLAGGED: {flag_of(o)}" if flag_of(o) else ""
+        self.line(f"  {o.status} {o.name}: {o.sets} sets, {o.drops} dropped{tmi}{tensor}{took}{flag}")
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -748,12 +753,16 @@ def _names(items: Sequence[Outcome]) -> str:
 
 
 def _summary_line(ordered: Sequence[Outcome], skipped: int) -> str:
-    """``batch: N recordings: C corrected, K skipped, F failed (NAMES)``."""
+    """``batch: N recordings: C corrected, K skipped, F failed (NAMES)[, G flagged (NAMES)]``."""
+    from magcal_ros.app.batch_report import flag_of
+
     failed = [o for o in ordered if o.status == "failed"]
+    flagged = [o for o in ordered if flag_of(o)]
     corrected = sum(o.status == "corrected" for o in ordered)
     return (f"batch: {len(ordered)} recording{'s' if len(ordered) != 1 else ''}: {corrected} corrected, {skipped} "
             f"skipped, {len(failed)} failed"
-            + (f" ({_names(failed)})" if failed else ""))
+            + (f" ({_names(failed)})" if failed else "")
+            + (f", {len(flagged)} flagged far above the noise floor ({_names(flagged)})" if flagged else ""))
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
