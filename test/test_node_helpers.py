@@ -521,7 +521,7 @@ def test_the_environments_ros_domain_id_is_never_leased() -> None:
     for when, domains in picks.items():
         assert len(domains) == 300 and all(1 <= d <= 100 for d in domains), when
         assert user not in domains, f"ROS_DOMAIN_ID={user} leased {when}"
-    assert len(set(picks["before"])) > 90, "every other domain is some seed's choice"
+    assert len(set(picks["before"])) > 50, "most domains are some seed's choice (others may be leased meanwhile)"
 
 
 _FLOOD_SCRIPT = """

@@ -617,6 +617,9 @@ def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
             if scheduler:
                 client, count = connect_scheduler(scheduler, connect_timeout, stop)
                 where = f"the Dask cluster at {scheduler} ({count} worker{'s' if count != 1 else ''})"
+                if not count:
+                    print(f"  note: the Dask cluster at {scheduler} has no worker yet: the tasks wait for one "
+                          "(Ctrl-C stops the batch)", file=sys.stderr, flush=True)
             else:
                 n = workers or default_workers()
                 cluster, client = _local_cluster(n, stop)
@@ -798,6 +801,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
             raise
         except KeyboardInterrupt:
             _clean_unfinished([j for j in pending if j.name not in outcomes])
+            remove_empty(created)  # stopped before any task wrote: nothing left behind
             raise
     ordered = [outcomes[j.name] for j in jobs]
     earlier = _report(outdir, ordered, others)
