@@ -7,6 +7,8 @@ cd "$root"
 export PATH="$venv/bin:$PATH"
 # Small matrices: one BLAS thread each, so parallel test processes do not thrash two cores.
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
+# DDS stays on this machine; the tests lease their own domains, never this environment's ROS_DOMAIN_ID.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 # Test files run in parallel (pytest-xdist, one file per worker at a time, module fixtures kept):
 # most of the time is spent waiting on node processes and replays, so three workers on two
 # cores take a third of the serial time. MAGCAL_TEST_WORKERS=0 runs serially.

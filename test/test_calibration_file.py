@@ -62,9 +62,12 @@ def test_rcl_params_file_parser_reads_every_float_as_a_float(tmp_path: Path) -> 
     from rclpy.context import Context
     from rclpy.parameter import Parameter
 
+    from magcal_ros.app.ros_driver import pick_domain_id, release_domain_id
+
     path = _write(tmp_path, _calibration())
     context = Context()
-    rclpy.init(args=["node", "--ros-args", "--params-file", str(path)], context=context, domain_id=99)
+    domain = pick_domain_id()  # a domain nothing uses, never the environment's
+    rclpy.init(args=["node", "--ros-args", "--params-file", str(path)], context=context, domain_id=domain)
     try:
         node = rclpy.create_node("magcal_correction", context=context, start_parameter_services=False,
                                  automatically_declare_parameters_from_overrides=True)
@@ -75,6 +78,7 @@ def test_rcl_params_file_parser_reads_every_float_as_a_float(tmp_path: Path) -> 
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+        release_domain_id(domain)
 
 
 def test_ros_float_changes_a_value_by_at_most_one_unit_in_the_last_place() -> None:

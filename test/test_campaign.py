@@ -66,14 +66,34 @@ def args_of(*argv: object) -> object:
 def test_walked_directories_keep_relative_names_and_skip_the_output(tree: Path) -> None:
     out = tree / "campaign" / "corrected"   # OUTDIR inside the walked tree: left out of the walk
     bag(out / "auv1" / "m1_bag")
-    jobs, notes = plan(args_of(tree / "campaign", "-c", tree / "cals" / "cal_default.yaml", "-o", out))
-    assert [j.name for j in jobs] == ["auv1/m1_bag", "auv1/m2.csv", "auv2/2025-05-01/m1_bag", "glider7/m1_bag",
-                                      "glider7/storage_only_bag"]
+    jobs, notes, others = plan(args_of(tree / "campaign", "-c", tree / "cals" / "cal_default.yaml", "-o", out))
+    assert [j.name for j in jobs] == ["auv1/m1_bag", "auv1/m2.csv", "auv2/2025-05-01/m1_bag", "glider7/m1_bag"]
     assert [j.output for j in jobs] == [str(out.absolute() / j.name) for j in jobs]
-    assert [j.vehicle for j in jobs] == ["auv1", "auv1", "2025-05-01", "glider7", "glider7"], "the parent directory"
+    assert [j.vehicle for j in jobs] == ["auv1", "auv1", "2025-05-01", "glider7"], "the parent directory"
     assert all(j.calibration == str((tree / "cals" / "cal_default.yaml").absolute()) for j in jobs)
     assert all(j.record == str(out.absolute() / ".magcal_batch" / (j.name + ".json")) for j in jobs)
     assert not any(j.problem for j in jobs) and notes == []
+    # A folder is a bag only by its metadata.yaml: the folder with a lone .db3 is walked, and what is not a
+    # recording is listed as skipped (never run), hidden files left out.
+    assert [(o.name, o.status, o.other, o.vehicle) for o in others] == [
+        ("auv1/notes.txt", "skipped", True, "auv1"), ("glider7/storage_only_bag/x_0.db3", "skipped", True,
+                                                     "storage_only_bag")]
+    assert others[0].reason == "not a recording: neither a .csv file nor a rosbag2 directory"
+    assert others[1].reason.startswith("not a recording: a rosbag2 storage file without the bag's metadata.yaml")
+
+
+def test_a_stray_storage_file_does_not_turn_a_folder_of_recordings_into_a_bag(tree: Path) -> None:
+    """A .db3 left in a campaign folder made the folder one failed "bag": its CSV recordings were never
+    tried nor listed."""
+    folder = tree / "campaign" / "auv1"
+    (folder / "stray_0.db3").write_bytes(b"SQLite format 3\x00" + bytes(100))
+    assert not cp.is_bag_dir(folder)
+    jobs, _, others = plan(args_of(folder, "-c", tree / "cals" / "cal_default.yaml", "-o", tree / "out"))
+    assert [j.name for j in jobs] == ["m1_bag", "m2.csv"] and not any(j.problem for j in jobs)
+    assert [o.name for o in others] == ["notes.txt", "stray_0.db3"]
+    with pytest.raises(InputError, match=r"no recordings in .*storage_only_bag .*; 1 other file\)"):
+        plan(args_of(tree / "campaign" / "glider7" / "storage_only_bag", "-c", tree / "cals" / "cal_default.yaml",
+                     "-o", tree / "out"))
 
 
 def test_two_recordings_of_one_name_are_refused_before_anything_runs(tree: Path) -> None:
@@ -90,14 +110,14 @@ def test_list_files_and_missing_recordings(tree: Path) -> None:
     listing.write_text("# May\n\n../campaign/glider7\n  ../campaign/auv1/notes.txt \n")
     more = tree / "lists" / "more.txt"
     more.write_text(f"{camp / 'auv1' / 'm2.csv'}\n{camp / 'missing_bag'}\n")
-    jobs, _ = plan(args_of(f"@{listing}", "--list", more, "-c", tree / "cals" / "cal_default.yaml", "-o", tree / "out"))
+    jobs, _, _ = plan(args_of(f"@{listing}", "--list", more, "-c", tree / "cals" / "cal_default.yaml", "-o", tree / "out"))
     by_name = {j.name: j for j in jobs}
     # A listed directory is walked (names relative to it); a listed recording goes by its own name.
-    assert list(by_name) == ["m1_bag", "storage_only_bag", "notes.txt", "m2.csv", "missing_bag"]
+    assert list(by_name) == ["m1_bag", "notes.txt", "m2.csv", "missing_bag"]
     assert by_name["m1_bag"].input == str((tree / "lists" / "../campaign/glider7/m1_bag").absolute())
     assert by_name["notes.txt"].problem.endswith("notes.txt: not a recording: give a rosbag2 directory or a .csv file")
     assert by_name["missing_bag"].problem == f"{camp / 'missing_bag'} does not exist"
-    assert not by_name["m2.csv"].problem and not by_name["storage_only_bag"].problem
+    assert not by_name["m2.csv"].problem
 
 
 def test_a_mapping_file_picks_each_recordings_calibration(tree: Path) -> None:
@@ -109,17 +129,17 @@ def test_a_mapping_file_picks_each_recordings_calibration(tree: Path) -> None:
         "    - {match: 'glider*/*', calibration: cal_glider.yaml}\n"
         "    - {vehicle: 'nothing*', match: '*', calibration: missing.yaml}\n"
     )
-    jobs, _ = plan(args_of(tree / "campaign", "-c", mapping, "-o", tree / "out", "--vehicle-pattern",
+    jobs, _, _ = plan(args_of(tree / "campaign", "-c", mapping, "-o", tree / "out", "--vehicle-pattern",
                            r"campaign/(?P<vehicle>[^/]+)/"))
     cal = {j.name: Path(j.calibration).name if j.calibration else "" for j in jobs}
     assert cal == {"auv1/m1_bag": "cal_auv1.yaml", "auv1/m2.csv": "cal_auv1.yaml", "auv2/2025-05-01/m1_bag": "",
-                   "glider7/m1_bag": "cal_glider.yaml", "glider7/storage_only_bag": "cal_glider.yaml"}
+                   "glider7/m1_bag": "cal_glider.yaml"}
     (auv2,) = [j for j in jobs if j.name.startswith("auv2")]
     assert auv2.vehicle == "auv2", "the pattern's group"
     assert auv2.problem == f"no entry of {mapping} covers auv2/2025-05-01/m1_bag (vehicle auv2)"
     # A default entry covers the rest.
     mapping.write_text(mapping.read_text() + "    - {calibration: cal_default.yaml}\n")
-    jobs, _ = plan(args_of(tree / "campaign", "-c", mapping, "-o", tree / "out", "--vehicle-pattern",
+    jobs, _, _ = plan(args_of(tree / "campaign", "-c", mapping, "-o", tree / "out", "--vehicle-pattern",
                            r"campaign/([^/]+)/"))
     assert {Path(j.calibration).name for j in jobs if j.vehicle == "auv2"} == {"cal_default.yaml"}
     assert {Path(j.calibration).name for j in jobs if j.vehicle == "auv1"} == {"cal_auv1.yaml"}, "the first match wins"
@@ -148,7 +168,7 @@ def test_an_unreadable_calibration_refuses_the_batch(tree: Path) -> None:
 
 
 def test_done_means_unchanged_input_output_calibration_and_options(tree: Path) -> None:
-    jobs, _ = plan(args_of(tree / "campaign" / "auv1" / "m2.csv", "-c", tree / "cals" / "cal_default.yaml",
+    jobs, _, _ = plan(args_of(tree / "campaign" / "auv1" / "m2.csv", "-c", tree / "cals" / "cal_default.yaml",
                            "-o", tree / "out"))
     (job,) = jobs
     assert cp.finished(job, "abc") is None, "no record yet"
@@ -225,3 +245,23 @@ def test_the_reports_reference_comes_from_the_calibration_or_a_truth_file(tmp_pa
     plain = ArrayCalibration(ArrayGeometry.single("mag1"), np.eye(3)[None], np.zeros((1, 3)))
     calfile.write(tmp_path / "plain.yaml", plain)
     assert reference_of(str(tmp_path / "plain.yaml"), calfile.read(tmp_path / "plain.yaml")) == (None, None)
+
+
+def test_local_workers_are_bounded_by_the_machine_and_connect_timeout_goes_with_scheduler(
+        tree: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from magcal_ros.app import batch
+
+    cal = tree / "cals" / "cal_default.yaml"
+    monkeypatch.setattr(batch, "default_workers", lambda: 2)
+    monkeypatch.setattr(batch, "available_memory", lambda: 64 * 2**30)
+    assert batch.max_workers() == (8, "4 per core on its 2 cores")
+    plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--workers", 8))
+    with pytest.raises(InputError, match=r"^--workers 9: this machine runs at most 8 local worker processes \(4 per "
+                       r"core on its 2 cores\); give at most 8$"):
+        plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--workers", 9))
+    monkeypatch.setattr(batch, "available_memory", lambda: 5 * batch.WORKER_MEMORY + 1)  # memory holds 5
+    assert batch.max_workers()[0] == 5
+    monkeypatch.setattr(batch, "available_memory", lambda: batch.WORKER_MEMORY)  # never fewer than the cores
+    assert batch.max_workers()[0] == 2
+    with pytest.raises(InputError, match="^--connect-timeout applies to --scheduler$"):
+        plan(args_of(tree / "campaign", "-c", cal, "-o", tree / "out", "--connect-timeout", 5))

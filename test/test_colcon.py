@@ -56,8 +56,11 @@ def test_share_files_are_installed(workspace: Path) -> None:
 
 def test_colcon_installed_node_starts_after_sourcing(workspace: Path, tmp_path: Path) -> None:
     """``source install/setup.bash`` then the installed executable runs and stops on Ctrl-C."""
+    from magcal_ros.app.ros_driver import pick_domain_id, release_domain_id, ros_environment
+
     log = tmp_path / "node.log"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(1 + (os.getpid() + 17) % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    domain = pick_domain_id()  # a domain nothing uses, never the environment's
+    env = ros_environment(domain)
     script = (
         "source install/setup.bash && exec install/magcal_ros/lib/magcal_ros/correction_node --ros-args "
         "--params-file install/magcal_ros/share/magcal_ros/config/magcal.yaml "
@@ -80,4 +83,5 @@ def test_colcon_installed_node_starts_after_sourcing(workspace: Path, tmp_path: 
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
+        release_domain_id(domain)
     assert proc.returncode == 0, log.read_text()

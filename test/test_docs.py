@@ -30,13 +30,16 @@ def test_every_node_parameter_and_progress_key_is_documented() -> None:
     import rclpy
     from rclpy.context import Context
 
+    from magcal_ros.app.ros_driver import pick_domain_id, release_domain_id
     from magcal_ros.nodes.calibration_node import CalibrationNode
     from magcal_ros.nodes.correction_node import CorrectionNode
 
     readme = (ROOT / "README.md").read_text()
     interfaces = (ROOT / "docs" / "interfaces.md").read_text()
     context = Context()
-    rclpy.init(context=context, args=["--ros-args", "-p", "uncorrected_sensors:=[mag1, mag2, mag3, mag4]"])
+    domain = pick_domain_id()  # never the environment's ROS_DOMAIN_ID (a vehicle's live domain)
+    rclpy.init(context=context, args=["--ros-args", "-p", "uncorrected_sensors:=[mag1, mag2, mag3, mag4]"],
+               domain_id=domain)
     names: set[str] = set()
     try:
         for make in (CorrectionNode, CalibrationNode):
@@ -47,6 +50,7 @@ def test_every_node_parameter_and_progress_key_is_documented() -> None:
             node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+        release_domain_id(domain)
     assert {"prior", "site", "date", "max_residual", "assess_period", "interference_topics", "<name>.interference"} <= names
     assert [n for n in sorted(names) if f"`{n}`" not in interfaces] == []
     assert [n for n in sorted(names) if not n.startswith("<name>.") and n not in readme] == []

@@ -441,6 +441,89 @@ def test_runs_side_by_side_never_share_a_ros_domain() -> None:
     assert again == held
 
 
+
+_PARTICIPANT_SCRIPT = """
+import sys, time
+import rclpy
+rclpy.init()
+node = rclpy.create_node("somebody_elses_node")
+print("up", flush=True)
+sys.stdin.read()  # until the test closes our stdin
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def test_a_domain_with_a_participant_on_it_is_never_leased(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A DDS participant the picker did not start (an rclpy node of another process) on the very domain
+    a seed points at: the picker skips it, reading the socket tables or, where they cannot be read, by
+    binding the domain's ports."""
+    from magcal_ros.app import ros_driver as rd
+
+    seed = os.getpid() + 131
+    domain = rd.pick_domain_id(seed=seed)  # leased while the participant starts: no run of ours takes it
+    assert not rd.domain_in_use(domain), "the picker leased a domain in use"
+    child = subprocess.Popen([sys.executable, "-c", _PARTICIPANT_SCRIPT], env=rd.ros_environment(domain),
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "up", child.stdout.read()
+        rd.release_domain_id(domain)  # from here only the participant keeps it
+        assert rd.domain_in_use(domain)
+        picked = rd.pick_domain_id(seed=seed)
+        rd.release_domain_id(picked)
+        assert picked != domain, f"domain {domain} leased with a participant on it"
+        monkeypatch.setattr(rd, "bound_udp_ports", lambda: None)  # no /proc/net/udp: bind each port instead
+        assert rd.domain_in_use(domain)
+        picked = rd.pick_domain_id(seed=seed)
+        rd.release_domain_id(picked)
+        assert picked != domain, f"domain {domain} leased with a participant on it (no socket tables)"
+    finally:
+        rd.release_domain_id(domain)
+        child.communicate(timeout=60)
+
+
+_ENVIRONMENT_PICKS = """
+import json, os, subprocess, sys
+from magcal_ros.app.ros_driver import isolate_this_process, pick_domain_id, release_domain_id, ros_environment
+
+def picks():
+    out = []
+    for seed in range(300):
+        d = pick_domain_id(seed=seed)
+        release_domain_id(d)
+        out.append(d)
+    return out
+
+if sys.argv[1] == "child":
+    print(json.dumps(picks()))
+    raise SystemExit
+before = picks()
+own = pick_domain_id()
+isolate_this_process(own)  # what a test driver does: this process's ROS_DOMAIN_ID is now its leased one
+after = picks()
+grandchild = subprocess.run([sys.executable, "-c", sys.argv[2], "child"], env=ros_environment(own),
+                            capture_output=True, text=True, check=True).stdout
+print(json.dumps({"before": before, "after": after, "grandchild": json.loads(grandchild)}))
+"""
+
+
+def test_the_environments_ros_domain_id_is_never_leased() -> None:
+    """With ROS_DOMAIN_ID=N set (the vehicle's live domain), the tests' picker never returns N, from any
+    seed (each domain is some seed's first choice), not even once a run replaced this process's
+    ROS_DOMAIN_ID with its own lease, nor in a process that run starts."""
+    user = 1 + (os.getpid() + 53) % 100
+    env = dict(os.environ, ROS_DOMAIN_ID=str(user))
+    env.pop("MAGCAL_USER_ROS_DOMAIN_ID", None)
+    done = subprocess.run([sys.executable, "-c", _ENVIRONMENT_PICKS, "parent", _ENVIRONMENT_PICKS], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    picks = __import__("json").loads(done.stdout)
+    for when, domains in picks.items():
+        assert len(domains) == 300 and all(1 <= d <= 100 for d in domains), when
+        assert user not in domains, f"ROS_DOMAIN_ID={user} leased {when}"
+    assert len(set(picks["before"])) > 50, "most domains are some seed's choice (others may be leased meanwhile)"
+
+
 _FLOOD_SCRIPT = """
 import sys, time
 from magcal_ros.nodes.entry import quiet_signals

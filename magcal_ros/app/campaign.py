@@ -1,11 +1,12 @@
 """A campaign for ``magcal batch``: which recordings, which calibration each, what is already done.
 
-- **Recordings**: rosbag2 directories (a ``metadata.yaml``, or ``.db3``/``.mcap`` storage
-  files) and ``.csv`` files. An input that is neither is a directory to walk: every bag and
-  CSV below it, hidden entries and the output directory left out, named by its path
-  relative to the walked directory (kept under OUTDIR). A recording given directly, or in
-  a list file (``@FILE``/``--list FILE``: one path per line, ``#`` comments, paths
-  relative to the list file), is named by its last component.
+- **Recordings**: rosbag2 directories (a directory is a bag only by its ``metadata.yaml``)
+  and ``.csv`` files. An input that is neither is a directory to walk: every bag and CSV
+  below it, hidden entries and the output directory left out, named by its path relative
+  to the walked directory (kept under OUTDIR); every other file found there (notes, a
+  stray ``.db3`` without its ``metadata.yaml``) is listed as skipped, never run. A
+  recording given directly, or in a list file (``@FILE``/``--list FILE``: one path per
+  line, ``#`` comments, paths relative to the list file), is named by its last component.
 - **Vehicle**: the name of the directory holding the recording, or with a pattern the
   group ``vehicle`` (else group 1, else the whole match) of its first match in the
   recording's absolute path; no match: no vehicle.
@@ -24,7 +25,9 @@
 - **Done**: after a recording's outputs are complete, a small JSON record is written
   atomically under ``OUTDIR/.magcal_batch/`` with the size and modification time of every
   input and output file, the calibration's SHA-256 and the options. A later run skips the
-  recording while all of these are unchanged (``--force`` redoes it).
+  recording while all of these are unchanged (``--force`` redoes it). The records are also
+  what the report of OUTDIR lists: every output a run of any inputs wrote there and that is
+  still as it was written (:func:`recorded_outcomes`).
 """
 
 from __future__ import annotations
@@ -91,6 +94,8 @@ class Outcome:
     worker: str = ""
     """Where its task ran: ``host:pid`` of the worker process."""
     notes: tuple[str, ...] = ()
+    other: bool = False
+    """A file found among the recordings that is none (``status`` skipped, ``reason`` why): listed, never run."""
 
     def ratio(self, value: float | None) -> float | None:
         """``value`` in units of the calibration's noise (None when either is unknown)."""
@@ -148,15 +153,17 @@ class Job:
 
 
 def is_bag_dir(path: Path) -> bool:
-    """A rosbag2 directory: it holds a ``metadata.yaml`` or storage files (a broken bag counts)."""
-    if not path.is_dir():
-        return False
-    if (path / "metadata.yaml").exists():
-        return True
-    try:
-        return any(p.suffix in STORAGE_SUFFIXES and p.is_file() for p in path.iterdir())
-    except OSError:
-        return False
+    """A rosbag2 directory: one that holds a ``metadata.yaml`` (a broken bag counts). Storage files alone
+    do not make one: a campaign folder with a stray ``.db3`` is still a folder of recordings."""
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def not_a_recording(path: Path) -> str:
+    """Why a file found in a walk is not a recording (one line)."""
+    if path.suffix in STORAGE_SUFFIXES:
+        return ("not a recording: a rosbag2 storage file without the bag's metadata.yaml beside it "
+                "('ros2 bag reindex' on its folder writes one)")
+    return "not a recording: neither a .csv file nor a rosbag2 directory"
 
 
 def is_csv_path(path: Path) -> bool:
@@ -185,10 +192,11 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
-def walk(root: Path, skip: Path) -> list[tuple[str, Path]]:
-    """Every recording under ``root``: ``(name relative to root, path)``, sorted; ``skip`` (OUTDIR)
-    and hidden entries left out, bag directories not entered."""
+def walk(root: Path, skip: Path) -> tuple[list[tuple[str, Path]], list[tuple[str, Path]]]:
+    """Every recording under ``root`` and every other file: ``(name relative to root, path)``, each
+    sorted; ``skip`` (OUTDIR) and hidden entries left out, bag directories not entered."""
     found: list[tuple[str, Path]] = []
+    others: list[tuple[str, Path]] = []
     for here, dirs, files in os.walk(root, followlinks=True):
         here_p = Path(here)
         keep = []
@@ -203,35 +211,50 @@ def walk(root: Path, skip: Path) -> list[tuple[str, Path]]:
         dirs[:] = keep
         for f in sorted(files):
             p = here_p / f
-            if not f.startswith(".") and is_csv_path(p):
-                found.append((p.relative_to(root).as_posix(), p))
-    return sorted(found)
+            if not f.startswith(".") and not _inside(p.resolve(), skip):
+                (found if is_csv_path(p) else others).append((p.relative_to(root).as_posix(), p))
+    return sorted(found), sorted(others)
 
 
-def find_recordings(inputs: Sequence[str], list_files: Sequence[str], outdir: Path) -> tuple[list[tuple[str, Path]], list[str]]:
-    """Recordings named by the command line: ``(name, path)`` in order, and notes.
+@dataclass(frozen=True)
+class Found:
+    """What the command line names: recordings ``(name, path)`` in order, the other files its walks met
+    (listed as skipped) and notes."""
 
-    ``@FILE`` among ``inputs`` and each of ``list_files`` is a list file. A path that does not
-    exist is kept (its task fails, naming it); a directory that holds no recording is a note.
-    """
+    recordings: list[tuple[str, Path]]
+    others: list[tuple[str, Path]]
+    notes: list[str]
+
+
+def _paths(inputs: Sequence[str], list_files: Sequence[str]) -> list[Path]:
+    """The paths the inputs name: ``@FILE`` among ``inputs`` and each of ``list_files`` read as list files."""
     paths: list[Path] = []
     for token in inputs:
         paths += read_list(Path(token[1:])) if token.startswith("@") and len(token) > 1 else [Path(token)]
     for lf in list_files:
         paths += read_list(Path(lf))
-    out: list[tuple[str, Path]] = []
-    notes: list[str] = []
-    for p in paths:
+    return paths
+
+
+def find_recordings(inputs: Sequence[str], list_files: Sequence[str], outdir: Path) -> Found:
+    """Recordings named by the command line (see :class:`Found`).
+
+    A path that does not exist is kept (its task fails, naming it); a directory that holds no
+    recording is a note; the files of walked directories that are not recordings are kept apart.
+    """
+    found = Found([], [], [])
+    for p in _paths(inputs, list_files):
         if p.is_dir() and not is_bag_dir(p):
             if _inside(p.resolve(), outdir):
                 raise InputError(f"{p} is inside the output directory {outdir}: give the recordings' directory as input")
-            found = walk(p, outdir)
-            if not found:
-                notes.append(f"{p}: no recordings (rosbag2 directories or .csv files) found")
-            out += found
+            recordings, others = walk(p, outdir)
+            if not recordings:
+                found.notes.append(f"{p}: no recordings (rosbag2 directories or .csv files) found")
+            found.recordings.extend(recordings)
+            found.others.extend(others)
         else:
-            out.append((p.name or str(p), p))
-    return out, notes
+            found.recordings.append((p.name or str(p), p))
+    return found
 
 
 def vehicle_of(path: Path, pattern: re.Pattern[str] | None) -> str:
@@ -389,19 +412,14 @@ def files_state(job: Job) -> dict[str, Any]:
 
 
 def write_record(job: Job, calibration_digest: str, outcome: Outcome) -> None:
-    """Write the completion record of ``job`` atomically (after its outputs are complete)."""
+    """Write the completion record of ``job`` atomically (after its outputs are complete; io/atomic)."""
+    from magcal_ros.io.atomic import atomic_path
+
     path = Path(job.record)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {**record_key(job, calibration_digest), "files": files_state(job), "outcome": outcome.as_json()}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
 
 
 def finished(job: Job, calibration_digest: str) -> Outcome | None:
@@ -427,6 +445,36 @@ def finished(job: Job, calibration_digest: str) -> Outcome | None:
         return Outcome.from_json(data["outcome"])
     except (KeyError, TypeError):
         return None
+
+
+def _recorded(outdir: Path, path: Path) -> Outcome | None:
+    """The outcome a record at ``path`` holds while its output is there as it was written, else None."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        name = path.relative_to(outdir / RECORDS_DIR).as_posix()[: -len(".json")]
+        output = Path(data["output_path"])
+        if output.resolve() != (outdir / name).resolve() or data["files"]["output"] != (now := signature(output)) \
+                or not now:
+            return None
+        outcome = Outcome.from_json(data["outcome"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return outcome if outcome.status == "corrected" and outcome.name == name else None
+
+
+def recorded_outcomes(outdir: str | os.PathLike[str]) -> dict[str, Outcome]:
+    """Every recording whose output a run (of any inputs) wrote in ``outdir`` and that is still as
+    written: its recorded outcome by name. Records of removed or altered outputs are left out."""
+    root = Path(outdir).absolute()
+    records = root / RECORDS_DIR
+    found: dict[str, Outcome] = {}
+    for path in sorted(records.rglob("*.json")):
+        hidden = any(part.startswith(".") for part in path.relative_to(records).parts)  # a write in progress
+        if not hidden and path.is_file():
+            outcome = _recorded(root, path)
+            if outcome is not None:
+                found[outcome.name] = outcome
+    return found
 
 
 def record_path(outdir: Path, name: str) -> Path:

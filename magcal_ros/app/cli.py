@@ -35,7 +35,7 @@ from magcal_ros.core.sync import (
 )
 from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NT, check_tesla
-from magcal_ros.errors import InputError, MagcalError
+from magcal_ros.errors import InputError, MagcalError, Stopped
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import STOP_SIGNALS, recover
@@ -1104,14 +1104,6 @@ def _attach_negative_values(argv: Sequence[str], options: frozenset[str]) -> lis
         else:
             out.append(arg)
     return out
-
-
-class Stopped(KeyboardInterrupt):
-    """SIGINT, SIGTERM or SIGHUP arrived: unwind (partial output is removed on the way) and exit."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
 
 
 def _stop(signum: int, frame: FrameType | None) -> None:

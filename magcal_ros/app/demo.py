@@ -7,9 +7,11 @@
    turning through random attitudes in a uniform 51 500 nT field, with two thrusters 0.7 m
    behind the array drawing random currents of 0-20 A while it turns (the survey runs them
    too), and writes the manoeuvre as a rosbag2 (``/magN/raw``, ``/thrusterN/battery``);
-2. starts ``correction_node`` and ``calibration_node`` as separate processes on a private
-   ROS domain (localhost discovery only); the calibration node collects the thrusters'
-   currents (``sensor_msgs/BatteryState``) with the sets;
+2. starts ``correction_node`` and ``calibration_node`` as separate processes, with localhost
+   discovery only, on the ``ROS_DOMAIN_ID`` you set (it says so), else on a domain it picks
+   that nothing on this machine uses (no DDS participant on it, no other run holding it);
+   the calibration node collects the thrusters' currents (``sensor_msgs/BatteryState``)
+   with the sets;
 3. replays fresh survey sets (thrusters running) through the uncalibrated correction node
    (before), replays the manoeuvre into the calibration node, calls ``~/start`` and
    ``~/calibrate`` (calibration and the thrusters' interference solved jointly), replays
@@ -37,6 +39,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,24 +107,144 @@ def measure(driver, check: Recording, rate: float) -> tuple[float, float, int]: 
     return tensor_rms(g), float(np.max(tmi_rms(b, INTENSITY))), len(gradients)
 
 
+LOSSLESS = {"raw_reliability": "reliable", "qos_depth": 10000}
+"""Reliable raw subscriptions with deep queues: on a busy machine the nodes fall behind and catch up, they
+never drop the replayed sets."""
+Row = tuple[str, float, float]
+"""A line of the demo's table: label, tensor RMS (T/m), worst TMI RMS (T; NaN: not measured)."""
+
+
+def start_nodes(nodes: list[Any], names: Sequence[str], channels: Sequence[str], calibration_file: Path,
+                env: dict[str, str], work: Path, relative: bool) -> None:
+    """Start ``correction_node`` (uncalibrated at first, on purpose: the "before" figures) and
+    ``calibration_node`` (collecting the thrusters' currents with the sets) as processes in ``env``, logs in
+    ``work``, each appended to ``nodes`` as soon as it runs (so that a failure stops those started)."""
+    from magcal_ros.app.ros_driver import NodeProcess, ros_args
+
+    raw = {"uncorrected_sensors": list(names), **LOSSLESS}
+    nodes.append(NodeProcess("correction_node", ros_args(params=raw), env, work / "correction_node.log"))
+    cal_params: dict[str, object] = {"calibration_file": str(calibration_file),
+                                     "reference_field": 0.0 if relative else INTENSITY,
+                                     "assess_period": 2.0, **LOSSLESS}
+    if channels:
+        cal_params["interference_channels"] = list(channels)  # currents on /thrusterN/battery, collected with the sets
+    nodes.append(NodeProcess("calibration_node", ros_args(params=cal_params), env, work / "calibration_node.log"))
+
+
+def calibrate_live(driver, bag: Path, manoeuvre: Recording, channels: Sequence[str], rate: float,  # type: ignore[no-untyped-def]
+                   say: Any) -> bool:
+    """``~/start``, the manoeuvre's bag replayed (with its currents), ``~/calibrate``; whether it succeeded."""
+    from magcal_ros.app.ros_driver import bag_messages, wait_for_samples
+
+    ok, message = driver.trigger("/magcal_calibration/start")
+    say(f"~/start -> {message}")
+    messages = bag_messages(bag)
+    sent = driver.replay(messages, rate=rate, currents=manoeuvre.currents if channels else None)
+    progress = wait_for_samples(driver, "magcal_calibration", len(sent), timeout=180.0)
+    say(f"replayed {len(messages)} bag messages{' with the thruster currents' if channels else ''}; the "
+        f"calibration node holds {progress.get('samples', '?')} sets, coverage "
+        f"{float(progress.get('coverage', 0)):.0%}, ready={progress.get('ready', '?')}")
+    ok, message = driver.trigger("/magcal_calibration/calibrate")
+    say(f"~/calibrate -> success={ok}: {message}")
+    return bool(ok)
+
+
+def thruster_rows(driver, check: Recording, channels: Sequence[str], rate: float,  # type: ignore[no-untyped-def]
+                  after: tuple[float, float], say: Any) -> list[Row]:
+    """The calibrated rows: with thrusters, the survey again with their subtraction switched off."""
+    if not channels:
+        return [("after calibration", *after)]
+    (ok, reason), = driver.set_parameters("magcal_correction", {"interference_channels": []})
+    if not ok:
+        raise RuntimeError(f"the correction node refused to stop subtracting: {reason}")
+    t_off, tmi_off, n = measure(driver, check, rate)
+    say(f"the same {n} survey sets with the thrusters' interference NOT subtracted")
+    return [("calibrated, thrusters not compensated", t_off, tmi_off), ("calibrated, thrusters compensated", *after)]
+
+
+def drift_rows(driver, sim: ArraySimulation, channels: Sequence[str], args: argparse.Namespace,  # type: ignore[no-untyped-def]
+               say: Any) -> tuple[list[Row], Any]:
+    """The drift mission (:mod:`magcal_ros.app.drift_demo`) with the thrusters subtracted again: its rows
+    and outcome; RuntimeError when the drift was not named and fixed."""
+    if channels:
+        (ok, reason), = driver.set_parameters("magcal_correction", {"interference_channels": list(channels)})
+        if not ok:
+            raise RuntimeError(f"the correction node refused to subtract the thrusters again: {reason}")
+    from magcal_ros.app.drift_demo import run_drift_mission
+
+    drift = run_drift_mission(driver, sim, np.random.default_rng(args.seed + 1), say, speed=args.speed,
+                              max_current=MAX_CURRENT)
+    if drift.named_after is None or not drift.recalibrated:
+        raise RuntimeError("the drift was not named and fixed; see the lines above and the node logs")
+    return [("hard iron moved: drifted calibration", drift.tensor_drifted, float("nan")),
+            ("recalibrated during the mission", drift.tensor_recalibrated, float("nan"))], drift
+
+
+def print_table(rows: Sequence[Row], channels: Sequence[str], drift: Any, calibration_file: Path,
+                keep: str | None) -> None:
+    """The residuals against the noise floor, the drift's timings and where the calibration file is."""
+    floor = tensor_floor(NOISE, 0.4)
+    print()
+    print(f"  {'fresh survey sets' + (' (thrusters running)' if channels else ''):44}{'tensor RMS':>12}"
+          f"{'worst TMI RMS':>15}")
+    for label, tensor, tmi in rows:
+        tmi_text = f"{tmi / NT:10.2f} nT" if np.isfinite(tmi) else ""
+        print(f"  {label:44}{tensor / NT:9.2f} nT/m{tmi_text}")
+    print(f"  {'noise floor':44}{floor / NT:9.2f} nT/m{NOISE / NT:10.2f} nT")
+    kept = "" if keep else " (removed at exit; --keep DIR keeps it)"
+    if drift is not None:
+        print(f"  drift named {drift.named_after:.0f} s after the jump (of sets judged); recalibrated "
+              f"{drift.recalibrated_after:.0f} s after auto_recalibrate was set true")
+    print(f"  calibration file: {calibration_file}{kept}")
+    print()
+
+
+def show_logs(nodes: Sequence[Any]) -> None:
+    """The last lines of each node's log, on stderr (after a failure)."""
+    for p in nodes:
+        tail = "\n    ".join(p.log().splitlines()[-8:])
+        print(f"--- last lines of {p.log_path.name}:\n    {tail}", file=sys.stderr)
+
+
+MAX_DOMAIN_ID = 232
+"""The largest ROS domain id (the RTPS ports of a larger one would pass 65535)."""
+
+
+def demo_domain() -> tuple[int, str]:
+    """The ROS domain of the demo and how it was chosen: the ``ROS_DOMAIN_ID`` the user set, else a free
+    one leased by :func:`~magcal_ros.app.ros_driver.pick_domain_id`. RuntimeError (one line) for a
+    ``ROS_DOMAIN_ID`` that is not a domain id."""
+    import os
+
+    from magcal_ros.app.ros_driver import domain_in_use, pick_domain_id
+
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return pick_domain_id(), "a free one picked: no ROS_DOMAIN_ID set"
+    try:
+        domain = int(text)
+    except ValueError:
+        domain = -1
+    if not 0 <= domain <= MAX_DOMAIN_ID:
+        raise RuntimeError(f"ROS_DOMAIN_ID={text!r} is not a ROS domain id (0..{MAX_DOMAIN_ID}); unset it to let "
+                           "the demo pick a free one")
+    how = "your ROS_DOMAIN_ID"
+    if domain_in_use(domain):
+        how += ("; NOTE: DDS participants are already on it on this machine, the demo's nodes and topics join "
+                "theirs (unset ROS_DOMAIN_ID to let the demo pick a free domain)")
+    return domain, how
+
+
 def run(args: argparse.Namespace) -> int:
     """The demo; returns the exit code."""
-    from magcal_ros.app.ros_driver import (
-        ArrayDriver,
-        NodeProcess,
-        bag_messages,
-        pick_domain_id,
-        ros_args,
-        ros_environment,
-        wait_for_samples,
-    )
+    from magcal_ros.app.ros_driver import ArrayDriver, ros_environment
     from magcal_ros.io.bag_writer import write_recording_bag
 
     clock = Clock()
+    domain, how = demo_domain()
+    env = ros_environment(domain)
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magcal_demo_"))
     work.mkdir(parents=True, exist_ok=True)
-    domain = pick_domain_id()
-    env = ros_environment(domain)
     sim, manoeuvre, check = simulate(args.sets, args.fresh, args.seed, thrusters=not args.no_thrusters)
     channels = list(sim.channels)
     bag = work / "manoeuvre_bag"
@@ -132,23 +255,12 @@ def run(args: argparse.Namespace) -> int:
     clock.say(f"simulated {len(manoeuvre)} sets of a rotation manoeuvre (random attitudes, 1 nT noise, "
               f"{INTENSITY / NT:.0f} nT field{running}) -> {bag} ({args.storage})")
     calibration_file = work / "calibration.yaml"
-    nodes: list[NodeProcess] = []
+    nodes: list[Any] = []
     driver = None
     try:
-        # Uncalibrated at first, on purpose (the "before" figures): raw readings for every sensor.
-        # Reliable raw subscriptions with deep queues: on a busy machine the nodes fall behind and catch
-        # up, they never drop the replayed sets.
-        lossless = {"raw_reliability": "reliable", "qos_depth": 10000}
-        raw = {"uncorrected_sensors": list(sim.geometry.names), **lossless}
-        nodes.append(NodeProcess("correction_node", ros_args(params=raw), env, work / "correction_node.log"))
-        cal_params: dict[str, object] = {"calibration_file": str(calibration_file),
-                                         "reference_field": 0.0 if args.relative else INTENSITY,
-                                         "assess_period": 2.0, **lossless}
-        if channels:
-            cal_params["interference_channels"] = channels  # currents on /thrusterN/battery, collected with the sets
-        nodes.append(NodeProcess("calibration_node", ros_args(params=cal_params), env, work / "calibration_node.log"))
+        start_nodes(nodes, sim.geometry.names, channels, calibration_file, env, work, args.relative)
         clock.say(f"started correction_node (pid {nodes[0].pid}) and calibration_node (pid {nodes[1].pid}) "
-                  f"on ROS_DOMAIN_ID={domain}, localhost discovery")
+                  f"on ROS_DOMAIN_ID={domain} ({how}), localhost discovery")
         driver = ArrayDriver(sim.geometry.names, domain, node_name="magcal_demo",
                              currents=[(c, BATTERY_STATE) for c in channels])
         if not (driver.wait_for_subscribers(2, 30.0) and driver.wait_for_output_publishers(30.0)
@@ -158,60 +270,18 @@ def run(args: argparse.Namespace) -> int:
 
         t_before, tmi_before, n = measure(driver, check, args.rate)
         clock.say(f"before calibration: {n} fresh survey sets through the correction node")
-        ok, message = driver.trigger("/magcal_calibration/start")
-        clock.say(f"~/start -> {message}")
-        messages = bag_messages(bag)
-        sent = driver.replay(messages, rate=args.rate, currents=manoeuvre.currents if channels else None)
-        progress = wait_for_samples(driver, "magcal_calibration", len(sent), timeout=180.0)
-        clock.say(f"replayed {len(messages)} bag messages{' with the thruster currents' if channels else ''}; the "
-                  f"calibration node holds {progress.get('samples', '?')} sets, coverage "
-                  f"{float(progress.get('coverage', 0)):.0%}, ready={progress.get('ready', '?')}")
-        ok, message = driver.trigger("/magcal_calibration/calibrate")
-        clock.say(f"~/calibrate -> success={ok}: {message}")
-        if not ok:
+        if not calibrate_live(driver, bag, manoeuvre, channels, args.rate, clock.say):
             return 1
         t_after, tmi_after, n = measure(driver, check, args.rate)
         clock.say(f"after calibration: {n} fresh survey sets (not used for the calibration) through the correction "
                   f"node{', subtracting the live thruster currents' if channels else ''}")
         rows = [("before calibration", t_before, tmi_before)]
-        if channels:
-            (ok, reason), = driver.set_parameters("magcal_correction", {"interference_channels": []})
-            if not ok:
-                raise RuntimeError(f"the correction node refused to stop subtracting: {reason}")
-            t_off, tmi_off, n = measure(driver, check, args.rate)
-            clock.say(f"the same {n} survey sets with the thrusters' interference NOT subtracted")
-            rows.append(("calibrated, thrusters not compensated", t_off, tmi_off))
-            rows.append(("calibrated, thrusters compensated", t_after, tmi_after))
-        else:
-            rows.append(("after calibration", t_after, tmi_after))
+        rows += thruster_rows(driver, check, channels, args.rate, (t_after, tmi_after), clock.say)
         drift = None
         if not args.no_drift:
-            if channels:
-                (ok, reason), = driver.set_parameters("magcal_correction", {"interference_channels": channels})
-                if not ok:
-                    raise RuntimeError(f"the correction node refused to subtract the thrusters again: {reason}")
-            from magcal_ros.app.drift_demo import run_drift_mission
-
-            drift = run_drift_mission(driver, sim, np.random.default_rng(args.seed + 1), clock.say, speed=args.speed,
-                                      max_current=MAX_CURRENT)
-            if drift.named_after is None or not drift.recalibrated:
-                raise RuntimeError("the drift was not named and fixed; see the lines above and the node logs")
-            rows.append(("hard iron moved: drifted calibration", drift.tensor_drifted, float("nan")))
-            rows.append(("recalibrated during the mission", drift.tensor_recalibrated, float("nan")))
-        floor = tensor_floor(NOISE, 0.4)
-        print()
-        print(f"  {'fresh survey sets' + (' (thrusters running)' if channels else ''):44}{'tensor RMS':>12}"
-              f"{'worst TMI RMS':>15}")
-        for label, tensor, tmi in rows:
-            tmi_text = f"{tmi / NT:10.2f} nT" if np.isfinite(tmi) else ""
-            print(f"  {label:44}{tensor / NT:9.2f} nT/m{tmi_text}")
-        print(f"  {'noise floor':44}{floor / NT:9.2f} nT/m{NOISE / NT:10.2f} nT")
-        kept = "" if args.keep else " (removed at exit; --keep DIR keeps it)"
-        if drift is not None:
-            print(f"  drift named {drift.named_after:.0f} s after the jump (of sets judged); recalibrated "
-                  f"{drift.recalibrated_after:.0f} s after auto_recalibrate was set true")
-        print(f"  calibration file: {calibration_file}{kept}")
-        print()
+            more, drift = drift_rows(driver, sim, channels, args, clock.say)
+            rows += more
+        print_table(rows, channels, drift, calibration_file, args.keep)
         if not args.no_imu:
             from magcal_ros.app.imu_demo import imu_step
 
@@ -219,9 +289,7 @@ def run(args: argparse.Namespace) -> int:
             print()
         return 0
     except BaseException:
-        for p in nodes:
-            tail = "\n    ".join(p.log().splitlines()[-8:])
-            print(f"--- last lines of {p.log_path.name}:\n    {tail}", file=sys.stderr)
+        show_logs(nodes)
         raise
     finally:
         if driver is not None:

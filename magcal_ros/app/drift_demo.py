@@ -106,9 +106,6 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
         newest = values.get("newest_stamp")
         return status, values, (parse_seconds(newest) - jump_ns) / NS_PER_S if newest else float("-inf")
 
-    def level(status: Any) -> int:
-        return int(status.level[0]) if isinstance(status.level, bytes) else int(status.level)
-
     k = 0
     phase = "clean"
     auto_at: float | None = None
@@ -126,14 +123,7 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                 while seen < -CHUNK and time.monotonic() < deadline:  # let the node judge the clean phase
                     time.sleep(0.2)
                     health, hv, seen = judged()
-                # every judgement of clean sets only, as received (polling alone misses some when a node lags)
-                judged_all = [(st, _values(st)) for st in driver.statuses_of(health_name)]
-                clean_statuses = [st for st, v in judged_all if v.get("figure") and v.get("newest_stamp")
-                                  and parse_seconds(v["newest_stamp"]) < jump_ns]
-                out.clean_levels = [level(st) for st in clean_statuses]
-                shown = clean_statuses[-1].message if clean_statuses else "no judgement of clean sets"
-                say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "
-                    f"levels {sorted(set(out.clean_levels))}, the last: {shown}")
+                out.clean_levels = _clean_judgements(driver, health_name, jump_ns, clean, say)
                 phase = "drifting"
         elif phase == "drifting":
             drifted_stamps.extend(int(s) for s in part.stamps if int(s) > jump_ns)
@@ -168,10 +158,37 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
         out.tensor_drifted = tensor_rms(np.stack(list(g.values()))) if g else float("nan")
     if not out.recalibrated:
         return out
-    # fresh turns with the new calibration: the live tensor against the floor
+    _fresh_turns(driver, moved, rng, (int(rec.stamps[k - 1]) + NS_PER_S) / NS_PER_S, speed, fresh, max_current,
+                 health_name, out, say)
+    return out
+
+
+def _level(status: Any) -> int:
+    """A diagnostic status's level as a number."""
+    return int(status.level[0]) if isinstance(status.level, bytes) else int(status.level)
+
+
+def _clean_judgements(driver: Any, health_name: str, jump_ns: int, clean: float, say: Callable[[str], None]) -> list[int]:
+    """The levels of every judgement of clean sets only (stamped before ``jump_ns``), as received: polling
+    alone misses some when a node lags."""
+    judged_all = [(st, _values(st)) for st in driver.statuses_of(health_name)]
+    clean_statuses = [st for st, v in judged_all if v.get("figure") and v.get("newest_stamp")
+                      and parse_seconds(v["newest_stamp"]) < jump_ns]
+    levels = [_level(st) for st in clean_statuses]
+    shown = clean_statuses[-1].message if clean_statuses else "no judgement of clean sets"
+    say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "
+        f"levels {sorted(set(levels))}, the last: {shown}")
+    return levels
+
+
+def _fresh_turns(driver: Any, moved: ArraySimulation, rng: np.random.Generator, start: float, speed: float,
+                 fresh: float, max_current: float, health_name: str, out: DriftOutcome,
+                 say: Callable[[str], None]) -> None:
+    """Fresh turns (``fresh`` s from ``start`` s) with the new calibration: the live tensor against the floor
+    and the final health, into ``out``."""
     count = int(fresh * RATE)
-    check, _ = mission(moved, [Leg(fresh, YAW_RATE)], rng, rate=RATE,
-                       start=(int(rec.stamps[k - 1]) + NS_PER_S) / NS_PER_S,
+    m = len(moved.thrusters)
+    check, _ = mission(moved, [Leg(fresh, YAW_RATE)], rng, rate=RATE, start=start,
                        currents=rng.uniform(0.0, max_current, (count, m)) if m else None)
     driver.clear_outputs()
     _replay(driver, check, speed)
@@ -183,7 +200,6 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     out.final_health = health.message if health is not None else ""
     say(f"{len(g)} fresh sets after the recalibration: tensor RMS {out.tensor_recalibrated / NT:.2f} nT/m "
         f"({out.tensor_recalibrated / out.floor:.2f}x the floor); calibration health: {out.final_health}")
-    return out
 
 
 def _replay(driver: Any, rec: Recording, speed: float) -> None:

@@ -48,18 +48,89 @@ the same sets are no longer waited for (see :meth:`ArrayDriver.wait_for_outputs`
 
 _LEASES: dict[int, Any] = {}
 """Domain ids this process holds (id -> its locked file), see :func:`pick_domain_id`."""
+DOMAIN_IDS = range(1, 101)
+"""The domain ids runs lease (:func:`pick_domain_id`)."""
+USER_DOMAIN_VARIABLE = "MAGCAL_USER_ROS_DOMAIN_ID"
+"""Environment variable that keeps the user's own ``ROS_DOMAIN_ID`` once a run replaced it (see
+:func:`ros_environment`): processes started from there still never lease it."""
+RTPS_PORT_BASE, RTPS_DOMAIN_GAIN = 7400, 250
+"""The RTPS well-known ports (DDSI-RTPS 2.x, 9.6.1.1): every participant of domain ``d`` binds UDP ports
+in ``[7400 + 250 d, 7400 + 250 (d + 1))`` (discovery and user traffic, unicast and multicast), whatever
+the DDS vendor and however it discovers."""
+
+
+def environment_domain_ids(env: Mapping[str, str] | None = None) -> set[int]:
+    """Domain ids the environment names (``ROS_DOMAIN_ID`` and :data:`USER_DOMAIN_VARIABLE`): never leased."""
+    env = os.environ if env is None else env
+    out = set()
+    for key in ("ROS_DOMAIN_ID", USER_DOMAIN_VARIABLE):
+        try:
+            out.add(int(env.get(key, "").strip()))
+        except ValueError:
+            continue
+    return out
+
+
+def rtps_ports(domain: int) -> range:
+    """The UDP ports of ``domain``'s participants (see :data:`RTPS_PORT_BASE`)."""
+    return range(RTPS_PORT_BASE + RTPS_DOMAIN_GAIN * domain, RTPS_PORT_BASE + RTPS_DOMAIN_GAIN * (domain + 1))
+
+
+def bound_udp_ports(tables: Sequence[str] = ("/proc/net/udp", "/proc/net/udp6")) -> set[int] | None:
+    """Local ports of every UDP socket of this machine's network namespace (``/proc/net/udp*``); None
+    when no table can be read."""
+    ports: set[int] = set()
+    read = False
+    for table in tables:
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        read = True
+        for line in lines:
+            fields = line.split()
+            if len(fields) > 1 and ":" in fields[1]:
+                ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return ports if read else None
+
+
+def _port_taken(port: int) -> bool:
+    """Whether binding UDP ``port`` on every interface fails because a socket holds it."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("0.0.0.0", port))
+        except OSError:
+            return True
+    return False
+
+
+def domain_in_use(domain: int, ports: set[int] | None = None) -> bool:
+    """Whether a DDS participant of this machine is on ``domain`` (ours or anybody's): a UDP port of its
+    RTPS range is bound (:func:`rtps_ports`). Read from ``ports`` (default :func:`bound_udp_ports`), or
+    where the socket tables cannot be read by binding each port in turn. Takes no time and joins nothing:
+    a graph query would have to join the domain and wait for discovery, and miss a participant that is
+    slow to answer or has no node."""
+    ports = bound_udp_ports() if ports is None else ports
+    if ports is None:
+        return any(_port_taken(p) for p in rtps_ports(domain))
+    return any(p in ports for p in rtps_ports(domain))
 
 
 def pick_domain_id(seed: int | None = None) -> int:
-    """A ROS domain id in 1..100 derived from ``seed`` (default: this process id) that no other
-    process of this machine holds: each id picked is leased through a lock on a file in the
-    temporary directory, held until :func:`release_domain_id` or the end of the process, so runs
-    side by side (parallel test workers, a demo beside the tests) never share a domain. When all
-    100 are held the id of ``seed`` is shared."""
+    """A ROS domain id in :data:`DOMAIN_IDS`, tried from the one ``seed`` (default: this process id) points
+    at, that nothing else uses: never one the environment names (:func:`environment_domain_ids`, the user's
+    own), never one another run of this machine holds, never one with a DDS participant on it
+    (:func:`domain_in_use`: somebody's nodes, a vehicle's stack). Each id picked is leased through a lock on
+    a file in the temporary directory, held until :func:`release_domain_id` or the end of the process, so
+    runs side by side (parallel test workers, a demo beside the tests) never share a domain.
+    RuntimeError when none is free."""
     start = os.getpid() if seed is None else seed
-    for k in range(100):
-        domain = 1 + (start + k) % 100
-        if domain in _LEASES:
+    avoid = environment_domain_ids()
+    for k in range(len(DOMAIN_IDS)):
+        domain = DOMAIN_IDS[(start + k) % len(DOMAIN_IDS)]
+        if domain in _LEASES or domain in avoid:
             continue
         lock = open(Path(tempfile.gettempdir()) / f"magcal_ros_domain_{domain}.lock", "a")  # noqa: SIM115
         try:
@@ -67,9 +138,13 @@ def pick_domain_id(seed: int | None = None) -> int:
         except OSError:
             lock.close()
             continue
+        if domain_in_use(domain):  # checked under the lease: no other run of ours starts on it meanwhile
+            lock.close()
+            continue
         _LEASES[domain] = lock
         return domain
-    return 1 + start % 100
+    raise RuntimeError(f"no free ROS domain id in {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1}: each is leased by "
+                       "another run, has DDS participants on this machine or is the environment's ROS_DOMAIN_ID")
 
 
 def release_domain_id(domain: int) -> None:
@@ -113,9 +188,14 @@ def use_fastdds_profile(env: MutableMapping[str, str]) -> None:
 
 def ros_environment(domain_id: int, base: Mapping[str, str] | None = None) -> dict[str, str]:
     """Environment for a run isolated on ``domain_id`` with localhost-only discovery (and
-    :data:`FASTDDS_PROFILE`, see :func:`use_fastdds_profile`)."""
+    :data:`FASTDDS_PROFILE`, see :func:`use_fastdds_profile`); a ``ROS_DOMAIN_ID`` it replaces is kept
+    in :data:`USER_DOMAIN_VARIABLE` (unless that is set already), so that :func:`pick_domain_id` in the
+    run's processes still avoids it."""
     env = dict(os.environ if base is None else base)
     use_fastdds_profile(env)
+    outer = env.get("ROS_DOMAIN_ID", "").strip()
+    if outer and outer != str(domain_id):
+        env.setdefault(USER_DOMAIN_VARIABLE, outer)  # the user's own id, still avoided by what runs in env
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_LOCALHOST_ONLY", None)
@@ -366,6 +446,39 @@ class Outputs:
     baseline: dict[int, NDArray[np.float64]] = default(default_factory=dict)
     """Baseline gradient dB/ds (3,) T/m by its header stamp (a collinear array)."""
     baseline_frames: set[str] = default(default_factory=set)
+
+
+def _wait_until(due: float) -> None:
+    """Sleep until the monotonic clock reads ``due`` (s); at once when it is past."""
+    delay = due - time.monotonic()
+    if delay > 0:
+        time.sleep(delay)
+
+
+class _SideStreams:
+    """The side sensors of a replay (currents, temperatures, the IMU): each set's values published with
+    the set's stamp, in order, up to a given count of sets (see :meth:`ArrayDriver.replay`)."""
+
+    def __init__(self, driver: ArrayDriver, stamps: Sequence[int], currents: NDArray[np.float64] | None,
+                 temperatures: NDArray[np.float64] | None,
+                 imu: tuple[NDArray[np.float64], NDArray[np.float64]] | None) -> None:
+        self.driver, self.stamps = driver, stamps
+        self.currents, self.temperatures, self.imu = currents, temperatures, imu
+        self.sent = 0
+
+    def send(self, upto: int) -> None:
+        """Publish the side values of the sets before ``upto`` not sent yet (none without side streams)."""
+        while self.sent < min(upto, len(self.stamps)):
+            k, d = self.sent, self.driver
+            if self.currents is not None:
+                for j, amperes in enumerate(self.currents[k]):
+                    d.publish_current(j, self.stamps[k], float(amperes))
+            if self.temperatures is not None:
+                for j, celsius in enumerate(self.temperatures[k]):
+                    d.publish_temperature(j, self.stamps[k], float(celsius))
+            if self.imu is not None:
+                d.publish_imu(self.stamps[k], self.imu[0][k], self.imu[1][k])
+            self.sent += 1
 
 
 class ArrayDriver:
@@ -789,41 +902,19 @@ class ArrayDriver:
         start = time.monotonic() + lead * period
         start_ns = time.time_ns() + lead * spacing
         originals = list(dict.fromkeys(m.stamp_ns for m in messages)) if sides else []
-        sent_currents = 0
-
-        def stamp_of(k: int) -> int:
-            return start_ns + k * spacing if restamp else originals[k]
-
-        def send_currents(upto: int) -> None:
-            nonlocal sent_currents
-            while sides and sent_currents < min(upto, len(originals)):
-                k = sent_currents
-                if currents is not None:
-                    for j, amperes in enumerate(currents[k]):
-                        self.publish_current(j, stamp_of(k), float(amperes))
-                if temperatures is not None:
-                    for j, celsius in enumerate(temperatures[k]):
-                        self.publish_temperature(j, stamp_of(k), float(celsius))
-                if imu is not None:
-                    self.publish_imu(stamp_of(k), imu[0][k], imu[1][k])
-                sent_currents += 1
-
-        def wait_until(due: float) -> None:
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-
+        stamps = [start_ns + k * spacing for k in range(len(originals))] if restamp else originals
+        side = _SideStreams(self, stamps, currents, temperatures, imu)
         ahead = start - lead * period
         for j in range(min(lead, len(originals))):  # paced like the sets: a burst can overflow the transport
-            wait_until(ahead + j * period)
-            send_currents(j + 1)
+            _wait_until(ahead + j * period)
+            side.send(j + 1)
         for m in messages:
             stamp = mapping.get(m.stamp_ns)
             if stamp is None:
                 k = len(mapping)
                 if period:
-                    wait_until(start + k * period)
-                send_currents(k + 1 + lead)
+                    _wait_until(start + k * period)
+                side.send(k + 1 + lead)
                 stamp = start_ns + k * spacing if restamp else m.stamp_ns
                 mapping[m.stamp_ns] = stamp
                 if progress is not None and (k + 1) % 500 == 0:
