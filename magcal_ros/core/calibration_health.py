@@ -99,6 +99,8 @@ DEFAULT_WINDOW: float = 60.0
 """Seconds of sets judged at once (default of the correction node's ``health_window``)."""
 DEFAULT_WARN_FACTOR: float = 10.0
 DEFAULT_ERROR_FACTOR: float = 30.0
+DRIFTED_SENSORS: str = "drifted_sensors"
+"""Key of the value listing the sensors the health names as drifted (comma-separated; empty: none)."""
 
 
 @dataclass(frozen=True)
@@ -529,6 +531,7 @@ class CalibrationHealth:
         values["drifted"] = str(drifted).lower()
         against = "at calibration" if np.all(np.isfinite(self.noise)) else "live (noise at calibration unknown)"
         if not drifted:
+            values[DRIFTED_SENSORS] = ""
             worst_tmi = max(sensors, key=lambda s: s.tmi_residual)
             text = (f"calibration fits: TMI residual {worst_tmi.tmi_residual / NT:.2g} nT at most against "
                     f"{worst_tmi.noise / NT:.2g} nT {against}")
@@ -541,6 +544,7 @@ class CalibrationHealth:
             culprit, explained = attribute(means, self._projector)
             named |= {sensors[culprit].name} if explained >= ATTRIBUTED else {s.name for s in by_dis}
         which = [s for s in sensors if s.name in named]
+        values[DRIFTED_SENSORS] = ",".join(s.name for s in which)
         level = ERROR if figure >= th.error_factor else WARN
         parts = []
         several = len(which) > 1
