@@ -203,7 +203,8 @@ def _one_moved(seed: int, index: int) -> tuple[ArraySimulation, ArraySimulation,
     running = replace(sim.true_calibration(), metadata={"intensity": INTENSITY})
     sensors = list(sim.sensors)
     axis = rng.normal(size=3)
-    sensors[index] = replace(sensors[index], hard_iron=sensors[index].hard_iron + 500 * NT * axis / np.linalg.norm(axis))
+    jump = 500 * NT * axis / np.linalg.norm(axis)
+    sensors[index] = replace(sensors[index], hard_iron=sensors[index].hard_iron + jump)
     return sim, replace(sim, sensors=tuple(sensors)), running, rng
 
 
@@ -249,7 +250,8 @@ def test_the_judgement_per_sensor_refuses_what_misses_the_named_sensor_or_spoils
         judged = recalibration.judge(spoiled, running, raw[fit], raw[held], drifted=("mag1",))
         if refused:
             assert judged.problem is not None and judged.result is None
-            assert judged.problem.startswith("on 400 held-out sets the new calibration is worse for mag3"), judged.problem
+            assert judged.problem.startswith("on 400 held-out sets the new calibration is worse for mag3"), \
+                judged.problem
         else:
             assert judged.problem is None and "mag3" in judged.kept
             np.testing.assert_array_equal(judged.result.calibration.offsets[2], running.offsets[2])

@@ -48,8 +48,9 @@ rolling window of the mission's sets and watches the correction node's calibrati
 (``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
 (what changed determined; on the held-out sets every sensor the health named better, none worse,
 the sensors that did not improve kept as they run) and pushed and saved, at most once per
-``recalibrate_interval`` (the status counts ``attempts`` and ``recalibrations``); without it, ``~/progress`` and the status ``<node>: recalibration``
-say what to fly so that ``~/calibrate`` fixes it.
+``recalibrate_interval`` (the status counts ``attempts`` and ``recalibrations``); without it,
+``~/progress`` and the status ``<node>: recalibration`` say what to fly so that ``~/calibrate``
+fixes it.
 
 Usage::
 
