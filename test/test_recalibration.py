@@ -123,7 +123,7 @@ def test_the_watch_recalibrates_once_per_interval_and_ignores_stale_reports() ->
     assert watch.report(True, "mag1 calibration drifted: ...", 100 * S)
     assert not watch.report(True, "mag1 calibration drifted: again", 110 * S)  # named once
     due, why = watch.due(130 * S)
-    assert not due and why == "collecting the sets flown since the drift was named: 30 of 60 s"
+    assert not due and why == "collecting sets since the drift was named: 30 of 60 s"
     assert watch.due(160 * S)[0] and watch.window_start(170 * S) == 110 * S
     watch.attempted(160 * S, pushed=False)
     assert watch.due(175 * S) == (False, "trying again in 15 s") and watch.due(190 * S)[0]
@@ -133,7 +133,7 @@ def test_the_watch_recalibrates_once_per_interval_and_ignores_stale_reports() ->
     watch.report(False, "collecting: ...", 195 * S)  # the health judges the new calibration afresh
     assert watch.report(True, "drifted again", 300 * S)
     due, why = watch.due(400 * S)
-    assert not due and why.startswith("recalibrated 210 s ago: no other recalibration for 390 s")
+    assert not due and why.startswith("recalibrated 210 s ago, next in 390 s (recalibrate_interval): call ~/calibrate")
     assert watch.due(790 * S)[0]
 
 
@@ -152,22 +152,47 @@ def test_the_mission_window_keeps_the_latest_seconds_evenly() -> None:
     assert len(window) == 1
 
 
-def test_the_recalibration_status_says_what_is_done() -> None:
-    record = {"recalibrations": "0", "last_recalibration": "", "last_attempt": ""}
+def test_the_recalibration_status_says_what_is_done_within_128_characters() -> None:
+    """Who drifted and what is done or to do, at most 128 characters (what ``ros2 topic echo`` shows) with the
+    action at the end; the long texts (the health's message, the advice, the last attempt) in the values."""
+    record = {"recalibrations": "0", "attempts": "0", "last_recalibration": "", "last_attempt": ""}
     watch = recalibration.DriftWatch(window_ns=60 * S, interval_ns=600 * S)
     warn, text, values = recalibration.status("/magcal_correction", False, watch, 10 * S, "calibration fits: ...", "",
                                               record)
     assert not warn and text == "calibration of /magcal_correction fits" and values["drifted"] == "false"
-    watch.report(True, "mag2 calibration drifted: TMI residual 40 nT against 1 nT at calibration: recalibrate", 20 * S)
+    health = "mag2 calibration drifted: TMI residual 40 nT, against 1 nT noise: recalibrate"
+    watch.report(True, health, 20 * S, ("mag2",))
     warn, text, values = recalibration.status("/magcal_correction", False, watch, 30 * S, "", "call ~/start, ...",
                                               record)
-    assert warn and text == ("calibration of /magcal_correction drifted (mag2 calibration drifted: TMI residual 40 nT "
-                             "against 1 nT at calibration: recalibrate); to fix it: call ~/start, ...")
-    assert values["advice"] == "call ~/start, ..." and values["since_drift_s"] == "10"
-    warn, text, _ = recalibration.status("/magcal_correction", True, watch, 30 * S, "", "",
-                                         {**record, "last_attempt": "not recalibrated: ..."})
-    assert warn and text.endswith("; auto_recalibrate: collecting the sets flown since the drift was named: 10 of 60 s; "
-                                  "last attempt: not recalibrated: ...")
+    assert warn and text == "calibration of /magcal_correction drifted (mag2); to fix it: call ~/start, ..."
+    assert values["advice"] == "call ~/start, ..." and values["since_drift_s"] == "10" and values["health"] == health
+    advice = ("the sets flown since do not determine offset x, offset y: call ~/start, turn through a full circle of "
+              "heading with some pitch and roll, then call ~/calibrate")
+    warn, text, values = recalibration.status("/magcal_correction", False, watch, 30 * S, "", advice, record)
+    assert text == ("calibration of /magcal_correction drifted (mag2); to fix it: fly what advice says, call ~/start, "
+                    "then ~/calibrate") and values["advice"] == advice
+    last = ("not recalibrated: on 196 held-out sets drifted mag2 is not better (TMI residual 40 nT against 41 nT "
+            "running)")
+    warn, text, values = recalibration.status("/magcal_correction", True, watch, 30 * S, "", "",
+                                              {**record, "last_attempt": last})
+    assert warn and text == ("calibration of /magcal_correction drifted (mag2); auto_recalibrate: collecting sets "
+                             "since the drift was named: 10 of 60 s")  # the last attempt: in the values
+    assert values["last_attempt"] == last
+    watch.report(True, health, 25 * S, ("mag1", "mag3", "mag4"))
+    long_name = "/vehicle_with_a_long_namespace/survey_array_port/magcal_correction"
+    for now in (30 * S, 70 * S, 500 * S):
+        if now == 500 * S:
+            watch.attempted(400 * S, pushed=True)
+            watch.report(False, "collecting", 401 * S)
+            watch.report(True, health, 450 * S, ("mag2",))
+        warn, text, _ = recalibration.status(long_name, True, watch, now, "", "", {**record, "last_attempt": last})
+        assert warn and len(text) <= 128 and text.endswith(("of 60 s", "recalibrating", "to fix it now")), text
+    text = recalibration.status(long_name, False, watch, 500 * S, "", advice, record)[1]
+    assert len(text) <= 128 and text.endswith("; to fix it: fly what advice says, call ~/start, then ~/calibrate")
+    pushed = {**record, "recalibrations": "1", "last_recalibration": "recalibrated ... " + "x" * 300}
+    text = recalibration.status(long_name, True, recalibration.DriftWatch(60 * S, 600 * S), 10 * S, "calibration fits",
+                                "", pushed)[1]
+    assert text == f"calibration of {long_name} fits; recalibrated during the mission: 1"
 
 
 def test_a_sensor_turned_against_the_others_is_refused_though_its_tmi_fits(drifted: tuple) -> None:

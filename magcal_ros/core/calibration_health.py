@@ -78,7 +78,7 @@ import functools
 import itertools
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -475,6 +475,11 @@ class CalibrationHealth:
         self._buf[n] = vectors
         self._stamps[n] = stamp_ns
         self._n = n + 1
+
+    def set_factors(self, warn: float, error: float) -> None:
+        """New warning and error factors (the window and its sets stay): the next :meth:`assess` judges afresh."""
+        self.thresholds = replace(self.thresholds, warn_factor=warn, error_factor=error)
+        self._judged = None
 
     # -- blocks -----------------------------------------------------------------------
     def reset(self) -> None:

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.calibration_health import DRIFTED_SENSORS, residual_projector
+from magcal_ros.core.calibration_health import DRIFTED_SENSORS, MESSAGE_LIMIT, residual_projector, within
 from magcal_ros.core.metrics import rms
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import CalibrationResult
@@ -330,10 +330,10 @@ class DriftWatch:
         need = self.window_ns / 1e9
         if self.last_push is not None and now - self.last_push < self.interval_ns:
             wait = (self.last_push + self.interval_ns - now) / 1e9
-            return False, (f"recalibrated {(now - self.last_push) / 1e9:.0f} s ago: no other recalibration for "
-                           f"{wait:.0f} s (recalibrate_interval); call ~/calibrate to fix it now")
+            return False, (f"recalibrated {(now - self.last_push) / 1e9:.0f} s ago, next in {wait:.0f} s "
+                           "(recalibrate_interval): call ~/calibrate to fix it now")
         if now - self.since < self.window_ns:
-            return False, f"collecting the sets flown since the drift was named: {have:.0f} of {need:.0f} s"
+            return False, f"collecting sets since the drift was named: {have:.0f} of {need:.0f} s"
         if self.last_attempt is not None and now - self.last_attempt < self.window_ns // 2:
             return False, f"trying again in {(self.last_attempt + self.window_ns // 2 - now) / 1e9:.0f} s"
         return True, ""
@@ -366,7 +366,9 @@ def advice(assessed: Assessment, with_prior: bool, window_s: float) -> str:
 
 def status(target: str, auto: bool, watch: DriftWatch, now: int, health: str, advice: str,
            record: dict[str, str]) -> tuple[bool, str, dict[str, str]]:
-    """The calibration node's ``<node>: recalibration`` status: (WARN, message, values).
+    """The calibration node's ``<node>: recalibration`` status: (WARN, message of at most
+    :data:`~magcal_ros.core.calibration_health.MESSAGE_LIMIT` characters ending with what is done or to do,
+    values).
 
     ``health``: the correction node's latest calibration health message; ``advice``: what to fly
     (auto_recalibrate off); ``record``: ``recalibrations``, ``attempts``, ``last_recalibration``,
@@ -379,14 +381,17 @@ def status(target: str, auto: bool, watch: DriftWatch, now: int, health: str, ad
               "since_drift_s": f"{(now - since) / 1e9:.0f}" if since is not None else "", **record}
     if since is None:
         judged = health and not health.startswith(("collecting", "not assessed"))
-        message = f"calibration of {target} fits" if judged else f"calibration health of {target}: {health or 'none yet'}"
-        if record.get("last_recalibration"):
-            message += f"; last: {record['last_recalibration']}"
-        return False, message, values
-    if auto:
-        doing = "auto_recalibrate: " + (waiting or "recalibrating")
-        if record.get("last_attempt"):
-            doing += f"; last attempt: {record['last_attempt']}"
-    else:
-        doing = f"to fix it: {advice}" if advice else "analysing the sets flown since the drift was named"
-    return True, f"calibration of {target} drifted ({watch.health}); {doing}", values
+        if not judged:
+            return False, within([f"calibration health of {target}: {health or 'none yet'}"]), values
+        head = f"calibration of {target} fits"
+        last, count = record.get("last_recalibration"), record.get("recalibrations", "0")
+        return False, within([f"{head}; last: {last}", f"{head}; recalibrated during the mission: {count}", head]
+                             if last else [head]), values
+    head = f"calibration of {target} drifted" + (f" ({', '.join(watch.sensors)})" if watch.sensors else "")
+    if auto:  # why the last attempt did not push: in the values (last_attempt)
+        return True, within([head], "; auto_recalibrate: " + (waiting or "recalibrating")), values
+    if not advice:
+        return True, within([head], "; analysing the sets flown since the drift was named"), values
+    full = f"{head}; to fix it: {advice}"
+    return True, full if len(full) <= MESSAGE_LIMIT else within(
+        [head], "; to fix it: fly what advice says, call ~/start, then ~/calibrate"), values
