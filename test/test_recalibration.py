@@ -4,6 +4,7 @@ the held-out check, when the node recalibrates, and the rolling window of sets."
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -296,3 +297,30 @@ def test_the_watch_keeps_every_sensor_named_until_the_drift_is_fixed() -> None:
     assert watch.report(True, "mag2 calibration drifted: ...", 200 * S, ("mag2",)) and watch.sensors == ("mag2",)
     watch.report(False, "calibration fits", 210 * S)
     assert watch.sensors == ()
+
+
+def test_a_calibration_keeping_sensors_as_they_run_is_saved_and_read_back(tmp_path: Path) -> None:
+    """The running calibration as the correction node holds it (no covariance known) and a fit with one: the
+    sensors kept take the running matrix and offset, and the covariance the fit gives them (a file gives one
+    for every sensor or none); the file reads back the same. Over DDS the mixed one could not be written."""
+    from magcal_ros.io import calibration_file as calfile
+
+    sim, moved, running, rng = _one_moved(49, 3)
+    running = replace(running, covariances=None)
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    result, fit, held = _solve(stamps, raw, running)
+    assert result.calibration.covariances is not None and np.all(np.isfinite(result.calibration.covariances))
+    judged = recalibration.judge(result, running, raw[fit], raw[held], drifted=("mag4",))
+    assert judged.problem is None and judged.kept == ("mag1", "mag2", "mag3")
+    pushed = judged.result.calibration
+    np.testing.assert_array_equal(pushed.covariances, result.calibration.covariances)
+    np.testing.assert_array_equal(pushed.offsets[:3], running.offsets[:3])
+    path = tmp_path / "calibration.yaml"
+    calfile.write(path, pushed)
+    back = calfile.read(path)
+    np.testing.assert_array_equal(back.offsets, pushed.offsets)
+    np.testing.assert_allclose(back.covariances, pushed.covariances, rtol=1e-12)
+    known = replace(running, covariances=np.stack([np.eye(3) * (2e-9) ** 2] * 4))
+    merged = recalibration.keep_running(result.calibration, known, ("mag1",))
+    np.testing.assert_array_equal(merged.covariances[0], known.covariances[0])
+    np.testing.assert_array_equal(merged.covariances[1:], result.calibration.covariances[1:])

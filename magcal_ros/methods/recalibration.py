@@ -212,8 +212,10 @@ def same_form(new: ArrayCalibration, running: ArrayCalibration) -> bool:
 
 
 def keep_running(new: ArrayCalibration, running: ArrayCalibration, kept: Sequence[str]) -> ArrayCalibration:
-    """``new`` with the sensors ``kept`` corrected as ``running`` corrects them (matrix, offset, interference,
-    covariance); ``new`` itself when nothing is kept or the two differ in form (:func:`same_form`)."""
+    """``new`` with the sensors ``kept`` corrected as ``running`` corrects them (matrix, offset, interference;
+    the covariance of the corrected vector too where ``running`` knows it, else the fit's for that sensor, so
+    that the calibration gives one for every sensor or none); ``new`` itself when nothing is kept or the two
+    differ in form (:func:`same_form`)."""
     if not kept or not same_form(new, running):
         return new
     matrices, offsets = new.matrices.copy(), new.offsets.copy()
@@ -223,8 +225,9 @@ def keep_running(new: ArrayCalibration, running: ArrayCalibration, kept: Sequenc
         i, j = new.geometry.names.index(name), running.geometry.names.index(name)
         matrices[i], offsets[i] = running.matrices[j], running.offsets[j]
         interference[i] = np.asarray(running.interference)[j]
-        if covariances is not None:
-            covariances[i] = np.nan if running.covariances is None else running.covariances[j]
+        known = running.covariances is not None and bool(np.all(np.isfinite(running.covariances[j])))
+        if covariances is not None and known:
+            covariances[i] = running.covariances[j]  # type: ignore[index]
     return replace(new, matrices=matrices, offsets=offsets, interference=interference, covariances=covariances)
 
 
