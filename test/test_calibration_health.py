@@ -324,11 +324,13 @@ def test_a_drift_named_running_straight_stays_named_until_a_turn_shows_the_calib
     latched = reports[-1]
     assert latched.drifted and named(latched) == set(sim.geometry.names)
     assert latched.message.startswith("mag1, mag2, mag3, mag4 calibration drifted ")
-    assert latched.message.endswith(" s ago, not seen since (no turn to see it): recalibrate")
+    assert latched.message.endswith(" s ago, not seen since (kept until a window of turns shows it fits): recalibrate")
     assert latched.values["figure"] == seen[-1].values["figure"]
     start = (int(rec.stamps[-1]) + NS_PER_S) / NS_PER_S
-    turns, _ = mission(sim, [Leg(70.0, 6.0)], rng, rate=RATE, start=start)
-    final = feed(turns)[-1]
+    turns, _ = mission(sim, [Leg(120.0, 6.0)], rng, rate=RATE, start=start)
+    after = feed(turns)
+    assert after[80].drifted and "not seen since" in after[80].message  # fits, but not yet for a whole window
+    final = after[-1]
     assert not final.drifted and final.message.startswith("calibration fits"), final.message
 
 
@@ -362,3 +364,22 @@ def test_messages_keep_the_action_within_128_characters() -> None:
     assert final.drifted and named(final) == set(long)
     assert final.message.startswith("4 sensors calibration drifted: TMI residual ") and len(final.message) <= 128
     assert final.message.endswith(", against 1 nT noise: recalibrate")
+
+
+@pytest.mark.parametrize("window", [20.0, 60.0])
+def test_a_hull_change_common_to_every_sensor_is_named_at_once_and_stays_named(window: float) -> None:
+    """+500 nT on every sensor's x axis at once during yaw turns (the sensors' differences do not change, only
+    each one's |B| against the field's): named as all four sensors within about half a window, then named at
+    every judgement for four minutes, also with 20 s windows (in which a steady turn's attitude part can pass
+    for a trend now and then)."""
+    for seed in (300, 301):
+        sim, rng = array(seed)
+        sensors = tuple(replace(s, hard_iron=s.hard_iron + np.array([500.0, 0.0, 0.0]) * NT) for s in sim.sensors)
+        rec, _ = mission(sim, [Leg(300.0, 6.0)], rng, rate=RATE, step=replace(sim, sensors=sensors), step_at=60.0)
+        reports = judge(sim, rec, thresholds=DriftThresholds(window_ns=int(window * NS_PER_S)))
+        assert not any(r.drifted for t, r in reports if t < 60.0)
+        first = next(t for t, r in reports if t >= 60.0 and r.drifted)
+        assert first - 60.0 <= 0.6 * window
+        named_after = [r for t, r in reports if t >= first]
+        assert all(r.drifted and named(r) == set(sim.geometry.names) for r in named_after)
+        assert all(r.values["figure"] and float(r.values["figure"]) >= 10.0 for r in named_after[:5])

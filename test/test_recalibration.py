@@ -324,3 +324,25 @@ def test_a_calibration_keeping_sensors_as_they_run_is_saved_and_read_back(tmp_pa
     merged = recalibration.keep_running(result.calibration, known, ("mag1",))
     np.testing.assert_array_equal(merged.covariances[0], known.covariances[0])
     np.testing.assert_array_equal(merged.covariances[1:], result.calibration.covariances[1:])
+
+
+def test_a_hull_change_common_to_every_sensor_is_recalibrated_against_the_reference_intensity() -> None:
+    """+500 nT on every sensor's x axis at once: the tensor cannot see it (every sensor alike), the vectors are
+    500 nT off. A minute of turns, fitted with the reference intensity and all four named: pushed on the first
+    window, every sensor changed, the corrected vectors within 1.5 sigma RMS of the true field on fresh attitudes
+    (before: about 500 nT)."""
+    rng = np.random.default_rng(50)
+    geo = ArrayGeometry.cross()
+    sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names), earth_field(INTENSITY, 60.0, 5.0),
+                          noise=NOISE)
+    running = replace(sim.true_calibration(), metadata={"intensity": INTENSITY})
+    moved = replace(sim, sensors=tuple(replace(s, hard_iron=s.hard_iron + np.array([500.0, 0.0, 0.0]) * NT)
+                                       for s in sim.sensors))
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    fit, held = recalibration.split(stamps)
+    result = calibrate_array(raw[fit], geo, INTENSITY, "ml", None, running, None, (), stamps[fit])
+    judged = recalibration.judge(result, running, raw[fit], raw[held], drifted=geo.names)
+    assert judged.problem is None and judged.kept == (), judged.problem
+    fresh, truth = moved.run(uniform_random(1000, rng), rng)
+    error = lambda cal: np.sqrt(np.mean((cal.apply(fresh.vectors) - truth.field) ** 2))  # noqa: E731
+    assert error(judged.result.calibration) < 1.5 * NOISE and error(running) > 200 * NOISE

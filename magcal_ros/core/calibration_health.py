@@ -35,9 +35,10 @@ keep their stated level. A target lasting less than about half the window cannot
 alarm. Straight running gives the TMI fit no attitude to follow: its attitude part is then
 no larger than the noise (and not significant); the disagreement still sees a body-fixed
 change. A drift is named about half a window after it happens (when the blocks after it are
-the majority), and stays named: until a window whose field direction turned by
-:data:`RELEASE_DEG` finds the calibration fits (straight and level, a change common to every
-sensor is seen only while its step is in the window; after, nothing tells it from the field).
+the majority), and stays named: until, for a whole window of sets, the windows whose field
+direction turned by :data:`RELEASE_DEG` find the calibration fits (straight and level, a change
+common to every sensor is seen only while its step is in the window, after which nothing tells
+it from the field; in a short window of steady turning its attitude part can pass for a trend).
 
 A sensor is **drifted** when a figure is both above ``warn_factor`` (WARN) or
 ``error_factor`` (ERROR) times its noise at calibration and significant against the
@@ -371,9 +372,8 @@ def explained(means: Array, projector: Array, sensors: Sequence[int]) -> float:
 
 
 RELEASE_DEG: float = 15.0
-"""A drift named stays named until a window whose field direction (platform frame) turned by this much (deg,
-from the window's mean) finds the calibration fits: straight and level, a change common to every sensor looks
-like the field itself."""
+"""A drift named stays named until, for a whole window of sets, the judgements of windows whose field direction
+(platform frame) turned by this much (deg, from the window's mean) find the calibration fits."""
 MAX_GROUPED: int = 10
 """Largest array whose sensors :func:`moved_sensors` sorts into groups (2^S subsets)."""
 
@@ -457,8 +457,9 @@ class CalibrationHealth:
         self._relative: Array | None = None
         """(S, 3) T: each sensor's reading against the array's mean when the calibration last fitted."""
         self._named: tuple[int, DriftReport] | None = None
-        """(newest stamp, report) of the last judgement that named a drift, until a window that could see it
-        finds none."""
+        """(newest stamp, report) of the last judgement that named a drift, until it is cleared."""
+        self._clear_since: int | None = None
+        """Newest stamp of the first judgement since, with a turn, that found the calibration fits."""
         self.sets = 0
         """Sets taken since the last reset."""
 
@@ -491,7 +492,7 @@ class CalibrationHealth:
         self._report = None
         self._judged = None
         self._relative = None
-        self._named = None
+        self._named = self._clear_since = None
         self.sets = 0
 
     def _digest(self) -> None:
@@ -620,20 +621,25 @@ class CalibrationHealth:
         return report
 
     def _latch(self, report: DriftReport, spread: float) -> DriftReport:
-        """``report``, or the drift named before when this window could not see it: a drift stays named until
-        a window whose field direction turned by :data:`RELEASE_DEG` (``spread``, deg) finds the calibration
-        fits (a change common to every sensor looks like the field itself running straight and level)."""
+        """``report``, or the drift named before while it is not cleared: a drift stays named until the
+        judgements of windows whose field direction turned by :data:`RELEASE_DEG` (``spread``, deg) find the
+        calibration fits for a whole window of sets (straight and level, a change common to every sensor looks
+        like the field itself; in a short window of steady turning its attitude part can look like a trend)."""
         if report.drifted:
-            self._named = (self._last_stamp, report)
+            self._named, self._clear_since = (self._last_stamp, report), None
             return report
-        if self._named is None or spread >= RELEASE_DEG:
-            self._named = None
+        if self._named is None:
             return report
+        if spread >= RELEASE_DEG:
+            self._clear_since = self._clear_since or self._last_stamp
+            if self._last_stamp - self._clear_since >= self.thresholds.window_ns:
+                self._named = self._clear_since = None
+                return report
         stamp, named = self._named
         ago = (self._last_stamp - stamp) / NS_PER_S
         who = named.values.get(DRIFTED_SENSORS, "").replace(",", ", ") or "one or more sensors"
-        text = within([f"{who} calibration drifted {ago:.0f} s ago, not seen since (no turn to see it)",
-                       f"sensors' calibration drifted {ago:.0f} s ago"], ": recalibrate")
+        text = within([f"{who} calibration drifted {ago:.0f} s ago, not seen since (kept until a window of turns "
+                       "shows it fits)", f"sensors' calibration drifted {ago:.0f} s ago"], ": recalibrate")
         values = {**report.values, "drifted": "true", DRIFTED_SENSORS: named.values.get(DRIFTED_SENSORS, ""),
                   "figure": named.values.get("figure", "")}
         return DriftReport(named.level, text, True, report.sensors, report.window_s, report.sets, values)
