@@ -612,11 +612,10 @@ class CalibrationHealth:
                                        bool(dis_significant[i]), float(reference), float(live[i]), offset,
                                        float(field_figure[i]), bool(field_significant[i])))
         sets = int(n.sum())
-        report = self._judge(tuple(sensors), span_s, spread, sets, base, means, relative)
+        report = self._latch(self._judge(tuple(sensors), span_s, spread, sets, base, means, relative), spread)
         if not report.drifted and relative is not None and not any(
                 s.disagreement >= th.warn_factor * s.noise for s in sensors):
             self._relative = relative  # the sensors against each other while the calibration fits
-        report = self._latch(report, spread)
         self._report = report
         return report
 
