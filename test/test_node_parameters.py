@@ -250,3 +250,51 @@ def test_the_correction_nodes_outputs_carry_no_qos_event_handlers_and_its_inputs
         assert all(len(p.event_handlers) == 0 for p in ours), [(p.topic_name, len(p.event_handlers)) for p in ours]
         raw = [s for s in node.subscriptions if s.topic_name.endswith("/raw")]
         assert len(raw) == 4 and all(len(s.event_handlers) >= 2 for s in raw)
+
+
+def test_health_factors_out_of_order_are_refused_at_start_and_at_param_set(tmp_path: Path) -> None:
+    """A WARN above the ERROR it should come before: refused with the reason at start (the node does not start)
+    and by ``ros2 param set`` (the factors are settable while the node runs: the health judges afresh with new
+    ones, the window kept)."""
+    from rclpy.parameter import Parameter
+
+    from magcal_ros.errors import InputError
+
+    args = ("-p", f"uncorrected_sensors:={NAMES}", "-p", "health_warn_factor:=40", "-p", "health_error_factor:=20.0")
+    with in_process(*args) as run, pytest.raises(InputError, match="health_warn_factor 40 is above "
+                                                                   "health_error_factor 20: a WARN must come"):
+        _make("correction", run)
+    from dataclasses import replace
+
+    from magcal_ros.core.field import earth_field
+    from magcal_ros.core.geometry import ArrayGeometry
+    from magcal_ros.sim.simulator import ArraySimulation, random_sensor_errors
+
+    rng = np.random.default_rng(3)
+    geo = ArrayGeometry.cross()
+    sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names), earth_field(5.15e-5, 60.0, 5.0),
+                          noise=1e-9)
+    cal = tmp_path / "calibration.yaml"
+    calfile.write(cal, replace(sim.true_calibration(), metadata={"noise": [1e-9] * 4, "intensity": 5.15e-5}))
+    with in_process("--params-file", str(cal)) as run:
+        node = _make("correction", run)
+        client = run.client("/magcal_correction")
+        health = node._health_cal
+        assert health is not None and (health.thresholds.warn_factor, health.thresholds.error_factor) == (10.0, 30.0)
+        for params, reason in (([Parameter("health_warn_factor", value=50.0)], "health_warn_factor 50 is above "
+                                "health_error_factor 30"),
+                               ([Parameter("health_error_factor", value=5)], "health_warn_factor 10 is above "
+                                "health_error_factor 5"),
+                               ([Parameter("health_warn_factor", value=0)], "health_warn_factor must be 1 .. 1e+06")):
+            result = run.wait(client.set_parameters(params)).results[0]
+            assert not result.successful and result.reason.startswith(reason), result.reason
+        assert node.get_parameter("health_warn_factor").value == 10.0 and health.thresholds.warn_factor == 10.0
+        for name, value in (("health_error_factor", 60.0), ("health_warn_factor", 50.0)):  # ros2 param set, twice
+            result = run.wait(client.set_parameters([Parameter(name, value=value)])).results[0]
+            assert result.successful, result.reason
+        assert node._health_cal is health  # the same window
+        assert (health.thresholds.warn_factor, health.thresholds.error_factor) == (50.0, 60.0)
+        result = run.wait(client.set_parameters_atomically([Parameter("health_warn_factor", value=70.0),
+                                                            Parameter("health_error_factor", value=80.0)])).result
+        assert result.successful, result.reason  # both at once: judged together
+        assert (node._drift_thresholds.warn_factor, health.thresholds.error_factor) == (70.0, 80.0)

@@ -85,6 +85,53 @@ def test_a_drift_mid_mission_is_named_advised_then_fixed(tmp_path: Path) -> None
     assert out.final_health.startswith(("calibration fits", "collecting")), story
 
 
+def test_one_sensors_jump_is_fixed_on_the_first_window_over_dds(tmp_path: Path) -> None:
+    """auto_recalibrate from the start, mag2's hard iron jumps by 500 nT during the demo's turns: the health
+    names mag2 and only it, the calibration node pushes on its first attempt (it counts them), the other three
+    sensors keep their calibration to the bit in the file it saved, and the live tensor on fresh turns is
+    within 1.2x the floor sqrt(2) sigma / d."""
+    rng = np.random.default_rng(32)
+    geo = ArrayGeometry.cross(h.BASELINE)
+    sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names),
+                          earth_field(h.INTENSITY, 60.0, 5.0), noise=h.NOISE)
+    sensors = list(sim.sensors)
+    sensors[1] = replace(sensors[1], hard_iron=sensors[1].hard_iron + np.array([300.0, -250.0, 300.0]) * 1e-9)
+    moved = replace(sim, sensors=tuple(sensors))
+    cal_path = tmp_path / "calibration.yaml"
+    truth = replace(sim.true_calibration(), metadata={"noise": [h.NOISE] * 4, "intensity": h.INTENSITY})
+    calfile.write(cal_path, truth)
+    run = h.RosRun(tmp_path)
+    lines: list[str] = []
+    try:
+        run.start("correction_node", params={**h.LOSSLESS, "health_window": 30.0}, params_files=[cal_path],
+                  log_name="correction")
+        run.start("calibration_node", params={**h.LOSSLESS, "reference_field": h.INTENSITY,
+                                              "calibration_file": str(cal_path), "recalibrate_window": 20.0,
+                                              "assess_period": 1.0, "auto_recalibrate": True},
+                  log_name="calibration")
+        driver = run.driver(geo.names)
+        h.wait_discovered(driver, subscribers=2)
+        out = run_drift_mission(driver, sim, rng, lines.append, speed=SPEED, clean=24.0, longest=600.0,
+                                target_at=12.0, fresh=20.0, moved=moved, advise=False)
+        log = run.processes[1].log()
+    finally:
+        codes = run.close()
+    assert codes == {"correction": 0, "calibration": 0}, codes
+    story = "\n".join(lines)
+    assert out.named.startswith("mag2 calibration drifted: ") and out.named_sensors == "mag2", story
+    assert len(out.named) <= 128 and out.named.endswith(": recalibrate")
+    assert out.attempts == 1 and out.recalibrated.startswith("recalibrated /magcal_correction during the mission"), \
+        story + log
+    assert "the hard iron of mag2 jumps at 24 s" in story
+    assert "(mag1, mag3, mag4 kept as running)" in out.recalibrated, out.recalibrated
+    saved = calfile.read(cal_path)
+    kept = [0, 2, 3]
+    np.testing.assert_array_equal(saved.offsets[kept], truth.offsets[kept])
+    np.testing.assert_array_equal(saved.matrices[kept], truth.matrices[kept])
+    assert not np.allclose(saved.offsets[1], truth.offsets[1])
+    assert out.tensor_recalibrated <= 1.2 * out.floor < 50 * out.floor < out.tensor_drifted, story
+
+
 @pytest.mark.parametrize("uncorrected", [True])
 def test_the_health_is_not_assessed_without_a_calibration(tmp_path: Path, uncorrected: bool) -> None:
     """Raw readings on purpose: the calibration status says so (OK), and says nothing about drift."""

@@ -7,7 +7,9 @@ must stay OK), then the hard iron of every sensor jumps by 300-800 nT. The demo 
 correction node's ``<node>: calibration`` status on ``/diagnostics`` to name the drift, for
 the calibration node (``auto_recalibrate`` false) to advise what to fly while leaving the
 calibration untouched, then sets ``auto_recalibrate`` true and waits for the recalibration
-to be pushed; finally it replays fresh turns and measures the live tensor against the floor.
+to be pushed; finally it replays fresh turns and measures the live tensor against the floor. A test
+gives its own jump (one sensor's) and runs the calibration node with ``auto_recalibrate`` from the
+start: the push is then awaited right after the drift is named.
 
 Mission time is the sets' stamps; ``speed`` > 1 replays it faster than real time (the nodes
 judge by stamps, so only the wall-clock waits shrink).
@@ -52,8 +54,13 @@ class DriftOutcome:
     untouched: bool = False
     """The correction node's calibration was the same after the advice as before the jump."""
     recalibrated_after: float | None = None
-    """Seconds after auto_recalibrate was set true at which the push was seen."""
+    """Seconds after auto_recalibrate was set true (or, when it was from the start, after the drift was named) at
+    which the push was seen."""
     recalibrated: str = ""
+    attempts: int = 0
+    """Recalibrations the calibration node had tried when the push was seen (its status' ``attempts``)."""
+    named_sensors: str = ""
+    """The health's ``drifted_sensors`` when it named the drift."""
     tensor_drifted: float = float("nan")
     tensor_recalibrated: float = float("nan")
     floor: float = float("nan")
@@ -73,12 +80,16 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                       speed: float = 1.0, clean: float = 40.0, longest: float = 400.0, target_at: float = 15.0,
                       correction: str = "/magcal_correction", calibration: str = "/magcal_calibration",
                       max_current: float = 20.0, fresh: float = 40.0, patience: float = 120.0,
-                      target_depth: float | None = None) -> DriftOutcome:
+                      target_depth: float | None = None, moved: ArraySimulation | None = None,
+                      advise: bool = True) -> DriftOutcome:
     """The mission (see the module docstring); ``clean`` s before the jump (the target passed at
     ``target_at`` s), at most ``longest`` s after it. Times are taken from the stamps the nodes judged
     (the health's ``newest_stamp``), so a node that lags the replay does not change them; ``patience``
     (s of wall time) is how long to wait for a node to catch up at the end of the clean phase;
-    ``target_depth`` m below the track (default the demo's target's)."""
+    ``target_depth`` m below the track (default the demo's target's). ``moved``: the array after the
+    jump (default every sensor's hard iron moved by 300-800 nT); ``advise`` false: the calibration node
+    runs with ``auto_recalibrate`` true from the start, and the mission waits for the push right after
+    the drift is named."""
     out = DriftOutcome(floor=tensor_floor(sim.noise, 0.4))
     driver.watch_diagnostics()
     health_name, recal_name = correction + ": calibration", calibration + ": recalibration"
@@ -86,7 +97,10 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     seconds = clean + longest
     count = int(seconds * RATE)
     currents = rng.uniform(0.0, max_current, (count, m)) if m else None
-    moved = hard_iron_moved(sim, rng)
+    jump = "the hard iron of " + ", ".join(n for n, a, b in zip(sim.geometry.names, sim.sensors, moved.sensors)
+                                           if not np.array_equal(a.hard_iron, b.hard_iron)) + " jumps" if moved else \
+        "every sensor's hard iron jumps by 300-800 nT"
+    moved = moved or hard_iron_moved(sim, rng)
     target = replace(TARGET, seconds=target_at, distance=target_depth or TARGET.distance)
     # The mission starts a health window after whatever the correction node saw last (the driver's probe
     # sets, stamped now, all sensors reading one constant vector): judged by stamps, they are out of it.
@@ -96,7 +110,7 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     jump_ns = int(rec.stamps[0]) + int(clean * NS_PER_S)
     say(f"mission: yaw turns at {YAW_RATE:g} deg/s with +-5 deg wobble, {RATE:g} sets/s, replayed at {speed:g}x real "
         f"time; a target ({np.linalg.norm(target.moment):.0f} A m^2, {target.distance:g} m below) passed at "
-        f"{target.seconds:g} s; every sensor's hard iron jumps by 300-800 nT at {clean:g} s")
+        f"{target.seconds:g} s; {jump} at {clean:g} s")
     before = _calibration_values(driver, correction, sim.geometry.names)
 
     def judged() -> tuple[Any, dict[str, str], float]:
@@ -128,9 +142,9 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
         elif phase == "drifting":
             drifted_stamps.extend(int(s) for s in part.stamps if int(s) > jump_ns)
             if hv.get("drifted") == "true" and seen >= 0:
-                out.named_after, out.named = seen, health.message
+                out.named_after, out.named, out.named_sensors = seen, health.message, hv.get("drifted_sensors", "")
                 say(f"{seen:.0f} s after the jump (of sets judged) /diagnostics says: {health.message}")
-                phase = "advising"
+                phase, auto_at = ("advising", None) if advise else ("recalibrating", t)
         elif phase == "advising":
             drifted_stamps.extend(int(s) for s in part.stamps)
             rv = _values(driver.status(recal_name))
@@ -150,6 +164,7 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
             if int(rv.get("recalibrations", "0") or 0) >= 1:
                 out.recalibrated_after = t - (auto_at or t)
                 out.recalibrated = rv.get("last_recalibration", "")
+                out.attempts = int(rv.get("attempts", "0") or 0)
                 say(f"{out.recalibrated_after:.0f} s later: {out.recalibrated}")
                 break
     if drifted_stamps:  # a node (or this driver) that lags delivers them late: wait for them

@@ -11,7 +11,14 @@ attitude changes), both compared with the noise the calibration stored:
   that changes along the track (geology, the diurnal variation) does not follow the
   attitude. Per sensor the block means of ``|B_i|`` are fitted with a constant, a linear
   trend in time and a linear function of the block-mean field direction; the figure is the
-  RMS over the window's sets of the fitted attitude part (beyond constant and trend).
+  RMS over the window's sets of the fitted attitude part (beyond constant and trend). It is
+  taken twice: beyond what the other sensors' mean intensity follows (a target or geology
+  changes the field for every sensor), and against the field's own intensity (``tmi_field``:
+  constant and trend alone), which sees a change common to every sensor as well (their
+  differences cannot); the second on the **steady** blocks only (:func:`steady_blocks`:
+  where the spread of the sensors' vectors about their mean, the gradient the array sees,
+  is within twice what noise gives of its quiet level: a target passing raises it, also
+  when it fills half the window; a hull change common to every sensor does not).
 - **Disagreement**: how far the sensors disagree beyond what the measured gradient
   explains: the residual of the least-squares fit of a centre field and a symmetric,
   traceless gradient (or, for sensors on a line, a gradient along it) to the corrected
@@ -28,7 +35,10 @@ keep their stated level. A target lasting less than about half the window cannot
 alarm. Straight running gives the TMI fit no attitude to follow: its attitude part is then
 no larger than the noise (and not significant); the disagreement still sees a body-fixed
 change. A drift is named about half a window after it happens (when the blocks after it are
-the majority), and stays named.
+the majority), and stays named: until, for a whole window of sets, the windows whose field
+direction turned by :data:`RELEASE_DEG` find the calibration fits (straight and level, a change
+common to every sensor is seen only while its step is in the window, after which nothing tells
+it from the field; in a short window of steady turning its attitude part can pass for a trend).
 
 A sensor is **drifted** when a figure is both above ``warn_factor`` (WARN) or
 ``error_factor`` (ERROR) times its noise at calibration and significant against the
@@ -40,14 +50,19 @@ on top (10 times the noise by default) makes a false alarm there practically imp
 what remains is model error, bounded by the factor: strong targets (250-400 nT at the array)
 passed during a straight leg leave the TMI figure below 3-4 times the noise; an ambient
 gradient ``g`` makes a sensor's TMI follow the attitude by up to ``g`` times its distance
-from the centre (0.2 m on the default cross: 50 nT/m gives 10 nT). The disagreement names
-one sensor when an offset of that sensor alone explains :data:`ATTRIBUTED` of it (a residual
-spreads over all sensors), else every sensor it flags.
+from the centre (0.2 m on the default cross: 50 nT/m gives 10 nT).
 
-A change that looks the same at every attitude flown and at every sensor (a common offset
-along the vertical during level yaw turns) cannot be told from a change of the field
-itself; it shows only as ``tmi_offset`` (``|B_i|`` against the calibrated intensity) and
-never raises an alarm.
+**Who drifted** (``drifted_sensors``, never a sensor that did not move): the sensors whose TMI
+figure is over the factor, when there are any. Else, when the disagreement is over it, the
+sensors against each other (each one's mean reading minus the array's, ``o_i - mean(o)`` for
+hard-iron changes ``o``) since the calibration last fitted: when more than half of them agree
+(:func:`moved_sensors`), the others moved. The disagreement alone cannot tell (an offset of any
+one sensor explains three of the four dimensions of a cross's residual: one sensor's change and
+two others' look alike), nor can the sensors' differences tell two of four that moved from the
+other two: then the message says "several sensors" (no one sensor explains it) or "one or more
+sensors", and names none; "and other sensors" when those named do not explain the disagreement
+alone. What differences never tell: a majority that moved alike looks like the others moving
+the opposite way. Messages are at most :data:`MESSAGE_LIMIT` characters and end with the action.
 
 Cost: :meth:`CalibrationHealth.add` copies one set into a buffer (about a microsecond);
 :meth:`CalibrationHealth.assess` (once per status period) reduces the buffered sets to
@@ -61,9 +76,10 @@ Units: T in and out (nT only in the values for people); stamps int64 ns; platfor
 from __future__ import annotations
 
 import functools
+import itertools
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -88,7 +104,7 @@ BISQUARE: float = 4.685
 """Tukey's bisquare constant (95 % efficiency on Gaussian data)."""
 ROBUST_ITERATIONS: int = 12
 ATTRIBUTED: float = 0.95
-"""The disagreement names one sensor when an offset of that sensor alone explains this much of it."""
+"""Sensors explain the disagreement when offsets of theirs alone explain this much of its energy."""
 RIDGE: float = 1e-12
 """Relative ridge of the normal equations (directions the data do not determine stay at 0)."""
 RANK_TOLERANCE: float = 1e-9
@@ -99,6 +115,11 @@ DEFAULT_WINDOW: float = 60.0
 """Seconds of sets judged at once (default of the correction node's ``health_window``)."""
 DEFAULT_WARN_FACTOR: float = 10.0
 DEFAULT_ERROR_FACTOR: float = 30.0
+DRIFTED_SENSORS: str = "drifted_sensors"
+"""Key of the value listing the sensors the health names as drifted (comma-separated; empty: none, or it
+cannot tell which)."""
+MESSAGE_LIMIT: int = 128
+"""Longest status message: what ``ros2 topic echo`` shows of a string (its default truncation)."""
 
 
 @dataclass(frozen=True)
@@ -128,13 +149,32 @@ class SensorDrift:
     """Noise per axis seen now (successive differences of ``|B|``)."""
     tmi_offset: float
     """Median ``|B|`` minus the calibrated intensity (NaN: intensity unknown)."""
+    tmi_field: float = 0.0
+    """RMS of the attitude-following part of ``|B|`` against the field's own intensity (a constant and a
+    trend), on the blocks where the field is steady: sees a change common to every sensor too."""
+    tmi_field_significant: bool = False
+
+    @property
+    def tmi_figure(self) -> float:
+        """The larger significant TMI figure (T; 0 when neither is significant)."""
+        return max((f for f, sig in ((self.tmi_residual, self.tmi_significant),
+                                     (self.tmi_field, self.tmi_field_significant)) if sig and np.isfinite(f)),
+                   default=0.0)
 
     @property
     def ratio(self) -> float:
-        """The larger significant figure over the noise (0 when neither is significant)."""
-        figures = [f for f, sig in ((self.tmi_residual, self.tmi_significant),
-                                    (self.disagreement, self.disagreement_significant)) if sig and np.isfinite(f)]
-        return max(figures, default=0.0) / self.noise if self.noise > 0 else 0.0
+        """The largest significant figure over the noise (0 when none is significant)."""
+        dis = self.disagreement if self.disagreement_significant and np.isfinite(self.disagreement) else 0.0
+        return max(self.tmi_figure, dis) / self.noise if self.noise > 0 else 0.0
+
+    def tmi_over(self, factor: float) -> bool:
+        """Whether a significant TMI figure reaches ``factor`` times the noise."""
+        return self.tmi_figure > 0 and self.tmi_figure >= factor * self.noise
+
+    def disagreement_over(self, factor: float) -> bool:
+        """Whether a significant disagreement reaches ``factor`` times the noise."""
+        d = self.disagreement
+        return bool(self.disagreement_significant and d > 0 and d >= factor * self.noise)
 
 
 @dataclass(frozen=True)
@@ -243,12 +283,15 @@ def attitude_part_of(y: Array, directions: Array, tau: Array, n: Array, common: 
     return rss_full, rss_base, rank_full, rank_base, w
 
 
-def attitude_part(tmi: Array, directions: Array, tau: Array, n: Array, alpha: float) -> tuple[Array, Array]:
+def attitude_part(tmi: Array, directions: Array, tau: Array, n: Array, alpha: float,
+                  relative: bool = True) -> tuple[Array, Array]:
     """The attitude-following part of block-mean intensities ``tmi`` (K, S) in T, per column: its RMS
     over the sets (T) beyond a constant and a trend in ``tau`` (K,), and whether an F test at
-    ``alpha`` finds it significant. ``directions`` (K, 3): block-mean unit field directions."""
+    ``alpha`` finds it significant. ``directions`` (K, 3): block-mean unit field directions.
+    ``relative`` (three sensors or more): each sensor beyond what the others' mean intensity follows;
+    else against the field's intensity alone."""
     y = (tmi - _weighted_median(tmi, n)) / NT  # nT about the median: well scaled
-    if y.shape[1] >= 3:  # the field itself changing (a target, geology) is common to every sensor: each
+    if relative and y.shape[1] >= 3:  # the field itself changing (a target, geology) is common to every sensor: each
         # sensor is judged beyond what the others' mean intensity follows (a drift is one sensor's own)
         others = (y.sum(axis=1, keepdims=True) - y) / (y.shape[1] - 1)
         cols = [attitude_part_of(y[:, [c]], directions, tau, n, others[:, c]) for c in range(y.shape[1])]
@@ -293,22 +336,66 @@ def mean_residual(residual: Array, n: Array, alpha: float) -> tuple[Array, Array
     return mean.reshape(-1, 3), significant.reshape(-1, 3).any(axis=1)
 
 
-def attribute(means: Array, projector: Array) -> tuple[int, float]:
-    """The one sensor whose own offset best explains the window's mean residuals ``means`` (S, 3), and
-    the fraction of their energy it explains (1: a change of that sensor alone)."""
+STEADY_QUANTILE: float = 0.1
+"""The window's quiet spread: this quantile of the blocks' spread over the array."""
+STEADY_FLOOR: float = 2.0
+"""A block is steady while its spread is within this many times what the sensors' noise alone gives a block
+of its sets of the quiet spread."""
+
+
+def steady_blocks(vectors: Array, n: Array, noise: Array) -> NDArray[np.bool_]:
+    """(K,) the blocks where the field over the array is as steady as it gets in the window: the spread of
+    the sensors' block-mean vectors ``vectors`` (K, S, 3) T about their mean (the gradient, and what the
+    sensors disagree by) within :data:`STEADY_FLOOR` times the spread noise alone gives (``noise`` (S,) T per
+    axis, ``n`` (K,) sets) of the window's quiet spread (:data:`STEADY_QUANTILE`). A target passing raises
+    the gradient the array sees, also when it fills half the window; a hull change common to every sensor
+    does not."""
+    s = vectors.shape[1]
+    if s < 2:
+        return np.ones(len(vectors), bool)
+    spread = np.linalg.norm((vectors - vectors.mean(axis=1, keepdims=True)).reshape(len(vectors), -1), axis=1)
+    floor = np.sqrt(3.0 * (s - 1) * np.mean(noise**2) / n)
+    return np.asarray(spread <= np.quantile(spread, STEADY_QUANTILE) + STEADY_FLOOR * floor)
+
+
+def explained(means: Array, projector: Array, sensors: Sequence[int]) -> float:
+    """The fraction of the energy of the window's mean residuals ``means`` (S, 3) that offsets of ``sensors``
+    alone explain (1: a change of those sensors alone; 0 for no sensors or no residual)."""
     m = means.reshape(-1)
     energy = float(m @ m)
-    if not energy > 0:
-        return 0, 0.0
-    best, explained = 0, -1.0
-    for j in range(len(means)):
-        basis = projector[:, 3 * j:3 * j + 3]  # what an offset of sensor j leaves in the residual
-        coef, *_ = np.linalg.lstsq(basis, m, rcond=1e-9)
-        fit = basis @ coef
-        share = float(fit @ fit) / energy
-        if share > explained:
-            best, explained = j, share
-    return best, explained
+    if not energy > 0 or not len(sensors):
+        return 0.0
+    basis = np.hstack([projector[:, 3 * j:3 * j + 3] for j in sensors])  # what their offsets leave in the residual
+    coef, *_ = np.linalg.lstsq(basis, m, rcond=1e-9)
+    fit = basis @ coef
+    return float(fit @ fit) / energy
+
+
+RELEASE_DEG: float = 15.0
+"""A drift named stays named until, for a whole window of sets, the judgements of windows whose field direction
+(platform frame) turned by this much (deg, from the window's mean) find the calibration fits."""
+MAX_GROUPED: int = 10
+"""Largest array whose sensors :func:`moved_sensors` sorts into groups (2^S subsets)."""
+
+
+def moved_sensors(jumps: Array, tolerance: Array) -> tuple[int, ...] | None:
+    """Which sensors moved, from each one's jump ``jumps`` (S, 3) T: how far its reading against the array's
+    mean moved since the calibration last fitted (``o_i - mean(o)`` for hard-iron changes ``o``). The sensors
+    that did not move share one jump: when more than half the sensors agree pairwise within ``tolerance``
+    (S,) T (the larger of the pair's), that group did not move and the others did. None when no majority
+    agrees (half the sensors or more moved: which ones, their differences cannot tell, since sensors that
+    moved alike agree as well as sensors that did not move). What they cannot tell either: a majority that
+    moved alike looks like the rest moving the other way (a hull change is not alike at all but one sensor)."""
+    s = len(jumps)
+    if s > MAX_GROUPED:
+        return None
+    gap = np.linalg.norm(jumps[:, None, :] - jumps[None, :, :], axis=2)
+    agree = gap < np.maximum(tolerance[:, None], tolerance[None, :])
+    for size in range(s, s // 2, -1):
+        groups = [g for g in itertools.combinations(range(s), size) if agree[np.ix_(g, g)].all()]
+        if groups:
+            return tuple(i for i in range(s) if i not in groups[0]) if len(groups) == 1 else None
+    return None
 
 
 @dataclass
@@ -319,18 +406,19 @@ class _Blocks:
     count: deque[int] = field(default_factory=deque)
     direction: deque[Array] = field(default_factory=deque)
     intensity: deque[Array] = field(default_factory=deque)
-    residual: deque[Array] = field(default_factory=deque)
+    vectors: deque[Array] = field(default_factory=deque)
+    """Block-mean vectors (S, 3) T."""
     diff2: deque[Array] = field(default_factory=deque)
     diffs: deque[int] = field(default_factory=deque)
 
     def append(self, *row: object) -> None:
-        for column, value in zip((self.index, self.count, self.direction, self.intensity, self.residual, self.diff2,
+        for column, value in zip((self.index, self.count, self.direction, self.intensity, self.vectors, self.diff2,
                                   self.diffs), row):
             column.append(value)  # type: ignore[attr-defined]
 
     def drop_before(self, first: int) -> None:
         while self.index and self.index[0] < first:
-            for column in (self.index, self.count, self.direction, self.intensity, self.residual, self.diff2,
+            for column in (self.index, self.count, self.direction, self.intensity, self.vectors, self.diff2,
                            self.diffs):
                 column.popleft()
 
@@ -366,6 +454,12 @@ class CalibrationHealth:
         self._last_stamp = 0
         self._report: DriftReport | None = None
         self._judged: tuple[int, int] | None = None
+        self._relative: Array | None = None
+        """(S, 3) T: each sensor's reading against the array's mean when the calibration last fitted."""
+        self._named: tuple[int, DriftReport] | None = None
+        """(newest stamp, report) of the last judgement that named a drift, until it is cleared."""
+        self._clear_since: int | None = None
+        """Newest stamp of the first judgement since, with a turn, that found the calibration fits."""
         self.sets = 0
         """Sets taken since the last reset."""
 
@@ -383,6 +477,11 @@ class CalibrationHealth:
         self._stamps[n] = stamp_ns
         self._n = n + 1
 
+    def set_factors(self, warn: float, error: float) -> None:
+        """New warning and error factors (the window and its sets stay): the next :meth:`assess` judges afresh."""
+        self.thresholds = replace(self.thresholds, warn_factor=warn, error_factor=error)
+        self._judged = None
+
     # -- blocks -----------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every set (a new calibration is in force)."""
@@ -392,6 +491,8 @@ class CalibrationHealth:
         self._last_stamp = 0
         self._report = None
         self._judged = None
+        self._relative = None
+        self._named = self._clear_since = None
         self.sets = 0
 
     def _digest(self) -> None:
@@ -429,8 +530,6 @@ class CalibrationHealth:
         tmi = np.linalg.norm(v, axis=2)
         centre = v.mean(axis=1)
         direction = centre / np.maximum(np.linalg.norm(centre, axis=1, keepdims=True), 1e-300)
-        residual = (v.reshape(done, -1) @ self._projector.T if self._projector is not None
-                    else np.zeros((done, 0)))
         previous = self._last_tmi if self._last_tmi is not None else tmi[:1]
         gap_ok = np.diff(np.concatenate([[self._last_stamp or stamps[0]], stamps[:done]])) < self._block_ns
         gap_ok[0] &= self._last_tmi is not None  # the first set has no predecessor
@@ -438,7 +537,7 @@ class CalibrationHealth:
         diff2 = np.where(gap_ok[:, None], diff * diff, 0.0)
         starts = np.flatnonzero(np.concatenate([[True], np.diff(blocks[:done]) != 0]))
         counts = np.diff(np.concatenate([starts, [done]]))
-        sums = [np.add.reduceat(a, starts, axis=0) for a in (direction, tmi, residual, diff2)]
+        sums = [np.add.reduceat(a, starts, axis=0) for a in (direction, tmi, v, diff2)]
         diffs = np.add.reduceat(gap_ok.astype(np.int64), starts)
         for k, start in enumerate(starts):
             c = int(counts[k])
@@ -483,7 +582,7 @@ class CalibrationHealth:
         n = np.asarray(b.count, dtype=float)
         directions = np.stack(b.direction)
         tmi = np.stack(b.intensity)
-        residual = np.stack(b.residual)
+        vectors = np.stack(b.vectors)
         diff2 = np.stack(b.diff2)
         diffs = max(int(np.sum(b.diffs)), 1)
         live = np.sqrt(np.sum(diff2, axis=0) / diffs / 2.0)
@@ -491,74 +590,160 @@ class CalibrationHealth:
         spread = float(np.degrees(np.max(np.arccos(np.clip(
             directions @ (directions.mean(axis=0) / np.linalg.norm(directions.mean(axis=0))), -1.0, 1.0)))))
         tmi_figure, tmi_significant = attitude_part(tmi, directions, tau, n, th.false_alarm)
-        if self._projector is not None:
-            means, dis_significant = mean_residual(residual, n, th.false_alarm)
-            dis = np.linalg.norm(means, axis=1)
+        noise = np.where(np.isfinite(self.noise), self.noise, live)
+        steady = steady_blocks(vectors, n, noise)
+        if steady.sum() >= MIN_BLOCKS // 2:
+            field_figure, field_significant = attitude_part(tmi[steady], directions[steady], tau[steady], n[steady],
+                                                            th.false_alarm, relative=False)
         else:
-            means, dis, dis_significant = None, np.full(len(names), np.nan), np.zeros(len(names), bool)
+            field_figure, field_significant = np.zeros(len(names)), np.zeros(len(names), bool)
+        means = relative = None
+        dis, dis_significant = np.full(len(names), np.nan), np.zeros(len(names), bool)
+        if self._projector is not None:
+            means, dis_significant = mean_residual(vectors.reshape(len(n), -1) @ self._projector.T, n, th.false_alarm)
+            dis = np.linalg.norm(means, axis=1)
+            apart = vectors - vectors.mean(axis=1, keepdims=True)  # each sensor against the array's mean
+            relative, _ = mean_residual(apart.reshape(len(n), -1), n, th.false_alarm)
         sensors = []
         for i, name in enumerate(names):
-            reference = self.noise[i] if np.isfinite(self.noise[i]) else live[i]
+            reference = noise[i]
             offset = float(np.median(tmi[:, i]) - self.intensity) if self.intensity else float("nan")
             sensors.append(SensorDrift(name, float(tmi_figure[i]), bool(tmi_significant[i]), float(dis[i]),
-                                       bool(dis_significant[i]), float(reference), float(live[i]), offset))
+                                       bool(dis_significant[i]), float(reference), float(live[i]), offset,
+                                       float(field_figure[i]), bool(field_significant[i])))
         sets = int(n.sum())
-        report = self._judge(tuple(sensors), span_s, spread, sets, base, means)
+        report = self._latch(self._judge(tuple(sensors), span_s, spread, sets, base, means, relative), spread)
+        if not report.drifted and relative is not None and not any(
+                s.disagreement >= th.warn_factor * s.noise for s in sensors):
+            self._relative = relative  # the sensors against each other while the calibration fits
         self._report = report
         return report
 
-    def _judge(self, sensors: tuple[SensorDrift, ...], span_s: float, spread: float, sets: int,
-               base: dict[str, str], means: Array | None) -> DriftReport:
-        th = self.thresholds
+    def _latch(self, report: DriftReport, spread: float) -> DriftReport:
+        """``report``, or the drift named before while it is not cleared: a drift stays named until the
+        judgements of windows whose field direction turned by :data:`RELEASE_DEG` (``spread``, deg) find the
+        calibration fits for a whole window of sets (straight and level, a change common to every sensor looks
+        like the field itself; in a short window of steady turning its attitude part can look like a trend)."""
+        if report.drifted:
+            self._named, self._clear_since = (self._last_stamp, report), None
+            return report
+        if self._named is None:
+            return report
+        if spread >= RELEASE_DEG:
+            self._clear_since = self._clear_since or self._last_stamp
+            if self._last_stamp - self._clear_since >= self.thresholds.window_ns:
+                self._named = self._clear_since = None
+                return report
+        stamp, named = self._named
+        ago = (self._last_stamp - stamp) / NS_PER_S
+        who = named.values.get(DRIFTED_SENSORS, "").replace(",", ", ") or "one or more sensors"
+        text = within([f"{who} calibration drifted {ago:.0f} s ago, not seen since (kept until a window of turns "
+                       "shows it fits)", f"sensors' calibration drifted {ago:.0f} s ago"], ": recalibrate")
+        values = {**report.values, "drifted": "true", DRIFTED_SENSORS: named.values.get(DRIFTED_SENSORS, ""),
+                  "figure": named.values.get("figure", "")}
+        return DriftReport(named.level, text, True, report.sensors, report.window_s, report.sets, values)
+
+    def _values(self, sensors: tuple[SensorDrift, ...], spread: float, base: dict[str, str]) -> dict[str, str]:
+        """The report's values: the window's, then each sensor's figures (nT) and ratio."""
         values = dict(base)
         values["attitude_change_deg"] = f"{spread:.1f}"
         for s in sensors:
             values[f"{s.name}.tmi_residual_nT"] = f"{s.tmi_residual / NT:.3g}"
+            values[f"{s.name}.tmi_field_nT"] = f"{s.tmi_field / NT:.3g}"
             values[f"{s.name}.disagreement_nT"] = f"{s.disagreement / NT:.3g}" if np.isfinite(s.disagreement) else ""
             values[f"{s.name}.noise_nT"] = f"{s.noise / NT:.3g}"
             values[f"{s.name}.noise_live_nT"] = f"{s.noise_live / NT:.3g}"
             values[f"{s.name}.tmi_offset_nT"] = f"{s.tmi_offset / NT:.4g}" if np.isfinite(s.tmi_offset) else ""
             values[f"{s.name}.drift"] = f"{s.ratio:.3g}"
+        return values
+
+    def _judge(self, sensors: tuple[SensorDrift, ...], span_s: float, spread: float, sets: int,
+               base: dict[str, str], means: Array | None, relative: Array | None) -> DriftReport:
+        th = self.thresholds
+        values = self._values(sensors, spread, base)
         figure = max(s.ratio for s in sensors)
         values["figure"] = f"{figure:.3g}"
-        warn = th.warn_factor
-        by_tmi = [s for s in sensors if s.tmi_significant and s.tmi_residual > 0 and s.tmi_residual >= warn * s.noise]
-        by_dis = [s for s in sensors if s.disagreement_significant and s.disagreement > 0
-                  and s.disagreement >= warn * s.noise]
+        by_tmi = [i for i, s in enumerate(sensors) if s.tmi_over(th.warn_factor)]
+        by_dis = [i for i, s in enumerate(sensors) if s.disagreement_over(th.warn_factor)]
         drifted = bool(by_tmi or by_dis)
         values["drifted"] = str(drifted).lower()
-        against = "at calibration" if np.all(np.isfinite(self.noise)) else "live (noise at calibration unknown)"
+        live = "" if np.all(np.isfinite(self.noise)) else " seen live"
         if not drifted:
-            worst_tmi = max(sensors, key=lambda s: s.tmi_residual)
-            text = (f"calibration fits: TMI residual {worst_tmi.tmi_residual / NT:.2g} nT at most against "
-                    f"{worst_tmi.noise / NT:.2g} nT {against}")
-            dis = [s for s in sensors if np.isfinite(s.disagreement)]
-            if dis:
-                text += f", sensors agree within {max(s.disagreement for s in dis) / NT:.2g} nT beyond the gradient"
-            return DriftReport(OK, text + f" ({span_s:.0f} s, {sets} sets)", False, sensors, span_s, sets, values)
-        named = {s.name for s in by_tmi}
-        if by_dis and means is not None and self._projector is not None:
-            culprit, explained = attribute(means, self._projector)
-            named |= {sensors[culprit].name} if explained >= ATTRIBUTED else {s.name for s in by_dis}
-        which = [s for s in sensors if s.name in named]
+            values[DRIFTED_SENSORS] = ""
+            worst = max(max(s.tmi_residual, s.tmi_field) for s in sensors)
+            agree = [s.disagreement for s in sensors if np.isfinite(s.disagreement)]
+            text = f"calibration fits: TMI residual {worst / NT:.2g} nT" + (
+                f", sensors agree within {max(agree) / NT:.2g} nT" if agree else "")
+            noise = max(s.noise for s in sensors)
+            return DriftReport(OK, within([f"{text} at most (noise {noise / NT:.2g} nT{live}; {span_s:.0f} s, "
+                                           f"{sets} sets)", text]), False, sensors, span_s, sets, values)
+        named, who = self._who(sensors, by_tmi, by_dis, means, relative)
+        values[DRIFTED_SENSORS] = ",".join(sensors[i].name for i in named)
         level = ERROR if figure >= th.error_factor else WARN
-        parts = []
-        several = len(which) > 1
-        if by_tmi:
-            t = max(by_tmi, key=lambda s: s.tmi_residual / s.noise)
-            parts.append(f"TMI residual {t.tmi_residual / NT:.3g} nT" + (f" ({t.name})" if several else "")
-                         + f" against {t.noise / NT:.2g} nT {against}")
-        if by_dis:
-            d = max(by_dis, key=lambda s: s.disagreement / s.noise)
-            parts.append(f"sensors disagree by {d.disagreement / NT:.3g} nT beyond the gradient"
-                         + (f" ({d.name})" if several else "") + f" against {d.noise / NT:.2g} nT noise")
-        message = f"{', '.join(s.name for s in which)} calibration drifted: {'; '.join(parts)}: recalibrate"
-        return DriftReport(level, message, True, sensors, span_s, sets, values)
+        return DriftReport(level, _drift_message(sensors, who, len(named), by_tmi, by_dis, live), True, sensors,
+                           span_s, sets, values)
+
+    def _who(self, sensors: tuple[SensorDrift, ...], by_tmi: list[int], by_dis: list[int], means: Array | None,
+             relative: Array | None) -> tuple[list[int], str]:
+        """(the sensors named as drifted, who drifted in words). The TMI names the sensors whose own ``|B|``
+        follows the attitude; when it names none, the sensors against each other since the calibration last
+        fitted (:func:`moved_sensors`); the disagreement says whether they explain it all. When none is named:
+        "several sensors" when the sensors against each other, or the disagreement, show that no one sensor
+        alone moved, else "one or more sensors"."""
+        if not by_dis or means is None or self._projector is None:
+            return list(by_tmi), ", ".join(sensors[i].name for i in by_tmi)
+        moved: tuple[int, ...] | None = ()
+        if relative is not None and self._relative is not None:
+            tolerance = self.thresholds.warn_factor * np.array([s.noise for s in sensors])
+            moved = moved_sensors(relative - self._relative, tolerance)  # None: no one sensor alone moved
+        named = list(by_tmi) or list(moved or ())
+        if named:
+            agree = len(named) > 1 if moved is None else set(moved) <= set(named)  # with the sensors' jumps
+            whole = agree and explained(means, self._projector, named) >= ATTRIBUTED
+            return named, ", ".join(sensors[i].name for i in named) + ("" if whole else " and other sensors")
+        one = moved is not None and max(explained(means, self._projector, [j])
+                                        for j in range(len(sensors))) >= ATTRIBUTED
+        return named, "one or more sensors" if one else "several sensors"
 
     @property
     def latest(self) -> DriftReport | None:
         """The last report :meth:`assess` gave (None since the last reset)."""
         return self._report
+
+
+def within(candidates: Sequence[str], tail: str = "", limit: int = MESSAGE_LIMIT) -> str:
+    """The first of ``candidates`` (most detailed first) that fits in ``limit`` characters with ``tail`` after
+    it; else the last, cut short before ``tail``, which is always kept (the action)."""
+    for text in candidates:
+        if len(text) + len(tail) <= limit:
+            return text + tail
+    return candidates[-1][: max(limit - len(tail) - 3, 0)] + "..." + tail
+
+
+def _drift_message(sensors: tuple[SensorDrift, ...], who: str, count: int, by_tmi: list[int], by_dis: list[int],
+                   live: str) -> str:
+    """``<who> calibration drifted: TMI residual 312 nT (mag2), disagreement 150 nT beyond the gradient (mag3),
+    against 1 nT noise: recalibrate``, shortened to :data:`MESSAGE_LIMIT` characters with the action kept:
+    without "beyond the gradient", without the sensors of the figures, then with the sensors counted."""
+    figures = []  # (words, value, sensor)
+    if by_tmi:
+        t = sensors[max(by_tmi, key=lambda i: sensors[i].tmi_figure / sensors[i].noise)]
+        figures.append(("TMI residual", t.tmi_figure, t.name))
+    if by_dis:
+        d = sensors[max(by_dis, key=lambda i: sensors[i].disagreement / sensors[i].noise)]
+        figures.append(("disagreement", d.disagreement, d.name))
+    noise = f"against {max(s.noise for s in sensors) / NT:.2g} nT noise{live}"
+    several = count != 1
+
+    def text(head: str, gradient: bool, named: bool) -> str:
+        parts = [f"{words} {value / NT:.3g} nT" + (" beyond the gradient" if gradient and words == "disagreement"
+                                                   else "") + (f" ({name})" if named and several else "")
+                 for words, value, name in figures]
+        return f"{head} calibration drifted: " + ", ".join(parts + [noise])
+
+    counted = f"{count} sensors" + (" and others" if who.endswith(" and other sensors") else "") if count > 1 else who
+    return within([text(who, True, True), text(who, False, True), text(who, False, False),
+                   text(counted, False, False)], ": recalibrate")
 
 
 def noise_and_intensity(metadata: dict[str, object], names: Sequence[str]) -> tuple[Array | None, float | None]:

@@ -12,12 +12,19 @@ with the running calibration as the prior, exactly as ``~/calibrate`` does
    :data:`OFFSET_SIGMA` times the sensor's noise (straight running leaves the offsets across
    the track undetermined: such a window never pushes);
 2. the new calibration **holds on held-out sets**: every :data:`HOLD_OUT_EVERY`-th of
-   :data:`CHUNKS` stretches of the window in time is left out of the fit; on them each
-   sensor's TMI residual (``|B| - F``) and the sensors' disagreement beyond the gradient
-   must be within :data:`HOLD_OUT_RATIO` of what the fit left on its own sets (plus the
-   noise of so few sets), the TMI residual must be smaller than the running
-   calibration's on the same sets, and the disagreement within :data:`DISAGREEMENT_NOISE`
-   times what the sensors' noise alone leaves there.
+   :data:`CHUNKS` stretches of the window in time is left out of the fit, and each sensor is judged
+   on them by itself (:func:`judge`). A sensor's TMI residual (``|B| - F``) there, new against
+   running, counts as changed only beyond what noise leaves on so few sets
+   (:data:`HOLD_OUT_SIGMA` standard errors, ``sigma / sqrt(sets)``): every sensor the calibration
+   health named as drifted must improve beyond it, the others must not get worse beyond it, and
+   at least one sensor must improve. A sensor that did not improve keeps its running calibration
+   (the fit moved it by noise only: pushing that would make every recalibration a random walk of
+   the sensors that never moved), where the two calibrations have the same form (no temperature
+   terms, the same channels, time offsets and output frame); the calibration pushed is the new one
+   for the sensors it improved and the running one for the rest. On it, each sensor's TMI residual
+   and the sensors' disagreement beyond the gradient must be within :data:`HOLD_OUT_RATIO` of what
+   it left on the sets fitted (plus the same noise allowance), and the disagreement within
+   :data:`DISAGREEMENT_NOISE` times what the sensors' noise alone leaves there.
 
 Units: T; stamps int64 ns.
 """
@@ -25,13 +32,13 @@ Units: T; stamps int64 ns.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.calibration_health import residual_projector
+from magcal_ros.core.calibration_health import DRIFTED_SENSORS, MESSAGE_LIMIT, residual_projector, within
 from magcal_ros.core.metrics import rms
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import CalibrationResult
@@ -45,6 +52,9 @@ HOLD_OUT_EVERY: int = 4
 """Chunks 3 and 7 of 10 (0-based): a fifth of the window, between stretches that are fitted."""
 HOLD_OUT_RATIO: float = 1.5
 """What the new calibration may leave on the held-out sets, against what it left on its own."""
+HOLD_OUT_SIGMA: float = 3.0
+"""Standard errors of a held-out TMI RMS (``sigma / sqrt(sets)``) that noise alone may move it by: a sensor
+improved (or got worse) only beyond them."""
 DISAGREEMENT_NOISE: float = 3.0
 """What the sensors may disagree beyond the gradient on the held-out sets, in units of what their noise
 alone leaves there: a calibration that fits every sensor's TMI but turns one sensor against the others
@@ -98,21 +108,47 @@ class HeldOut:
     """(S,) noise per axis the fit found."""
     names: tuple[str, ...]
 
-    def problem(self) -> str | None:
-        """Why the new calibration does not hold on the held-out sets, or None."""
+    @property
+    def slack(self) -> Array:
+        """(S,) T: what noise alone may move each sensor's held-out TMI RMS by (:data:`HOLD_OUT_SIGMA`)."""
+        return HOLD_OUT_SIGMA * self.noise / np.sqrt(max(self.sets, 1))
+
+    def improved(self) -> NDArray[np.bool_]:
+        """(S,) the sensors the new calibration fits better than the running one, beyond noise."""
+        return np.asarray(self.tmi_old - self.tmi_new > self.slack)
+
+    def _versus(self, i: int) -> str:
+        return f"TMI residual {self.tmi_new[i] / NT:.3g} nT against {self.tmi_old[i] / NT:.3g} nT running"
+
+    def change_problem(self, drifted: Sequence[str]) -> str | None:
+        """Why the new calibration does not fix what drifted without spoiling the rest, or None: each
+        sensor in ``drifted`` (named by the calibration health) must improve beyond noise, no other get
+        worse beyond it, and at least one improve."""
         if self.sets < 3:
             return f"only {self.sets} held-out sets to check it on"
-        slack = 3.0 * self.noise / np.sqrt(self.sets)
+        better = self.improved()
+        for i, name in enumerate(self.names):
+            if name in drifted and not better[i]:
+                return f"on {self.sets} held-out sets drifted {name} is not better ({self._versus(i)})"
+        for i, name in enumerate(self.names):
+            if self.tmi_new[i] - self.tmi_old[i] > self.slack[i]:
+                return f"on {self.sets} held-out sets the new calibration is worse for {name} ({self._versus(i)})"
+        if not better.any():
+            i = int(np.argmax(self.tmi_old - self.tmi_new))
+            return f"on {self.sets} held-out sets the new calibration is no better for any sensor ({self.names[i]}: " \
+                   f"{self._versus(i)})"
+        return None
+
+    def problem(self) -> str | None:
+        """Why the calibration judged does not hold on the held-out sets, or None."""
+        if self.sets < 3:
+            return f"only {self.sets} held-out sets to check it on"
+        slack = self.slack
         bad = [i for i in range(len(self.names)) if self.tmi_new[i] > HOLD_OUT_RATIO * self.tmi_fit[i] + slack[i]]
         if bad:
             i = bad[0]
             return (f"on {self.sets} held-out sets {self.names[i]}'s TMI residual is {self.tmi_new[i] / NT:.3g} nT, "
                     f"more than {HOLD_OUT_RATIO:g}x the {self.tmi_fit[i] / NT:.3g} nT on the sets fitted")
-        worse = [i for i in range(len(self.names)) if self.tmi_new[i] >= self.tmi_old[i]]
-        if worse:
-            i = worse[0]
-            return (f"on {self.sets} held-out sets the new calibration is no better for {self.names[i]} "
-                    f"(TMI residual {self.tmi_new[i] / NT:.3g} nT against {self.tmi_old[i] / NT:.3g} nT running)")
         if np.isfinite(self.disagreement_new) and self.disagreement_new > (
                 HOLD_OUT_RATIO * self.disagreement_fit + float(np.max(slack))):
             return (f"on {self.sets} held-out sets the sensors disagree by {self.disagreement_new / NT:.3g} nT beyond "
@@ -162,18 +198,80 @@ def _noise_disagreement(noise: Array, projector: Array | None) -> float:
     return float(np.sqrt(np.sum((projector**2) @ variance) / len(variance)))
 
 
-def verdict(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
-            currents_fit: Array | None = None, currents_held: Array | None = None) -> tuple[str | None, HeldOut | None]:
-    """(why the new calibration must not be pushed, or None; the held-out figures)."""
+def same_form(new: ArrayCalibration, running: ArrayCalibration) -> bool:
+    """Whether a sensor of ``running`` can stand in for the same sensor of ``new``: the same sensors,
+    channels, time offsets and output frame, and neither with temperature terms."""
+    names = new.geometry.names
+    if set(names) != set(running.geometry.names) or new.channels != running.channels:
+        return False
+    if new.has_temperature_terms or running.has_temperature_terms:
+        return False
+    order = [running.geometry.names.index(n) for n in names]
+    return bool(np.array_equal(new.output_rotation, running.output_rotation)
+                and np.array_equal(new.time_offsets, np.asarray(running.time_offsets)[order]))
+
+
+def keep_running(new: ArrayCalibration, running: ArrayCalibration, kept: Sequence[str]) -> ArrayCalibration:
+    """``new`` with the sensors ``kept`` corrected as ``running`` corrects them (matrix, offset, interference;
+    the covariance of the corrected vector too where ``running`` knows it, else the fit's for that sensor, so
+    that the calibration gives one for every sensor or none); ``new`` itself when nothing is kept or the two
+    differ in form (:func:`same_form`)."""
+    if not kept or not same_form(new, running):
+        return new
+    matrices, offsets = new.matrices.copy(), new.offsets.copy()
+    interference = np.array(new.interference, dtype=float)
+    covariances = None if new.covariances is None else np.array(new.covariances, dtype=float)
+    for name in kept:
+        i, j = new.geometry.names.index(name), running.geometry.names.index(name)
+        matrices[i], offsets[i] = running.matrices[j], running.offsets[j]
+        interference[i] = np.asarray(running.interference)[j]
+        known = running.covariances is not None and bool(np.all(np.isfinite(running.covariances[j])))
+        if covariances is not None and known:
+            covariances[i] = running.covariances[j]  # type: ignore[index]
+    return replace(new, matrices=matrices, offsets=offsets, interference=interference, covariances=covariances)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What :func:`judge` decided: why nothing may be pushed (or None), the held-out figures of what would
+    be pushed, and what that is."""
+
+    problem: str | None
+    figures: HeldOut | None
+    result: CalibrationResult | None
+    """The new result with the sensors it did not improve back at the running calibration (None: refused)."""
+    kept: tuple[str, ...] = ()
+    """The sensors that keep their running calibration."""
+
+
+def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
+          currents_fit: Array | None = None, currents_held: Array | None = None,
+          drifted: Sequence[str] = ()) -> Verdict:
+    """Whether ``result`` (fitted to ``raw_fit`` from ``running``) may replace ``running``, judged per sensor
+    on ``raw_held`` (N, S, 3) T; ``drifted``: the sensors the calibration health named (see the module
+    docstring)."""
     if running is None:
-        return "there is no running calibration to start from (the prior): recalibrate with ~/calibrate", None
+        return Verdict("there is no running calibration to start from (the prior): recalibrate with ~/calibrate",
+                       None, None)
     missing = undetermined_offsets(result)
     if missing:
         shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
-        return (f"the sets do not determine what changed ({shown}): turn through a full circle of heading, "
-                "with some pitch and roll"), None
+        return Verdict(f"the sets do not determine what changed ({shown}): turn through a full circle of heading, "
+                       "with some pitch and roll", None, None)
     check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
-    return check.problem(), check
+    why = check.change_problem(drifted)
+    if why:
+        return Verdict(why, check, None)
+    better = check.improved()
+    kept = tuple(n for n, b in zip(check.names, better) if not b)
+    merged = keep_running(result.calibration, running, kept)
+    if merged is not result.calibration:
+        result = replace(result, calibration=merged)
+        check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
+    else:
+        kept = ()
+    why = check.problem()
+    return Verdict(why, check, None if why else result, kept)
 
 
 def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:
@@ -205,23 +303,27 @@ class DriftWatch:
     """Mission time the drift was first named (None: no drift named)."""
     health: str = ""
     """The latest health message that named it."""
+    sensors: tuple[str, ...] = ()
+    """Every sensor the health named as drifted since the drift was named (a recalibration must improve them)."""
     last_push: int | None = None
     last_attempt: int | None = None
     settling: bool = False
     """After a push: drift reports are stale until the health says the new calibration is not drifted."""
 
-    def report(self, drifted: bool, message: str, now: int) -> bool:
-        """A health report at mission time ``now``; True when it names a drift anew."""
+    def report(self, drifted: bool, message: str, now: int, sensors: Sequence[str] = ()) -> bool:
+        """A health report at mission time ``now`` (``sensors``: those it names as drifted); True when it
+        names a drift anew."""
         if not drifted:
-            self.since, self.settling, self.health = None, False, ""
+            self.since, self.settling, self.health, self.sensors = None, False, "", ()
             return False
         if self.settling:
             return False
         self.health = message
-        if self.since is None:
-            self.since, self.last_attempt = now, None
-            return True
-        return False
+        anew = self.since is None
+        if anew:
+            self.since, self.last_attempt, self.sensors = now, None, ()
+        self.sensors += tuple(n for n in sensors if n not in self.sensors)
+        return anew
 
     def due(self, now: int) -> tuple[bool, str]:
         """(attempt now, else what it waits for) at mission time ``now``."""
@@ -231,10 +333,10 @@ class DriftWatch:
         need = self.window_ns / 1e9
         if self.last_push is not None and now - self.last_push < self.interval_ns:
             wait = (self.last_push + self.interval_ns - now) / 1e9
-            return False, (f"recalibrated {(now - self.last_push) / 1e9:.0f} s ago: no other recalibration for "
-                           f"{wait:.0f} s (recalibrate_interval); call ~/calibrate to fix it now")
+            return False, (f"recalibrated {(now - self.last_push) / 1e9:.0f} s ago, next in {wait:.0f} s "
+                           "(recalibrate_interval): call ~/calibrate to fix it now")
         if now - self.since < self.window_ns:
-            return False, f"collecting the sets flown since the drift was named: {have:.0f} of {need:.0f} s"
+            return False, f"collecting sets since the drift was named: {have:.0f} of {need:.0f} s"
         if self.last_attempt is not None and now - self.last_attempt < self.window_ns // 2:
             return False, f"trying again in {(self.last_attempt + self.window_ns // 2 - now) / 1e9:.0f} s"
         return True, ""
@@ -248,7 +350,7 @@ class DriftWatch:
         self.last_attempt = now
         if pushed:
             self.last_push = now
-            self.since, self.settling = None, True
+            self.since, self.settling, self.sensors = None, True, ()
 
 
 def advice(assessed: Assessment, with_prior: bool, window_s: float) -> str:
@@ -267,25 +369,32 @@ def advice(assessed: Assessment, with_prior: bool, window_s: float) -> str:
 
 def status(target: str, auto: bool, watch: DriftWatch, now: int, health: str, advice: str,
            record: dict[str, str]) -> tuple[bool, str, dict[str, str]]:
-    """The calibration node's ``<node>: recalibration`` status: (WARN, message, values).
+    """The calibration node's ``<node>: recalibration`` status: (WARN, message of at most
+    :data:`~magcal_ros.core.calibration_health.MESSAGE_LIMIT` characters ending with what is done or to do,
+    values).
 
     ``health``: the correction node's latest calibration health message; ``advice``: what to fly
-    (auto_recalibrate off); ``record``: ``recalibrations``, ``last_recalibration``, ``last_attempt``."""
+    (auto_recalibrate off); ``record``: ``recalibrations``, ``attempts``, ``last_recalibration``,
+    ``last_attempt``."""
     _, waiting = watch.due(now)
     since = watch.since
     values = {"auto_recalibrate": str(auto).lower(), "drifted": str(since is not None).lower(),
+              DRIFTED_SENSORS: ",".join(watch.sensors),
               "health": watch.health or health, "advice": advice if since is not None else "",
               "since_drift_s": f"{(now - since) / 1e9:.0f}" if since is not None else "", **record}
     if since is None:
         judged = health and not health.startswith(("collecting", "not assessed"))
-        message = f"calibration of {target} fits" if judged else f"calibration health of {target}: {health or 'none yet'}"
-        if record.get("last_recalibration"):
-            message += f"; last: {record['last_recalibration']}"
-        return False, message, values
-    if auto:
-        doing = "auto_recalibrate: " + (waiting or "recalibrating")
-        if record.get("last_attempt"):
-            doing += f"; last attempt: {record['last_attempt']}"
-    else:
-        doing = f"to fix it: {advice}" if advice else "analysing the sets flown since the drift was named"
-    return True, f"calibration of {target} drifted ({watch.health}); {doing}", values
+        if not judged:
+            return False, within([f"calibration health of {target}: {health or 'none yet'}"]), values
+        head = f"calibration of {target} fits"
+        last, count = record.get("last_recalibration"), record.get("recalibrations", "0")
+        return False, within([f"{head}; last: {last}", f"{head}; recalibrated during the mission: {count}", head]
+                             if last else [head]), values
+    head = f"calibration of {target} drifted" + (f" ({', '.join(watch.sensors)})" if watch.sensors else "")
+    if auto:  # why the last attempt did not push: in the values (last_attempt)
+        return True, within([head], "; auto_recalibrate: " + (waiting or "recalibrating")), values
+    if not advice:
+        return True, within([head], "; analysing the sets flown since the drift was named"), values
+    full = f"{head}; to fix it: {advice}"
+    return True, full if len(full) <= MESSAGE_LIMIT else within(
+        [head], "; to fix it: fly what advice says, call ~/start, then ~/calibrate"), values

@@ -46,9 +46,11 @@ Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the 
 rolling window of the mission's sets and watches the correction node's calibration health on
 ``/diagnostics``. When it names a drift, with ``auto_recalibrate`` the sets flown since
 (``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
-(what changed determined, the held-out sets fitted) and pushed and saved, at most once per
-``recalibrate_interval``; without it, ``~/progress`` and the status ``<node>: recalibration``
-say what to fly so that ``~/calibrate`` fixes it.
+(what changed determined; on the held-out sets every sensor the health named better, none worse,
+the sensors that did not improve kept as they run) and pushed and saved, at most once per
+``recalibrate_interval`` (the status counts ``attempts`` and ``recalibrations``); without it,
+``~/progress`` and the status ``<node>: recalibration`` say what to fly so that ``~/calibrate``
+fixes it.
 
 Usage::
 
@@ -89,6 +91,7 @@ from std_srvs.srv import Trigger
 from magcal_ros.core import side_streams as side
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.calibration_health import DRIFTED_SENSORS
 from magcal_ros.core.geomagnetic import SiteField, parse_date, parse_site, site_field
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, LatestImu
@@ -178,7 +181,8 @@ class CalibrationNode(Node):
         self._subs: list[Any] = []
         window_ns = int(float(self.get_parameter("recalibrate_window").value) * 1e9)
         self._watch = recalibration.DriftWatch(window_ns, self._interval_ns())
-        self._recalibration: dict[str, str] = {"recalibrations": "0", "last_recalibration": "", "last_attempt": ""}
+        self._recalibration: dict[str, str] = {"recalibrations": "0", "attempts": "0", "last_recalibration": "",
+                                               "last_attempt": ""}
         """What the mission recalibration did last (values of its status)."""
         self._advice: tuple[int, str] | None = None
         """(mission time, text) of the latest advice on what to fly to fix a drift."""
@@ -705,10 +709,12 @@ class CalibrationNode(Node):
         for status in msg.status:
             if status.name != target + drift.STATUS_SUFFIX:
                 continue
-            drifted = any(kv.key == "drifted" and kv.value == "true" for kv in status.values)
+            values = {kv.key: kv.value for kv in status.values}
+            drifted = values.get("drifted") == "true"
+            sensors = [n for n in values.get(DRIFTED_SENSORS, "").split(",") if n]
             with self._lock:
                 self._health_seen = status.message
-                named = self._watch.report(drifted, status.message, self._mission.newest)
+                named = self._watch.report(drifted, status.message, self._mission.newest, sensors)
             if named:
                 auto = bool(self.get_parameter("auto_recalibrate").value)
                 window = self._watch.window_ns / 1e9
@@ -747,24 +753,28 @@ class CalibrationNode(Node):
         pushed = False
         with self._lock:
             health = self._watch.health  # what named the drift (a push makes the next report say otherwise)
+            drifted = self._watch.sensors
+            self._recalibration["attempts"] = str(int(self._recalibration["attempts"]) + 1)
         try:
             stamps, raw, currents = window
             fit, held = recalibration.split(stamps)
             seen: dict[str, Any] = {}
 
-            def check(result: CalibrationResult, prior: ArrayCalibration | None) -> str | None:
-                why, figures = recalibration.verdict(result, prior, raw[fit], raw[held], currents[fit], currents[held])
-                seen.update(result=result, prior=prior, held=figures)
-                return why
+            def check(result: CalibrationResult,
+                      prior: ArrayCalibration | None) -> tuple[str | None, CalibrationResult]:
+                judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted)
+                seen.update(verdict=judged, prior=prior)
+                return judged.problem, judged.result or result
 
             fallback = self._running_intensity() if self._reference()[0] is None else None
             pushed, message = self._calibrate((stamps[fit], raw[fit], currents[fit]), check, fallback)
             if pushed:
-                figures = seen["held"]
+                judged = seen["verdict"]
+                kept = f" ({', '.join(judged.kept)} kept as running)" if judged.kept else ""
                 message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
                            f"calibration health said: {health}): "
-                           f"{recalibration.changes(seen['prior'], seen['result'].calibration)}; "
-                           f"{figures.describe()}; {message}")
+                           f"{recalibration.changes(seen['prior'], judged.result.calibration)}{kept}; "
+                           f"{judged.figures.describe()}; {message}")
                 self.get_logger().info(message)
                 with self._lock:
                     self._recalibration["recalibrations"] = str(int(self._recalibration["recalibrations"]) + 1)
@@ -935,7 +945,7 @@ class CalibrationNode(Node):
         """Solve, save and push (the ~/calibrate service; a recalibration during the mission).
 
         ``window``: (stamps, raw, currents) to fit instead of the collected sets; ``check(result, prior)``:
-        why the result must not be applied (or None), asked before anything changes;
+        (why the result must not be applied or None, the result to apply), asked before anything changes;
         ``reference_fallback``: the intensity (T) when neither reference_field nor site gives one."""
         with self._lock:
             if window is None:
@@ -980,7 +990,7 @@ class CalibrationNode(Node):
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
         self._check_stop()
-        why = check(result, prior) if check is not None else None
+        why, result = check(result, prior) if check is not None else (None, result)
         if why:
             return self._fail(f"not recalibrated: {why}; nothing was changed (prior: {prior_note})")
         cal = result.calibration

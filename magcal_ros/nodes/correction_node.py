@@ -446,6 +446,10 @@ class CorrectionNode(Node):
         """Validate the combined new state; stash it for :meth:`_after_set_parameters`."""
         values = self._current_values()
         updates = {p.name: p.value for p in params}
+        try:
+            drift.factors(updates, self._drift_thresholds)
+        except InputError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
         values.update(updates)
         new_names = values.get("sensor_names") or []
         for p in params:
@@ -489,6 +493,10 @@ class CorrectionNode(Node):
         if any(p.name == "use_sim_time" for p in params):
             self._now = common.clock_reader(self)
             self._arrival = common.arrival_reader(self)
+        if any(p.name in drift.FACTORS for p in params):
+            self._drift_thresholds = drift.factors({p.name: p.value for p in params}, self._drift_thresholds)
+            if self._health_cal is not None:
+                self._health_cal.set_factors(self._drift_thresholds.warn_factor, self._drift_thresholds.error_factor)
         new, self._pending = self._pending, None
         if new is None:
             return

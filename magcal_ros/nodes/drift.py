@@ -4,14 +4,16 @@
 Parameters: per sensor ``<name>.noise`` (T, 1-sigma per axis at calibration; 0 = unknown) and
 ``calibration_intensity`` (T, the intensity the calibration maps ``|B|`` to; 0 = unknown), both
 written by ``magcal calibrate`` and the calibration node into the calibration file and pushed
-with every calibration; ``health_window`` (s), ``health_warn_factor`` and ``health_error_factor``.
-The status is named ``<node>: calibration``.
+with every calibration; ``health_window`` (s, read-only), ``health_warn_factor`` and
+``health_error_factor`` (settable while the node runs; the warning factor never above the error
+factor). The status is named ``<node>: calibration``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -35,6 +37,8 @@ SENSOR_SUFFIX = "noise"
 INTENSITY = "calibration_intensity"
 WINDOW_RANGE: tuple[float, float] = (10.0, 3600.0)
 FACTOR_RANGE: tuple[float, float] = (1.0, 1e6)
+FACTORS: tuple[str, str] = ("health_warn_factor", "health_error_factor")
+"""The parameters of the factors on the noise (WARN, ERROR): settable while the node runs."""
 MAX_NOISE: float = 1e-3
 STATUS_SUFFIX = ": calibration"
 """The health status is named ``<node full name>: calibration``."""
@@ -61,25 +65,40 @@ def declare_reference(node: Any, names: Sequence[str]) -> None:
 def declare_thresholds(node: Any) -> DriftThresholds:
     """Declare ``health_window``, ``health_warn_factor``, ``health_error_factor``; the thresholds they give.
 
-    :class:`InputError` when the error factor is below the warning factor."""
+    :class:`InputError` (the node does not start) when the warning factor is above the error factor."""
     d = common.describe
     window = float(node.declare_parameter(
         "health_window", DEFAULT_WINDOW,
         d("seconds of corrected sets the calibration health judges at once (a sliding window, long enough to "
           "span attitude changes; judged once half full; a drift is named about half a window after it happens)",
           read_only=True, numbers=True, floats=WINDOW_RANGE)).value)
-    warn = float(node.declare_parameter(
-        "health_warn_factor", DEFAULT_WARN_FACTOR,
+    values = {FACTORS[0]: node.declare_parameter(
+        FACTORS[0], DEFAULT_WARN_FACTOR,
         d("the calibration health is a WARN (drifted: recalibrate) when a sensor's TMI residual or its "
           "disagreement beyond the gradient exceeds this many times its noise at calibration (and is "
-          "significant against the window's scatter)", read_only=True, numbers=True, floats=FACTOR_RANGE)).value)
-    error = float(node.declare_parameter(
-        "health_error_factor", DEFAULT_ERROR_FACTOR,
-        d("... and an ERROR above this many times the noise (>= health_warn_factor)", read_only=True,
-          numbers=True, floats=FACTOR_RANGE)).value)
-    if error < warn:
-        raise InputError(f"health_error_factor {error:g} is below health_warn_factor {warn:g}")
-    return DriftThresholds(int(window * NS_PER_S), warn, error)
+          "significant against the window's scatter); at most health_error_factor", numbers=True,
+          floats=FACTOR_RANGE)).value}
+    values[FACTORS[1]] = node.declare_parameter(
+        FACTORS[1], DEFAULT_ERROR_FACTOR,
+        d("... and an ERROR above this many times the noise (at least health_warn_factor)", numbers=True,
+          floats=FACTOR_RANGE)).value
+    return factors(values, DriftThresholds(int(window * NS_PER_S)))
+
+
+def factors(values: Mapping[str, Any], current: DriftThresholds) -> DriftThresholds:
+    """``current`` with the factors ``health_warn_factor`` and ``health_error_factor`` in ``values`` (those not
+    there as they are); :class:`InputError` with the reason for a factor that is not a number in
+    :data:`FACTOR_RANGE` or a warning factor above the error factor (a WARN comes before an ERROR)."""
+    warn = _number(FACTORS[0], values.get(FACTORS[0], current.warn_factor), "times the noise")
+    error = _number(FACTORS[1], values.get(FACTORS[1], current.error_factor), "times the noise")
+    low, high = FACTOR_RANGE
+    for name, value in zip(FACTORS, (warn, error)):
+        if not low <= value <= high:
+            raise InputError(f"{name} must be {low:g} .. {high:g} (times the noise), got {value:g}")
+    if warn > error:
+        raise InputError(f"health_warn_factor {warn:g} is above health_error_factor {error:g}: a WARN must come at a "
+                         "smaller figure than an ERROR; set health_warn_factor at most health_error_factor")
+    return replace(current, warn_factor=warn, error_factor=error)
 
 
 def reference(values: dict[str, Any], names: Sequence[str]) -> tuple[tuple[float, ...], float]:
@@ -100,9 +119,9 @@ def reference(values: dict[str, Any], names: Sequence[str]) -> tuple[tuple[float
     return tuple(noise), f
 
 
-def _number(name: str, value: Any) -> float:
+def _number(name: str, value: Any, unit: str = "T") -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-        raise InputError(f"{name} must be a finite number (T), got {value!r}")
+        raise InputError(f"{name} must be a finite number ({unit}), got {value!r}")
     return float(value)
 
 
