@@ -86,6 +86,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.stamps import format_seconds
+from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.sync import RESTART_JUMP
 from magcal_ros.core.tensor import least_squares_operator
 from magcal_ros.core.units import NS_PER_S, NT
@@ -747,11 +748,16 @@ def _drift_message(sensors: tuple[SensorDrift, ...], who: str, count: int, by_tm
 
 
 def noise_and_intensity(metadata: dict[str, object], names: Sequence[str]) -> tuple[Array | None, float | None]:
-    """The noise per sensor (S,) T and the intensity T a calibration's provenance records (None where absent)."""
+    """The noise per sensor (S,) T and the intensity T a calibration's provenance records (None where absent;
+    a noise NaN where unknown); :class:`InputError` for a value no calibration can have
+    (:mod:`~magcal_ros.core.calibration_bounds`)."""
     noise = metadata.get("noise")
     values = None
     if isinstance(noise, (list, tuple)) and len(noise) == len(names):
-        values = np.asarray(noise, dtype=float)
+        values = np.array([np.nan if v is None or (isinstance(v, float) and np.isnan(v))
+                           else bounds.check_noise(f"{n} noise", v) for n, v in zip(names, noise)], dtype=float)
     intensity = metadata.get("intensity")
-    f = float(intensity) if isinstance(intensity, (int, float)) and not isinstance(intensity, bool) else None
-    return values, (f if f and np.isfinite(f) and f > 0 else None)
+    f = None
+    if isinstance(intensity, (int, float)) and not isinstance(intensity, bool) and not np.isnan(intensity):
+        f = bounds.check_intensity("intensity", intensity) or None
+    return values, f

@@ -250,7 +250,7 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from")
+                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from", "burst_count")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -287,8 +287,10 @@ class SensorStream:
         self.tail: list[int] = []
         """The last :data:`TAIL` common stamps (ns) of the current segment."""
         self.burst_from = NEVER
-        """First stamp (ns) of the current run of crowded stamps: a backlog spans less than a period; a run
-        longer than that is a faster rate."""
+        """First stamp (ns) of the current run of crowded stamps after a gap ..."""
+        self.burst_count = 0
+        """... and its messages: a backlog holds no more samples than the gap before it; a longer run is a
+        faster rate."""
 
     @property
     def busy(self) -> bool:
@@ -576,13 +578,15 @@ class AcceptanceRule:
         if step > 0 and period is not None and s.crowded(step, period) and kind != CROWDED:
             # After a gap, stamps closer than the sensor samples: a backlog delivered at once ...
             if kind != BURST:
-                s.burst_from = held[0]
+                s.burst_from, s.burst_count = held[0], 1
             self.stats.burst += 1
             s.held = None
-            if message[0] - s.burst_from <= period:
+            s.burst_count += 1
+            rhythm = s.grid_period() or period
+            if s.burst_count * rhythm <= 1.25 * (s.burst_from - s.last) + 2 * rhythm:  # no more than the gap held
                 s.held = (*message, BURST)
                 return True
-            s.intervals, s.period = [], None  # ... or, spanning a period, the sensor's rate went up: learnt again
+            s.intervals, s.period = [], None  # ... or more than the gap held: the sensor's rate went up (learnt)
             self._take(index, message, False, out)
             return True
         s.held = None
