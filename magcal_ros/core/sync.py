@@ -473,8 +473,10 @@ class SetSynchronizer(AcceptanceRule):
             caps[first + head :] = period // 2
             before = np.concatenate([[st.period if st.period else 0], period[:-1]]).astype(np.float64)
             new = s_iv[head:]
-            steps = np.where(before > 0, np.round(new / np.where(before > 0, before, 1.0)), 1.0)
+            known = before > 0
+            steps = np.round(new[known] / before[known])
             st.grid_periods += int(np.maximum(steps, 1.0).sum())
+            st.grid_first += int(new[~known].sum())  # the grid starts where a period is known
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])
         return caps

@@ -374,7 +374,10 @@ class SensorStream:
     def record(self, interval: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period)."""
         before = self.period
-        self.grid_periods += max(1, int(round(interval / before))) if before else 1
+        if before:
+            self.grid_periods += max(1, int(round(interval / before)))
+        else:  # the grid starts where a period is known to count its intervals in
+            self.grid_first += interval
         iv = self.intervals
         iv.append(interval)
         if len(iv) > PERIOD_WINDOW:
