@@ -2,7 +2,8 @@
 
 Every reader of a calibration (``magcal correct`` and ``batch``, ``--prior``, both nodes' parameters)
 builds it through :meth:`~magcal_ros.core.calibration.ArrayCalibration.from_parameters`, which applies
-these bounds, and reads the calibration health's reference (noise, intensity) through
+these bounds (the temperature terms and the output rotation are checked where the calibration is
+built, :class:`~magcal_ros.core.calibration.ArrayCalibration`), and reads the calibration health's reference (noise, intensity) through
 :func:`check_noise` and :func:`check_intensity`. A value outside them is not a calibration of a
 fluxgate array on a vehicle: a unit error (nT for T, mA for A), a sign lost, or a corrupt file. It is
 refused naming the key, never applied (a file with ``positions`` of 1e300 m or an interference of
@@ -16,10 +17,10 @@ key                                     bound
 ``<name>.interference``                 at most :data:`MAX_INTERFERENCE` T/A per component
 ``<name>.offset_per_kelvin``            at most :data:`MAX_OFFSET_TEMPCO` T/K per axis
 ``<name>.matrix_per_kelvin``            at most :data:`MAX_MATRIX_TEMPCO` 1/K per element
-``temperature_reference``               within the temperatures a sensor can have (deg C)
+``temperature_reference``               within :data:`TEMPERATURE_RANGE` (deg C)
 ``<name>.time_offset``                  within +-0.5 s (``MAX_TIME_OFFSET``)
 ``<name>.covariance``                   finite, symmetric, a non-negative diagonal (T^2)
-``output_rotation``                     a rotation (orthonormal to 1e-6, determinant +1)
+``output_rotation``                     a rotation (orthonormal, determinant +1)
 ``<name>.noise``                        0 (unknown) or a noise up to :data:`MAX_NOISE` T
 ``calibration_intensity``               0 (unknown) or an Earth-like field (T)
 ======================================  ==========================================================
@@ -36,6 +37,10 @@ from numpy.typing import NDArray
 from magcal_ros.core.side_streams import TEMPERATURE_RANGE
 from magcal_ros.core.units import EARTH_FIELD_RANGE
 from magcal_ros.errors import InputError
+
+__all__ = ["MAX_INTERFERENCE", "MAX_MATRIX_TEMPCO", "MAX_NOISE", "MAX_OFFSET_TEMPCO", "MAX_POSITION",
+           "TEMPERATURE_RANGE", "check_bounded", "check_covariance", "check_intensity", "check_noise",
+           "check_positions"]
 
 Array = NDArray[np.float64]
 
@@ -68,13 +73,6 @@ def check_bounded(name: str, values: Array, limit: float, unit: str) -> Array:
     return v
 
 
-def check_temperature_reference(value: float | None) -> None:
-    """:class:`InputError` unless ``value`` (deg C) is None or a temperature a sensor can have."""
-    lo, hi = TEMPERATURE_RANGE
-    if value is not None and not lo <= value <= hi:
-        raise InputError(f"temperature_reference must be within {lo:g} .. {hi:g} deg C, got {value:g}")
-
-
 def check_covariance(name: str, cov: Array) -> None:
     """:class:`InputError` unless a sensor's correction covariance (3, 3, T^2) is finite, symmetric and has a
     non-negative diagonal (NaN throughout: not given)."""
@@ -84,15 +82,6 @@ def check_covariance(name: str, cov: Array) -> None:
     scale = max(float(np.abs(c).max()), 1e-300) if np.all(np.isfinite(c)) else math.inf
     if not np.all(np.isfinite(c)) or np.any(np.diag(c) < 0) or np.abs(c - c.T).max() > 1e-9 * scale:
         raise InputError(f"{name}.covariance must be a finite symmetric 3x3 with a non-negative diagonal (T^2)")
-
-
-def check_rotation(rotation: Array | None) -> None:
-    """:class:`InputError` unless ``output_rotation`` is None or a rotation matrix."""
-    if rotation is None:
-        return
-    r = np.asarray(rotation, dtype=float)
-    if not np.all(np.isfinite(r)) or np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
-        raise InputError("output_rotation must be a rotation (orthonormal, determinant +1)")
 
 
 def check_noise(name: str, value: Any) -> float:

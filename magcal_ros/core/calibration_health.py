@@ -453,6 +453,13 @@ class CalibrationHealth:
         self._blocks = _Blocks()
         self._last_tmi: Array | None = None
         self._last_stamp = 0
+        self._shift = 0
+        """Added to every stamp since the sets' stamps last jumped back (a source restarted): the window
+        and what it found go on, in a time that never runs backwards."""
+        self._newest = 0
+        """Newest stamp taken, shifted (ns)."""
+        self.restarts = 0
+        """Times the sets' stamps jumped back further than the synchroniser's restart (``stamp_restarts``)."""
         self._report: DriftReport | None = None
         self._judged: tuple[int, int] | None = None
         self._relative: Array | None = None
@@ -466,7 +473,15 @@ class CalibrationHealth:
 
     # -- hot path ---------------------------------------------------------------------
     def add(self, stamp_ns: int, vectors: ArrayLike) -> None:
-        """Take one corrected set (S, 3) T stamped ``stamp_ns``."""
+        """Take one corrected set (S, 3) T stamped ``stamp_ns``. Stamps jumping back further than the
+        synchroniser's restart (a source restarted) go on from the newest: the window is not lost."""
+        stamp_ns += self._shift
+        if stamp_ns < self._newest - RESTART_NS:
+            self._shift += self._newest + 1 - stamp_ns
+            stamp_ns = self._newest + 1
+            self.restarts += 1
+        if stamp_ns > self._newest:
+            self._newest = stamp_ns
         n = self._n
         if n == len(self._stamps):
             self._digest()
@@ -490,6 +505,7 @@ class CalibrationHealth:
         self._blocks.clear()
         self._last_tmi = None
         self._last_stamp = 0
+        self._shift = self._newest = 0
         self._report = None
         self._judged = None
         self._relative = None
@@ -502,16 +518,6 @@ class CalibrationHealth:
         if n == 0:
             return
         stamps = self._stamps[:n]
-        # A stamp jumping back as far as the synchroniser's restart: the source restarted, the window starts again.
-        newest = np.maximum.accumulate(np.concatenate([[self._last_stamp], stamps]))[:-1]
-        back = np.flatnonzero(stamps < newest - RESTART_NS)
-        if len(back):
-            self._blocks.clear()
-            self._last_tmi = None
-            self._last_stamp = 0
-            self.sets = 0
-            self._keep(int(back[-1]), n)
-            n, stamps = self._n, self._stamps[: self._n]
         if np.any(np.diff(stamps) < 0):  # sets completed out of order: put them in order
             order = np.argsort(stamps, kind="stable")
             self._buf[:n] = self._buf[order]
@@ -574,7 +580,8 @@ class CalibrationHealth:
                 "error_factor": f"{th.error_factor:g}", "false_alarm": f"{th.false_alarm:g}"}
         span_s = (b.index[-1] - b.index[0] + 1) * self._block_ns / NS_PER_S if len(b) else 0.0
         base["window_s"] = f"{span_s:.0f}"
-        base["newest_stamp"] = format_seconds(self._last_stamp) if self._last_stamp else ""
+        base["newest_stamp"] = format_seconds(self._last_stamp - self._shift) if self._last_stamp else ""
+        base["stamp_restarts"] = str(self.restarts)
         if len(b) < MIN_BLOCKS:
             need = MIN_BLOCKS * self._block_ns / NS_PER_S
             return DriftReport(OK, f"collecting: {span_s:.0f} s of sets, {need:.0f} s needed to judge the calibration",

@@ -28,6 +28,7 @@ it is offline.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -268,3 +269,40 @@ def usable_imu(samples: Any) -> tuple[Any, Any]:
         if not w_ok:
             w[i] = np.nan
     return q, w
+
+
+class WaitingSets:
+    """Sets a live node holds while a side-stream sample is due for them (:meth:`SideAcceptance.due`), in
+    the order they formed: each is released once nothing is due at its stamp, or once it waited
+    :data:`MAX_WAIT` (``now``: the node's clock, ns) for a sample that does not come. So a set uses the
+    samples stamped at or before it that arrive a little after it, as offline, where every sample is at
+    hand; only a sample delayed beyond the wait can make the two differ."""
+
+    def __init__(self, max_wait_ns: int = MAX_WAIT) -> None:
+        self.max_wait_ns = int(max_wait_ns)
+        self._sets: deque[tuple[int, int, Any]] = deque()
+
+    def __len__(self) -> int:
+        return len(self._sets)
+
+    def add(self, stamp: int, arrival: int, item: Any) -> None:
+        """Hold ``item``, a set stamped ``stamp`` (ns) that formed at ``arrival`` (node clock, ns)."""
+        self._sets.append((stamp, arrival, item))
+
+    def release(self, now: int, due: Callable[[int], bool], force: bool = False) -> list[Any]:
+        """The held sets that may go now, oldest first (every one with ``force``)."""
+        out = []
+        sets = self._sets
+        while sets:
+            stamp, arrival, item = sets[0]
+            if not (force or now - arrival > self.max_wait_ns or not due(stamp)):
+                break
+            out.append(item)
+            sets.popleft()
+        return out
+
+    def clear(self) -> int:
+        """Drop every held set; how many there were."""
+        n = len(self._sets)
+        self._sets.clear()
+        return n

@@ -337,6 +337,18 @@ class SensorStream:
         return 2 * (stamp - self.last - (receipt - last)) > period and \
             2 * (stamp + self.base - receipt - max(self.leads)) > period
 
+    def behind_alike(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int) -> bool:
+        """Whether a stamp behind its sequence (``held``) and the next (``message``; (stamp, ..., receipt))
+        both trail their arrivals by the same amount, more than half a ``period`` (ns) beyond the recent
+        least: the stamps stepped back, even where the next one, a lost sample later, is ahead of the old
+        sequence again (one late message would trail alone)."""
+        if held[3] is None or message[3] is None or not self.leads:
+            return False
+        top = max(self.leads)
+        lead_h = held[0] + self.base - held[3]
+        lead_n = message[0] + self.base - message[3]
+        return 2 * (top - lead_h) > period and 4 * abs(lead_h - lead_n) < period
+
     def note_lead(self, common: int, receipt: int | None) -> None:
         """Raise the lead envelope with one taken message's common stamp and receipt (ns)."""
         if receipt is None:
@@ -629,8 +641,9 @@ class AcceptanceRule:
         after = stamp - h
         if 0 < after <= self.restart_ns:
             period = s.suspect_period()
-            if stamp <= s.last or (period is not None and 4 * (stamp - s.last) < 3 * period
-                                   and period <= 2 * after <= 3 * period):
+            if stamp <= s.last or (period is not None and (4 * (stamp - s.last) < 3 * period
+                                                           and period <= 2 * after <= 3 * period
+                                                           or s.behind_alike(held, message, period))):
                 self._step(index, [held[:4], message], out)
                 return True
         self.stats.count("out_of_order" if s.last - h <= self.restart_ns else "glitch")
