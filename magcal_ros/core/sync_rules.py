@@ -74,6 +74,8 @@ LEAD_WINDOW: int = 256
 """Messages over which a sensor's stamp lead over its arrivals is taken at its largest (the least delayed
 arrival): long enough for a backlog to catch up, short enough to follow a receipt clock that drifts from
 the stamps' (counted in messages, so a pause does not age it)."""
+TIMED_MIN: int = 16
+"""Arrivals needed before they are trusted to keep the stamps' time."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
@@ -250,7 +252,7 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from", "burst_count")
+                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from", "burst_count")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -271,9 +273,9 @@ class SensorStream:
         goes on); then forgotten: a segment keeps its placement."""
         self.follows: int | None = None
         """The sensor whose stamps the latest restart's share (placed by its shift), None: placed alone."""
-        self.leads: deque[int] = deque(maxlen=LEAD_WINDOW)
-        """``common stamp - receipt`` (ns) of the last :data:`LEAD_WINDOW` messages taken with an arrival: their
-        largest is how far the stamps run ahead of the least delayed arrivals."""
+        self.arrivals: deque[tuple[int, int]] = deque(maxlen=LEAD_WINDOW)
+        """(common stamp, receipt) ns of the last :data:`LEAD_WINDOW` messages taken with an arrival: the
+        largest ``common - receipt`` is how far the stamps run ahead of the least delayed arrivals."""
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
         self.since = 0
@@ -330,21 +332,35 @@ class SensorStream:
         interval beyond the arrivals' exceed half the ``period`` (ns); never while the arrivals come
         bunched (a backlog delivered at once says nothing of time). None while unknown."""
         last = self.last_receipt
-        if receipt is None or last is None or not self.leads:
+        if receipt is None or last is None or not self.timed():
             return None
         if 4 * (receipt - last) < period:
             return False
         return 2 * (stamp - self.last - (receipt - last)) > period and \
-            2 * (stamp + self.base - receipt - max(self.leads)) > period
+            2 * (stamp + self.base - receipt - self.lead()) > period
+
+    def lead(self) -> int:
+        """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
+        return max(c - r for c, r in self.arrivals)
+
+    def timed(self) -> bool:
+        """Whether the arrivals keep the stamps' time (over the last :data:`LEAD_WINDOW`, at least
+        :data:`TIMED_MIN`, their span is the stamps' to a factor of two): not so for a recording replayed
+        faster or slower than it was made, whose arrivals then place and tell nothing."""
+        a = self.arrivals
+        if len(a) < TIMED_MIN:
+            return False
+        span = a[-1][0] - a[0][0]
+        return span > 0 and 0.5 * span <= a[-1][1] - a[0][1] <= 2 * span
 
     def behind_alike(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int) -> bool:
         """Whether a stamp behind its sequence (``held``) and the next (``message``; (stamp, ..., receipt))
         both trail their arrivals by the same amount, more than half a ``period`` (ns) beyond the recent
         least: the stamps stepped back, even where the next one, a lost sample later, is ahead of the old
         sequence again (one late message would trail alone)."""
-        if held[3] is None or message[3] is None or not self.leads:
+        if held[3] is None or message[3] is None or not self.timed():
             return False
-        top = max(self.leads)
+        top = self.lead()
         lead_h = held[0] + self.base - held[3]
         lead_n = message[0] + self.base - message[3]
         return 2 * (top - lead_h) > period and 4 * abs(lead_h - lead_n) < period
@@ -353,7 +369,7 @@ class SensorStream:
         """Raise the lead envelope with one taken message's common stamp and receipt (ns)."""
         if receipt is None:
             return
-        self.leads.append(common - receipt)
+        self.arrivals.append((common, receipt))
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
@@ -674,7 +690,7 @@ class AcceptanceRule:
         known they are held until :data:`PLACE_MESSAGES` have come (the least delayed places the segment);
         otherwise the segment is placed at once."""
         s = self.streams[index]
-        if not s.leads or any(m[3] is None for m in messages):
+        if not s.timed() or any(m[3] is None for m in messages):
             self._place(index, [messages[0][0]], None)
             self._take(index, messages[0], True, out)
             for m in messages[1:]:
@@ -704,10 +720,10 @@ class AcceptanceRule:
         """Place the held new segment of sensor ``index`` by its least delayed arrival and let it through."""
         s = self.streams[index]
         held = s.placing
-        assert held is not None and s.leads
+        assert held is not None and s.arrivals
         s.placing = None
         first = held[0]
-        lead = max(s.leads)
+        lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
         self._place(index, [m[0] for m in held], estimate)
