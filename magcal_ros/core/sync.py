@@ -666,7 +666,8 @@ def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence
         return "exact", "one sensor"
     if any(len(s) < 4 for s in stamps):
         short = [n for n, s in zip(names, stamps) if len(s) < 4]
-        return "exact", f"too few stamps of {', '.join(short)} to tell"
+        return "interpolate", (f"too few stamps of {', '.join(short)} to tell (not heard yet): sets wait for it, "
+                               "exact matching would be chosen on the others' stamps alone")
     periods = [_median([float(b - a) for a, b in zip(s[:-1], s[1:])]) for s in stamps]
     window = min(float(tolerance), min(periods) / 2)
     half = min(periods) / 2
