@@ -101,7 +101,7 @@ def test_an_imu_gap_in_mid_stream_drops_the_sets_it_leaves_bare_live_as_offline(
     last_before = t[keep][t[keep] < T0 + 1 * NS].max()
     expected = ~((sets - last_before > tol) & (sets < T0 + 1 * NS + 500 * MS))
     assert np.array_equal(fresh, expected) and (~fresh).sum() == 41  # 1.095 .. 1.495 s
-    live = LatestImu(tol)
+    live = LatestImu(tol, keep_ns=10 * NS)
     for stamp, qq, ww in zip(t[keep].tolist(), q, w):
         live.add(stamp, qq, ww)
     assert [live.at(int(s))[2] for s in sets] == fresh.tolist()
