@@ -176,7 +176,7 @@ _PHRASES = {
     "out_of_order": "out-of-order stamps dropped",
     "zero_stamp": "zero (unset) stamps dropped",
     "malformed": "undecodable messages dropped",
-    "restarts": "source restarts (stamps jumped back)",
+    "restarts": "source restarts or stamp steps (placed on the common time line)",
     "glitch": "messages with a stamp far off their sensor's sequence dropped",
     "gap": "sets dropped for a gap longer than max_gap in another sensor's samples",
     "negative_stamp": "negative (before 1970) stamps dropped",
