@@ -19,7 +19,8 @@ break its rules in any of these ways:
 
 Every message also has its receipt (bag time, or the node's arrival time): its sample instant plus
 a transport delay, in its sensor's order (a topic delivers in order); a stall delays it to the
-stall's end.
+stall's end; a *busy receiver* (:func:`busy_receiver`, all sensors at once) takes nothing for a while,
+then drains its queue a little faster than the sensors fill it.
 
 The reading encodes the truth: ``x = X0 + SCALE * instant`` (T), so a reading interpolated
 between two samples encodes the instant it stands for. :func:`set_instants` decodes a set's
@@ -145,6 +146,29 @@ def arrivals(streams: list[Stream]) -> list[tuple[int, int, int]]:
     events = [(int(r), k, i) for k, s in enumerate(streams) for i, r in enumerate(s.receipts.tolist())]
     events.sort()
     return events
+
+
+def busy_receiver(streams: list[Stream], start: float, length: float, service: float) -> None:
+    """The receiver is busy from ``start`` for ``length`` s (seconds after the start), then takes what queued
+    one message every ``service`` s until it has caught up: every later receipt (ns) moves, in place."""
+    events = arrivals(streams)
+    free = START_NS + int((start + length) * 1e9)
+    begin = START_NS + int(start * 1e9)
+    step = int(service * 1e9)
+    for receipt, k, i in events:
+        if receipt < begin:
+            continue
+        if receipt >= free:
+            break
+        streams[k].receipts[i] = free
+        free += step
+
+
+def true_lost(stream: Stream, plan: SensorPlan) -> int:
+    """Samples never delivered between the stream's first and last (s instants on the sensor's own grid)."""
+    period = (1.0 + plan.ppm * 1e-6) / plan.rate
+    index = np.round((stream.instants - plan.phase) / period).astype(np.int64)
+    return int(index[-1] - index[0] + 1 - len(np.unique(index))) if len(index) else 0
 
 
 def set_instants(values: Any) -> NDArray[np.float64]:

@@ -176,13 +176,14 @@ def test_imu_is_interpolated_to_the_set_instant_and_propagated_at_the_end() -> N
     assert np.max(angle_deg(imu2.orientation[3:5], constant_rate_motion(t_imu[-1:], w, r0).as_quat())) < 1e-9
 
 
-def test_live_imu_matches_the_offline_rule_whatever_the_arrival_order() -> None:
+def test_live_imu_matches_the_offline_rule_in_any_order_a_topic_delivers() -> None:
     rng = np.random.default_rng(7)
     t_imu = np.sort(rng.uniform(0, 5, 300))
     stream = ImuStream((t_imu * S).astype(np.int64), Rotation.random(300, random_state=2).as_quat(),
                        rng.normal(size=(300, 3)))
     live = LatestImu(50 * MS, keep_ns=100 * S)
-    for k in rng.permutation(300):
+    arrival = np.argsort(t_imu + rng.normal(0, 0.03, 300))  # neighbours delivered out of order now and then
+    for k in arrival:
         live.add(int(stream.stamps[k]), stream.orientation[k], stream.angular_velocity[k])
     sets = (rng.uniform(-0.2, 5.2, 60) * S).astype(np.int64)
     offline, fresh = match_imu(sets, stream, 50 * MS)

@@ -260,6 +260,18 @@ class SampleClock:
         self._last = -(2**62)
         return out
 
+    def carry_counts(self, old: "SampleClock", stamps: list[int]) -> None:
+        """Go on from ``old``'s counts of lost samples (this clock takes over from it and is about to be
+        offered ``stamps`` (ns) again, which ``old`` counted already: what it counted between them is left
+        for this clock to count)."""
+        lost, gaps = old.lost, old.gaps
+        period = old.period_ns
+        if period:
+            missing = [round((b - a) / period) - 1 for a, b in zip(stamps, stamps[1:]) if b - a <= self.pause_ns]
+            missing = [m for m in missing if m > 0]
+            lost, gaps = lost - sum(missing), gaps - len(missing)
+        self.lost, self.gaps, self.dropped = max(lost, 0), max(gaps, 0), old.dropped
+
     # -- learning ---------------------------------------------------------------------
     def _learning(self, stamp: int, payload: Any, out: Released) -> Released:
         if not self.regular:

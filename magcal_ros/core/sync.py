@@ -68,6 +68,7 @@ from magcal_ros.core.sync_rules import (
     TAIL,
     TIMED_MIN,
     Accepted,
+    BACKLOG_INTERVAL,
     AcceptanceRule,
     Batch,
     SetBatch,
@@ -76,6 +77,7 @@ from magcal_ros.core.sync_rules import (
     Vector,
     arrival_order,
     empty_batch,
+    timed_arrivals,
     tolerance_ns,
 )
 from magcal_ros.core.units import NS_PER_S
@@ -327,7 +329,8 @@ class SetSynchronizer(AcceptanceRule):
         median = (w[:, PERIOD_WINDOW // 2 - 1] + w[:, PERIOD_WINDOW // 2]) // 2  # of full[i : i + 8]
         at = np.arange(first, len(full))
         d, period = full[at], median[at - PERIOD_WINDOW]
-        if np.any(SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period) or np.any(4 * d < period):
+        crowded = (4 * d < period) & (d < BACKLOG_INTERVAL)
+        if np.any(SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period) or np.any(crowded):
             return False
         gap = 2 * d > 3 * period  # whole periods missing: lost samples, unless the arrivals saw no gap
         if r is None or not gap.any():
@@ -346,8 +349,7 @@ class SetSynchronizer(AcceptanceRule):
             w0 = max(0, i - LEAD_WINDOW)
             if i - w0 < TIMED_MIN or 4 * dr < period[j] or 2 * (d[j] - dr) <= period[j]:
                 continue
-            span, arrived = common[i - 1] - common[w0], receipt[i - 1] - receipt[w0]
-            timed = span > 0 and 0.5 * span <= arrived <= 2 * span
+            timed = timed_arrivals(list(zip(common[w0:i].tolist(), receipt[w0:i].tolist())))
             if timed and 2 * (common[i] - receipt[i] - (common[w0:i] - receipt[w0:i]).max()) > period[j]:
                 return False
         return True
@@ -877,9 +879,12 @@ class StreamSynchronizer:
         new = self.engine
         assert isinstance(new, InterpolatingSynchronizer)
         new.streams, new.newest, new.latest_arrival = old.streams, old.newest, old.latest_arrival
-        for st in new.streams:
-            st.clock = SampleClock(pause_ns=self.pause_ns)
-        queued = sorted((row[1], k, i, row) for k, rows in enumerate(old.queued()) for i, row in enumerate(rows))
+        rows_of = old.queued()
+        for st, rows in zip(new.streams, rows_of):
+            clock, st.clock = st.clock, SampleClock(pause_ns=self.pause_ns)
+            if clock is not None:
+                st.clock.carry_counts(clock, [row[1] for row in rows])
+        queued = sorted((row[1], k, i, row) for k, rows in enumerate(rows_of) for i, row in enumerate(rows))
         for _, k, _, row in queued:  # in time, as they came: a sensor that follows another's restart waits for it
             new._clock_in(k, [row])
         return True

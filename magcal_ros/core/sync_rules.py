@@ -74,13 +74,19 @@ LEAD_WINDOW: int = 256
 """Messages over which a sensor's stamp lead over its arrivals is taken at its largest (the least delayed
 arrival): long enough for a backlog to catch up, short enough to follow a receipt clock that drifts from
 the stamps' (counted in messages, so a pause does not age it)."""
+BACKLOG_INTERVAL: int = 200_000
+"""Stamps closer than this (ns, 5 kHz) are a backlog delivered at once, not a sensor's rate."""
+MAX_STALL: int = 10 * NS_PER_S
+"""Longest stall (ns) a driver delivers a backlog after: stamps crowding after a longer silence are a
+faster rate, not a backlog."""
 TIMED_MIN: int = 16
 """Arrivals needed before they are trusted to keep the stamps' time."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
-MAX_PLACE_MESSAGES: int = 4096
-"""... or this many, where the arrivals never catch up (a stalled link's backlog, arrivals too jittery)."""
+MAX_PLACE_MESSAGES: int = 256
+"""... or, where the arrivals never catch up with the stamps (a recording replayed faster than it was made,
+arrivals too jittery), this many: then the stamps alone place the segment."""
 TAIL: int = 16
 """The last stamps of a segment that anchor its grid where a step leaves it (their jitter averaged)."""
 SHARED_STEP: int = NS_PER_S // 2
@@ -267,7 +273,7 @@ class SensorStream:
         self.held: tuple[int, Any, str | None, int | None, int] | None = None
         """A suspect: (stamp, payload, reading fault or None, receipt, kind: BEHIND, AHEAD, CROWDED or BURST)."""
         self.clock = clock
-        self.before: tuple[int, int] | None = None
+        self.before: tuple[int, int, int] | None = None
         """(last stamp, base) of the segment before the latest step, for its first :data:`PERIOD_WINDOW`
         messages (without arrivals, two bad stamps in a row look like a step until the old sequence
         goes on); then forgotten: a segment keeps its placement."""
@@ -344,14 +350,12 @@ class SensorStream:
         return max(c - r for c, r in self.arrivals)
 
     def timed(self) -> bool:
-        """Whether the arrivals keep the stamps' time (over the last :data:`LEAD_WINDOW`, at least
-        :data:`TIMED_MIN`, their span is the stamps' to a factor of two): not so for a recording replayed
-        faster or slower than it was made, whose arrivals then place and tell nothing."""
-        a = self.arrivals
-        if len(a) < TIMED_MIN:
-            return False
-        span = a[-1][0] - a[0][0]
-        return span > 0 and 0.5 * span <= a[-1][1] - a[0][1] <= 2 * span
+        """Whether the arrivals keep the stamps' time: over the last :data:`LEAD_WINDOW` (at least
+        :data:`TIMED_MIN`), the arrivals advance as the stamps do from one message to the next, to a factor
+        of two in the median, and the stamps' lead over the least delayed arrivals holds to an interval.
+        Not so for a recording replayed faster or slower than it was made, nor for a backlog drained by a
+        busy receiver, whose arrivals then place and tell nothing."""
+        return timed_arrivals(self.arrivals)
 
     def behind_alike(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int) -> bool:
         """Whether a stamp behind its sequence (``held``) and the next (``message``; (stamp, ..., receipt))
@@ -373,10 +377,11 @@ class SensorStream:
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
-        was delivered): under a quarter of the short ``period``, while the sensor's recent intervals are
-        regular (their median deviation under a quarter period: a stream of irregular stamps has no
+        was delivered): under a quarter of the short ``period`` and under :data:`BACKLOG_INTERVAL` (faster than
+        any magnetometer is read: a faster rate is learnt, not dropped), while the sensor's recent intervals
+        are regular (their median deviation under a quarter period: a stream of irregular stamps has no
         backlog to tell)."""
-        if 4 * interval >= period:
+        if 4 * interval >= period or interval >= BACKLOG_INTERVAL:
             return False
         return 4 * median_int([abs(i - period) for i in self.intervals]) < period
 
@@ -388,6 +393,10 @@ class SensorStream:
         if last == NEVER:
             return OK
         d = stamp - last
+        before = self.before
+        if before is not None and 0 < stamp - before[0] <= restart_ns and \
+                SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * before[2]:
+            return AHEAD  # a jump back into the sequence a step has just left
         period = self.suspect_period()
         if period is None:  # before a period is known: a jump as far as a restart's
             return AHEAD if d > restart_ns else OK
@@ -429,12 +438,43 @@ def arrival_order(receipts: Sequence[NDArray[np.int64]]) -> list[tuple[int, int]
 
 
 
+def timed_arrivals(arrivals: Sequence[tuple[int, int]]) -> bool:
+    """Whether (common stamp, receipt) pairs (ns, in order) advance alike: the median ratio of receipt to
+    stamp intervals within 0.5 .. 2 and the stamps' lead over the arrivals not growing (see
+    :meth:`SensorStream.timed`)."""
+    if len(arrivals) < TIMED_MIN:
+        return False
+    pairs = list(arrivals)
+    steps = [(c1 - c0, r1 - r0) for (c0, r0), (c1, r1) in zip(pairs, pairs[1:]) if c1 > c0]
+    if not steps:
+        return False
+    ratios = sorted(r / c for c, r in steps)
+    if not 0.5 <= ratios[len(ratios) // 2] <= 2.0:
+        return False
+    # A backlog drained a little faster than it was stamped (or a receiver falling behind) has such a
+    # ratio too, but its stamps' lead over the arrivals moves all along: the least delayed of the newer
+    # half lead by over an interval more (or less) than those of the older half.
+    half = len(pairs) // 2
+    interval = sorted(c for c, _ in steps)[len(steps) // 2]
+    return abs(max(c - r for c, r in pairs[half:]) - max(c - r for c, r in pairs[:half])) <= interval
+
+
 def _on_grid(common: int, grid: tuple[float, float] | None) -> bool:
     """Whether a common stamp (ns) falls on a sample ``grid`` (anchor ns, period ns) to a quarter period."""
     if grid is None:
         return False
     steps = (common - grid[0]) / grid[1]
     return abs(steps - round(steps)) <= 0.25
+
+
+def _in_line(offset: int, grid: tuple[float, float] | None) -> bool:
+    """Whether a stamp ``offset`` (ns) from another sensor's latest is that sensor's sample or its neighbour's
+    (within a period and a quarter, a quarter period off the grid; within a millisecond while no period is
+    known): the two are stamped by one clock."""
+    if grid is None:
+        return abs(offset) <= NS_PER_S // 1000
+    k = round(offset / grid[1])
+    return abs(k) <= 1 and abs(offset - k * grid[1]) <= 0.25 * grid[1]
 
 
 def caught_up(held: list[Message], period: int | None) -> bool:
@@ -606,8 +646,9 @@ class AcceptanceRule:
             return self._decide_behind(index, message, out)
         step = message[0] - held[0]
         period = s.suspect_period()
-        if step > 0 and period is not None and s.crowded(step, period) and kind != CROWDED:
-            # After a gap, stamps closer than the sensor samples: a backlog delivered at once ...
+        if step > 0 and period is not None and s.crowded(step, period) and \
+                (kind == BURST or kind == AHEAD and held[0] - s.last <= MAX_STALL):
+            # After a stall, stamps closer than the sensor samples: a backlog delivered at once ...
             if kind != BURST:
                 s.burst_from, s.burst_count = held[0], 1
             self.stats.burst += 1
@@ -640,6 +681,8 @@ class AcceptanceRule:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals are known, when they did not see the time pass; without
         them, when it is more than ``restart_ns`` ahead."""
+        if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
+            return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
         if unseen is None:
             return held[0] - s.last > self.restart_ns
@@ -647,8 +690,10 @@ class AcceptanceRule:
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
         """The held suspect is behind its sequence: a step back when ``message`` goes on from it below the
-        old sequence (or, a period or two back, on its grid rather than the old one's), else a single
-        late or bad stamp."""
+        old sequence (or, a period or two back, on its grid rather than the old one's: one period after
+        the suspect and less than a period past the old sequence's last stamp, while the suspect lies
+        clearly behind that stamp or the message does not fall short of it), else a single late or bad
+        stamp."""
         s = self.streams[index]
         held = s.held
         assert held is not None
@@ -657,9 +702,11 @@ class AcceptanceRule:
         after = stamp - h
         if 0 < after <= self.restart_ns:
             period = s.suspect_period()
-            if stamp <= s.last or (period is not None and (4 * (stamp - s.last) < 3 * period
-                                                           and period <= 2 * after <= 3 * period
-                                                           or s.behind_alike(held, message, period))):
+            below = s.last - stamp > (period or 0) // 2  # clearly below the old sequence, not its jitter
+            if below or (period is not None and ((0 <= stamp - s.last or 2 * (s.last - h) > period)
+                                                 and 4 * (stamp - s.last) < 3 * period
+                                                 and period <= 2 * after <= 3 * period
+                                                 or s.behind_alike(held, message, period))):
                 self._step(index, [held[:4], message], out)
                 return True
         self.stats.count("out_of_order" if s.last - h <= self.restart_ns else "glitch")
@@ -712,12 +759,18 @@ class AcceptanceRule:
             self._place_held(index, out)
             return False
         held.append(message)
-        if len(held) >= PLACE_MESSAGES and (caught_up(held, period) or len(held) >= MAX_PLACE_MESSAGES):
+        if len(held) < PLACE_MESSAGES:
+            return True
+        timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
+        if timed and caught_up(held, period):
             self._place_held(index, out)
+        elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
+            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
         return True
 
-    def _place_held(self, index: int, out: Accepted) -> None:
-        """Place the held new segment of sensor ``index`` by its least delayed arrival and let it through."""
+    def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
+        """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
+        False, by its stamps alone) and let it through."""
         s = self.streams[index]
         held = s.placing
         assert held is not None and s.arrivals
@@ -726,7 +779,7 @@ class AcceptanceRule:
         lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
-        self._place(index, [m[0] for m in held], estimate)
+        self._place(index, [m[0] for m in held], estimate if by_arrival else None)
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
@@ -785,7 +838,7 @@ class AcceptanceRule:
         base = max(base, s.lastc + 1 - stamp)
         estimate = stamp + base
         old = s.base
-        s.before = (s.last, old) if s.before is None else s.before
+        s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
         shared = self._shared_base(index, stamp, estimate, margin, grid)
         s.placed_at = estimate
@@ -800,31 +853,34 @@ class AcceptanceRule:
                      grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
-        when it stands alone. ``margin``: how far apart (ns) a placement by arrivals may be from where the
-        stamps say (half a period; without arrivals, half of ``restart_ns``); with one that did not step,
-        half of that and at most a millisecond (the stamps are back in line with its own). With a sensor
+        when it stands alone. ``margin``: how far apart (ns) a placement may be from where another sensor's
+        recent step put it (by arrivals half a period; without them, half of ``restart_ns``); with one that did
+        not step, half of that and at most a millisecond (the stamps are back in line with its own). With a sensor
         whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
         :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
-        places both alike."""
+        places both alike. First of all, where the new stamps are another sensor's latest to half a period
+        or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
+        sensor's placement."""
         s = self.streams[index]
+        for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
+            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid):
+                return other.base, self._leader(index, j)
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
                 continue
             off = abs(stamp + other.base - estimate)
             recent = other.placed_at is not None and abs(estimate - other.placed_at) <= SHARED_STEP
-            if not by_arrival:
-                near = off <= margin
-            elif recent:
-                near = off <= margin or (off <= SHARED_MARGIN and _on_grid(stamp + other.base, grid))
+            if recent:
+                near = off <= margin or (by_arrival and off <= SHARED_MARGIN and _on_grid(stamp + other.base, grid))
             else:
                 near = off <= min(margin // 2, NS_PER_S // 1000)
             if near:
                 return other.base, self._leader(index, j)
-        before = s.before
+        before = s.before  # back just after the old sequence's last stamp (where arrivals say so too)
         if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
-                abs(stamp + before[1] - estimate) <= margin:
+                (not by_arrival or abs(stamp + before[1] - estimate) <= margin):
             return before[1], None
         return None
 
