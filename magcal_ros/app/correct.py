@@ -310,20 +310,7 @@ def correct_bag(
             found = list(temperature_topics) if temperature_topics else _bag_temperature_topics(reader, inp, names)
             temperatures = read_temperature_samples(reader, inp, names, found)
             temperature_stats = TemperatureStats(names, temp_tol, [t.counts for t in temperatures if t.counts])
-        outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
-                                                topics.BASELINE_GRADIENT]}
-        if copy_topics == "all":
-            extra = list(reader.connections)
-        else:
-            have = {c.topic for c in reader.connections}
-            wanted = [t if t.startswith("/") else "/" + t for t in copy_topics]
-            missing = [t for t in wanted if t not in have]
-            if missing:
-                raise InputError(f"{inp}: no topic {', '.join(missing)} to copy (topics: {', '.join(sorted(have))})")
-            extra = [c for c in reader.connections if c.topic in wanted]
-        clash = sorted({c.topic for c in extra} & outputs)
-        if clash:
-            raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
+        extra = _copied(reader, inp, copy_topics, names)
         with atomic_path(out_path) as tmp, BagSink.create(tmp, out_storage) as sink:
             out = correction_output(sink, names, frame_id, calibration.geometry.gradient_kind, bool(raw_sensors))
             copy_map: dict[int, Connection] = {}
@@ -365,21 +352,48 @@ def correct_bag(
                     sets_out = calibration.outputs(part.vectors, gradient_method, part_u, part_t)
                     sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
-            why = sets.stats.disorder()
-            if why:
-                raise InputError(f"{inp}: {why}")
-            if sets.stats.sets == 0:
-                raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
-            if n_in == 0 and current_stats is not None and current_stats.dropped:
-                raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
-                                 "widen --current-tolerance")
-            if n_in == 0 and temperature_stats is not None and temperature_stats.dropped:
-                raise InputError(f"{inp}: {temperature_stats.describe()}: no set left; check the topics' stamps or "
-                                 "widen --temperature-tolerance")
-            if n_in == 0:
-                raise InputError(f"{inp}: no synchronized sets in the selected time window")
+            _check_sets_written(inp, names, sets.stats, n_in, current_stats, temperature_stats)
     return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats,
                             temperature_stats)
+
+
+def _check_sets_written(inp: Path, names: Sequence[str], stats: SyncStats, written: int,
+                        current_stats: CurrentStats | None, temperature_stats: TemperatureStats | None) -> None:
+    """:class:`InputError` naming why a correction wrote no set (or met stamps out of order)."""
+    why = stats.disorder()
+    if why:
+        raise InputError(f"{inp}: {why}")
+    if stats.sets == 0:
+        raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} "
+                         f"({stats.describe()})")
+    if written == 0 and current_stats is not None and current_stats.dropped:
+        raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
+                         "widen --current-tolerance")
+    if written == 0 and temperature_stats is not None and temperature_stats.dropped:
+        raise InputError(f"{inp}: {temperature_stats.describe()}: no set left; check the topics' stamps or "
+                         "widen --temperature-tolerance")
+    if written == 0:
+        raise InputError(f"{inp}: no synchronized sets in the selected time window")
+
+
+def _copied(reader: Any, inp: Path, copy_topics: Sequence[str] | Literal["all"], names: Sequence[str]) -> list[Any]:
+    """The input connections to copy unchanged (``"all"``, or the topics named); :class:`InputError` for a
+    topic the bag lacks or one the corrected output writes itself."""
+    outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
+                                            topics.BASELINE_GRADIENT]}
+    if copy_topics == "all":
+        extra = list(reader.connections)
+    else:
+        have = {c.topic for c in reader.connections}
+        wanted = [t if t.startswith("/") else "/" + t for t in copy_topics]
+        missing = [t for t in wanted if t not in have]
+        if missing:
+            raise InputError(f"{inp}: no topic {', '.join(missing)} to copy (topics: {', '.join(sorted(have))})")
+        extra = [c for c in reader.connections if c.topic in wanted]
+    clash = sorted({c.topic for c in extra} & outputs)
+    if clash:
+        raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
+    return extra
 
 
 def _bag_temperature_topics(reader: Any, path: Path, names: Sequence[str]) -> list[str]:
