@@ -475,10 +475,11 @@ def _report_quantities(result: Any) -> None:
     """The least determined quantities (or, with a prior, what was kept), one line each."""
     ana = result.identifiability
     if result.prior:
-        kept = ana.kept()
-        if kept:
-            print("  kept from the prior (this manoeuvre does not determine them better): "
-                  + ", ".join(sorted({q.name for q in kept})))
+        from magcal_ros.core.identifiability import by_sensor
+
+        names = result.calibration.geometry.names
+        print(f"  updated from this manoeuvre: {by_sensor(ana.updated(), names)}")
+        print(f"  kept from the prior (this manoeuvre does not determine them better): {by_sensor(ana.kept(), names)}")
         return
     worst = sorted(ana.quantities, key=lambda q: -q.effect / max(ana.noise[0], 1e-30))[:3]
     print("  least determined: " + "; ".join(f"{q.describe()} ({float(f'{q.effect / NT:.2g}'):g} nT effect)" for q in worst))
@@ -554,6 +555,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
               f"noise {result.noise[i] / NT:.3g} nT" + (f", {int(result.outliers[i])} outliers excluded"
                                                        if result.outliers[i] else ""))
     _report_quantities(result)
+    frame = result.calibration.frame_id or topics.DEFAULT_FRAME_ID
+    print(f"  frame {frame}: {result.frame_note()}")
     if result.calibration.channels:
         print(f"  interference of {', '.join(result.calibration.channels)} estimated (subtracted by 'magcal correct' "
               "given their currents)")
