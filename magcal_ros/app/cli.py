@@ -1205,7 +1205,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``magcal`` argument parser."""
-    from magcal_ros import __version__
+    import magcal_ros  # the package's version
 
     parser = argparse.ArgumentParser(
         prog="magcal",
@@ -1219,7 +1219,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"magcal {__version__} (magcal_ros)")
+    parser.add_argument("--version", action="version", version=f"magcal {magcal_ros.__version__} (magcal_ros)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     _add_simulate(sub)
