@@ -177,3 +177,57 @@ def test_a_non_symmetric_matrix_is_written_row_major_and_read_back_unchanged(tmp
     from_file = np.stack([np.array(block[n]["matrix"]).reshape(3, 3) for n in geo.names])
     expected = correct(from_file, np.stack([block[n]["offset"] for n in geo.names]), raw)
     np.testing.assert_allclose(back.apply(raw), expected, rtol=1e-12, atol=1e-20)
+
+
+# -- one validation for every reader -------------------------------------------------------------------
+def _with_channel(cal: ArrayCalibration) -> ArrayCalibration:
+    from dataclasses import replace
+
+    return replace(cal, channels=("thruster",), interference=np.full((4, 3, 1), 2e-8),
+                   temperature_reference=15.0, offset_tempco=np.full((4, 3), 1e-10),
+                   matrix_tempco=np.full((4, 3, 3), 1e-6))
+
+
+BOUNDED = {
+    "positions": (lambda p, v: p.__setitem__("positions", [v] + p["positions"][1:]), "positions"),
+    "noise": (lambda p, v: p["mag1"].__setitem__("noise", v), "mag1.noise"),
+    "intensity": (lambda p, v: p.__setitem__("calibration_intensity", v), "calibration_intensity"),
+    "interference": (lambda p, v: p["mag2"].__setitem__("interference", [v, 0.0, 0.0]), "mag2.interference"),
+    "offset tempco": (lambda p, v: p["mag3"].__setitem__("offset_per_kelvin", [v, 0.0, 0.0]), "mag3.offset_per_kelvin"),
+    "matrix tempco": (lambda p, v: p["mag4"].__setitem__("matrix_per_kelvin", [v] + [0.0] * 8), "mag4.matrix_per_kelvin"),
+    "temperature reference": (lambda p, v: p.__setitem__("temperature_reference", v), "temperature_reference"),
+    "time offset": (lambda p, v: p["mag1"].__setitem__("time_offset", v), "mag1.time_offset"),
+}
+"""How to put a value into a file's parameters, and the key the refusal names."""
+ABSURD = {"positions": [1e300, -1e3, 51.0], "noise": [-1.0, 1e300, 0.5], "intensity": [-5e-5, 1e300, 0.5],
+          "interference": [1e30, -1e-3], "offset tempco": [1e-3, -1e300], "matrix tempco": [0.5, -1e300],
+          "temperature reference": [-300.0, 1e30], "time offset": [1e300, -2.0]}
+"""Values no calibration of a vehicle's fluxgate array can hold (units, signs, corruption)."""
+
+
+@pytest.mark.parametrize("key, value", [(k, v) for k, vs in ABSURD.items() for v in vs])
+def test_every_reader_refuses_a_value_no_calibration_can_hold_by_its_key(tmp_path: Path, key: str,
+                                                                         value: float) -> None:
+    """The same key with the same absurd value is refused by the file reader (magcal correct, batch, --prior,
+    the calibration node's prior) and by the correction node's parameters, naming the key; the valid file
+    reads. (Before: noise -1, a negative or 1e300 intensity, 1e30 T/A, positions of 1e300 m were accepted by
+    correct and batch, some of them by the node, and 7e30 T written in every row.)"""
+    from magcal_ros.nodes.correction_node import build_state
+    from magcal_ros.nodes.common import flatten_parameters
+
+    cal = _with_channel(_calibration())
+    path = _write(tmp_path, cal)
+    calfile.read(path, "/magcal_correction")
+    doc = yaml.safe_load(path.read_text())
+    params = doc["/magcal_correction"]["ros__parameters"]
+    put, name = BOUNDED[key]
+    put(params, value)
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError, match=name.replace(".", r"\.")):
+        calfile.read(path, "/magcal_correction")
+    values = flatten_parameters(params)
+    values.update(frame_id="magcal_array", gradient_method="difference", sync_tolerance=1e-3, sync_mode="auto",
+                  max_gap=0.0, temperature_tolerance=10.0, current_topics=["/thruster"],
+                  current_types=["std_msgs/msg/Float64"], current_tolerance=0.5)
+    with pytest.raises(InputError, match=name.replace(".", r"\.")):
+        build_state(values)

@@ -384,3 +384,15 @@ def test_a_calibration_whose_positions_coincide_corrects_the_field_and_says_why_
     assert "note: the positions of mag1, mag2, mag3, mag4" in proc.stderr and "coincide: no gradient" in proc.stderr
     header = out.read_text().splitlines()[0]
     assert "field.x" in header and "gradient." not in header
+
+
+def test_an_input_that_never_ends_is_refused_in_one_line(tmp_path: Any) -> None:
+    """A "CSV" or a calibration that is a link to /dev/zero was read whole before any check (MemoryError):
+    refused as not a regular file, in one line, before a byte is read."""
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    (tmp_path / "zero.yaml").symlink_to("/dev/zero")
+    line = one_line_error(magcal("calibrate", tmp_path / "zero.csv", "-o", tmp_path / "c.yaml", "--reference-field", F))
+    assert "zero.csv is not a regular file" in line
+    (tmp_path / "ok.csv").write_text("stamp,a.x,a.y,a.z\n1.0,1e-5,2e-5,3e-5\n")
+    line = one_line_error(magcal("correct", tmp_path / "ok.csv", "-c", tmp_path / "zero.yaml", "-o", tmp_path / "o.csv"))
+    assert "zero.yaml is not a regular file" in line

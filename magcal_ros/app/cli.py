@@ -431,8 +431,8 @@ def _with_currents(args: argparse.Namespace, rec: Recording) -> Recording:
 
 
 def _report_sync(stats: SyncStats | None) -> None:
-    """One note on stderr when synchronisation dropped anything."""
-    if stats is not None and stats.dropped():
+    """One note on stderr when synchronisation dropped anything or a source's stamps stepped."""
+    if stats is not None and (stats.dropped() or stats.restarts):
         _note(stats.describe())
 
 

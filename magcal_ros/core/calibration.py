@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.sync_rules import MAX_TIME_OFFSET
 from magcal_ros.core.tensor import baseline_gradient, centre_field, gradient
@@ -38,12 +39,9 @@ GAIN_RANGE: tuple[float, float] = (0.1, 10.0)
 """Accepted range of a correction matrix's singular values."""
 MAX_OFFSET: float = 1e-3
 """Largest accepted offset magnitude (T): 1 mT, twenty times the Earth's field."""
-MAX_OFFSET_TEMPCO: float = 1e-6
-"""Largest accepted offset temperature coefficient (T/K): 1000 nT/K, a thousand times a fluxgate's."""
-MAX_MATRIX_TEMPCO: float = 1e-2
-"""Largest accepted matrix temperature coefficient (1/K): 1 %/K, hundreds of times a fluxgate's."""
-TEMPERATURE_REFERENCE_RANGE: tuple[float, float] = (-60.0, 150.0)
-"""Accepted reference temperatures (deg C)."""
+MAX_OFFSET_TEMPCO: float = bounds.MAX_OFFSET_TEMPCO
+MAX_MATRIX_TEMPCO: float = bounds.MAX_MATRIX_TEMPCO
+TEMPERATURE_REFERENCE_RANGE: tuple[float, float] = bounds.TEMPERATURE_RANGE
 ROTATION_TOLERANCE: float = 1e-6
 """Largest departure of an output rotation from orthonormal (entries of ``R R^T - I``)."""
 
@@ -368,6 +366,7 @@ class ArrayCalibration:
         """
         try:
             names = tuple(params["sensor_names"])
+            bounds.check_positions(params["positions"])
             geometry = ArrayGeometry(names, np.asarray(params["positions"], dtype=float))
         except KeyError as exc:
             raise InputError(f"calibration is missing {exc.args[0]!r}") from None
@@ -405,10 +404,17 @@ class ArrayCalibration:
                     if gains.size != 3 * len(channels):
                         raise InputError(f"{name}.interference needs {3 * len(channels)} numbers (3 x "
                                          f"{len(channels)} row-major, T/A), got {gains.size}")
+                    bounds.check_bounded(f"{name}.interference", gains, bounds.MAX_INTERFERENCE, "T/A")
                     infs.append(gains.reshape(3, len(channels)))
+                if "noise" in block:
+                    bounds.check_noise(f"{name}.noise", block["noise"])
             except (TypeError, ValueError):
                 raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
                                  "interference") from None
+        for name, cov in zip(names, covs):
+            bounds.check_covariance(name, cov)
+        if "calibration_intensity" in params:
+            bounds.check_intensity("calibration_intensity", params["calibration_intensity"])
         given = [not np.isnan(c).all() for c in covs]
         if any(given) and not all(g or n in uncorrected for g, n in zip(given, names)):
             raise InputError("calibration gives a covariance for some sensors but not all")
@@ -456,6 +462,7 @@ def _temperature_and_frame(params: dict[str, Any], names: Sequence[str]) -> dict
         matrices.append(np.zeros((3, 3)) if _unset(g) else _numbers(g, 9, f"{name}.matrix_per_kelvin",
                                                                     "row-major 3x3, 1/K").reshape(3, 3))
     rot = params.get("output_rotation")
+    rotation = None if _unset(rot) else _numbers(rot, 9, "output_rotation", "row-major 3x3").reshape(3, 3)
     frame = params.get("frame_id")
     if not _unset(frame) and not isinstance(frame, str):
         raise InputError(f"frame_id must be a frame name, got {frame!r}")
@@ -463,6 +470,6 @@ def _temperature_and_frame(params: dict[str, Any], names: Sequence[str]) -> dict
         "temperature_reference": None if ref is None else float(ref),
         "offset_tempco": np.stack(offsets),
         "matrix_tempco": np.stack(matrices),
-        "output_rotation": None if _unset(rot) else _numbers(rot, 9, "output_rotation", "row-major 3x3").reshape(3, 3),
+        "output_rotation": rotation,
         "frame_id": None if _unset(frame) else frame,
     }

@@ -86,6 +86,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.stamps import format_seconds
+from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.sync import RESTART_JUMP
 from magcal_ros.core.tensor import least_squares_operator
 from magcal_ros.core.units import NS_PER_S, NT
@@ -452,6 +453,13 @@ class CalibrationHealth:
         self._blocks = _Blocks()
         self._last_tmi: Array | None = None
         self._last_stamp = 0
+        self._shift = 0
+        """Added to every stamp since the sets' stamps last jumped back (a source restarted): the window
+        and what it found go on, in a time that never runs backwards."""
+        self._newest = 0
+        """Newest stamp taken, shifted (ns)."""
+        self.restarts = 0
+        """Times the sets' stamps jumped back further than the synchroniser's restart (``stamp_restarts``)."""
         self._report: DriftReport | None = None
         self._judged: tuple[int, int] | None = None
         self._relative: Array | None = None
@@ -465,7 +473,15 @@ class CalibrationHealth:
 
     # -- hot path ---------------------------------------------------------------------
     def add(self, stamp_ns: int, vectors: ArrayLike) -> None:
-        """Take one corrected set (S, 3) T stamped ``stamp_ns``."""
+        """Take one corrected set (S, 3) T stamped ``stamp_ns``. Stamps jumping back further than the
+        synchroniser's restart (a source restarted) go on from the newest: the window is not lost."""
+        stamp_ns += self._shift
+        if stamp_ns < self._newest - RESTART_NS:
+            self._shift += self._newest + 1 - stamp_ns
+            stamp_ns = self._newest + 1
+            self.restarts += 1
+        if stamp_ns > self._newest:
+            self._newest = stamp_ns
         n = self._n
         if n == len(self._stamps):
             self._digest()
@@ -489,6 +505,7 @@ class CalibrationHealth:
         self._blocks.clear()
         self._last_tmi = None
         self._last_stamp = 0
+        self._shift = self._newest = 0
         self._report = None
         self._judged = None
         self._relative = None
@@ -501,16 +518,6 @@ class CalibrationHealth:
         if n == 0:
             return
         stamps = self._stamps[:n]
-        # A stamp jumping back as far as the synchroniser's restart: the source restarted, the window starts again.
-        newest = np.maximum.accumulate(np.concatenate([[self._last_stamp], stamps]))[:-1]
-        back = np.flatnonzero(stamps < newest - RESTART_NS)
-        if len(back):
-            self._blocks.clear()
-            self._last_tmi = None
-            self._last_stamp = 0
-            self.sets = 0
-            self._keep(int(back[-1]), n)
-            n, stamps = self._n, self._stamps[: self._n]
         if np.any(np.diff(stamps) < 0):  # sets completed out of order: put them in order
             order = np.argsort(stamps, kind="stable")
             self._buf[:n] = self._buf[order]
@@ -573,7 +580,8 @@ class CalibrationHealth:
                 "error_factor": f"{th.error_factor:g}", "false_alarm": f"{th.false_alarm:g}"}
         span_s = (b.index[-1] - b.index[0] + 1) * self._block_ns / NS_PER_S if len(b) else 0.0
         base["window_s"] = f"{span_s:.0f}"
-        base["newest_stamp"] = format_seconds(self._last_stamp) if self._last_stamp else ""
+        base["newest_stamp"] = format_seconds(self._last_stamp - self._shift) if self._last_stamp else ""
+        base["stamp_restarts"] = str(self.restarts)
         if len(b) < MIN_BLOCKS:
             need = MIN_BLOCKS * self._block_ns / NS_PER_S
             return DriftReport(OK, f"collecting: {span_s:.0f} s of sets, {need:.0f} s needed to judge the calibration",
@@ -747,11 +755,16 @@ def _drift_message(sensors: tuple[SensorDrift, ...], who: str, count: int, by_tm
 
 
 def noise_and_intensity(metadata: dict[str, object], names: Sequence[str]) -> tuple[Array | None, float | None]:
-    """The noise per sensor (S,) T and the intensity T a calibration's provenance records (None where absent)."""
+    """The noise per sensor (S,) T and the intensity T a calibration's provenance records (None where absent;
+    a noise NaN where unknown); :class:`InputError` for a value no calibration can have
+    (:mod:`~magcal_ros.core.calibration_bounds`)."""
     noise = metadata.get("noise")
     values = None
     if isinstance(noise, (list, tuple)) and len(noise) == len(names):
-        values = np.asarray(noise, dtype=float)
+        values = np.array([np.nan if v is None or (isinstance(v, float) and np.isnan(v))
+                           else bounds.check_noise(f"{n} noise", v) for n, v in zip(names, noise)], dtype=float)
     intensity = metadata.get("intensity")
-    f = float(intensity) if isinstance(intensity, (int, float)) and not isinstance(intensity, bool) else None
-    return values, (f if f and np.isfinite(f) and f > 0 else None)
+    f = None
+    if isinstance(intensity, (int, float)) and not isinstance(intensity, bool) and not np.isnan(intensity):
+        f = bounds.check_intensity("intensity", intensity) or None
+    return values, f

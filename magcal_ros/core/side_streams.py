@@ -8,11 +8,11 @@ live (a node's subscription):
 - a value that is not a number (``nonfinite``) or outside what the stream can carry
   (``out_of_range``: a temperature outside -60 .. 150 deg C, a current beyond 1e4 A, an
   orientation that is not a unit quaternion, an angular velocity beyond 35 rad/s): no value;
-- a stamp far ahead of the stream's sequence (more than :data:`FAR_PERIODS` of its intervals,
-  and at least :data:`FAR_MIN`) is held until the next sample: kept when the next goes on from
-  it (the stream paused, or its clock stepped), dropped (``glitch``) when the stream goes on
-  below it. One sample stamped three years ahead therefore costs that sample, and never pushes
-  the stream's later values out of the store that keeps its last seconds.
+- a stamp far off the stream's sequence, ahead or behind (more than :data:`FAR_PERIODS` of its
+  intervals, and at least :data:`FAR_MIN`), is held until the next sample: kept when the next
+  lies nearer to it than to the sequence before (the stream paused, or its clock stepped), dropped
+  (``glitch``) when the stream goes on where it was. One sample stamped three years ahead therefore costs that sample, and
+  never pushes the stream's later values out of the store that keeps its last seconds.
 
 Samples are counted per stream (:class:`SideCounts`), for the offline notes and ``/diagnostics``.
 A stream whose values are mostly out of range is a units error (kelvin for deg C, mA for A),
@@ -28,6 +28,7 @@ it is offline.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -38,6 +39,8 @@ FAR_PERIODS: int = 8
 """A sample stamped more than this many of its stream's intervals (median) ahead is held (a suspect) ..."""
 FAR_MIN: int = 2 * NS_PER_S
 """... and never less far than this (ns): a slow stream's rhythm is loose."""
+FAR_EARLY: int = 60 * NS_PER_S
+"""How far off (ns) a stamp is a suspect before the stream's rhythm is known (its first samples)."""
 INTERVALS: int = 16
 """Stamp intervals of a stream whose median is its rhythm."""
 MAX_WAIT: int = NS_PER_S // 2
@@ -117,9 +120,9 @@ class SideAcceptance:
         return iv[len(iv) // 2] if len(iv) >= 3 else None
 
     def far(self) -> int:
-        """How far ahead (ns) a stamp is a suspect."""
+        """How far off its sequence (ns) a stamp is a suspect (:data:`FAR_EARLY` while the rhythm is unknown)."""
         interval = self.interval
-        return max(FAR_MIN, FAR_PERIODS * interval) if interval else FAR_MIN
+        return max(FAR_MIN, FAR_PERIODS * interval) if interval else FAR_EARLY
 
     def offer(self, stamp: int, value: Any) -> list[tuple[int, Any]]:
         """One sample (stamp ns, value); the samples let through."""
@@ -135,11 +138,11 @@ class SideAcceptance:
         if held is not None:
             self._held = None
             counts.held -= 1
-            if held[0] <= stamp <= held[0] + self.far():  # the stream goes on from it
+            if self.last is None or abs(stamp - held[0]) <= abs(stamp - self.last):  # the stream goes on from it
                 self._take(held, out)
             else:
                 counts.glitch += 1
-        if self.last is not None and stamp > self.last + self.far():
+        if self.last is not None and abs(stamp - self.last) > self.far():
             self._held = (stamp, value)
             counts.held += 1
             return out
@@ -266,3 +269,40 @@ def usable_imu(samples: Any) -> tuple[Any, Any]:
         if not w_ok:
             w[i] = np.nan
     return q, w
+
+
+class WaitingSets:
+    """Sets a live node holds while a side-stream sample is due for them (:meth:`SideAcceptance.due`), in
+    the order they formed: each is released once nothing is due at its stamp, or once it waited
+    :data:`MAX_WAIT` (``now``: the node's clock, ns) for a sample that does not come. So a set uses the
+    samples stamped at or before it that arrive a little after it, as offline, where every sample is at
+    hand; only a sample delayed beyond the wait can make the two differ."""
+
+    def __init__(self, max_wait_ns: int = MAX_WAIT) -> None:
+        self.max_wait_ns = int(max_wait_ns)
+        self._sets: deque[tuple[int, int, Any]] = deque()
+
+    def __len__(self) -> int:
+        return len(self._sets)
+
+    def add(self, stamp: int, arrival: int, item: Any) -> None:
+        """Hold ``item``, a set stamped ``stamp`` (ns) that formed at ``arrival`` (node clock, ns)."""
+        self._sets.append((stamp, arrival, item))
+
+    def release(self, now: int, due: Callable[[int], bool], force: bool = False) -> list[Any]:
+        """The held sets that may go now, oldest first (every one with ``force``)."""
+        out = []
+        sets = self._sets
+        while sets:
+            stamp, arrival, item = sets[0]
+            if not (force or now - arrival > self.max_wait_ns or not due(stamp)):
+                break
+            out.append(item)
+            sets.popleft()
+        return out
+
+    def clear(self) -> int:
+        """Drop every held set; how many there were."""
+        n = len(self._sets)
+        self._sets.clear()
+        return n

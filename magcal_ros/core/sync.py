@@ -66,6 +66,7 @@ from magcal_ros.core.sync_rules import (
     RESTART_JUMP,
     SUSPECT_PERIODS,
     TAIL,
+    TIMED_MIN,
     Accepted,
     AcceptanceRule,
     Batch,
@@ -334,15 +335,20 @@ class SetSynchronizer(AcceptanceRule):
         if st.last_receipt is None and st.last != NEVER:
             return False
         racc = r[new]
-        leads = np.concatenate([np.asarray(st.leads, dtype=np.int64), acc + st.base - racc])
+        known = np.asarray(st.arrivals, dtype=np.int64).reshape(-1, 2)
+        common = np.concatenate([known[:, 0], acc + st.base])
+        receipt = np.concatenate([known[:, 1], racc])
         previous = np.concatenate([[st.last_receipt if st.last_receipt is not None else racc[0]], racc[:-1]])
-        first_new = len(st.leads) + len(acc) - len(iv)  # the lead of full[len(hist)] in ``leads``
+        first_new = len(known) + len(acc) - len(iv)  # the arrival of full[len(hist)] in ``common``
         for j in np.flatnonzero(gap).tolist():
-            i = first_new + int(at[j]) - len(hist)  # in ``leads``; in ``acc``: i - len(st.leads)
-            a = i - len(st.leads)
-            dr = int(racc[a] - previous[a])
-            if i > 0 and 4 * dr >= period[j] and 2 * (d[j] - dr) > period[j] and \
-                    2 * (leads[i] - leads[max(0, i - LEAD_WINDOW):i].max()) > period[j]:
+            i = first_new + int(at[j]) - len(hist)  # in ``common``; in ``acc``: i - len(known)
+            dr = int(racc[i - len(known)] - previous[i - len(known)])
+            w0 = max(0, i - LEAD_WINDOW)
+            if i - w0 < TIMED_MIN or 4 * dr < period[j] or 2 * (d[j] - dr) <= period[j]:
+                continue
+            span, arrived = common[i - 1] - common[w0], receipt[i - 1] - receipt[w0]
+            timed = span > 0 and 0.5 * span <= arrived <= 2 * span
+            if timed and 2 * (common[i] - receipt[i] - (common[w0:i] - receipt[w0:i]).max()) > period[j]:
                 return False
         return True
 
@@ -417,7 +423,7 @@ class SetSynchronizer(AcceptanceRule):
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
         if r is not None:
-            st.leads.extend((s[-LEAD_WINDOW:] + st.base - r[-LEAD_WINDOW:]).tolist())
+            st.arrivals.extend(zip((s[-LEAD_WINDOW:] + st.base).tolist(), r[-LEAD_WINDOW:].tolist()))
         st.since += len(s)
         if st.since > PERIOD_WINDOW:
             st.before = None
@@ -473,8 +479,10 @@ class SetSynchronizer(AcceptanceRule):
             caps[first + head :] = period // 2
             before = np.concatenate([[st.period if st.period else 0], period[:-1]]).astype(np.float64)
             new = s_iv[head:]
-            steps = np.where(before > 0, np.round(new / np.where(before > 0, before, 1.0)), 1.0)
+            known = before > 0
+            steps = np.round(new[known] / before[known])
             st.grid_periods += int(np.maximum(steps, 1.0).sum())
+            st.grid_first += int(new[~known].sum())  # the grid starts where a period is known
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])
         return caps
@@ -658,7 +666,8 @@ def choose_mode(stamps: Sequence[Sequence[int]], tolerance: int, names: Sequence
         return "exact", "one sensor"
     if any(len(s) < 4 for s in stamps):
         short = [n for n, s in zip(names, stamps) if len(s) < 4]
-        return "exact", f"too few stamps of {', '.join(short)} to tell"
+        return "interpolate", (f"too few stamps of {', '.join(short)} to tell (not heard yet): sets wait for it, "
+                               "exact matching would be chosen on the others' stamps alone")
     periods = [_median([float(b - a) for a, b in zip(s[:-1], s[1:])]) for s in stamps]
     window = min(float(tolerance), min(periods) / 2)
     half = min(periods) / 2

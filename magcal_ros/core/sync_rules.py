@@ -74,6 +74,8 @@ LEAD_WINDOW: int = 256
 """Messages over which a sensor's stamp lead over its arrivals is taken at its largest (the least delayed
 arrival): long enough for a backlog to catch up, short enough to follow a receipt clock that drifts from
 the stamps' (counted in messages, so a pause does not age it)."""
+TIMED_MIN: int = 16
+"""Arrivals needed before they are trusted to keep the stamps' time."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
@@ -174,7 +176,7 @@ _PHRASES = {
     "out_of_order": "out-of-order stamps dropped",
     "zero_stamp": "zero (unset) stamps dropped",
     "malformed": "undecodable messages dropped",
-    "restarts": "source restarts (stamps jumped back)",
+    "restarts": "source restarts or stamp steps (placed on the common time line)",
     "glitch": "messages with a stamp far off their sensor's sequence dropped",
     "gap": "sets dropped for a gap longer than max_gap in another sensor's samples",
     "negative_stamp": "negative (before 1970) stamps dropped",
@@ -250,7 +252,7 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "leads", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from")
+                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from", "burst_count")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -271,9 +273,9 @@ class SensorStream:
         goes on); then forgotten: a segment keeps its placement."""
         self.follows: int | None = None
         """The sensor whose stamps the latest restart's share (placed by its shift), None: placed alone."""
-        self.leads: deque[int] = deque(maxlen=LEAD_WINDOW)
-        """``common stamp - receipt`` (ns) of the last :data:`LEAD_WINDOW` messages taken with an arrival: their
-        largest is how far the stamps run ahead of the least delayed arrivals."""
+        self.arrivals: deque[tuple[int, int]] = deque(maxlen=LEAD_WINDOW)
+        """(common stamp, receipt) ns of the last :data:`LEAD_WINDOW` messages taken with an arrival: the
+        largest ``common - receipt`` is how far the stamps run ahead of the least delayed arrivals."""
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
         self.since = 0
@@ -287,8 +289,10 @@ class SensorStream:
         self.tail: list[int] = []
         """The last :data:`TAIL` common stamps (ns) of the current segment."""
         self.burst_from = NEVER
-        """First stamp (ns) of the current run of crowded stamps: a backlog spans less than a period; a run
-        longer than that is a faster rate."""
+        """First stamp (ns) of the current run of crowded stamps after a gap ..."""
+        self.burst_count = 0
+        """... and its messages: a backlog holds no more samples than the gap before it; a longer run is a
+        faster rate."""
 
     @property
     def busy(self) -> bool:
@@ -328,18 +332,44 @@ class SensorStream:
         interval beyond the arrivals' exceed half the ``period`` (ns); never while the arrivals come
         bunched (a backlog delivered at once says nothing of time). None while unknown."""
         last = self.last_receipt
-        if receipt is None or last is None or not self.leads:
+        if receipt is None or last is None or not self.timed():
             return None
         if 4 * (receipt - last) < period:
             return False
         return 2 * (stamp - self.last - (receipt - last)) > period and \
-            2 * (stamp + self.base - receipt - max(self.leads)) > period
+            2 * (stamp + self.base - receipt - self.lead()) > period
+
+    def lead(self) -> int:
+        """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
+        return max(c - r for c, r in self.arrivals)
+
+    def timed(self) -> bool:
+        """Whether the arrivals keep the stamps' time (over the last :data:`LEAD_WINDOW`, at least
+        :data:`TIMED_MIN`, their span is the stamps' to a factor of two): not so for a recording replayed
+        faster or slower than it was made, whose arrivals then place and tell nothing."""
+        a = self.arrivals
+        if len(a) < TIMED_MIN:
+            return False
+        span = a[-1][0] - a[0][0]
+        return span > 0 and 0.5 * span <= a[-1][1] - a[0][1] <= 2 * span
+
+    def behind_alike(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int) -> bool:
+        """Whether a stamp behind its sequence (``held``) and the next (``message``; (stamp, ..., receipt))
+        both trail their arrivals by the same amount, more than half a ``period`` (ns) beyond the recent
+        least: the stamps stepped back, even where the next one, a lost sample later, is ahead of the old
+        sequence again (one late message would trail alone)."""
+        if held[3] is None or message[3] is None or not self.timed():
+            return False
+        top = self.lead()
+        lead_h = held[0] + self.base - held[3]
+        lead_n = message[0] + self.base - message[3]
+        return 2 * (top - lead_h) > period and 4 * abs(lead_h - lead_n) < period
 
     def note_lead(self, common: int, receipt: int | None) -> None:
         """Raise the lead envelope with one taken message's common stamp and receipt (ns)."""
         if receipt is None:
             return
-        self.leads.append(common - receipt)
+        self.arrivals.append((common, receipt))
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
@@ -372,7 +402,10 @@ class SensorStream:
     def record(self, interval: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period)."""
         before = self.period
-        self.grid_periods += max(1, int(round(interval / before))) if before else 1
+        if before:
+            self.grid_periods += max(1, int(round(interval / before)))
+        else:  # the grid starts where a period is known to count its intervals in
+            self.grid_first += interval
         iv = self.intervals
         iv.append(interval)
         if len(iv) > PERIOD_WINDOW:
@@ -576,13 +609,15 @@ class AcceptanceRule:
         if step > 0 and period is not None and s.crowded(step, period) and kind != CROWDED:
             # After a gap, stamps closer than the sensor samples: a backlog delivered at once ...
             if kind != BURST:
-                s.burst_from = held[0]
+                s.burst_from, s.burst_count = held[0], 1
             self.stats.burst += 1
             s.held = None
-            if message[0] - s.burst_from <= period:
+            s.burst_count += 1
+            rhythm = s.grid_period() or period
+            if s.burst_count * rhythm <= 1.25 * (s.burst_from - s.last) + 2 * rhythm:  # no more than the gap held
                 s.held = (*message, BURST)
                 return True
-            s.intervals, s.period = [], None  # ... or, spanning a period, the sensor's rate went up: learnt again
+            s.intervals, s.period = [], None  # ... or more than the gap held: the sensor's rate went up (learnt)
             self._take(index, message, False, out)
             return True
         s.held = None
@@ -622,8 +657,9 @@ class AcceptanceRule:
         after = stamp - h
         if 0 < after <= self.restart_ns:
             period = s.suspect_period()
-            if stamp <= s.last or (period is not None and 4 * (stamp - s.last) < 3 * period
-                                   and period <= 2 * after <= 3 * period):
+            if stamp <= s.last or (period is not None and (4 * (stamp - s.last) < 3 * period
+                                                           and period <= 2 * after <= 3 * period
+                                                           or s.behind_alike(held, message, period))):
                 self._step(index, [held[:4], message], out)
                 return True
         self.stats.count("out_of_order" if s.last - h <= self.restart_ns else "glitch")
@@ -654,7 +690,7 @@ class AcceptanceRule:
         known they are held until :data:`PLACE_MESSAGES` have come (the least delayed places the segment);
         otherwise the segment is placed at once."""
         s = self.streams[index]
-        if not s.leads or any(m[3] is None for m in messages):
+        if not s.timed() or any(m[3] is None for m in messages):
             self._place(index, [messages[0][0]], None)
             self._take(index, messages[0], True, out)
             for m in messages[1:]:
@@ -684,10 +720,10 @@ class AcceptanceRule:
         """Place the held new segment of sensor ``index`` by its least delayed arrival and let it through."""
         s = self.streams[index]
         held = s.placing
-        assert held is not None and s.leads
+        assert held is not None and s.arrivals
         s.placing = None
         first = held[0]
-        lead = max(s.leads)
+        lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
         self._place(index, [m[0] for m in held], estimate)

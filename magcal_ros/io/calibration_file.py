@@ -41,6 +41,7 @@ from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.calibration_health import noise_and_intensity
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path, write_target
+from magcal_ros.io.input_files import MAX_CALIBRATION_BYTES, regular_file
 
 CORRECTION_NODE: str = "magcal_correction"
 PROVENANCE_NODE: str = "magcal_provenance"
@@ -286,6 +287,7 @@ def loads(text: str, node_name: str = CORRECTION_NODE, uncorrected: Sequence[str
 
 def read(path: str | os.PathLike[str], node_name: str = CORRECTION_NODE, uncorrected: Sequence[str] = ()) -> ArrayCalibration:
     """Read a calibration file; :class:`InputError` with one clear line if unusable (see :func:`loads`)."""
+    regular_file(path, "calibration", MAX_CALIBRATION_BYTES)
     try:
         with open(path, encoding="utf-8") as fh:
             text = fh.read()

@@ -48,6 +48,7 @@ from magcal_ros.core.recording import ImuSamples, Recording
 from magcal_ros.core.stamps import format_seconds_column, parse_seconds, parse_seconds_column
 from magcal_ros.core.sync import SetSynchronizer, SyncStats
 from magcal_ros.core import side_streams as side
+from magcal_ros.io.input_files import MAX_HEADER_BYTES, regular_file
 from magcal_ros.core.interference import check_currents
 from magcal_ros.core.parallel import as_array, fill_in_child
 from magcal_ros.core.temperature import check_temperatures
@@ -192,14 +193,18 @@ def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
 
 
 def _read_text(path: str | os.PathLike[str], header_only: bool = False) -> str:
-    """The text of a CSV file (a UTF-8 byte order mark dropped), or up to its first non-blank line."""
+    """The text of a CSV file (a UTF-8 byte order mark dropped), or up to its first non-blank line (at most
+    :data:`~magcal_ros.io.input_files.MAX_HEADER_BYTES`); only a regular file is read."""
+    regular_file(path, "CSV recording")
     try:
         with open(path, encoding="utf-8-sig", newline="") as fh:
             if not header_only:
                 return fh.read()
-            line = fh.readline()
+            line = fh.readline(MAX_HEADER_BYTES)
             while line and not line.strip(" \t\r\n,"):
-                line = fh.readline()
+                line = fh.readline(MAX_HEADER_BYTES)
+            if len(line) >= MAX_HEADER_BYTES and not line.endswith("\n"):
+                raise InputError(f"{path}: no header line in its first {MAX_HEADER_BYTES} bytes: not a CSV recording")
             return line
     except OSError as exc:
         raise InputError(f"cannot read {path}: {exc.strerror}") from None

@@ -50,6 +50,12 @@ def attitude_for(imu: ImuSamples | None, stamps: Any, geometry: ArrayGeometry, c
                               field if imu.has_orientation else None, imu.frame_id)
 
 
+MAX_ATTITUDE_ERROR_DEG: float = 10.0
+"""Largest attitude error (deg, 1-sigma per axis, as the fit sees it) of an IMU that follows the array: an
+AHRS is good to a degree or two; tens of degrees is an IMU that does not describe these readings."""
+OUTLYING_WEIGHT: float = 0.25
+"""A set whose attitude residual the fit weights below this (beyond about 8 sigma: an IMU glitch) is
+counted as left out."""
 IMU_STILL_FRACTION: float = 0.1
 """An IMU whose orientation turns by less than this fraction of the readings' turn does not follow the array."""
 MIN_READINGS_TURN_DEG: float = 10.0
@@ -88,6 +94,9 @@ class ImuReport:
     attitude_sigma_deg: float
     """The IMU's attitude error as the fit saw it (deg, 1-sigma per axis)."""
     frame_id: str
+    excluded: int = 0
+    """Sets whose attitude lay far off the field's (beyond :data:`OUTLYING_SIGMAS` of the attitude error):
+    an IMU glitch, left out of the fit."""
 
     def by_name(self, name: str) -> ab.GlobalQuantity:
         """The quantity called ``name`` (e.g. ``array to IMU roll``)."""
@@ -103,7 +112,9 @@ class ImuReport:
                                                   f"{float(f'{q.sigma:.2g}'):g} deg" for q in mount)
                        + f" ({where}; IMU {self.source} at {self.sets} sets"
                        + (f" in {self.segments} segments" if self.source == "gyro" else "")
-                       + f", attitude error {self.attitude_sigma_deg:.3g} deg)")
+                       + f", attitude error {self.attitude_sigma_deg:.3g} deg"
+                       + (f"; {self.excluded} {'attitude' if self.excluded == 1 else 'attitudes'} far off the field "
+                          "left out" if self.excluded else "") + ")")
         field = [q for q in self.quantities if q.block == "field direction"]
         if field:
             out.append("field in the IMU's world frame: " + ", ".join(
@@ -120,6 +131,7 @@ class ImuReport:
         sigmas = {quantity_key(q.name): q.sigma for q in self.quantities}
         return {"imu": {"source": self.source, "sets": self.sets, "segments": self.segments,
                         "attitude_sigma_deg": self.attitude_sigma_deg, "frame_id": self.frame_id,
+                        "attitudes_excluded": self.excluded,
                         "values": values, "sigma": sigmas}}
 
 
@@ -163,8 +175,16 @@ def imu_report(sol: JointSolution, order: NDArray[np.int64], prior_precision: Ar
     if att.field is not None:  # held at the site's model: no 1-sigma of its own
         quantities = [q if q.block != "field direction" else ab.GlobalQuantity(q.block, q.name, q.unit, q.value, 0.0)
                       for q in quantities]
+    sigma_deg = float(np.degrees(sol.attitude_sigma or 0.0))
+    if sigma_deg > MAX_ATTITUDE_ERROR_DEG:
+        raise InputError(f"the IMU's attitudes disagree with the field throughout (attitude error {sigma_deg:.3g} deg per "
+                         f"axis where an IMU is good to {MAX_ATTITUDE_ERROR_DEG:g}): another vehicle's topic, a world "
+                         "frame other than the one given (--imu-frame ned?), or a clock far off the readings'; "
+                         "calibrate without the IMU")
+    weights = sol.attitude_weights
+    excluded = 0 if weights is None else int(np.sum(att.known & (weights < OUTLYING_WEIGHT)))
     return ImuReport(quantities, cov, "orientation" if att.world else "gyro", int(att.known.sum()), att.count,
-                     float(np.degrees(sol.attitude_sigma or 0.0)), att.frame_id)
+                     sigma_deg, att.frame_id, excluded)
 
 
 def output_frame(sol: JointSolution, prior: ArrayCalibration | None = None) -> dict[str, Any]:

@@ -478,8 +478,8 @@ class CalibrationNode(Node):
         imu_tol = tolerance_of(float(self.get_parameter("imu_tolerance").value), "IMU")
         self._imu = LatestImu(imu_tol)
         self._imu_health = ImuHealth(("imu",), (self.resolve_topic_name(topic),), imu_tol)
-        self._pending: deque[tuple[int, Any, list[float], list[float] | None, int]] = deque()
-        """Sets waiting for the IMU's next sample: (stamp, raw values, currents, temperatures, arrival ns)."""
+        self._pending: deque[tuple[int, Any, int]] = deque()
+        """Sets waiting for side-stream samples due at them: (stamp, raw values, arrival ns)."""
         self._newest_set = 0
         unknown = -1.0
 
@@ -498,15 +498,46 @@ class CalibrationNode(Node):
         self._subs.append(self.create_subscription(Imu, topic, on_imu, self._raw_qos))
 
     def _flush_pending(self, force: bool) -> None:
-        """Collect the sets waiting for the IMU whose sample after them arrived or that waited long enough
-        (all of them with ``force``); a set without an IMU sample near it is not collected. Lock held."""
+        """Collect the sets nothing is due for any more (all of them with ``force``): the IMU's sample after
+        them arrived (or they waited its tolerance), and no current or temperature stamped at or before them
+        is on its way (or they waited :data:`~magcal_ros.core.side_streams.MAX_WAIT`); each with its side
+        streams' values then. A set without a fresh value of every side stream heard is not collected. Lock
+        held."""
         imu, pending = self._imu, self._pending
         now = self._receipt_clock()
-        while pending and (force or imu.ready(pending[0][0], self._newest_set, now - pending[0][4])):
-            stamp, values, currents, temperatures, _ = pending.popleft()
-            q, w, fresh = imu.at(stamp)
-            if self._imu_health.count([fresh]):
-                self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
+        while pending:
+            stamp, values, arrival = pending[0]
+            waited = now - arrival
+            if not force and imu.received and not imu.ready(stamp, self._newest_set, waited):
+                break
+            if not force and waited <= side.MAX_WAIT and self._side_due(stamp):
+                break
+            pending.popleft()
+            self._collect(stamp, values)
+
+    def _side_due(self, stamp: int) -> bool:
+        """Whether a current or temperature stamped at or before ``stamp`` (ns) is due and has not come."""
+        return bool((self._inputs.channels and self._currents.due(stamp))
+                    or (any(self._temperatures.received) and self._temperatures.due(stamp)))
+
+    def _collect(self, stamp: int, values: Any) -> None:
+        """One set into the buffer with its currents, temperatures and IMU sample, when they are fresh."""
+        currents: list[float] = []
+        if self._inputs.channels:
+            currents, fresh = self._currents.at(stamp)
+            if not self._current_health.count(fresh):
+                return  # a set without a fresh current of every channel is not collected
+        temperatures = None
+        if any(self._temperatures.received):  # once heard, every set needs them
+            temperatures, fresh = self._temperatures.at(stamp)
+            if not self._temperature_health.count(fresh):
+                return
+        if not self._imu.received:
+            self._buffer.add(stamp, values, currents, temperatures)
+            return
+        q, w, fresh = self._imu.at(stamp)
+        if self._imu_health.count([fresh]):
+            self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
 
     def _disconnect(self) -> None:
         for s in self._subs:
@@ -528,23 +559,9 @@ class CalibrationNode(Node):
                             self._mission.add(synced.stamp, synced.values, values)
                     if not self._collecting:
                         continue
-                    currents: list[float] = []
-                    if self._inputs.channels:
-                        currents, fresh = self._currents.at(synced.stamp)
-                        if not self._current_health.count(fresh):
-                            continue  # a set without a fresh current of every channel is not collected
-                    temperatures = None
-                    if any(self._temperatures.received):  # once heard, every set needs them
-                        temperatures, fresh = self._temperatures.at(synced.stamp)
-                        if not self._temperature_health.count(fresh):
-                            continue
                     self._newest_set = max(self._newest_set, synced.stamp)
-                    if self._imu.received:  # wait for the IMU's sample after the set
-                        self._pending.append((synced.stamp, synced.values, currents, temperatures,
-                                              self._receipt_clock()))
-                        self._flush_pending(force=False)
-                    else:
-                        self._buffer.add(synced.stamp, synced.values, currents, temperatures)
+                    self._pending.append((synced.stamp, synced.values, self._receipt_clock()))
+                self._flush_pending(force=False)
 
         return callback
 

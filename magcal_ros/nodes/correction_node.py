@@ -101,6 +101,8 @@ from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealt
 from magcal_ros.nodes.live_outputs import Listeners, SetOutputs
 
 NODE_NAME = "magcal_correction"
+WAIT_CHECK: float = 0.02
+"""How often (s) the node looks whether a set waiting for a current or temperature may go."""
 CORE_PARAMETERS: tuple[str, ...] = (
     "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
     "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
@@ -315,6 +317,8 @@ class CorrectionNode(Node):
         self._arrival = common.arrival_reader(self)
         self._published = 0
         self._withheld = 0
+        self._waiting = side.WaitingSets()
+        """Sets held while a current or temperature stamped at or before them is due (core/side_streams)."""
         self._ages: list[int] = []
         self._drops = common.DropReporter(self.get_logger())
         self._drift_thresholds = drift.declare_thresholds(self)
@@ -329,6 +333,7 @@ class CorrectionNode(Node):
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
         self.create_timer(max(period, 0.05), self._report)
+        self.create_timer(WAIT_CHECK, self._release_waiting)
         self.get_logger().info(
             f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
             f"{self.get_namespace()}, frame {self._state.frame_id}, sync_mode {self._state.sync_mode}, sync "
@@ -689,6 +694,28 @@ class CorrectionNode(Node):
         return self._out
 
     def _publish(self, synced: SyncedSet) -> None:
+        """Correct one set now, or once the currents and temperatures due at its stamp came (at most
+        :data:`~magcal_ros.core.side_streams.MAX_WAIT` later; the sets in the order they formed)."""
+        state = self._state
+        if not (state.currents.channels or state.temperatures) and not self._waiting:
+            self._correct(synced)
+            return
+        self._waiting.add(synced.stamp, self._now(), synced)
+        self._release_waiting()
+
+    def _release_waiting(self) -> None:
+        """Correct the held sets nothing is due for any more (or that waited long enough)."""
+        if self._waiting:
+            for synced in self._waiting.release(self._now(), self._side_due):
+                self._correct(synced)
+
+    def _side_due(self, stamp: int) -> bool:
+        """Whether a current or temperature stamped at or before ``stamp`` (ns) is due and has not come."""
+        state = self._state
+        return bool((state.currents.channels and self._currents.due(stamp))
+                    or (state.temperatures and self._temperatures.due(stamp)))
+
+    def _correct(self, synced: SyncedSet) -> None:
         """Correct one set; publish corrected vectors, then field and the gradient topics (each only when
         somebody subscribes it)."""
         state = self._state

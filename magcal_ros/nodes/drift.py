@@ -18,6 +18,7 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
+from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.calibration_health import (
     DEFAULT_ERROR_FACTOR,
     DEFAULT_WARN_FACTOR,
@@ -28,7 +29,7 @@ from magcal_ros.core.calibration_health import (
     DriftReport,
     DriftThresholds,
 )
-from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S
+from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 from magcal_ros.nodes import common
 
@@ -39,7 +40,7 @@ WINDOW_RANGE: tuple[float, float] = (10.0, 3600.0)
 FACTOR_RANGE: tuple[float, float] = (1.0, 1e6)
 FACTORS: tuple[str, str] = ("health_warn_factor", "health_error_factor")
 """The parameters of the factors on the noise (WARN, ERROR): settable while the node runs."""
-MAX_NOISE: float = 1e-3
+MAX_NOISE: float = bounds.MAX_NOISE
 STATUS_SUFFIX = ": calibration"
 """The health status is named ``<node full name>: calibration``."""
 
@@ -103,20 +104,14 @@ def factors(values: Mapping[str, Any], current: DriftThresholds) -> DriftThresho
 
 def reference(values: dict[str, Any], names: Sequence[str]) -> tuple[tuple[float, ...], float]:
     """The noise per sensor (T, 0 unknown) and the intensity (T, 0 unknown) in parameter ``values``;
-    :class:`InputError` naming a bad one."""
+    :class:`InputError` naming a bad one (the bounds every reader applies,
+    :mod:`~magcal_ros.core.calibration_bounds`)."""
     noise = []
     for name in names:
         value = values.get(f"{name}.{SENSOR_SUFFIX}")
-        v = _number(f"{name}.{SENSOR_SUFFIX}", 0.0 if value is None else value)
-        if not 0.0 <= v <= MAX_NOISE:
-            raise InputError(f"{name}.{SENSOR_SUFFIX} must be 0 (unknown) or a noise in T up to {MAX_NOISE:g}, got {v:g}")
-        noise.append(v)
+        noise.append(bounds.check_noise(f"{name}.{SENSOR_SUFFIX}", 0.0 if value is None else value))
     value = values.get(INTENSITY)
-    f = _number(INTENSITY, 0.0 if value is None else value)
-    low, high = EARTH_FIELD_RANGE
-    if not (f == 0.0 or low <= f <= high):
-        raise InputError(f"{INTENSITY} {f:g} T is not Earth-like ({low:g} .. {high:g} T, or 0 for unknown)")
-    return tuple(noise), f
+    return tuple(noise), bounds.check_intensity(INTENSITY, 0.0 if value is None else value)
 
 
 def _number(name: str, value: Any, unit: str = "T") -> float:

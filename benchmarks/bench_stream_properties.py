@@ -1,0 +1,97 @@
+"""A longer run of the generated stream tests (test/test_stream_properties.py): examples tried, sets
+checked against the truth oracle, faults drawn, time.
+
+    .venv/bin/python benchmarks/bench_stream_properties.py [--examples 2000] [--seed 0]
+
+Each example is a recording of one to four sensors on their own clocks with faults drawn at random
+(steps of any size, glitches, repeats, pauses, stalls with and without restamped backlogs, bad readings),
+synchronised offline and live; every published set's members must stand for one true instant, every
+message must be counted, the clean reference samples must make sets, and live must equal offline. The
+side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off.
+Unlike the suite (a fixed number of derandomised examples), this draws fresh examples from ``--seed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, Phase, given, seed, settings
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
+import test_stream_properties as props  # noqa: E402
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--examples", type=int, default=2000, help="recordings to draw (default 2000)")
+    parser.add_argument("--seed", type=int, default=0, help="the draw (default 0)")
+    parser.add_argument("--keep", help="pickle the plans of failing recordings into this file")
+    args = parser.parse_args()
+    tally: collections.Counter[str] = collections.Counter()
+    failures: list[str] = []
+    cases: list[props.Case] = []
+
+    @seed(args.seed)
+    @settings(max_examples=args.examples, database=None, deadline=None, phases=[Phase.generate],
+              suppress_health_check=list(HealthCheck))
+    @given(props.cases())
+    def sets(case: props.Case) -> None:
+        streams = props.streams_of(case)
+        batch, stats, mode = props.offline(streams)
+        tally["examples"] += 1
+        tally["sensors"] += len(streams)
+        tally["messages"] += sum(len(s.stamps) for s in streams)
+        tally["sets checked"] += len(batch)
+        tally[f"mode {mode}"] += 1
+        for p in case.plans:
+            for kind in ("steps", "glitches", "duplicates", "silences", "stalls", "bad"):
+                tally[f"fault: {kind}"] += len(getattr(p, kind))
+        try:
+            props.test_every_published_set_stands_for_one_true_instant.hypothesis.inner_test(case)
+        except AssertionError as exc:
+            failures.append(str(exc).splitlines()[0][:200])
+            cases.append(case)
+
+    @seed(args.seed)
+    @settings(max_examples=4 * args.examples, database=None, deadline=None, phases=[Phase.generate],
+              suppress_health_check=list(HealthCheck))
+    @given(props.side_streams())
+    def side(stream: tuple) -> None:  # type: ignore[type-arg]
+        tally["side streams"] += 1
+        tally["side samples"] += len(stream[0])
+        try:
+            props.test_a_side_stream_gives_each_set_its_latest_true_value_live_and_offline.hypothesis.inner_test(stream)
+        except AssertionError as exc:
+            failures.append("side: " + str(exc).splitlines()[0][:200])
+
+    t0 = time.perf_counter()
+    sets()
+    t1 = time.perf_counter()
+    side()
+    t2 = time.perf_counter()
+    print(f"recordings: {tally['examples']} examples, {tally['sensors']} sensors, {tally['messages']:,} messages, "
+          f"{tally['sets checked']:,} sets checked (offline and live), {t1 - t0:.1f} s "
+          f"({(t1 - t0) / max(tally['examples'], 1) * 1e3:.0f} ms each)")
+    print("  modes: " + ", ".join(f"{k[5:]} {v}" for k, v in sorted(tally.items()) if k.startswith("mode ")))
+    print("  faults drawn: " + ", ".join(f"{k[7:]} {v}" for k, v in sorted(tally.items()) if k.startswith("fault")))
+    print(f"side streams: {tally['side streams']} examples, {tally['side samples']:,} samples, 200 sets each, "
+          f"{t2 - t1:.1f} s")
+    print(f"failures: {len(failures)}")
+    for line in failures[:10]:
+        print("  " + line)
+    if cases and args.keep:
+        import pickle
+
+        Path(args.keep).write_bytes(pickle.dumps(cases))
+        print(f"failing recordings' plans kept in {args.keep}")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    raise SystemExit(main())
