@@ -59,12 +59,16 @@ setup(
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
-        (f"share/{PACKAGE}", ["package.xml", "README.md"]),
+        (f"share/{PACKAGE}", ["package.xml", "README.md", "LICENSE"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     cmdclass={"install_data": InstallData},
-    install_requires=["numpy", "scipy", "PyYAML", "rosbags", "matplotlib", "pygeomag==1.1.0"],
+    # The same runtime packages as requirements.txt (less the ROS wheels, which colcon users have from
+    # their ROS install): `magcal batch` needs Dask, so a plain `pip install .` gives it.
+    install_requires=["numpy>=1.26", "scipy>=1.11", "PyYAML>=6", "rosbags>=0.11,<0.12", "matplotlib>=3.8",
+                      "pygeomag==1.1.0", "dask[distributed]>=2025.1"],
+    license_files=["LICENSE"],
     package_data={PACKAGE: ["py.typed"]},
     zip_safe=True,
     maintainer="magcal_ros developers",

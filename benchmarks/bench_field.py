@@ -37,8 +37,9 @@ from magcal_ros.sim.simulator import (  # noqa: E402
 
 NT = 1e-9
 F = 51_500 * NT
-# The real hand-held QMC5883L recording: MAGCAL_REAL_RECORDING, else beside the checkout.
-REAL = Path(os.environ.get("MAGCAL_REAL_RECORDING", Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+# The real hand-held QMC5883L recording in the repository (data/real/, MIT-licensed; see its README);
+# MAGCAL_REAL_RECORDING names another.
+REAL = Path(os.environ.get("MAGCAL_REAL_RECORDING", Path(__file__).resolve().parents[1] / "data" / "real"
                            / "qmc5883l_handheld.csv"))
 
 
@@ -138,7 +139,7 @@ def correlated(runs: int = 30) -> None:
 
 def real() -> None:
     if not REAL.exists():
-        print("real recording: not found beside this checkout")
+        print(f"real recording: {REAL} not found (data/real/ in the repository, or MAGCAL_REAL_RECORDING)")
         return
     rec, _ = read_csv(REAL)
     geo = ArrayGeometry.single("mag1")

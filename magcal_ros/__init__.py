@@ -10,7 +10,9 @@ Layers, lowest first; a module imports only from its own layer or lower ones:
 - :mod:`magcal_ros.nodes`: the two ROS 2 nodes (rclpy).
 - :mod:`magcal_ros.app`: the ``magcal`` command, the demo, plots and the replay driver.
 
-The most used names are importable from here, loaded on first use.
+The most used names are importable from here, loaded on first use; the functions of
+:mod:`magcal_ros.api` (``calibrate``, ``correct``, ``check_health``, ``load_calibration``,
+``save_calibration``, ``array_geometry``) are the Python face for notebooks (docs/python_api.md).
 """
 
 from __future__ import annotations
@@ -43,5 +45,11 @@ __all__, __getattr__ = lazy_exports(
         "SensorErrors": "magcal_ros.core.sensor_model",
         "SolveOptions": "magcal_ros.methods.pipeline",
         "calibrate_array": "magcal_ros.methods.pipeline",
+        "array_geometry": "magcal_ros.api",
+        "calibrate": "magcal_ros.api",
+        "check_health": "magcal_ros.api",
+        "correct": "magcal_ros.api",
+        "load_calibration": "magcal_ros.api",
+        "save_calibration": "magcal_ros.api",
     },
 )

@@ -455,8 +455,8 @@ def test_li2018_ten_samples_of_one_z_turn_are_refused_naming_the_axis():
 
 
 # ---------------------------------------------------------------------------------------
-# Small exact checks of the core's math (each kills mutants of benchmarks/mutation.py that the
-# accuracy tests cannot see: docs/mutation_report.md).
+# Small exact checks of the core's math (each kills mutants of a mutation run that the accuracy
+# tests cannot see: docs/mutation_report.md).
 
 
 def test_rotation_angle_is_the_angle_of_the_rotation():

@@ -166,17 +166,29 @@ def test_a_calibration_missing_a_sensor_block_is_refused(tmp_path: Path, base: d
 
 
 def test_uncorrected_sensors_are_used_raw_only_when_asked(tmp_path: Path, base: dict[str, Any]) -> None:
+    """A sensor left raw on purpose is written raw, and the centre field and the gradient, which would mix
+    it with the calibrated sensors (thousands of nT/m off), are withheld: nan columns in a CSV, no /field
+    and no /gradient in a bag. (Planted: the outputs written as before, with the raw sensor in them.)"""
     cal = _calibration_without(base["cal"], base["dir"] / "no_mag3.yaml", "mag3")
     full, raw = tmp_path / "full.csv", tmp_path / "raw.csv"
     ok(magcal("correct", base["bag"], "-c", base["cal"], "-o", full))
     proc = ok(magcal("correct", base["bag"], "-c", cal, "-o", raw, "--uncorrected", "mag3"))
     assert "note: mag3 is not corrected (--uncorrected): its raw readings are used as they are" in proc.stderr
+    assert "note: field and gradient withheld: mag3 is raw (--uncorrected)" in proc.stderr
     a, b = read_corrected(full), read_corrected(raw)
     np.testing.assert_array_equal(b["sensors"][:, 2], base["rec"].vectors[:, 2])  # mag3 exactly raw
     np.testing.assert_array_equal(b["sensors"][:, [0, 1, 3]], a["sensors"][:, [0, 1, 3]])
+    assert np.all(np.isnan(b["field"])) and np.all(np.isnan(b["gradient"])) and np.all(np.isfinite(a["gradient"]))
+    bag = tmp_path / "raw_bag"
+    proc = ok(magcal("correct", base["bag"], "-c", cal, "-o", bag, "--uncorrected", "mag3"))
+    assert "/<name>/corrected only, /field and the gradient withheld" in proc.stdout
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:
+        assert sorted(c.topic for c in reader.connections) == [f"/mag{i}/corrected" for i in range(1, 5)]
     proc = magcal("correct", base["bag"], "-c", base["cal"], "-o", tmp_path / "x", "--uncorrected", "mag9")
     assert "--uncorrected mag9: not a sensor of" in error_line(proc)
-    assert listing(tmp_path) == ["full.csv", "raw.csv"]
+    assert listing(tmp_path) == ["full.csv", "raw.csv", "raw_bag"]
 
 
 # --------------------------------------------------------------------------- 5: signals, killed runs

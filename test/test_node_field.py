@@ -416,13 +416,23 @@ def test_at_sea_a_yaw_circle_recalibrates_from_the_running_calibration(
     assert progress["advice"].startswith("enough to recalibrate from the prior") and "scale z" in progress["advice"]
     ok, message = sea.trigger(f"{SEA}/calibrate")
     assert ok, message
-    found = re.search(r", (valid [^,]*(?:, roll [^,]*)?), updated: ([^;]*); kept from the prior: (.*?), "
+    found = re.search(r", (valid [^,]*(?:, roll [^,]*)?), updated \((.*?)\), kept from the prior \((.*?)\), "
                       r"(?:\d+ outlying|coverage)", message)
     assert found, message
     envelope, updated, kept = found.groups()
     assert ENVELOPE.match(envelope), envelope
-    assert {"offset x", "offset y", "offset z"} <= set(updated.split(", "))
-    assert "scale z" in kept.split(", ") and "scale z" not in updated.split(", ")
+
+    def per_sensor(text: str) -> dict[str, set[str]]:  # "every sensor: a, b; mag2: c" -> {quantity: sensors}
+        out: dict[str, set[str]] = {}
+        for group in ([] if text == "nothing" else text.split("; ")):
+            who, _, names = group.partition(": ")
+            for name in names.split(", "):
+                out.setdefault(name, set()).update(["every sensor"] if who == "every sensor" else who.split(", "))
+        return out
+
+    updated_by, kept_by = per_sensor(updated), per_sensor(kept)
+    assert all(updated_by.get(f"offset {a}") == {"every sensor"} for a in "xyz"), updated
+    assert kept_by.get("scale z") == {"every sensor"} and "scale z" not in updated_by, (updated, kept)
     assert f"prior: the running calibration of {SEA_CORRECTION}" in message
     assert "kept from the prior" in _log(world, "sea_calibration")
     rng = np.random.default_rng(77)

@@ -185,3 +185,17 @@ def test_positions_that_determine_no_tensor_are_refused_saying_what_they_do_dete
         gradient(np.zeros((1, 3, 3)), line, "least_squares")
     with pytest.raises(InputError, match="needs sensors on one line"):
         baseline_gradient(np.zeros((1, 4, 3)), ArrayGeometry.cross())
+
+
+def test_one_set_may_be_given_alone_and_a_wrong_shape_is_refused() -> None:
+    """A single set (S, 3) gives the same tensor as the batch of one (1, S, 3), for the difference
+    formula and least squares; vectors of the wrong sensor count or width are an InputError, whichever
+    of the two is wrong. (Mutation survivors of tensor._sets: the single set dropped, `or` as `and`.)"""
+    geo = ArrayGeometry.cross()
+    rng = np.random.default_rng(21)
+    one = rng.normal(0.0, 5e-5, (4, 3))
+    for method in ("difference", "least_squares"):
+        np.testing.assert_array_equal(gradient(one, geo, method), gradient(one[None], geo, method))
+    for bad in (np.zeros((2, 3, 3)), np.zeros((2, 4, 2)), np.zeros((4, 3, 1))):
+        with pytest.raises(InputError, match=r"expected vectors of shape \(N, 4, 3\)"):
+            gradient(bad, geo, "least_squares")

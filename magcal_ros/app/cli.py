@@ -148,7 +148,7 @@ and the currents per set (OUT.truth.npz: currents (N,m) A, channels (m,)). E.g.
 sensor streams (rosbag2 only): each sensor samples on its own clock and is stamped on receipt;
 the schedule's attitudes at --rate become a continuous turn. Four 100 Hz sensors 2.5 ms apart
 with 0.5 ms of receipt jitter, turning at 0.2 rad/s about y (2 pi 100 / 0.2 = 3142 steps):
-  magcal simulate streams_bag --schedule single-axis --axis y --count 3142 --rate 100 \
+  magcal simulate streams_bag --schedule single-axis --axis y --count 3142 --rate 100 \\
       --phases 0,0.0025,0.005,0.0075 --receipt-jitter 0.0005
   ... --lags 0,0,0.005,0          # mag3 reads 5 ms late (its time_offset in the truth YAML)
   ... --restart 15,60,mag3        # mag3's driver restarts 15 s in, its stamps 60 s behind
@@ -160,7 +160,7 @@ temperature: --temperatures 5,15,25 (steps), --temperature-ramp 5,25 (warming) o
 per sensor and axis how offset and gain follow it about --temperature-reference. A bag gets
 /<name>/temperature (sensor_msgs/msg/Temperature, deg C), a CSV temperature.<name> columns; the
 truth YAML the exact temperature terms, the truth NPZ the true temperatures (N,S). E.g.
-  magcal simulate warm.csv --schedule tumble --count 1500 --temperatures 5,15,25 \
+  magcal simulate warm.csv --schedule tumble --count 1500 --temperatures 5,15,25 \\
       --tempco-offset 0.5e-9 --tempco-gain 30e-6
 IMU: --imu adds the vehicle's IMU mounted --imu-mounting ROLL,PITCH,YAW deg off the array
 (orientation IMU frame -> world ENU; the gyro for schedules flown in time: single-axis, sea,
@@ -168,7 +168,7 @@ tumble), with --imu-orientation-noise, --imu-gyro-noise, --imu-gyro-bias, --imu-
 /imu at the IMU's own rate); --world-gradient XX,XY,XZ,YY,YZ (T/m, NED) a site that is not
 uniform. The truth NPZ adds imu_orientation, imu_angular_velocity, output_rotation (the
 mounting) and world_gradient. E.g.
-  magcal simulate imu_bag --schedule sea --pitch 5 --roll 5 --imu --imu-mounting 2,-1.5,3 \
+  magcal simulate imu_bag --schedule sea --pitch 5 --roll 5 --imu --imu-mounting 2,-1.5,3 \\
       --imu-rate 100 --world-gradient 30e-9,0,0,-15e-9,0
 schedules: single-axis (one turn about --axis, --count steps), li2018 (Li et al. 2018: 12^3
 grid of 30 deg steps, 1728 sets), coaxial2022 (the 2022 coaxial array calibration paper: x
@@ -205,7 +205,9 @@ Sets are formed by --sync-mode (auto: from the stamps). A calibration with <name
 stamps and interpolates it to the first sensor's sample instants (bag or CSV input); every
 output of a set is then stamped with the set's instant.
 The sensors are the calibration file's sensor_names; their /<name>/raw topics (or CSV columns)
-must exist, and each needs its block in the calibration file unless listed in --uncorrected.
+must exist, and each needs its block in the calibration file unless listed in --uncorrected
+(its raw readings are then written as they are, and /field and the gradient are withheld:
+with a raw sensor in them they would be wrong by its errors).
 A calibration with interference_channels subtracts their interference: give the currents
 (--currents TOPIC,... for a bag, the topics named as the channels with a leading '/'; a
 CSV's current.<channel> columns); sets without a current of every channel within
@@ -473,10 +475,11 @@ def _report_quantities(result: Any) -> None:
     """The least determined quantities (or, with a prior, what was kept), one line each."""
     ana = result.identifiability
     if result.prior:
-        kept = ana.kept()
-        if kept:
-            print("  kept from the prior (this manoeuvre does not determine them better): "
-                  + ", ".join(sorted({q.name for q in kept})))
+        from magcal_ros.core.identifiability import by_sensor
+
+        names = result.calibration.geometry.names
+        print(f"  updated from this manoeuvre: {by_sensor(ana.updated(), names)}")
+        print(f"  kept from the prior (this manoeuvre does not determine them better): {by_sensor(ana.kept(), names)}")
         return
     worst = sorted(ana.quantities, key=lambda q: -q.effect / max(ana.noise[0], 1e-30))[:3]
     print("  least determined: " + "; ".join(f"{q.describe()} ({float(f'{q.effect / NT:.2g}'):g} nT effect)" for q in worst))
@@ -552,6 +555,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
               f"noise {result.noise[i] / NT:.3g} nT" + (f", {int(result.outliers[i])} outliers excluded"
                                                        if result.outliers[i] else ""))
     _report_quantities(result)
+    frame = result.calibration.frame_id or topics.DEFAULT_FRAME_ID
+    print(f"  frame {frame}: {result.frame_note()}")
     if result.calibration.channels:
         print(f"  interference of {', '.join(result.calibration.channels)} estimated (subtracted by 'magcal correct' "
               "given their currents)")
@@ -605,6 +610,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         noise_kind=args.noise_kind, noise_domain=args.noise_domain, dipoles=dipoles,
         position=_numbers(args.position, 3, "--position"),  # type: ignore[arg-type]
         rate=args.rate, start_time=args.start_time, seed=args.seed, baseline=args.baseline,
+        **_simulated_array(args),
         thrusters=thrusters, thruster_current=args.thruster_current, step_sets=args.step_sets, still=args.still,
         **_simulate_temperature_and_imu(args),
     )
@@ -643,6 +649,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                  else ", ".join(f"current.{c}" for c in spec.channels)))
     print(f"  truth {ypath} and {npath}")
     return 0
+
+
+def _simulated_array(args: argparse.Namespace) -> dict[str, Any]:
+    """The simulation spec's array fields from --sensors and --positions (checked by the spec)."""
+    if args.positions is None:
+        return {} if args.sensors is None else {"sensors": args.sensors}
+    try:
+        values = tuple(float(v) for v in args.positions.replace(",", " ").split())
+    except ValueError:
+        raise InputError(f"--positions must be numbers (m), 3 per sensor, got {args.positions!r}") from None
+    if not values or len(values) % 3:
+        raise InputError(f"--positions must be 3 numbers per sensor (x,y,z in m), got {len(values)}")
+    if args.sensors not in (None, len(values) // 3):
+        raise InputError(f"--sensors {args.sensors} but --positions gives {_sensors(len(values) // 3)}: give one of them")
+    return {"positions": values, "sensors": len(values) // 3}
 
 
 STREAM_OPTIONS: tuple[str, ...] = ("sensor_rate", "phases", "receipt_delay", "receipt_jitter", "jitter_kind",
@@ -756,6 +777,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from magcal_ros.app.correct import check_sensors
 
     cal = _read_calibration(args.calibration, _name_list(args.uncorrected))
+    raw = _raw_sensors(cal, _name_list(args.uncorrected))
+    if raw:
+        from magcal_ros.app.correct import withheld_note
+
+        _note(withheld_note(raw))
     if cal.geometry.size > 1 and cal.geometry.gradient_kind == "none":
         _note(f"the positions of {', '.join(cal.geometry.names)} in {args.calibration} coincide: no gradient, "
               "the field only")
@@ -781,7 +807,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
             raise InputError("--copy-topics/--copy-all need a bag input and a bag output")
         for note in check_sensors(cal, recording_sensors(args.input), args.input, args.calibration, args.gradient_method):
             _note(note)
-        return _correct_via_recording(args, cal, out_csv)
+        return _correct_via_recording(args, cal, out_csv, raw)
     from magcal_ros.app.correct import correct_bag
 
     with _progress(args, "correct") as bar:
@@ -793,6 +819,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
             currents=_current_topics(args), current_tolerance=args.current_tolerance,
             sync_mode=args.sync_mode, max_gap=args.max_gap,
             temperature_topics=_temperature_topics(args), temperature_tolerance=args.temperature_tolerance,
+            raw_sensors=raw,
         )
     for note in report.notes:
         _note(note)
@@ -803,14 +830,21 @@ def cmd_correct(args: argparse.Namespace) -> int:
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {_sensors(len(cal.geometry.names))} -> {args.output} "
-        f"({report.storage}: /<name>/corrected, /field"
-        + {"tensor": ", /gradient", "baseline": ", /baseline_gradient"}.get(cal.geometry.gradient_kind, "")
+        f"({report.storage}: /<name>/corrected"
+        + (" only, /field and the gradient withheld" if raw else ", /field"
+           + {"tensor": ", /gradient", "baseline": ", /baseline_gradient"}.get(cal.geometry.gradient_kind, ""))
         + f"{extra})"
     )
     return 0
 
 
-def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool) -> int:
+def _raw_sensors(cal: ArrayCalibration, uncorrected: tuple[str, ...]) -> tuple[str, ...]:
+    """The ``--uncorrected`` sensors the calibration leaves raw (identity matrix, zero offset)."""
+    k = cal.geometry.names.index
+    return tuple(n for n in uncorrected if np.array_equal(cal.matrices[k(n)], np.eye(3)) and not np.any(cal.offsets[k(n)]))
+
+
+def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_csv: bool, raw: tuple[str, ...]) -> int:
     from magcal_ros.app.correct import time_offsets_of
 
     with _progress(args, "read") as bar:
@@ -826,15 +860,16 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
-        correct_recording_csv(args.output, rec, cal, args.gradient_method)
+        correct_recording_csv(args.output, rec, cal, args.gradient_method, raw)
         kind = "CSV"
     else:
         from magcal_ros.app.correct import write_corrected_bag
 
         storage = args.storage or "sqlite3"
-        write_corrected_bag(args.output, rec, cal, storage, args.frame_id, args.gradient_method)
+        write_corrected_bag(args.output, rec, cal, storage, args.frame_id, args.gradient_method, raw)
         kind = storage
-    print(f"corrected {len(rec)} sets of {_sensors(len(rec.names))} -> {args.output} ({kind})")
+    withheld = ": the corrected vectors only, field and gradient withheld" if raw else ""
+    print(f"corrected {len(rec)} sets of {_sensors(len(rec.names))} -> {args.output} ({kind}{withheld})")
     return 0
 
 
@@ -910,8 +945,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     d = SimulationSpec()
     p = _subcommand(
         sub, "simulate", "write a synthetic rotation recording with ground truth",
-        "Simulate four fluxgates on a turning platform in the Earth's field (plus optional dipoles) "
-        "with known sensor errors, hull iron and noise; write the raw recording and the truth beside it.",
+        "Simulate an array of three-axis magnetometers on a turning platform in the Earth's field (plus "
+        "optional dipoles) with known sensor errors, hull iron and noise; write the raw recording and the truth "
+        "beside it. The array: the 0.4 m four-sensor cross by default, --sensors N on a circle of --baseline, or "
+        "any layout with --positions.",
         EPILOG_SIMULATE,
     )
     p.add_argument("output", metavar="OUT", help="rosbag2 directory to create, or a .csv file")
@@ -1019,7 +1056,16 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:  # type: ignore[type
     g = p.add_argument_group("output")
     g.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"], help="rosbag2 storage (default sqlite3)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed of errors, attitudes and noise (default 0)")
-    g.add_argument("--baseline", type=float, default=d.baseline, metavar="METRES", help=f"cross baseline d (default {d.baseline:g} m)")
+    g = p.add_argument_group("array (platform frame, m)")
+    g.add_argument("--sensors", type=int, default=None, metavar="N",
+                   help="number of sensors: one at the centre (no gradient), two on a line along x (the gradient "
+                   "along it), three or more equally spaced on a circle of --baseline from +x (four: the cross; "
+                   f"default {d.sensors})")
+    g.add_argument("--positions", metavar="X,Y,Z,...",
+                   help="any layout instead: 3 numbers per sensor (m, platform frame), e.g. 0,0,0,0.5,0,0 for two "
+                   "sensors 0.5 m apart; the names are mag1, mag2, ...")
+    g.add_argument("--baseline", type=float, default=d.baseline, metavar="METRES",
+                   help=f"diameter of the circle of --sensors: the cross's baseline d (default {d.baseline:g} m)")
     add_common_options(p)
     p.set_defaults(func=cmd_simulate)
 
@@ -1034,8 +1080,9 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("input", help="recording: rosbag2 directory (sqlite3 or mcap) or .csv file")
     p.add_argument("-c", "--calibration", required=True, metavar="CALIBRATION.yaml", help="calibration file")
     p.add_argument("--uncorrected", metavar="NAME[,NAME]",
-                   help="sensors the calibration file may lack a block for: their raw readings are used as they are "
-                   "(otherwise a missing block is refused)")
+                   help="sensors the calibration file may lack a block for: their raw readings are written as they "
+                   "are, and the centre field and the gradient (which would mix them with calibrated sensors) are "
+                   "withheld (otherwise a missing block is refused)")
     p.add_argument("-o", "--output", required=True, help="rosbag2 directory to write, or a .csv file")
     copy = p.add_mutually_exclusive_group()
     copy.add_argument("--copy-topics", metavar="T1,T2", help="also copy these input topics unchanged (bag to bag)")
@@ -1055,12 +1102,116 @@ def _add_correct(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.set_defaults(func=cmd_correct)
 
 
+EPILOG_PLOT = """examples:
+  magcal plot corrected_bag -o survey.png                   # a corrected output of magcal correct
+  magcal plot corrected.csv -o survey.png -c cal.yaml       # the same, with the noise floor of cal.yaml
+  magcal plot survey_bag -c cal.yaml -o survey.png          # a raw recording, corrected on the way
+
+The figure: the centre field's components (nT about their median), its total intensity
+(|B| - F, nT; F from --reference-field or the calibration, else about the median) and the
+measured gradient components (nT/m: the six of the tensor's x and y rows, or dB/ds along a
+line of sensors), against time. With a calibration (-c) the noise it stored draws the TMI's
+noise band and the gradient's noise floor (dashed; the floor of the array's own estimator,
+sqrt(2) sigma / d for the cross). The line printed says the gradient's set-to-set noise
+against that floor: a calibration that holds is at it."""
+
+
+def _add_plot(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = _subcommand(
+        sub, "plot", "draw a corrected recording: centre field, TMI and gradient against time (PNG)",
+        "Draw a corrected recording (the output of magcal correct: a bag or CSV), or a raw one corrected on "
+        "the way with -c, as time series of the centre field, its total intensity and the gradient.",
+        EPILOG_PLOT,
+    )
+    p.add_argument("input", help="a corrected output (bag or .csv of magcal correct), or a raw recording with -c")
+    p.add_argument("-o", "--output", required=True, metavar="FILE.png", help="PNG to write")
+    p.add_argument("-c", "--calibration", metavar="CALIBRATION.yaml",
+                   help="the calibration: needed for a raw recording; gives the noise floor and F for either")
+    p.add_argument("--reference-field", type=float, default=None, metavar="TESLA",
+                   help="F for the TMI (default: the calibration's intensity, else the TMI about its median)")
+    add_window_options(p)
+    add_common_options(p)
+    p.set_defaults(func=cmd_plot)
+
+
+def _plotted(args: argparse.Namespace, cal: ArrayCalibration | None) -> Any:
+    """The recording to plot as a :class:`~magcal_ros.io.output_scan.CorrectedOutput`: read back, or
+    corrected from a raw recording with ``cal``."""
+    from magcal_ros.io.output_scan import CorrectedOutput, corrected_names, read_output
+
+    names = corrected_names(args.input)
+    if names is None:
+        if cal is None:
+            raise InputError(f"{args.input} is a raw recording (no corrected outputs): give its calibration with "
+                             "-c CALIBRATION.yaml, or plot the output of magcal correct")
+        from magcal_ros.app.correct import corrected_input, time_offsets_of
+        from magcal_ros.core.tensor import method_for
+
+        rec, stats = open_recording(args.input, cal.geometry.names, args.start, args.end,
+                                    time_offsets=time_offsets_of(cal))
+        _report_sync(stats)
+        check_tesla(rec.vectors, rec.names, args.input)
+        rec = corrected_input(rec, cal)
+        sets = cal.outputs(rec.vectors, method_for(cal.geometry), rec.currents if rec.channels else None,
+                           rec.temperatures)
+        rows = sets.tensor.reshape(len(rec), 9) if sets.tensor is not None else sets.baseline
+        return CorrectedOutput(rec.names, rec.stamps, sets.vectors, sets.centre, rows)
+    out = read_output(args.input, names)
+    keep = np.ones(len(out.stamps), bool)
+    if args.start is not None:
+        keep &= out.stamps >= args.start
+    if args.end is not None:
+        keep &= out.stamps <= args.end
+    if not keep.any():
+        raise InputError(f"{args.input}: no sets in the selected time window")
+    return CorrectedOutput(out.names, out.stamps[keep], out.vectors[keep],
+                           None if out.centre is None else out.centre[keep],
+                           None if out.gradient is None else out.gradient[keep])
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Draw a corrected recording (or a raw one with its calibration) into a PNG."""
+    from magcal_ros.app.plots import gradient_components, plot_survey, set_to_set_noise
+    from magcal_ros.core.metrics import gradient_floor
+
+    if not str(args.output).lower().endswith(".png"):
+        raise InputError(f"-o {args.output}: the figure is a PNG file (name ending in .png)")
+    if args.reference_field is not None and not (EARTH_FIELD_RANGE[0] <= args.reference_field <= EARTH_FIELD_RANGE[1]):
+        raise InputError(f"--reference-field {args.reference_field:g} T is not an Earth field intensity in Tesla")
+    cal = _read_calibration(args.calibration) if args.calibration else None
+    out = _plotted(args, cal)
+    if cal is not None and tuple(cal.geometry.names) != tuple(out.names):
+        raise InputError(f"{args.calibration} covers {', '.join(cal.geometry.names)}, the recording has "
+                         f"{', '.join(out.names)}")
+    stored = [] if cal is None else [float(v) for v in cal.metadata.get("noise") or [] if float(v) > 0]
+    noise = float(np.sqrt(np.mean(np.square(stored)))) if stored else None
+    intensity = args.reference_field or (float(cal.metadata.get("intensity") or 0) if cal is not None else 0) or None
+    floor = gradient_floor(noise, cal.geometry) if noise and cal is not None and out.gradient is not None else None
+    plot_survey(args.output, out, intensity, noise, floor, f"magcal plot {Path(args.input).name}: {len(out.stamps)} "
+                f"sets of {_sensors(len(out.names))}")
+    parts = [f"plotted {len(out.stamps)} sets of {_sensors(len(out.names))} -> {args.output}"]
+    if out.centre is not None:
+        tmi = np.linalg.norm(out.centre, axis=1)
+        parts.append(f"TMI median {float(np.median(tmi)) / NT:.1f} nT" + (f" (F {intensity / NT:.1f} nT)" if intensity else ""))
+    else:
+        parts.append("centre field and gradient withheld in this output (a sensor left raw)")
+    measured = set_to_set_noise(gradient_components(out.gradient)[0])
+    if measured is not None:
+        parts.append(f"gradient set-to-set noise {measured / NT:.3g} nT/m"
+                     + (f" against the noise floor {floor / NT:.3g} nT/m" if floor else " (no calibration: no floor)"))
+    print(", ".join(parts))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``magcal`` argument parser."""
+    import magcal_ros  # the package's version
+
     parser = argparse.ArgumentParser(
         prog="magcal",
-        description="Calibrate, correct and inspect recordings of a magnetic gradient tensor array "
-        "(four fluxgates, Tesla on every topic and in every file).",
+        description="Calibrate, correct and inspect recordings of an array of three-axis magnetometers: one\n"
+        "sensor, two (a gradiometer), the four-fluxgate cross of a gradient tensor array, or any number\n"
+        "anywhere (Tesla on every topic and in every file).",
         epilog="examples:\n"
         "  magcal simulate rotation_bag && magcal calibrate rotation_bag -o cal.yaml --plot cal.png\n"
         "  magcal correct survey_bag -c cal.yaml -o corrected_bag\n"
@@ -1068,11 +1219,13 @@ def build_parser() -> argparse.ArgumentParser:
         "  magcal COMMAND --help      # options and examples of a command\n\n" + EXIT_CODES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"magcal {magcal_ros.__version__} (magcal_ros)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_correct(sub)
+    _add_plot(sub)
     from magcal_ros.app.batch import add_batch_parser  # Dask itself is imported only when a batch runs
 
     add_batch_parser(sub, _subcommand)

@@ -90,6 +90,8 @@ class CorrectionOutput:
     sensors: int
     kind: str
     """``tensor`` (writes /gradient), ``baseline`` (/baseline_gradient) or ``none``."""
+    withheld: bool = False
+    """Only the corrected vectors: /field and the gradient withheld (a sensor is left raw)."""
 
     def encode(self, batch: SetBatch, sets: CorrectedSets) -> NDArray[np.uint8]:
         """Filled blocks for ``batch``: corrected vectors, centre field and the gradient per set."""
@@ -97,6 +99,8 @@ class CorrectionOutput:
         off = self.layout.offsets
         for k in range(self.sensors):
             self.sensor_template.fill(blocks, off[k], batch.stamps[:, k], sets.vectors[:, k])
+        if self.withheld:
+            return blocks
         self.sensor_template.fill(blocks, off[self.sensors], batch.set_stamps, sets.centre)
         if self.kind == "tensor":
             self.gradient_template.fill(blocks, off[self.sensors + 1], sets.tensor)
@@ -105,12 +109,16 @@ class CorrectionOutput:
         return blocks
 
 
-def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: str = "tensor") -> CorrectionOutput:
-    """Register ``/<name>/corrected``, ``/field`` and the gradient topic of ``kind`` on ``sink``."""
+def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: str = "tensor",
+                      withheld: bool = False) -> CorrectionOutput:
+    """Register ``/<name>/corrected``, ``/field`` and the gradient topic of ``kind`` on ``sink`` (``withheld``:
+    the corrected vectors only)."""
     mf = magnetic_field_template(frame_id)
     gt = gradient_template()
     vt = vector3_stamped_template(frame_id)
     parts = [(sink.add_topic(topics.absolute(topics.corrected(n)), MAGNETIC_FIELD), mf.template) for n in names]
+    if withheld:
+        return CorrectionOutput(sink.layout(parts), mf, gt, vt, len(names), kind, True)
     parts.append((sink.add_topic(topics.absolute(topics.FIELD), MAGNETIC_FIELD), mf.template))
     if kind == "tensor":
         parts.append((sink.add_topic(topics.absolute(topics.GRADIENT), FLOAT64_MULTI_ARRAY), gt.template))
@@ -122,6 +130,13 @@ def correction_output(sink: BagSink, names: Sequence[str], frame_id: str, kind: 
 def time_offsets_of(calibration: ArrayCalibration) -> dict[str, float]:
     """The calibration's non-zero time offsets (s) by sensor name (empty when there are none)."""
     return {n: float(t) for n, t in zip(calibration.geometry.names, calibration.time_offsets) if t}  # type: ignore[arg-type]
+
+
+def withheld_note(raw: Sequence[str]) -> str:
+    """Why a correction with sensors left raw (``--uncorrected``) writes the corrected vectors only."""
+    return (f"field and gradient withheld: {', '.join(raw)} {'is' if len(raw) == 1 else 'are'} raw (--uncorrected), and "
+            "a centre field or gradient with a raw sensor in it is wrong by its errors (thousands of nT/m); only "
+            "the corrected vectors are written (a CSV has nan in the field and gradient columns)")
 
 
 def check_sensors(
@@ -241,6 +256,7 @@ def correct_bag(
     max_gap: float = DEFAULT_MAX_GAP,
     temperature_topics: Sequence[str] | None = None,
     temperature_tolerance: float = DEFAULT_TEMPERATURE_TOLERANCE,
+    raw_sensors: Sequence[str] = (),
 ) -> CorrectionReport:
     """Correct every synchronized set of ``in_path`` and write a new bag at ``out_path``.
 
@@ -265,8 +281,10 @@ def correct_bag(
     sensor are dropped and counted). ``frame_id``: the outputs' frame (default the calibration's,
     else ``magcal_array``). ``gradient_method`` None: the difference formula when the bag holds sensors
     the calibration lacks, else :func:`~magcal_ros.core.tensor.method_for` the calibration's geometry
-    (decided here, so the bag is opened once). Streaming and atomic: nothing is left at ``out_path``
-    on failure.
+    (decided here, so the bag is opened once). ``raw_sensors``: sensors left raw on purpose (their
+    calibration is the identity, ``--uncorrected``): only the corrected vectors are written, ``/field``
+    and the gradient withheld (:func:`withheld_note`). Streaming and atomic: nothing is left at
+    ``out_path`` on failure.
     """
     names = calibration.geometry.names
     inp = Path(in_path)
@@ -292,22 +310,9 @@ def correct_bag(
             found = list(temperature_topics) if temperature_topics else _bag_temperature_topics(reader, inp, names)
             temperatures = read_temperature_samples(reader, inp, names, found)
             temperature_stats = TemperatureStats(names, temp_tol, [t.counts for t in temperatures if t.counts])
-        outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
-                                                topics.BASELINE_GRADIENT]}
-        if copy_topics == "all":
-            extra = list(reader.connections)
-        else:
-            have = {c.topic for c in reader.connections}
-            wanted = [t if t.startswith("/") else "/" + t for t in copy_topics]
-            missing = [t for t in wanted if t not in have]
-            if missing:
-                raise InputError(f"{inp}: no topic {', '.join(missing)} to copy (topics: {', '.join(sorted(have))})")
-            extra = [c for c in reader.connections if c.topic in wanted]
-        clash = sorted({c.topic for c in extra} & outputs)
-        if clash:
-            raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
+        extra = _copied(reader, inp, copy_topics, names)
         with atomic_path(out_path) as tmp, BagSink.create(tmp, out_storage) as sink:
-            out = correction_output(sink, names, frame_id, calibration.geometry.gradient_kind)
+            out = correction_output(sink, names, frame_id, calibration.geometry.gradient_kind, bool(raw_sensors))
             copy_map: dict[int, Connection] = {}
             by_topic: dict[tuple[str, str], Connection] = {}
             for c in extra:
@@ -347,21 +352,48 @@ def correct_bag(
                     sets_out = calibration.outputs(part.vectors, gradient_method, part_u, part_t)
                     sink.write_sets(out.layout, out.encode(part, sets_out), part.set_stamps)
                 n_in += len(batch)
-            why = sets.stats.disorder()
-            if why:
-                raise InputError(f"{inp}: {why}")
-            if sets.stats.sets == 0:
-                raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} ({sets.stats.describe()})")
-            if n_in == 0 and current_stats is not None and current_stats.dropped:
-                raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
-                                 "widen --current-tolerance")
-            if n_in == 0 and temperature_stats is not None and temperature_stats.dropped:
-                raise InputError(f"{inp}: {temperature_stats.describe()}: no set left; check the topics' stamps or "
-                                 "widen --temperature-tolerance")
-            if n_in == 0:
-                raise InputError(f"{inp}: no synchronized sets in the selected time window")
+            _check_sets_written(inp, names, sets.stats, n_in, current_stats, temperature_stats)
     return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats,
                             temperature_stats)
+
+
+def _check_sets_written(inp: Path, names: Sequence[str], stats: SyncStats, written: int,
+                        current_stats: CurrentStats | None, temperature_stats: TemperatureStats | None) -> None:
+    """:class:`InputError` naming why a correction wrote no set (or met stamps out of order)."""
+    why = stats.disorder()
+    if why:
+        raise InputError(f"{inp}: {why}")
+    if stats.sets == 0:
+        raise InputError(f"{inp}: no complete synchronized sets of {', '.join(topics.absolute(topics.raw(n)) for n in names)} "
+                         f"({stats.describe()})")
+    if written == 0 and current_stats is not None and current_stats.dropped:
+        raise InputError(f"{inp}: {current_stats.describe()}: no set left; check the topics' stamps or "
+                         "widen --current-tolerance")
+    if written == 0 and temperature_stats is not None and temperature_stats.dropped:
+        raise InputError(f"{inp}: {temperature_stats.describe()}: no set left; check the topics' stamps or "
+                         "widen --temperature-tolerance")
+    if written == 0:
+        raise InputError(f"{inp}: no synchronized sets in the selected time window")
+
+
+def _copied(reader: Any, inp: Path, copy_topics: Sequence[str] | Literal["all"], names: Sequence[str]) -> list[Any]:
+    """The input connections to copy unchanged (``"all"``, or the topics named); :class:`InputError` for a
+    topic the bag lacks or one the corrected output writes itself."""
+    outputs = {topics.absolute(t) for t in [*map(topics.corrected, names), topics.FIELD, topics.GRADIENT,
+                                            topics.BASELINE_GRADIENT]}
+    if copy_topics == "all":
+        extra = list(reader.connections)
+    else:
+        have = {c.topic for c in reader.connections}
+        wanted = [t if t.startswith("/") else "/" + t for t in copy_topics]
+        missing = [t for t in wanted if t not in have]
+        if missing:
+            raise InputError(f"{inp}: no topic {', '.join(missing)} to copy (topics: {', '.join(sorted(have))})")
+        extra = [c for c in reader.connections if c.topic in wanted]
+    clash = sorted({c.topic for c in extra} & outputs)
+    if clash:
+        raise InputError(f"{inp}: cannot copy {', '.join(clash)}: the corrected output writes that topic")
+    return extra
 
 
 def _bag_temperature_topics(reader: Any, path: Path, names: Sequence[str]) -> list[str]:
@@ -381,8 +413,10 @@ def write_corrected_bag(
     storage: Storage = "sqlite3",
     frame_id: str | None = None,
     gradient_method: str = "difference",
+    raw_sensors: Sequence[str] = (),
 ) -> None:
-    """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`.
+    """Corrected output of an in-memory ``recording`` (e.g. from CSV) as a bag; see :func:`correct_bag`
+    (``raw_sensors`` as there).
 
     The recording must carry the currents of the calibration's channels and, for temperature
     terms, the sensors' temperatures (:func:`corrected_input`)."""
@@ -390,7 +424,8 @@ def write_corrected_bag(
     rec = corrected_input(recording, calibration)
     stamps = rec.stamps
     with atomic_path(path) as tmp, BagSink.create(tmp, check_storage(storage)) as sink:
-        out = correction_output(sink, rec.names, output_frame(calibration, frame_id), calibration.geometry.gradient_kind)
+        out = correction_output(sink, rec.names, output_frame(calibration, frame_id), calibration.geometry.gradient_kind,
+                                bool(raw_sensors))
         for a in range(0, len(rec), SETS_PER_WRITE):
             ts = stamps[a : a + SETS_PER_WRITE]
             part = SetBatch(np.repeat(ts[:, None], len(rec.names), axis=1), rec.vectors[a : a + SETS_PER_WRITE])
@@ -404,14 +439,16 @@ def correct_recording_csv(
     recording: Recording,
     calibration: ArrayCalibration,
     gradient_method: str = "difference",
+    raw_sensors: Sequence[str] = (),
 ) -> int:
-    """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count.
+    """Correct an in-memory ``recording`` and write it atomically as CSV; returns the set count
+    (``raw_sensors`` as :func:`correct_bag`'s: nan in the field and gradient columns).
 
     The recording must carry the currents of the calibration's channels and, for temperature
     terms, the sensors' temperatures (:func:`corrected_input`)."""
     rec = corrected_input(recording, calibration)
     sets = calibration.outputs(rec.vectors, gradient_method, rec.currents if rec.channels else None, rec.temperatures)
-    write_corrected_csv(path, rec.stamps, rec.names, sets)
+    write_corrected_csv(path, rec.stamps, rec.names, sets, withheld=bool(raw_sensors))
     return len(rec)
 
 

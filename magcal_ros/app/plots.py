@@ -1,4 +1,7 @@
-"""Diagnostic figure of a calibration (``magcal calibrate --plot FILE.png``).
+"""Figures: a calibration (``magcal calibrate --plot FILE.png``) and a corrected recording
+(``magcal plot RECORDING -o FILE.png``, :func:`plot_survey`).
+
+The calibration's figure:
 
 Three rows, before (left) and after (right) the calibration:
 
@@ -26,6 +29,7 @@ from magcal_ros.core.stamps import ns_to_seconds
 from magcal_ros.core.tensor import baseline_gradient, gradient, method_for
 from magcal_ros.core.units import NT
 from magcal_ros.io.atomic import atomic_path
+from magcal_ros.io.output_scan import CorrectedOutput
 from magcal_ros.methods.pipeline import CalibrationResult
 
 MAX_POINTS = 4000
@@ -118,5 +122,92 @@ def plot_calibration(path: str | os.PathLike[str], recording: Recording, result:
         ax.set_zlabel("z (uT)")
         ax.set_title(f"{label} and the sphere |b| = F")
         ax.legend(fontsize=8, loc="upper left", markerscale=4)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+
+
+def gradient_components(gradient: NDArray[np.float64] | None) -> tuple[NDArray[np.float64] | None, list[str]]:
+    """The measured gradient components of an output's gradient rows and their labels: the six tensor
+    components ``xx, xy, xz, yx, yy, yz`` of (N, 9) rows, or ``dB/ds`` of (N, 3) rows (T/m)."""
+    if gradient is None:
+        return None, []
+    if gradient.shape[1] == 9:
+        return gradient[:, :6], [f"G{c}" for c in TENSOR_COMPONENTS]
+    return gradient, ["dBx/ds", "dBy/ds", "dBz/ds"]
+
+
+def set_to_set_noise(values: NDArray[np.float64] | None) -> float | None:
+    """RMS of the differences between consecutive rows over sqrt(2) (the white part of a slowly varying
+    series: a survey's gradient changes little from one set to the next), NaN rows skipped; None for none."""
+    from magcal_ros.core.streaming_stats import StepNoise
+
+    if values is None:
+        return None
+    steps = StepNoise()
+    steps.add(values)
+    return steps.value()
+
+
+def plot_survey(path: str | os.PathLike[str], output: CorrectedOutput, intensity: float | None = None,
+                noise: float | None = None, floor: float | None = None, title: str = "") -> None:
+    """Time series of a corrected recording into the PNG ``path``: the centre field's components (nT about
+    their median), its total intensity (TMI, nT: ``|B| - F`` with the intensity ``F`` when known, else
+    about its median; per sensor when the centre field was withheld), and the measured gradient
+    components (nT/m). ``noise`` (T per axis) draws the TMI's noise band ``+- noise / sqrt(S)`` and
+    ``floor`` (T/m) the gradient's noise floor, dashed, where they are known."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    comps, labels = gradient_components(output.gradient)
+    rows = (2 if output.centre is not None else 1) + (comps is not None)
+    fig = Figure(figsize=(13, 3.6 * rows + 0.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(rows, 1, sharex=True))
+    t = ns_to_seconds(output.stamps - output.stamps[0])
+    idx = _thin(len(t))
+    fig.suptitle(title or f"magcal corrected recording: {len(t)} sets of {len(output.names)} sensor"
+                 f"{'s' if len(output.names) != 1 else ''}", fontsize=12)
+    row = 0
+    if output.centre is not None:
+        ax = axes[row]
+        median = np.nanmedian(output.centre, axis=0)
+        for k, axis in enumerate("xyz"):
+            ax.plot(t[idx], (output.centre[idx, k] - median[k]) / NT, lw=0.7, label=f"B{axis} (median {median[k] / 1e-6:.3f} uT)")
+        ax.set_title("centre field (the mean of the sensors), each component about its median")
+        ax.set_ylabel("nT")
+        ax.legend(fontsize=8, loc="upper right")
+        row += 1
+    ax = axes[row]
+    series = [("centre", output.centre)] if output.centre is not None else \
+        [(n, output.vectors[:, k]) for k, n in enumerate(output.names)]
+    for name, vectors in series:
+        tmi = np.linalg.norm(vectors, axis=1)
+        ref = intensity if intensity else float(np.nanmedian(tmi))
+        ax.plot(t[idx], (tmi[idx] - ref) / NT, lw=0.7, label=f"{name}: median {float(np.nanmedian(tmi - ref)) / NT:+.3g} nT")
+    if noise and output.centre is not None:
+        band = noise / np.sqrt(len(output.names)) / NT
+        for sign in (-1, 1):
+            ax.axhline(sign * band, color="k", ls="--", lw=0.8, label="+- noise / sqrt(S)" if sign > 0 else None)
+    about = f"F = {intensity / NT:.1f} nT" if intensity else "its median"
+    ax.set_title(f"total intensity (TMI) |B| minus {about}" + ("" if output.centre is not None else
+                                                              ", per sensor (centre field withheld)"))
+    ax.set_ylabel("nT")
+    ax.legend(fontsize=8, loc="upper right")
+    if comps is not None:
+        ax = axes[-1]
+        for k, name in enumerate(labels):
+            ax.plot(t[idx], comps[idx, k] / NT, lw=0.7, label=name)
+        measured = set_to_set_noise(comps)
+        text = f"set-to-set noise {measured / NT:.3g} nT/m" if measured is not None else ""
+        if floor:
+            for sign in (-1, 1):
+                ax.axhline(sign * floor / NT, color="k", ls="--", lw=0.8, label="+- noise floor" if sign > 0 else None)
+            text += f" against the noise floor {floor / NT:.3g} nT/m"
+        ax.set_title(f"measured gradient components: {text}")
+        ax.set_ylabel("nT/m")
+        ax.legend(fontsize=8, ncols=4, loc="upper right")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time since first set (s)")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=90)

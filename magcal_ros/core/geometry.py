@@ -18,6 +18,13 @@ Array = NDArray[np.float64]
 
 DEFAULT_NAMES: tuple[str, ...] = ("mag1", "mag2", "mag3", "mag4")
 DEFAULT_BASELINE: float = 0.4
+
+
+def default_names(count: int) -> tuple[str, ...]:
+    """``mag1``, ``mag2``, ... ``mag<count>``: the sensor names when none are given."""
+    return tuple(f"mag{i + 1}" for i in range(count))
+
+
 _NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -88,6 +95,22 @@ class ArrayGeometry:
         h = baseline / 2.0
         pos = np.array([[h, 0, 0], [0, h, 0], [-h, 0, 0], [0, -h, 0]], dtype=float)
         return cls(tuple(names), pos)
+
+    @classmethod
+    def ring(cls, count: int, diameter: float = DEFAULT_BASELINE, names: tuple[str, ...] | None = None) -> "ArrayGeometry":
+        """``count`` sensors equally spaced on a circle of ``diameter`` (m) in the x-y plane, the first at
+        +x and counter-clockwise (about +z); one sensor sits at the centre. Four give :meth:`cross`
+        exactly, two a line along x of length ``diameter``."""
+        names = default_names(count) if names is None else tuple(names)
+        if count == 4:
+            return cls.cross(diameter, names)
+        if count == 1:
+            return cls(names, np.zeros(3))
+        angle = 2.0 * np.pi * np.arange(count) / max(count, 1)
+        h = diameter / 2.0
+        pos = np.column_stack([h * np.cos(angle), h * np.sin(angle), np.zeros(count)])
+        pos[np.abs(pos) < 1e-12 * h] = 0.0  # exact zeros where the circle meets an axis
+        return cls(names, pos)
 
     @classmethod
     def single(cls, name: str = "mag1") -> "ArrayGeometry":

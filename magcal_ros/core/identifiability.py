@@ -140,6 +140,26 @@ def quantity_names(channels: Sequence[str], with_mounting: bool,
     return out
 
 
+def by_sensor(quantities: Sequence[Quantity], sensors: Sequence[str]) -> str:
+    """Quantities named with their sensors, grouped by the sensors that have them, in the order of
+    ``sensors``: ``every sensor: offset x, offset y; mag2, mag3: time offset`` (``every sensor`` when all of
+    ``sensors`` have it and there are several), ``nothing`` for none. Quantities of the same name under two
+    statuses (updated and kept) are then told apart by their sensors."""
+    names: dict[str, list[str]] = {}
+    for q in quantities:
+        names.setdefault(q.name, [])
+        if q.sensor not in names[q.name]:
+            names[q.name].append(q.sensor)
+    rank = {s: k for k, s in enumerate(sensors)}
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for name, who in names.items():
+        groups.setdefault(tuple(sorted(who, key=lambda s: rank.get(s, len(rank)))), []).append(name)
+    every = tuple(sensors)
+    parts = [f"{'every sensor' if who == every and len(every) > 1 else ', '.join(who)}: {', '.join(items)}"
+             for who, items in groups.items()]
+    return "; ".join(parts) or "nothing"
+
+
 def held_parameter(name: str, model: ForwardModel) -> int | None:
     """The parameter index a quantity of a holdable block stands for (None for other quantities)."""
     if name.startswith("offset tempco ") and model.offset_tempco_column is not None:

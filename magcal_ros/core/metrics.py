@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:
+    from magcal_ros.core.geometry import ArrayGeometry
 
 Array = NDArray[np.float64]
 
@@ -36,3 +41,23 @@ def tensor_rms(g: ArrayLike, truth: ArrayLike | float = 0.0) -> float:
 def tensor_floor(noise: float, baseline: float) -> float:
     """Tensor noise floor ``sqrt(2) sigma / d`` (T/m) of the cross difference formula."""
     return float(np.sqrt(2.0) * noise / baseline)
+
+
+def gradient_floor(noise: float, geometry: "ArrayGeometry", method: str | None = None) -> float | None:
+    """The gradient noise floor (T/m) of an array whose sensors carry white noise ``noise`` (T, 1-sigma per
+    axis): the RMS over the six measured tensor components (as :func:`tensor_rms`) for three or more
+    sensors spread in a plane or in space, over the three components of ``dB/ds`` for sensors on a line,
+    None for one sensor position. The planar cross by the difference formula gives :func:`tensor_floor`
+    (``sqrt(2) sigma / d``); any other layout (or ``method``) is propagated through its own estimator."""
+    from magcal_ros.core.tensor import baseline_gradient, gradient, method_for
+
+    kind = geometry.gradient_kind
+    if kind == "none":
+        return None
+    s = geometry.size
+    impulses = np.eye(3 * s).reshape(3 * s, s, 3)  # one unit reading per sensor axis: the estimator's columns
+    if kind == "baseline":
+        columns = baseline_gradient(impulses, geometry)  # (3S, 3)
+        return float(noise * np.sqrt(np.sum(columns**2) / 3.0))
+    columns = gradient(impulses, geometry, method_for(geometry, method))[:, :2, :].reshape(3 * s, 6)
+    return float(noise * np.sqrt(np.sum(columns**2) / 6.0))

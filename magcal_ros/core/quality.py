@@ -394,6 +394,14 @@ def saturation(names: tuple[str, ...], raw: Array) -> tuple[NDArray[np.bool_], s
     return clipped, None
 
 
+def implied_intensity(intensity: float, implied_gain: float) -> float:
+    """The field intensity (T) the data imply when a reference ``intensity`` F made the sensors' mean gain
+    ``implied_gain``: the calibration maps the readings onto a sphere of radius F, so its matrices scale
+    them by ``F / F_true`` and the gains they imply are ``F_true / F`` (sensors of unit gain): the data
+    imply ``F_true = F * gain``. (A reference 51.5 uT against a 55 uT field: gains +6.8 %, 55 uT.)"""
+    return intensity * implied_gain
+
+
 def judge(
     names: tuple[str, ...],
     residuals: Array,
@@ -536,7 +544,7 @@ def judge(
             return verdict
     if implied_gain is not None and intensity is not None:
         error = implied_gain - 1.0
-        implied = intensity / implied_gain
+        implied = implied_intensity(intensity, implied_gain)
         if abs(error) > MAX_GAIN_ERROR:
             verdict.cause = (
                 f"the reference intensity {intensity / NT:.0f} nT disagrees with the data, which imply about "

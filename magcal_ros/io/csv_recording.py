@@ -542,9 +542,11 @@ def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
 
 
 def write_corrected_csv(
-    path: str | os.PathLike[str], stamps: NDArray[np.int64], names: Sequence[str], sets: CorrectedSets
+    path: str | os.PathLike[str], stamps: NDArray[np.int64], names: Sequence[str], sets: CorrectedSets,
+    withheld: bool = False,
 ) -> None:
-    """Write corrected sets atomically (columns as :func:`corrected_header` for the array's gradient)."""
+    """Write corrected sets atomically (columns as :func:`corrected_header` for the array's gradient);
+    ``withheld``: ``nan`` in the field and gradient columns (a sensor left raw on purpose)."""
     n = len(stamps)
     parts = [sets.vectors.reshape(n, -1), sets.centre.reshape(n, 3)]
     kind = "none"
@@ -554,6 +556,8 @@ def write_corrected_csv(
     elif sets.baseline is not None:
         parts.append(sets.baseline.reshape(n, 3))
         kind = "baseline"
+    if withheld:
+        parts[1:] = [np.full_like(p, np.nan) for p in parts[1:]]
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(",".join(corrected_header(names, kind)) + "\n")

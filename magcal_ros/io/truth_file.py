@@ -49,7 +49,7 @@ import yaml
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.imu import NED_TO_ENU
-from magcal_ros.core.metrics import tensor_floor
+from magcal_ros.core.metrics import gradient_floor
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.errors import InputError
 from magcal_ros.io.atomic import atomic_path
@@ -93,9 +93,11 @@ def simulation_parameters(spec: SimulationSpec, sim: ArraySimulation, sets: int)
             "position": [float(v) for v in spec.position],
             "dipole_count": len(spec.dipoles),
             "earth_field": [float(v) for v in sim.earth],
-            "tensor_noise_floor": tensor_floor(spec.noise, spec.baseline),
         }
     )
+    floor = gradient_floor(spec.noise, sim.geometry)
+    if floor is not None:  # T/m: the tensor's six measured components, or dB/ds along a line of sensors
+        params["tensor_noise_floor"] = floor
     if spec.dipoles:  # ROS parameter files cannot hold empty lists
         params["dipoles"] = [float(v) for d in spec.dipoles for v in d]
     if spec.thrusters:  # x, y, z (m), mx, my, mz (A m^2 / A) per thruster, platform frame

@@ -151,14 +151,12 @@ class CalibrationResult:
         if self.gradient_kind != "none":
             label = "tensor" if self.gradient_kind == "tensor" else "baseline gradient"
             parts.append(f"{label} RMS {self.tensor_before / NT:.1f} -> {self.tensor_after / NT:.3f} nT/m")
-        else:
-            frame = "platform frame (mounting given)" if self.extras.get("mounting") else "sensor axes made orthogonal"
-            parts.append(f"frame: {frame}")
+        parts.append(f"frame: {self.frame()}")
         parts.append(self.envelope.describe())
         if self.prior:
-            kept = sorted({q.name for q in self.identifiability.kept()})
-            updated = sorted({q.name for q in self.identifiability.updated()})
-            parts.append(f"updated: {', '.join(updated) or 'nothing'}; kept from the prior: {', '.join(kept) or 'nothing'}")
+            ana, names = self.identifiability, self.calibration.geometry.names
+            parts.append(f"updated ({ident.by_sensor(ana.updated(), names)}), kept from the prior "
+                         f"({ident.by_sensor(ana.kept(), names)})")
         if int(self.outliers.sum()):
             parts.append(f"{int(self.outliers.sum())} outlying readings excluded")
         if self.extras.get("uniformity") is not None and self.extras["uniformity"].detected:
@@ -173,6 +171,35 @@ class CalibrationResult:
                          f"coverage and the time span){', refined on all' if refined else ''}")
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
+
+    def frame(self) -> str:
+        """The frame the corrected outputs are in, in a few words (:meth:`frame_note` says more)."""
+        cal = self.calibration
+        if cal.rotated:
+            return f"the IMU's ({cal.frame_id or 'its frame'})"
+        if cal.geometry.size == 1:
+            return "platform frame (mounting given)" if self.extras.get("mounting") else "sensor axes made orthogonal"
+        return "the array's (the sensors' mean axes)"
+
+    def frame_note(self) -> str:
+        """What the outputs' frame is and how to have the vehicle's: the sentence the answer and the file
+        carry. An array's own frame is its virtual centre sensor's, the mean of its sensors' axes: it
+        differs from the vehicle's by the sensors' mean misalignment (a degree or two when mounted by
+        hand), so a heading taken from ``field`` is off by as much until an IMU or a known mounting turns it."""
+        cal = self.calibration
+        if cal.rotated:
+            return (f"outputs in the IMU's frame {cal.frame_id or ''}: output_rotation (array to IMU) was fitted from "
+                    "its orientations, so vectors, field and gradient are in the vehicle's navigation frame").replace("  ", " ")
+        if cal.geometry.size == 1:
+            if self.extras.get("mounting"):
+                return "output in the platform frame: the given mounting turns the sensor's corrected axes into it"
+            return ("output in the sensor's own axes made orthogonal, not the vehicle's: give its mounting (magcal "
+                    "--mounting ROLL,PITCH,YAW) or calibrate with the vehicle's IMU for the vehicle's frame")
+        return ("outputs in the array's own frame: the mean of the sensors' axes (a virtual centre sensor), not the "
+                "vehicle's: they differ by the sensors' mean misalignment, typically 1-2 deg, so a heading from the "
+                "field is off by as much; calibrate with the vehicle's IMU (magcal --imu, the calibration node's "
+                "imu_topic) to have every output in its frame, or put a known rotation array -> vehicle in the "
+                "file's output_rotation and frame_id")
 
     def lags(self) -> list[str]:
         """``mag3 reads 5.00 +- 0.01 ms late`` for each sensor whose lag behind the first is significant
@@ -767,6 +794,7 @@ def calibrate_array(
     :class:`CalibrationFailed` when the result fails a quality gate (naming the cause).
     """
     t0 = time.perf_counter()
+    given = (raw, currents, stamps, temperatures)
     opts = options or SolveOptions()
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -968,7 +996,8 @@ def calibrate_array(
                             implied, sol.intensity, sol.directions[order], clipped[order],
                             None if rates is None else rates[order], smooth=smooth)
     if verdict.cause:
-        raise CalibrationFailed(verdict.cause)
+        raise CalibrationFailed(_reference_misfit(given, geometry, reference_field, method, options, prior, channels, imu)
+                                or verdict.cause)
     warnings = list(verdict.warnings) + ([field.describe()] if field is not None and field.detected else [])
     if prior is None and ana.weak():
         warnings.append(_weak_warning(ana, sol, env))
@@ -1019,6 +1048,30 @@ def calibrate_array(
     return replace(result, seconds=time.perf_counter() - t0)
 
 
+def _reference_misfit(given: tuple[Any, Any, Any, Any], geometry: ArrayGeometry, reference: float | None, method: str,
+                      options: SolveOptions | None, prior: ArrayCalibration | None, channels: tuple[str, ...],
+                      imu: ImuSamples | None) -> str | None:
+    """Why a recalibration from a prior was refused when the reference intensity is what does not fit: the
+    prior keeps gains the manoeuvre cannot determine, so a reference the data disagree with
+    leaves a residual no uniform field explains. Solved again without the reference (the intensity the
+    prior's kept gains give these data): when that passes the gates, the reference is the cause and the
+    intensity the data imply is said; None when it fails too (the first cause stands), or without a prior
+    or a given reference."""
+    if prior is None or not reference:
+        return None
+    raw, currents, stamps, temperatures = given
+    free = replace(prior, metadata={k: v for k, v in prior.metadata.items() if k != "intensity"})
+    try:
+        result = calibrate_array(raw, geometry, None, method, options, free, currents, channels, stamps, temperatures, imu)
+    except MagcalError:
+        return None
+    implied = result.intensity
+    return (f"the reference intensity {reference / NT:.0f} nT does not fit the data with the gains the prior "
+            f"keeps (this manoeuvre does not determine them): they imply about {implied / NT:.0f} nT (the reference is "
+            f"{reference / implied - 1.0:+.1%} off); check --reference-field/--site (or the calibration node's "
+            "reference_field/site), or fly pitch and roll as well so that the gains are determined again")
+
+
 def provenance_key(name: str) -> str:
     """A quantity name as a ROS parameter key: ``offset z`` -> ``offset_z``,
     ``interference thruster1/battery x`` -> ``interference_thruster1_battery_x``."""
@@ -1050,6 +1103,7 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
         "uncertainty": uncertainty,
         "uncertainty_inflation": result.inflation,
         "summary": result.summary(),
+        "output_frame": result.frame_note(),
     }
     if np.isfinite(result.tensor_before) and np.isfinite(result.tensor_after):  # no tensor of one sensor
         meta["tensor_rms_before"], meta["tensor_rms_after"] = result.tensor_before, result.tensor_after

@@ -22,12 +22,12 @@ gyro only for schedules flown in time (:data:`~magcal_ros.sim.attitudes.CONTINUO
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from magcal_ros.core.field import Dipole, earth_field
-from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
+from magcal_ros.core.geometry import ArrayGeometry, default_names
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import ROS_MAX_SECONDS
 from magcal_ros.core.units import MAX_READING, NS_PER_S, NT
@@ -49,6 +49,10 @@ CURRENT_SCHEDULES: tuple[str, ...] = ("random", "steps")
 MAX_MESSAGES: int = 10_000_000
 """Most messages ``magcal simulate`` writes per sensor (sets, one sensor's stream, the IMU's): 10
 million sets take about 6 GB of memory and of bag."""
+MAX_SENSORS: int = 64
+"""Most sensors ``magcal simulate`` puts in one array."""
+MAX_ARM: float = 100.0
+"""Largest distance (m) of a simulated sensor from the platform's origin along any axis."""
 NOISE_SIGMAS: float = 6.0
 """Standard deviations of noise on each axis a simulated reading may carry and stay within
 :data:`~magcal_ros.core.units.MAX_READING` (a Gaussian draw beyond 6 sigma: 2e-9)."""
@@ -122,7 +126,14 @@ class SimulationSpec:
     start_time: float = 1.7e9
     seed: int = 0
     baseline: float = 0.4
-    names: tuple[str, ...] = field(default=DEFAULT_NAMES)
+    """Diameter (m) of the circle the sensors sit on when ``positions`` is not given (the cross's baseline)."""
+    sensors: int = 4
+    """Number of sensors when ``positions`` is not given: one at the centre, two or more equally spaced on a
+    circle of diameter ``baseline`` in the platform's x-y plane from +x (four: the planar cross)."""
+    positions: tuple[float, ...] = ()
+    """Sensor positions (m, platform frame), 3 numbers per sensor; empty: ``sensors`` on the circle."""
+    names: tuple[str, ...] = ()
+    """Sensor names; empty: ``mag1``, ``mag2``, ... one per sensor."""
     thrusters: tuple[tuple[float, ...], ...] = ()
     """Each ``(x, y, z, mx, my, mz)``: platform position (m) and moment per ampere (A m^2 / A)."""
     thruster_current: str = "random:20"
@@ -164,6 +175,33 @@ class SimulationSpec:
     """A constant gradient over the array (T/m, world frame NED): 5 numbers xx, xy, xz, yy, yz
     (symmetric and traceless) or all 9 row-major."""
 
+    def __post_init__(self) -> None:
+        if not self.names:
+            count = len(self.positions) // 3 if self.positions else self.sensors
+            object.__setattr__(self, "names", default_names(count if isinstance(count, (int, np.integer)) else 0))
+
+    def geometry(self) -> ArrayGeometry:
+        """The simulated array: ``positions`` when given, else ``sensors`` on a circle of ``baseline``."""
+        if self.positions:
+            return ArrayGeometry(self.names, np.asarray(self.positions, dtype=float))
+        return ArrayGeometry.ring(len(self.names), self.baseline, self.names)
+
+    def check_array(self) -> None:
+        """Raise :class:`InputError` for an array no simulation can use (count, positions, names)."""
+        if isinstance(self.sensors, bool) or not isinstance(self.sensors, (int, np.integer)) or \
+                not 1 <= self.sensors <= MAX_SENSORS:
+            raise InputError(f"--sensors must be a whole number of sensors, 1 .. {MAX_SENSORS}, got {self.sensors}")
+        if not (self.baseline > 0 and np.isfinite(self.baseline)):
+            raise InputError("--baseline must be positive and finite (m)")
+        if self.positions:
+            values = np.asarray(self.positions, dtype=float)
+            if values.size % 3 or not 1 <= values.size // 3 <= MAX_SENSORS or not np.all(np.isfinite(values)):
+                raise InputError(f"--positions must be finite numbers, 3 per sensor (x,y,z in m, platform frame; "
+                                 f"1 .. {MAX_SENSORS} sensors), got {values.size}")
+            if not np.all(np.abs(values) <= MAX_ARM):
+                raise InputError(f"--positions must lie within {MAX_ARM:g} m of the platform's origin")
+        self.geometry()  # names: unique, valid ROS names, one per sensor
+
     @property
     def channels(self) -> tuple[str, ...]:
         """Current channels of the thrusters."""
@@ -186,6 +224,14 @@ class SimulationSpec:
         if not (0 < self.start_time <= ROS_MAX_SECONDS):  # False for NaN
             raise InputError(f"--start-time {self.start_time:g} s is not a ROS stamp: 0 < SECONDS <= {ROS_MAX_SECONDS} "
                              "(builtin_interfaces/Time.sec is int32)")
+        self._check_span_and_field()
+        self.check_array()
+        self._check_errors_and_sources()
+        self._check_temperature_and_imu()
+        self.check_reach()
+
+    def _check_span_and_field(self) -> None:
+        """The recording's end a ROS stamp; the field's intensity and the manoeuvre's angles."""
         end = self.start_time + (self.count - 1) / self.rate
         if not end < ROS_MAX_SECONDS + 1:
             raise InputError(f"--count {self.count} sets at --rate {self.rate:g} Hz from --start-time {self.start_time:.10g} s "
@@ -199,8 +245,9 @@ class SimulationSpec:
             if not np.isfinite(value):
                 raise InputError(f"{option} must be a finite number ({'turns' if option == '--turns' else 'deg'}), "
                                  f"got {value}")
-        if not (self.baseline > 0 and np.isfinite(self.baseline)):
-            raise InputError("--baseline must be positive and finite (m)")
+
+    def _check_errors_and_sources(self) -> None:
+        """Error spreads and noise; dipoles, thrusters and their current schedule."""
         spreads = (self.scale_sd, self.angle_sd, self.offset_sd, self.misalignment_sd, self.hard_iron_sd, self.soft_iron_sd, self.noise)
         if any(not (np.isfinite(v) and v >= 0) for v in spreads):
             raise InputError("error spreads and noise must be finite and >= 0")
@@ -211,6 +258,9 @@ class SimulationSpec:
             if len(d) != 6 or not np.all(np.isfinite(d)):
                 raise InputError("--thruster needs 6 numbers: x,y,z (m) and mx,my,mz (A m^2 per A), platform frame")
         current_schedule(self.thruster_current, 1, 1, self.step_sets, np.random.default_rng(0))
+
+    def _check_temperature_and_imu(self) -> None:
+        """The temperature profile and tempcos; the IMU's options."""
         self.temperature_profile()
         draw_tempcos(np.random.default_rng(0), 1, self.tempco_offset, self.tempco_gain)
         if (self.tempco_offset or self.tempco_gain) and self.temperature_profile() is None:
@@ -233,7 +283,6 @@ class SimulationSpec:
             if self.imu_rate and not self.continuous:
                 raise InputError("--imu-rate needs a schedule flown in time: "
                                  + ", ".join(attitudes.CONTINUOUS_SCHEDULES) + " (or --still)")
-        self.check_reach()
 
     def check_reach(self) -> None:
         """Refuse a world gradient or noise that puts readings beyond any magnetometer's range
@@ -243,7 +292,7 @@ class SimulationSpec:
         reach = self.intensity
         g = self.world_gradient_matrix()
         if g is not None:
-            arm = self.baseline / 2.0  # the cross's sensors are baseline / 2 from its centre
+            arm = float(np.max(np.linalg.norm(self.geometry().positions, axis=1)))  # from the rotation centre
             reach += float(np.linalg.norm(g, 2)) * arm
             if not reach <= MAX_READING:
                 raise InputError(f"--world-gradient reaches {reach:.3g} T at a sensor {arm:g} m from the array's centre: "
@@ -295,7 +344,7 @@ class SimulationSpec:
 def build(spec: SimulationSpec) -> tuple[ArraySimulation, np.ndarray]:
     """The simulated array and its attitude schedule (N, 3, 3)."""
     spec.check()
-    geometry = ArrayGeometry.cross(spec.baseline, tuple(spec.names))
+    geometry = spec.geometry()
     err_rng = np.random.default_rng([spec.seed, 0])
     sensors = tuple(
         random_sensor_errors(err_rng, spec.scale_sd, spec.angle_sd, spec.offset_sd, spec.misalignment_sd,
