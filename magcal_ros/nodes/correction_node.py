@@ -805,7 +805,8 @@ class CorrectionNode(Node):
         if ages:
             p50, p99, pmax = np.percentile(np.asarray(ages, dtype=float) / 1e6, [50.0, 99.0, 100.0])
             assessment.values.update(age_ms_p50=f"{p50:.3f}", age_ms_p99=f"{p99:.3f}", age_ms_max=f"{pmax:.3f}")
-        status = common.diagnostic_status(self.get_fully_qualified_name(), state.frame_id, assessment)
+        status = common.diagnostic_status(self.get_fully_qualified_name(), common.hardware_id(self, state.names),
+                                          assessment)
         self._status_pub.publish(status)
         calibration = self._report_calibration(state)
         self._diagnostics_pub.publish(common.diagnostic_array(self, [status, calibration]))
@@ -819,7 +820,7 @@ class CorrectionNode(Node):
                 self.get_logger().warn(report.message)
             else:
                 self.get_logger().info(f"calibration health back to normal: {report.message}")
-        return drift.status(self.get_fully_qualified_name(), ",".join(state.names), report)
+        return drift.status(self.get_fully_qualified_name(), common.hardware_id(self, state.names), report)
 
 
 def main(args: Sequence[str] | None = None, stop: StopFlag | None = None) -> int:
