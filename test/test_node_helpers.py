@@ -117,9 +117,13 @@ def test_the_running_calibration_is_a_prior_only_when_calibrated() -> None:
     cal, why = common.running_calibration(values, geo)
     assert why == "" and cal.channels == ("t1",) and np.allclose(cal.offsets[2], [3e-7, 0, 0])
     assert np.allclose(cal.interference[1, :, 0], [1e-9, 2e-9, 3e-9])
-    blank = dict(values, **{"mag3.matrix": common.IDENTITY, "mag3.offset": common.ZEROS, "uncorrected_sensors": ["mag3"]})
+    blank = dict(values, **{"mag3.matrix": [], "mag3.offset": [], "uncorrected_sensors": ["mag3"]})
     assert common.running_calibration(blank, geo) == (
-        None, "mag3 at identity matrix and zero offset (never calibrated; mag3 uncorrected on purpose)")
+        None, "mag3 without a matrix and offset (never calibrated; mag3 uncorrected on purpose)")
+    # an identity given on purpose is a calibration, and so a prior
+    on_purpose = dict(values, **{"mag3.matrix": common.IDENTITY, "mag3.offset": common.ZEROS})
+    cal, why = common.running_calibration(on_purpose, geo)
+    assert why == "" and np.array_equal(cal.matrices[2], np.eye(3)) and not cal.offsets[2].any()
     cal, why = common.running_calibration(dict(values, sensor_names=["mag1"]), geo)
     assert cal is None and why.startswith("it has no sensor mag2, mag3, mag4")
     cal, why = common.running_calibration(dict(values, **{"mag2.offset": [1.0, 0.0, 0.0]}), geo)

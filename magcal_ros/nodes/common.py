@@ -603,8 +603,9 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
     """The calibration a correction node runs for ``geometry``'s sensors, from its parameter values
     (Python values by dotted name, unset ones absent), or ``(None, why not)``.
 
-    A sensor it does not have, or holds at the defaults (identity matrix, zero offset: never
-    calibrated, e.g. listed in ``uncorrected_sensors``), means it runs no calibration to start from.
+    A sensor it does not have, or holds without a matrix or offset (``[]``: never calibrated, e.g.
+    listed in ``uncorrected_sensors``), means it runs no calibration to start from; an identity and
+    zeros given are a calibration like any other.
     """
     from magcal_ros.core.calibration import ArrayCalibration
 
@@ -613,12 +614,11 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
     absent = [n for n in names if n not in theirs]
     if absent:
         return None, f"it has no sensor {', '.join(absent)} (its sensors: {', '.join(theirs) or 'none'})"
-    blank = [n for n in names if list(values.get(f"{n}.matrix") or IDENTITY) == IDENTITY
-             and list(values.get(f"{n}.offset") or ZEROS) == ZEROS]
+    blank = [n for n in names if not values.get(f"{n}.matrix") or not values.get(f"{n}.offset")]
     if blank:
         raw = [n for n in blank if n in list(values.get("uncorrected_sensors") or [])]
         why = f"; {', '.join(raw)} uncorrected on purpose" if raw else ""
-        return None, f"{', '.join(blank)} at identity matrix and zero offset (never calibrated{why})"
+        return None, f"{', '.join(blank)} without a matrix and offset (never calibrated{why})"
     channels = list(values.get("interference_channels") or [])
     params: dict[str, Any] = {"sensor_names": list(names), "positions": list(geometry.positions.reshape(-1)),
                               "interference_channels": channels}
