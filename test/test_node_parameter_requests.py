@@ -221,3 +221,29 @@ def test_with_use_sim_time_and_no_clock_both_nodes_still_report_and_say_why(tmp_
             last = {n: (s[-1].message if s else None) for n, s in seen.items()}
         assert all(warned(n) for n in seen), last
         assert all("use_sim_time is true and no /clock arrived" in m for m in last.values()), last
+
+
+def test_the_sets_a_calibration_solves_are_the_sets_it_keeps_with_the_imu_pending() -> None:
+    """~/calibrate keeps exactly the sets it solved (so that calling it again answers unchanged): those waiting for
+    the IMU's next sample go into the solve first, and so into what is kept. (Taken before them, the sets kept
+    lacked the waiting ones and a second ~/calibrate solved again.)"""
+    with in_process("-p", "prior:=none") as run:
+        node = _make("calibration", run)
+        rng = np.random.default_rng(2)
+        t0 = 1_700_000_000 * 10**9
+        with node._lock:
+            for k in range(40):
+                t = t0 + k * 10_000_000
+                node._imu.add(t, [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
+                node._buffer.add(t, tuple(map(tuple, rng.normal(size=(4, 3)) * 1e-5)), [], None,
+                                 [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+            waiting = t0 + 40 * 10_000_000 + 1_000_000  # after the last IMU sample: waits for the next one
+            node._newest_set = waiting
+            node._pending.append((waiting, tuple(map(tuple, rng.normal(size=(4, 3)) * 1e-5)), [], None, 0))
+        first = node._take_sets(None)
+        assert len(first.collected) == 41 and waiting in first.collected.stamps
+        with node._lock:
+            node._buffer.restore(*first.snapshot)
+        again = node._take_sets(None)
+        np.testing.assert_array_equal(again.collected.stamps, first.collected.stamps)
+        np.testing.assert_array_equal(again.collected.vectors, first.collected.vectors)

@@ -1061,8 +1061,8 @@ class CalibrationNode(Node):
         """Stage 1: the sets to solve (the collected ones, or a mission window) and what they were taken with."""
         with self._lock:
             if window is None:
+                collected, notes = self._collected()  # sets waiting for the IMU go in first
                 snapshot = self._buffer.collected()
-                collected, notes = self._collected()
             else:
                 snapshot = None
                 collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
