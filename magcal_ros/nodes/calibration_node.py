@@ -392,6 +392,8 @@ class CalibrationNode(Node):
         common.sync_settings({n: self._value(n, updates) for n in ("sync_mode", "max_gap")})
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
+        if not 1.0 <= self._number("analysis_timeout", updates) <= 3600.0:
+            raise InputError("analysis_timeout must be 1 .. 3600 s")
         if not 0.0 <= self._number("recalibrate_interval", updates) <= 86400.0:
             raise InputError("recalibrate_interval must be 0 .. 86400 s")
         target = str(self._value("correction_node", updates)).strip()
