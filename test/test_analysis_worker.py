@@ -162,3 +162,21 @@ def test_the_worker_ends_when_the_node_is_gone() -> None:
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=STARTUP)
     pid = int(proc.stdout.split()[-1])
     assert _until(lambda: not _alive(pid), timeout=60.0), f"worker {pid} outlived its node"
+
+
+def test_a_worker_that_cannot_be_started_is_an_error_on_diagnostics_not_an_exception_in_the_node() -> None:
+    """The supervision runs in the node's report timer: a process that cannot be started (here: no such program;
+    at sea: no memory or process slot) must not raise there (a timer that raises ends the node). It is an
+    ERROR status with the reason, analyses fail with it, and it is tried again after a back-off."""
+    lines: list[str] = []
+    w = AnalysisWorker(5.0, lines.append, command=["/nonexistent/python3"])
+    try:
+        w.start()
+        w.check()
+        level, message, values = w.status()
+        assert level == 2 and "cannot start the analysis process" in message and values["state"] == "stopped"
+        with pytest.raises(AnalysisFailed, match="cannot start the analysis process"):
+            w.run("ping")
+        assert any("cannot start" in line for line in lines)
+    finally:
+        w.close()

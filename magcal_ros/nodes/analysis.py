@@ -156,9 +156,18 @@ class AnalysisWorker:
                 self._spawn()
 
     def _spawn(self) -> None:
-        """Start a worker process (lock held)."""
-        proc = subprocess.Popen(self._command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
-                                start_new_session=True, close_fds=True, bufsize=0)
+        """Start a worker process (lock held). One that cannot be started (no memory, no process slot) is
+        noted and tried again after the back-off: the node goes on without analyses meanwhile."""
+        try:
+            proc = subprocess.Popen(self._command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
+                                    start_new_session=True, close_fds=True, bufsize=0)
+        except OSError as exc:
+            now = time.monotonic()
+            self._early_ends += 1
+            self._not_before = now + min(RESTART_BACKOFF[0] * 2 ** (self._early_ends - 1), RESTART_BACKOFF[1])
+            self._note(f"cannot start the analysis process: {exc}", now)
+            self._log(self.counters.problem)
+            return
         assert proc.stdin is not None
         os.set_blocking(proc.stdin.fileno(), False)
         self._proc, self._ready, self._busy_since = proc, threading.Event(), None
