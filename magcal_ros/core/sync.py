@@ -245,6 +245,7 @@ class SetSynchronizer(AcceptanceRule):
         self._queue(index, accepted)
         formed = self._advance(final=False)
         if not formed:
+            self._compact(keep_values=True)  # messages given up for a silent sensor are consumed too
             return []
         stamps, values = self._raws, self._values
         out = [SyncedSet(tuple(stamps[k][i] for k, i in enumerate(members)),

@@ -284,8 +284,27 @@ class InterpolatingSynchronizer(AcceptanceRule):
             st.used += 1
             self._discard_before(t, formed=True)
             self._prev = t
+        if not final:
+            self._give_up_unreferenced()
         self._compact()
         return out
+
+    def _give_up_unreferenced(self) -> None:
+        """Live bound while the reference sensor has no instant queued (silent): another sensor's samples that
+        waited :attr:`lag_ns` for one are given up (``unmatched``), each sensor's latest such sample kept as the
+        neighbour a later instant may still need."""
+        st = self.stats
+        for k in range(1, self.size):
+            taus, used = self._tau[k], self._used[k]
+            h, n = self._head[k], len(taus)
+            j = h
+            while j + 1 < n and self.waited(taus[j + 1], (0,)):
+                j += 1
+            if j > h:
+                kept = sum(used[h:j])
+                st.used += kept
+                st.unmatched += j - h - kept
+                self._head[k] = j
 
     def _give_up(self, t: int, silent: int) -> bool:
         """Live bounds: a set instant that waited too long for sensor ``silent`` (:meth:`waited`), or a

@@ -98,6 +98,19 @@ class SetBuffer:
         return (self._stamps[order].copy(), self._raw[order].copy(), self._currents[order].copy(),
                 self._temperatures[order].copy(), self._imu[order].copy())
 
+    def restore(self, stamps: NDArray[np.int64], raw: NDArray[np.float64], currents: NDArray[np.float64],
+                temperatures: NDArray[np.float64], imu: NDArray[np.float64]) -> None:
+        """Hold exactly these sets, as :meth:`collected` gave them (stamps (N,) ns, raw (N, S, 3) T, currents (N, m)
+        A, temperatures (N, S) deg C, IMU (N, 7)), and no other: sets added since are forgotten."""
+        n = len(stamps)
+        if n > self.capacity:
+            raise ValueError(f"{n} sets do not fit in {self.capacity}")
+        self._stamps[:n], self._raw[:n], self._currents[:n] = stamps, raw, currents
+        self._temperatures[:n], self._imu[:n] = temperatures, imu
+        self._cells[:n] = np.argmax(raw.sum(axis=1) @ self._dirs.T, axis=1) if n else 0
+        self._counts[:] = np.bincount(self._cells[:n], minlength=CELLS)
+        self._size = n
+
     @property
     def cells_visited(self) -> int:
         """Number of sphere cells holding at least one set."""

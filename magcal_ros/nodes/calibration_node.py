@@ -34,13 +34,18 @@ when a solve would succeed, WARN when not yet (message says why and what to fly)
 ``collecting``, ``samples``, ``max_samples``, ``offered``, ``coverage`` (fraction of 42
 sphere cells), ``thickness`` (thinnest/widest spread, ~0 for one rotation axis), ``ready``,
 ``problem`` and, from an analysis of the collected sets run at most every
-``assess_period`` s in a separate process, so that it never holds up the callbacks
-(:func:`magcal_ros.methods.progress.assess`, 0.1-2 s of one core each):
+``assess_period`` s in the analysis process started with the node and supervised
+(:mod:`magcal_ros.nodes.analysis`: restarted when an analysis takes longer than
+``analysis_timeout`` or its heartbeat stops; ``<node>: analysis`` on ``/diagnostics``), so that
+it never holds up the callbacks (:func:`magcal_ros.methods.progress.assess`, 0.1-2 s of one
+core each):
 ``assessed`` (sets analysed), ``envelope`` ("valid within pitch +-P deg, roll +-R deg"),
 ``envelope_pitch_deg``, ``envelope_roll_deg``, ``undetermined``, ``advice`` (what to fly
 next, in words) and ``prior``. ``/diagnostics`` (DiagnosticArray, same period): the
 health of the raw streams (silent or late sensors, drops, sets lost before the node, no
-complete set for ``output_timeout``, stale currents), as the correction node reports it.
+complete set for ``output_timeout``, stale currents), as the correction node reports it, with the
+same ``hardware_id``. Reports and analyses run on the steady clock (with ``use_sim_time`` and no
+``/clock`` they go on, and say so).
 
 Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the node keeps a
 rolling window of the mission's sets and watches the correction node's calibration health on
@@ -64,15 +69,12 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import multiprocessing
 import os
-import signal
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -97,8 +99,10 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, LatestImu
 from magcal_ros.core.interference import LatestCurrents, tolerance_of
 from magcal_ros.core.matching import LatestValues
-from magcal_ros.core.recording import Recording
+from magcal_ros.core.metrics import rms, tensor_rms, tmi_rms
 from magcal_ros.core.observability import excitation
+from magcal_ros.core.recording import Recording
+from magcal_ros.core.tensor import baseline_gradient, gradient, method_for
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
@@ -111,6 +115,7 @@ from magcal_ros.methods.pipeline import (
     calibrate_array,
 )
 from magcal_ros.nodes import common, drift
+from magcal_ros.nodes.analysis import AnalysisWorker
 from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
 from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
@@ -145,6 +150,29 @@ class Stopping(CallFailed):
         super().__init__("the calibration node is shutting down")
 
 
+@dataclass
+class CalibrationJob:
+    """One calibration as its stages fill it in (see :meth:`CalibrationNode._calibrate`)."""
+
+    collected: Recording
+    """The sets to solve, with their currents, temperatures and IMU."""
+    notes: list[str]
+    """What the collection left out, in words."""
+    geo: ArrayGeometry
+    inputs: common.CurrentInputs
+    snapshot: tuple[np.ndarray, ...] | None
+    """The collection buffer's sets as taken (:meth:`SetBuffer.collected`); None for a mission window."""
+    method: str = ""
+    reference: float | None = None
+    """Reference intensity (T; None: relative)."""
+    site: SiteField | None = None
+    residual: float | None = None
+    """max_residual (T; None: the noise-aware rule)."""
+    fingerprint: str = ""
+    prior: ArrayCalibration | None = None
+    prior_note: str = ""
+
+
 class CalibrationNode(Node):
     """Collects synchronized raw sets and solves the array calibration on request."""
 
@@ -163,16 +191,20 @@ class CalibrationNode(Node):
         """(generation, sets offered, assessment, prior used) of the latest progress analysis."""
         self._progress_prior: tuple[int, ArrayCalibration | None, str] | None = None
         """(generation, prior, what it is) the progress analysis uses for that collection."""
-        self._analyser: ProcessPoolExecutor | None = None
-        """The process the progress analyses run in (started with the first one)."""
         self._changed: set[str] = set()
         """Parameters the update being applied changes."""
         self._declare_parameters()
         self._limits = common.declare_health(self)
+        common.check_ranges(self)
         try:
             self._geometry = self._validate({})
         except (TypeError, ValueError) as exc:
             raise InputError(f"invalid parameter: {exc}") from None
+        self._check_prior({})
+        self._analysis = AnalysisWorker(float(self.get_parameter("analysis_timeout").value),
+                                        self.get_logger().warn)
+        """The supervised process the progress analyses run in, started with the node."""
+        self._analysis.start()
         self._collecting = bool(self.get_parameter("autostart").value)
         depth = int(self.get_parameter("qos_depth").value)
         self._raw_qos = common.raw_qos(str(self.get_parameter("raw_reliability").value), depth)
@@ -201,9 +233,11 @@ class CalibrationNode(Node):
         self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
-        self.create_timer(max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
-        self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
-        self.create_timer(max(float(self.get_parameter("assess_period").value), 0.05), self._drift_tick)
+        self._sim_time = common.SimTimeWatch(self.get_logger())
+        # on the steady clock: progress, /diagnostics and the analyses go on without /clock under use_sim_time
+        common.steady_timer(self, max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
+        common.steady_timer(self, max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
+        common.steady_timer(self, max(float(self.get_parameter("assess_period").value), 0.05), self._drift_tick)
         self.create_subscription(DiagnosticArray, common.DIAGNOSTICS_TOPIC, self._on_diagnostics, 10)
         channels = self._inputs.channels
         self.get_logger().info(
@@ -298,8 +332,13 @@ class CalibrationNode(Node):
         self.declare_parameter(
             "assess_period", 5.0,
             d("shortest interval (s) between two analyses of the collected sets for ~/progress (envelope, what is "
-              "undetermined, advice); each runs in a separate process (0.1-2 s of one core)", read_only=True,
+              "undetermined, advice); each runs in the analysis process (0.1-2 s of one core)", read_only=True,
               numbers=True, floats=common.PERIOD_RANGE))
+        self.declare_parameter(
+            "analysis_timeout", 120.0,
+            d("longest time (s) one analysis may take, and the analysis process may go without a heartbeat, before "
+              "the process is killed and a new one started (the analysis then fails with the reason; the node goes "
+              "on); shown on /diagnostics as '<node>: analysis'", numbers=True, floats=(1.0, 3600.0)))
         self.declare_parameter("raw_reliability", "best_effort", d(common.RELIABILITY_DOC, read_only=True))
         self.declare_parameter("qos_depth", 100, d("history depth of the raw subscriptions", read_only=True,
                                                    ints=common.QOS_DEPTH_RANGE))
@@ -353,6 +392,8 @@ class CalibrationNode(Node):
         common.sync_settings({n: self._value(n, updates) for n in ("sync_mode", "max_gap")})
         if self._number("service_timeout", updates) <= 0:
             raise InputError("service_timeout must be > 0 s")
+        if not 1.0 <= self._number("analysis_timeout", updates) <= 3600.0:
+            raise InputError("analysis_timeout must be 1 .. 3600 s")
         if not 0.0 <= self._number("recalibrate_interval", updates) <= 86400.0:
             raise InputError("recalibrate_interval must be 0 .. 86400 s")
         target = str(self._value("correction_node", updates)).strip()
@@ -366,6 +407,23 @@ class CalibrationNode(Node):
         if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
             raise InputError(f"imu_tolerance must be a positive number of seconds, got {tolerance!r}")
         return geo
+
+    def _check_prior(self, updates: dict[str, Any]) -> None:
+        """:class:`InputError` unless ``prior`` is running, none, or a calibration file that reads (the block of the
+        correction node) with this node's sensors: a prior that cannot be used is refused when it is set."""
+        setting = str(self._value("prior", updates)).strip()
+        if setting in PRIORS:
+            return
+        target = self.resolve_service_name(str(self._value("correction_node", updates)).strip())
+        try:
+            prior = calfile.read(os.path.expanduser(setting), target.lstrip("/"))
+        except InputError as exc:
+            raise InputError(f"prior {setting!r} is neither running, none nor a usable calibration file: {exc}") \
+                from None
+        names = tuple(str(n) for n in self._value("sensor_names", updates))
+        if prior.geometry.names != names:
+            raise InputError(f"prior {setting!r} calibrates {', '.join(prior.geometry.names)}, not this node's "
+                             f"sensors ({', '.join(names)})")
 
     def _imu_topic(self, updates: dict[str, Any]) -> str:
         """The IMU topic; :class:`InputError` for a name that is not a topic."""
@@ -405,15 +463,29 @@ class CalibrationNode(Node):
             return site.intensity, site
         return float(self.get_parameter("reference_field").value) or None, None
 
+    def set_parameters_atomically(self, parameter_list: list[Parameter]) -> SetParametersResult:
+        """rclpy's, with a request naming a parameter this node does not have refused with its name (rclpy's
+        reason lists none: "undeclared parameter(s): []"); the parameter services come here."""
+        unknown = [p.name for p in parameter_list if not self.has_parameter(p.name)]
+        if unknown:
+            return SetParametersResult(successful=False, reason=common.unknown_parameters(self, unknown))
+        return super().set_parameters_atomically(parameter_list)
+
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
             why = common.check_number_array(p) if p.name in ("positions", "site") else None
             if why and not (p.name == "site" and _unset(p)):
                 return SetParametersResult(successful=False, reason=why)
+        updates = {p.name: p.value for p in params}
         try:
-            self._validate({p.name: p.value for p in params})
+            self._validate(updates)
+            if "prior" in updates or "correction_node" in updates:
+                self._check_prior(updates)
         except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             return SetParametersResult(successful=False, reason=str(exc))
+        why = common.out_of_range(self, params)  # what the node's own checks leave (an integer out of range)
+        if why:
+            return SetParametersResult(successful=False, reason=why)
         self._changed = {p.name for p in params if self.get_parameter_or(p.name).value != p.value}
         return SetParametersResult(successful=True)
 
@@ -435,6 +507,8 @@ class CalibrationNode(Node):
         if "recalibrate_interval" in names:
             with self._lock:
                 self._watch.interval_ns = self._interval_ns()
+        if "analysis_timeout" in names:
+            self._analysis.timeout = float(self.get_parameter("analysis_timeout").value)
 
     # -- collecting -----------------------------------------------------------------
     def _connect(self, geo: ArrayGeometry) -> None:
@@ -627,8 +701,6 @@ class CalibrationNode(Node):
         except Exception as exc:  # noqa: BLE001 - progress must never stop the node
             if self._stopping.is_set():
                 return
-            if isinstance(exc, BrokenProcessPool):
-                self._drop_analyser()
             note = "none"
             result = progress.Assessment(len(raw), False, None, (), f"cannot analyse the collected sets: {exc}")
         with self._lock:
@@ -636,13 +708,11 @@ class CalibrationNode(Node):
                 self._assessment = (*key, result, note)
 
     def _analyse(self, *args: Any, **kwargs: Any) -> progress.Assessment:
-        """:func:`magcal_ros.methods.progress.assess` in the analysis process (started with the first one)."""
-        spawn = self._analyser is None
-        if spawn:
-            self._analyser = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), _quiet_worker)
-        with _stderr_to_null() if spawn else contextlib.nullcontext():  # the first submit spawns
-            job = self._analyser.submit(progress.assess, *args, **kwargs)  # type: ignore[union-attr]
-        return job.result()
+        """:func:`magcal_ros.methods.progress.assess` in the analysis process;
+        :class:`~magcal_ros.nodes.analysis.AnalysisFailed` with the reason when it gives no answer (the process is
+        then restarted)."""
+        result: progress.Assessment = self._analysis.run("assess", *args, **kwargs)
+        return result
 
     def _publish_progress(self) -> None:
         now = common.now_ns(self)
@@ -656,7 +726,8 @@ class CalibrationNode(Node):
             stale, current_values = self._current_health.assess(self._currents, "not collected")
             stale_t, temperature_values = self._temperature_health.assess(self._temperatures, "not collected")
             stale_i, imu_values = self._imu_health.assess(self._imu, "not collected")
-            stale = "; ".join(x for x in (stale, stale_t, stale_i) if x) or None
+            clock = self._sim_time.problem(bool(self.get_parameter("use_sim_time").value), now)
+            stale = "; ".join(x for x in (stale, stale_t, stale_i, clock) if x) or None
             health = self._health.assess(now, stats, "complete sets", stale)
             health.values.update(current_values)
             health.values.update(temperature_values)
@@ -707,14 +778,26 @@ class CalibrationNode(Node):
             level=DiagnosticStatus.OK if values["ready"] == "true" else DiagnosticStatus.WARN,
             name=self.get_fully_qualified_name(),
             message=message,
-            hardware_id=",".join(self._geometry.names),
+            hardware_id=self._hardware_id(),
             values=[KeyValue(key=k, value=v) for k, v in values.items()],
         )
         self._progress_pub.publish(status)
         health.values.update(collecting=values["collecting"], samples=values["samples"])
-        sensors = ",".join(self._geometry.names)
         self._diagnostics_pub.publish(common.diagnostic_array(
-            self, [common.diagnostic_status(self.get_fully_qualified_name(), sensors, health), recal]))
+            self, [common.diagnostic_status(self.get_fully_qualified_name(), self._hardware_id(), health), recal,
+                   self._analysis_status()]))
+
+    def _hardware_id(self) -> str:
+        """The array's ``hardware_id`` on ``/diagnostics``, the same as the correction node's."""
+        return common.hardware_id(self, self._geometry.names)
+
+    def _analysis_status(self) -> DiagnosticStatus:
+        """``<node>: analysis``: the analysis process supervised (restarted when it hangs or ends), its heartbeat."""
+        self._analysis.check()
+        level, message, values = self._analysis.status()
+        return DiagnosticStatus(level=bytes([level]), name=self.get_fully_qualified_name() + ": analysis",
+                                message=message, hardware_id=self._hardware_id(),
+                                values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     # -- recalibration during the mission -------------------------------------------
     def _interval_ns(self) -> int:
@@ -814,11 +897,6 @@ class CalibrationNode(Node):
                 self._watch.attempted(now, pushed)
             self._solve_lock.release()
 
-    def _drop_analyser(self) -> None:
-        """A broken analysis pool: closed now, a new one started next time."""
-        _close_pool(self._analyser)
-        self._analyser = None
-
     def _running_intensity(self) -> float | None:
         """The intensity (T) the correction node's calibration maps |B| to, when it says (else None)."""
         try:
@@ -844,8 +922,6 @@ class CalibrationNode(Node):
         except Exception as exc:  # noqa: BLE001 - advice must never stop the node
             if self._stopping.is_set():
                 return
-            if isinstance(exc, BrokenProcessPool):
-                self._drop_analyser()
             text = f"cannot analyse the sets flown since the drift was named: {exc}"
         with self._lock:
             self._advice = (now, text)
@@ -859,7 +935,7 @@ class CalibrationNode(Node):
                                                          self._health_seen, advice, self._recalibration)
         return DiagnosticStatus(level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
                                 name=self.get_fully_qualified_name() + ": recalibration", message=message,
-                                hardware_id=",".join(self._geometry.names),
+                                hardware_id=self._hardware_id(),
                                 values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     # -- calibrating ----------------------------------------------------------------
@@ -903,7 +979,7 @@ class CalibrationNode(Node):
         if worker is not None and worker.is_alive():
             self.get_logger().info("shutting down during a calibration: it is abandoned, nothing is changed")
             worker.join(2.0)
-        _close_pool(self._analyser)
+        self._analysis.close()
         for thread in (self._assessor, self._drift_worker):
             if thread is not None and thread.is_alive():
                 thread.join(2.0)
@@ -959,67 +1035,104 @@ class CalibrationNode(Node):
 
     def _calibrate(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, check: Any = None,
                    reference_fallback: float | None = None) -> tuple[bool, str]:
-        """Solve, save and push (the ~/calibrate service; a recalibration during the mission).
+        """Solve, save and push (the ~/calibrate service; a recalibration during the mission), in stages: the
+        sets (:meth:`_take_sets`), the settings and prior (:meth:`_settle`), the solve (:meth:`_solve`), the
+        hand-over to the file and the correction node (:meth:`_hand_over`). Every stage that refuses changes
+        nothing and says why.
 
         ``window``: (stamps, raw, currents) to fit instead of the collected sets; ``check(result, prior)``:
         (why the result must not be applied or None, the result to apply), asked before anything changes;
         ``reference_fallback``: the intensity (T) when neither reference_field nor site gives one."""
-        with self._lock:
-            if window is None:
-                collected, collect_notes = self._collected()
-            else:
-                collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
-                collect_notes = []
-            geo, inputs = self._geometry, self._inputs
-        stamps, raw, currents = collected.stamps, collected.vectors, collected.currents
-        channels = inputs.channels
-        if len(raw) == 0:
+        job = self._take_sets(window)
+        if len(job.collected) == 0:
             return self._fail("no synchronized sets collected" + ("" if self._collecting else " (not collecting)")
                               + f"; {WHAT_TO_DO}")
-        method = str(self.get_parameter("method").value)
+        refused = self._settle(job, reference_fallback)
+        if refused is not None:
+            return refused
+        result = self._solve(job, check)
+        if isinstance(result, tuple):
+            return result
+        path = self._calibration_path()
+        failed = self._hand_over(job, result, path)
+        if failed is not None:
+            return self._fail(failed)
+        return self._succeeded(job, result, path)
+
+    def _take_sets(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> CalibrationJob:
+        """Stage 1: the sets to solve (the collected ones, or a mission window) and what they were taken with."""
+        with self._lock:
+            if window is None:
+                collected, notes = self._collected()  # sets waiting for the IMU go in first
+                snapshot = self._buffer.collected()
+            else:
+                snapshot = None
+                collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
+                notes = []
+            return CalibrationJob(collected, notes, self._geometry, self._inputs, snapshot)
+
+    def _settle(self, job: CalibrationJob, reference_fallback: float | None) -> tuple[bool, str] | None:
+        """Stage 2: method, reference, residual and prior; the answer when the solve is refused, or when these sets
+        and settings gave the calibration in force already (``unchanged``); None to go on."""
+        job.method = str(self.get_parameter("method").value)
         try:
-            reference, site = self._reference()
+            reference, job.site = self._reference()
         except InputError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed")
-        reference = reference or reference_fallback
-        residual = float(self.get_parameter("max_residual").value) or None
+        job.reference = reference or reference_fallback
+        job.residual = float(self.get_parameter("max_residual").value) or None
         setting = str(self.get_parameter("prior").value).strip()
-        settings = (method, reference, residual, setting, channels)
-        fingerprint = self._fingerprint(raw, currents, geo, settings, collected)
-        if window is None and self._last_solved is not None and self._last_solved[0] == fingerprint:
-            message = (f"unchanged: these {len(raw)} sets and settings gave the calibration already in force, "
+        collected = job.collected
+        settings = (job.method, job.reference, job.residual, setting, job.inputs.channels)
+        job.fingerprint = self._fingerprint(collected.vectors, collected.currents, job.geo, settings, collected)
+        last = self._last_solved
+        if job.snapshot is not None and last is not None and last[0] == job.fingerprint:
+            message = (f"unchanged: these {len(collected)} sets and settings gave the calibration already in force, "
                        f"so nothing was solved, applied or written again; call ~/start to collect new sets "
-                       f"(last result: {self._last_solved[1]})")
+                       f"(last result: {last[1]})")
             self.get_logger().info(message)
             return True, message
         try:
-            prior, prior_note = self._resolve_prior(geo)
+            job.prior, job.prior_note = self._resolve_prior(job.geo)
         except InputError as exc:
             return self._fail(f"calibration not possible: prior {exc}; set prior (running, none or a file); "
                               "nothing was changed")
+        return None
+
+    def _solve(self, job: CalibrationJob, check: Any) -> CalibrationResult | tuple[bool, str]:
+        """Stage 3: the solve and the caller's check; the result to apply, or the answer why there is none."""
         self._check_stop()
-        self.get_logger().info(f"solving from {len(raw)} sets (method {method}, prior: {prior_note})")
-        opts = SolveOptions(max_residual=residual, inclination_deg=site.inclination_deg if site is not None else None,
+        rec, site, channels = job.collected, job.site, job.inputs.channels
+        self.get_logger().info(f"solving from {len(rec)} sets (method {job.method}, prior: {job.prior_note})")
+        opts = SolveOptions(max_residual=job.residual,
+                            inclination_deg=site.inclination_deg if site is not None else None,
                             site_field=site.vector if site is not None else None)
         try:
-            result = calibrate_array(raw, geo, reference, method, opts, prior, currents if channels else None,
-                                     channels, stamps, collected.temperatures, collected.imu)
+            result = calibrate_array(rec.vectors, job.geo, job.reference, job.method, opts, job.prior,
+                                     rec.currents if channels else None, channels, rec.stamps, rec.temperatures,
+                                     rec.imu)
         except MagcalError as exc:
-            return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {prior_note})")
+            return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {job.prior_note})")
         self._check_stop()
-        why, result = check(result, prior) if check is not None else (None, result)
+        why, result = check(result, job.prior) if check is not None else (None, result)
         if why:
-            return self._fail(f"not recalibrated: {why}; nothing was changed (prior: {prior_note})")
-        cal = result.calibration
+            return self._fail(f"not recalibrated: {why}; nothing was changed (prior: {job.prior_note})")
         if site is not None:
-            cal.metadata.update(site.provenance())
+            result.calibration.metadata.update(site.provenance())
+        if job.prior is not None:
+            result = _before_with_prior(result, job)
+        return result
+
+    def _hand_over(self, job: CalibrationJob, result: CalibrationResult, path: str) -> str | None:
+        """Stage 4: write the file (``path``, '' none) and set the calibration on the correction node, both or
+        neither; None when done, else why not (what was put back said)."""
+        cal = result.calibration
         try:
             previous = self._get_target_parameters(cal.geometry.names)
         except CallFailed as exc:
-            return self._fail(f"solved but not applied: {exc}; nothing was changed")
-        path = self._calibration_path()
+            return f"solved but not applied: {exc}; nothing was changed"
         params = calfile.parameters(cal)
-        params.update(_channel_parameters(inputs, cal.channels))  # no channels: the node's earlier ones must go too
+        params.update(_channel_parameters(job.inputs, cal.channels))  # no channels: the node's earlier ones go too
         for name in cal.geometry.names:  # replace any covariance the node holds from an earlier calibration
             params[name].setdefault("covariance", list(common.UNKNOWN_COVARIANCE))
             params[name].setdefault("time_offset", 0.0)  # and any time offset
@@ -1033,28 +1146,40 @@ class CalibrationNode(Node):
         except OSError as exc:
             why = f"{exc.strerror} ({exc.filename})" if exc.strerror and exc.filename else str(exc)
             if isinstance(exc.__context__, CallFailed):  # the push failed, then putting the old file back did
-                return self._fail(f"solved but not applied: {exc.__context__}; and the previous {path} could NOT be "
-                                  f"put back ({why}): the file holds a calibration the correction node does not run")
-            return self._fail(f"solved but cannot write {path}: {why}; set calibration_file; nothing was changed")
+                return (f"solved but not applied: {exc.__context__}; and the previous {path} could NOT be put back "
+                        f"({why}): the file holds a calibration the correction node does not run")
+            return f"solved but cannot write {path}: {why}; set calibration_file; nothing was changed"
         except CallFailed as exc:
             if isinstance(exc, Stopping):
                 raise
-            undo = "the file was left as it was" if path else "no file was written"
-            if exc.unknown_outcome:
-                try:
-                    self._push(previous, raw_messages=True)
-                    undo += "; the previous calibration was set again on the correction node"
-                except CallFailed as again:
-                    undo += f"; could NOT set the previous calibration again on the correction node ({again})"
-            return self._fail(f"solved but not applied: {exc}; {undo}")
-        if window is not None:  # the calibration in force changed: a ~/calibrate is never "unchanged" now
+            return f"solved but not applied: {exc}; {self._undo_push(exc, previous, path)}"
+        return None
+
+    def _undo_push(self, exc: CallFailed, previous: list[ParameterMsg], path: str) -> str:
+        """After a failed push: what was left or put back, in words (a push without an answer may have been
+        applied: the previous calibration is set again)."""
+        undo = "the file was left as it was" if path else "no file was written"
+        if exc.unknown_outcome:
+            try:
+                self._push(previous, raw_messages=True)
+                undo += "; the previous calibration was set again on the correction node"
+            except CallFailed as again:
+                undo += f"; could NOT set the previous calibration again on the correction node ({again})"
+        return undo
+
+    def _succeeded(self, job: CalibrationJob, result: CalibrationResult, path: str) -> tuple[bool, str]:
+        """Stage 5: the calibration is in force. After ~/calibrate the collection stops and holds exactly the sets
+        solved (sets that came during the solve are dropped), so that calling it again answers ``unchanged``."""
+        if job.snapshot is None:  # the calibration in force changed: a ~/calibrate is never "unchanged" now
             self._last_solved = None
-            return True, self._success_message(result, path, prior_note, site)
+            return True, self._success_message(result, path, job.prior_note, job.site)
         with self._lock:
             self._collecting = False
             self._generation += 1
-        message = self._success_message(result, path, prior_note, site, collect_notes)
-        self._last_solved = (fingerprint, message)
+            self._pending.clear()
+            self._buffer.restore(*job.snapshot)
+        message = self._success_message(result, path, job.prior_note, job.site, job.notes)
+        self._last_solved = (job.fingerprint, message)
         self.get_logger().info(message)
         return True, message
 
@@ -1208,46 +1333,44 @@ def _channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> 
             "interference_types": [inputs.types[j] for j in keep]}
 
 
-ANALYSIS_NICENESS: int = 10
-"""The analysis process yields the CPU to the nodes (and the sensors' drivers) when they need it."""
+def _gradient_rms(vectors: np.ndarray, geo: ArrayGeometry) -> float:
+    """RMS (T/m) of the gradient ``vectors`` (N, S, 3) T show in the uniform field of a manoeuvre: the tensor
+    (method by the geometry), the baseline gradient, or NaN for one sensor."""
+    if geo.gradient_kind == "tensor":
+        return tensor_rms(gradient(vectors, geo, method_for(geo)))
+    if geo.gradient_kind == "baseline":
+        return float(rms(baseline_gradient(vectors, geo)))
+    return float("nan")
 
 
-@contextlib.contextmanager
-def _stderr_to_null() -> Iterator[None]:
-    """While a process is spawned: its stderr is the null device. A Ctrl-C to the process group
-    reaches it too, maybe while it still imports (before :func:`_quiet_worker` ignores SIGINT),
-    and its KeyboardInterrupt traceback must not land in the node's output; what it computes
-    comes back through its future. The node's own stderr is back a few milliseconds later."""
-    saved, null = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+def _before_with_prior(result: CalibrationResult, job: CalibrationJob) -> CalibrationResult:
+    """``result`` with its "before" figures (per-sensor TMI RMS, T; the gradient's RMS, T/m) those of the prior
+    on the same sets: with a prior, "before" is the calibration in force, not the raw readings (the file's
+    provenance says so in ``before``). Unchanged when the prior cannot correct these sets (a current channel or
+    the temperatures it needs were not collected)."""
+    prior, rec = job.prior, job.collected
+    assert prior is not None
+    currents = None
+    if prior.channels:
+        have = list(rec.channels)
+        if not set(prior.channels) <= set(have):
+            return result
+        currents = rec.currents[:, [have.index(c) for c in prior.channels]]
+    if prior.has_temperature_terms and rec.temperatures is None:
+        return result
     try:
-        os.dup2(null, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(null)
-
-
-def _close_pool(pool: ProcessPoolExecutor | None) -> None:
-    """End the analysis process (what it computes is not needed any more) and join the pool's manager
-    thread, so that nothing of the pool is left when the interpreter exits: Python 3.11's exit hook wakes
-    every pool's manager thread and, when one closes its pipe at the same moment (a busy machine makes
-    that likely), prints a traceback (OSError: Bad file descriptor) into the node's output."""
-    if pool is None:
-        return
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):
-        with contextlib.suppress(Exception):
-            proc.terminate()
-    with contextlib.suppress(Exception):
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _quiet_worker() -> None:
-    """In the analysis process: Ctrl-C to the process group is for the node, which ends this process; a
-    lower priority, so that a busy machine drops no sensor message for it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    with contextlib.suppress(OSError):
-        os.nice(ANALYSIS_NICENESS)
+        b = prior.apply_array(rec.vectors, currents, rec.temperatures if prior.has_temperature_terms else None)
+    except (InputError, ValueError):
+        return result
+    out = replace(result, tmi_before=tmi_rms(b, result.intensity), tensor_before=_gradient_rms(b, job.geo))
+    meta = out.calibration.metadata
+    meta["tmi_rms_before"] = [float(x) for x in out.tmi_before]
+    if np.isfinite(out.tensor_before):
+        meta["tensor_rms_before"] = out.tensor_before
+    meta["before"] = f"with the prior: {job.prior_note}"
+    if "summary" in meta:
+        meta["summary"] = out.summary()
+    return out
 
 
 def _envelope_text(assessed: progress.Assessment | None) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import faulthandler
+import math
 import re
 import signal
 import sys
@@ -15,6 +16,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.parameter import Parameter
+from rclpy.parameter_service import ParameterService
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from magcal_ros.core import sync
@@ -114,6 +116,95 @@ def diagnostic_status(name: str, hardware_id: str, assessment: Assessment) -> Di
         hardware_id=hardware_id,
         values=[KeyValue(key=k, value=v) for k, v in assessment.values.items()],
     )
+
+
+def hardware_id(node: Any, names: Sequence[str]) -> str:
+    """The ``hardware_id`` of every status both nodes put on ``/diagnostics`` for the array of sensors ``names``:
+    their names as the nodes resolve them (``/array1/mag1,/array1/mag2,...``), so that rqt_robot_monitor groups
+    the correction and the calibration node of one array together, and apart from another array's."""
+    return ",".join(node.resolve_topic_name(n) for n in names)
+
+
+def steady_timer(node: Any, period: float, callback: Callable[[], None]) -> Any:
+    """A timer on the steady clock: reports and supervision go on whatever the node clock does (with
+    ``use_sim_time`` and no ``/clock`` the node clock stands still, and a timer on it never fires)."""
+    from rclpy.clock import Clock
+    from rclpy.clock_type import ClockType
+
+    return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
+class SimTimeWatch:
+    """With ``use_sim_time``: whether ``/clock`` drives the node clock. :meth:`problem` says when no ``/clock``
+    arrived or it stopped for ``patience`` s of wall time (a WARN for ``/diagnostics``), and logs the change
+    once each way."""
+
+    def __init__(self, logger: Any, patience: float = 3.0) -> None:
+        self.logger = logger
+        self.patience = float(patience)
+        self._clock = -1
+        self._moved = time.monotonic()
+        self._warned = False
+
+    def problem(self, use_sim_time: bool, clock_ns: int) -> str | None:
+        """The problem with simulated time now (``clock_ns``: the node clock, ns), or None."""
+        wall = time.monotonic()
+        if clock_ns != self._clock or not use_sim_time:
+            self._clock, self._moved = clock_ns, wall
+        text = None
+        if use_sim_time and wall - self._moved >= self.patience:
+            if clock_ns == 0:
+                text = (f"use_sim_time is true and no /clock arrived in {wall - self._moved:.0f} s: the node clock "
+                        "stands at 0 (play a bag with --clock, or set use_sim_time false)")
+            else:
+                text = (f"use_sim_time is true and /clock stopped {wall - self._moved:.0f} s ago at "
+                        f"{clock_ns / NS_PER_S:.3f} s (bag paused or ended?)")
+        if text and not self._warned:
+            self.logger.warn(text)
+        elif not text and self._warned:
+            self.logger.info("simulated time runs again (/clock)")
+        self._warned = text is not None
+        return text
+
+
+def out_of_range(node: Any, params: Sequence[Parameter]) -> str | None:
+    """Why a number among ``params`` is outside its parameter's declared range, or None. rclpy checks the
+    floating-point range of a dynamically typed parameter only for a double: an integer (``2**63 - 1`` for
+    a tolerance in seconds) would pass."""
+    for p in params:
+        if p.type_ not in (Parameter.Type.INTEGER, Parameter.Type.DOUBLE) or not node.has_parameter(p.name):
+            continue
+        d = node.describe_parameter(p.name)
+        value = p.value
+        for r in (*d.floating_point_range, *d.integer_range):
+            if not (math.isfinite(value) and r.from_value <= value <= r.to_value):
+                return f"{p.name} {value!r} is out of range: {r.from_value:g} .. {r.to_value:g}"
+    return None
+
+
+def check_ranges(node: Any) -> None:
+    """:class:`InputError` naming a declared parameter whose number lies outside its range (at start-up)."""
+    names = node.list_parameters([], 0).names
+    why = out_of_range(node, [node.get_parameter(n) for n in names])
+    if why:
+        raise InputError(why)
+
+
+def unknown_parameters(node: Any, names: Sequence[str]) -> str:
+    """The reason a request naming parameters the node does not have is refused (names given)."""
+    return (f"unknown parameter{'s' if len(names) > 1 else ''} {', '.join(repr(n) for n in names)}: not a parameter "
+            f"of {node.get_fully_qualified_name()} (ros2 param list shows its parameters)")
+
+
+class RequestParameterService(ParameterService):
+    """rclpy's parameter services, except that a ``~/set_parameters`` request (``ros2 param set``, ``ros2 param
+    load``) goes to the node's ``set_request(parameters)`` as a whole, which answers one result per parameter:
+    rclpy applies such a request one parameter at a time."""
+
+    def _set_parameters_callback(self, request: Any, response: Any) -> Any:
+        node = self._get_node()
+        response.results = node.set_request([Parameter.from_parameter_msg(p) for p in request.parameters])
+        return response
 
 
 def diagnostic_array(node: Any, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
@@ -300,9 +391,20 @@ def default_positions(count: int) -> list[float] | None:
     return {4: DEFAULT_POSITIONS, 1: [0.0, 0.0, 0.0]}.get(count)
 
 
+def check_unique(names: Sequence[Any]) -> tuple[str, ...]:
+    """``names`` as strings; :class:`InputError` naming any listed more than once."""
+    out = tuple(str(n) for n in names)
+    twice = sorted({n for n in out if out.count(n) > 1})
+    if twice:
+        raise InputError(f"sensor_names lists {', '.join(twice)} more than once: each sensor needs a name of its own")
+    return out
+
+
 def declare_geometry(node: Any) -> list[str]:
-    """Declare ``sensor_names`` and ``positions`` (default by the sensor count); the names."""
+    """Declare ``sensor_names`` and ``positions`` (default by the sensor count); the names (:class:`InputError`
+    for a name listed twice, before anything is declared per sensor)."""
     names = node.declare_parameter("sensor_names", DEFAULT_SENSOR_NAMES, describe(SENSOR_NAMES_DOC)).value
+    check_unique(names)
     node.declare_parameter("positions", default_positions(len(names)), describe(POSITIONS_DOC, numbers=True))
     return list(names)
 
@@ -330,7 +432,7 @@ def geometry(names: Sequence[str], positions: Sequence[float] | None) -> ArrayGe
     ``positions`` None or empty (an empty list in a params file is no value) is the origin
     for one sensor and an error naming what to give otherwise.
     """
-    names = tuple(str(n) for n in names)
+    names = check_unique(names)
     if not positions:
         if len(names) != 1:
             raise InputError(f"positions needs 3 numbers per sensor (m, platform frame): {3 * len(names)} for "
@@ -501,8 +603,9 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
     """The calibration a correction node runs for ``geometry``'s sensors, from its parameter values
     (Python values by dotted name, unset ones absent), or ``(None, why not)``.
 
-    A sensor it does not have, or holds at the defaults (identity matrix, zero offset: never
-    calibrated, e.g. listed in ``uncorrected_sensors``), means it runs no calibration to start from.
+    A sensor it does not have, or holds without a matrix or offset (``[]``: never calibrated, e.g.
+    listed in ``uncorrected_sensors``), means it runs no calibration to start from; an identity and
+    zeros given are a calibration like any other.
     """
     from magcal_ros.core.calibration import ArrayCalibration
 
@@ -511,12 +614,11 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
     absent = [n for n in names if n not in theirs]
     if absent:
         return None, f"it has no sensor {', '.join(absent)} (its sensors: {', '.join(theirs) or 'none'})"
-    blank = [n for n in names if list(values.get(f"{n}.matrix") or IDENTITY) == IDENTITY
-             and list(values.get(f"{n}.offset") or ZEROS) == ZEROS]
+    blank = [n for n in names if not values.get(f"{n}.matrix") or not values.get(f"{n}.offset")]
     if blank:
         raw = [n for n in blank if n in list(values.get("uncorrected_sensors") or [])]
         why = f"; {', '.join(raw)} uncorrected on purpose" if raw else ""
-        return None, f"{', '.join(blank)} at identity matrix and zero offset (never calibrated{why})"
+        return None, f"{', '.join(blank)} without a matrix and offset (never calibrated{why})"
     channels = list(values.get("interference_channels") or [])
     params: dict[str, Any] = {"sensor_names": list(names), "positions": list(geometry.positions.reshape(-1)),
                               "interference_channels": channels}

@@ -39,10 +39,11 @@ temperature terms nothing is subscribed and no set waits for a temperature. An
 ``output_rotation`` turns every output into the calibration's frame (``frame_id``, e.g. the
 IMU's).
 
-A sensor whose matrix and offset were never given (params file, ``-p`` or a parameter
-update) is not calibrated: the node warns, naming it, and publishes neither ``field`` nor
-the tensor (nor that sensor's corrected vector) until it is, unless the sensor is listed
-in ``uncorrected_sensors`` (its raw reading is then used on purpose).
+A sensor whose matrix or offset is ``[]`` (never given: the default, or set to ``[]``) is not
+calibrated: the node warns, naming it, and publishes neither ``field`` nor the tensor (nor
+that sensor's corrected vector) until it is, unless the sensor is listed in
+``uncorrected_sensors`` (its raw reading is then used on purpose). An identity matrix and a
+zero offset given are a calibration like any other (``magcal correct`` takes them alike).
 
 Every ``status_period`` s: ``~/status`` (diagnostic_msgs/DiagnosticStatus) and the same
 status on ``/diagnostics`` (DiagnosticArray): level, message (what is wrong, naming
@@ -120,6 +121,9 @@ GRADIENT_TOPICS: dict[str, tuple[str, ...]] = {
 }
 """The gradient topics published for each kind of array geometry."""
 UNKNOWN_COVARIANCE = common.UNKNOWN_COVARIANCE
+PROVENANCE_IGNORED = ("ignored: not a parameter of {node}; with a calibration, a calibration file's magcal_provenance "
+                      "block (what made it: kept in the file, not set on the node)")
+"""The answer to a name a ``ros2 param load`` of a calibration file offers that is not this node's."""
 
 
 def no_events() -> PublisherEventCallbacks:
@@ -154,6 +158,8 @@ class CorrectionState:
     max_gap_ns: int = 0
     temperature_tolerance_ns: int = 0
     """Largest age of a sensor's temperature at a set (used when the calibration has temperature terms)."""
+    calibrated: tuple[str, ...] = ()
+    """Sensors with a calibration (matrix and offset given), in set order."""
 
     def sync_settings(self) -> tuple[Any, ...]:
         """What the set synchroniser is built from (a change rebuilds it)."""
@@ -198,11 +204,17 @@ def _covariances(values: dict[str, Any], cal: ArrayCalibration) -> tuple[tuple[t
     return per_sensor, tuple(np.asarray(mean).reshape(9).tolist())
 
 
-def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None = None) -> CorrectionState:
+def calibrated(values: dict[str, Any], name: str) -> bool:
+    """Whether sensor ``name`` has a calibration among parameter ``values``: a matrix and an offset, neither
+    ``[]`` (the default: not calibrated). An identity and zeros given count."""
+    return bool(values.get(f"{name}.matrix")) and bool(values.get(f"{name}.offset"))
+
+
+def build_state(values: dict[str, Any]) -> CorrectionState:
     """Validate a complete parameter state (dotted names) and build the correction from it.
 
-    ``given``: names of the parameters set from outside (params file, ``-p``, updates);
-    None means every per-sensor value counts as given. Raises :class:`InputError`
+    A sensor without a calibration (:func:`calibrated`) is corrected with identity and zero, and is
+    ``missing`` unless listed in ``uncorrected_sensors``. Raises :class:`InputError`
     naming what is wrong: sensor names or positions, a matrix, offset or covariance, the
     gradient method, the tolerance, ``sync_mode``, ``max_gap``, a ``time_offset``, the frame or
     ``uncorrected_sensors``.
@@ -240,10 +252,8 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         params[key] = values.get(key)
     temperature_tolerance = common.temperature_tolerance_ns(values.get("temperature_tolerance"))
     cal = ArrayCalibration.from_parameters(params)
-    missing = tuple(
-        n for n in geo.names
-        if given is not None and not {f"{n}.matrix", f"{n}.offset"} <= set(given) and n not in uncorrected
-    )
+    done = tuple(n for n in geo.names if calibrated(values, n))
+    missing = tuple(n for n in geo.names if n not in done and n not in uncorrected)
     covariances, field_covariance = _covariances(values, cal)
     method = values.get("gradient_method")
     if method not in GRADIENT_METHODS:
@@ -261,7 +271,7 @@ def build_state(values: dict[str, Any], given: frozenset[str] | set[str] | None 
         raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
     noise, intensity = drift.reference(values, geo.names)
     return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, noise,
-                           intensity, mode, gap, temperature_tolerance)
+                           intensity, mode, gap, temperature_tolerance, done)
 
 
 def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
@@ -272,31 +282,18 @@ def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
     return f"exact matching of the header stamps (sync_mode {synchronizer.requested}: {synchronizer.reason})"
 
 
-def _differs(old: Any, new: Any) -> bool:
-    """Whether a parameter value changes (lists compared element by element, any number type)."""
-    if isinstance(old, (list, tuple)) and isinstance(new, (list, tuple)):
-        return list(old) != list(new)
-    return bool(old != new)
-
-
-def _as_default(name: str, value: Any) -> bool:
-    """Whether a per-sensor ``matrix`` or ``offset`` given at start-up is the default (identity, zero): as
-    a dump of a node with that sensor not calibrated holds it, so it does not calibrate the sensor."""
-    suffix = name.rpartition(".")[2]
-    default = {"matrix": common.IDENTITY, "offset": common.ZEROS}.get(suffix)
-    return default is not None and isinstance(value, (list, tuple)) and not _differs(default, value)
-
-
 class CorrectionNode(Node):
     """Applies the array calibration to synchronized raw sets and publishes field and gradient."""
 
     def __init__(self, node_name: str = NODE_NAME, argv: Sequence[str] = (), **kwargs: Any) -> None:
-        super().__init__(node_name, allow_undeclared_parameters=True, **kwargs)
+        services = kwargs.pop("start_parameter_services", True)
+        super().__init__(node_name, allow_undeclared_parameters=True, start_parameter_services=False, **kwargs)
+        if services:  # rclpy's, but a set_parameters request is applied as a whole (set_request)
+            self._parameter_service = common.RequestParameterService(self)
         self._declare_parameters()
-        self._given: set[str] = {n for n, p in self._parameter_overrides.items() if not _as_default(n, p.value)}
-        self._state = build_state(self._current_values(), self._given)
+        common.check_ranges(self)
+        self._state = build_state(self._current_values())
         self._pending: CorrectionState | None = None
-        self._pending_names: set[str] = set()
         self._subs: list[Any] = []
         self._corrected_pubs: list[Any] = []
         self._gradient_pubs: dict[str, Any] = {}
@@ -332,7 +329,8 @@ class CorrectionNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         period = float(self.get_parameter("status_period").value)
-        self.create_timer(max(period, 0.05), self._report)
+        self._sim_time = common.SimTimeWatch(self.get_logger())
+        common.steady_timer(self, max(period, 0.05), self._report)  # reports go on without /clock (use_sim_time)
         self.create_timer(WAIT_CHECK, self._release_waiting)
         self.get_logger().info(
             f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
@@ -347,16 +345,16 @@ class CorrectionNode(Node):
         d = common.describe
         names = common.declare_geometry(self)
         for name in names:
-            self.declare_parameter(
-                f"{name}.matrix", common.IDENTITY,
+            common.declare_list(
+                self, f"{name}.matrix", Parameter.Type.DOUBLE_ARRAY,
                 d(f"correction matrix of {name}, 9 numbers row-major: raw sensor axes to platform frame "
-                  "(B = matrix (raw - offset)); not given = not calibrated",
+                  "(B = matrix (raw - offset)); [] = not calibrated (an identity given is a calibration)",
                   constraints="finite, gains 0.1..10, condition < 100", numbers=True),
             )
-            self.declare_parameter(
-                f"{name}.offset", common.ZEROS,
-                d(f"raw offset of {name}, 3 numbers (T, sensor axes); not given = not calibrated",
-                  constraints="finite, |offset| <= 1e-3 T", numbers=True),
+            common.declare_list(
+                self, f"{name}.offset", Parameter.Type.DOUBLE_ARRAY,
+                d(f"raw offset of {name}, 3 numbers (T, sensor axes); [] = not calibrated (zeros given are a "
+                  "calibration)", constraints="finite, |offset| <= 1e-3 T", numbers=True),
             )
             self.declare_parameter(
                 f"{name}.covariance", UNKNOWN_COVARIANCE,
@@ -447,6 +445,36 @@ class CorrectionNode(Node):
         stem, _, suffix = name.rpartition(".")
         return suffix in (*SENSOR_SUFFIXES, drift.SENSOR_SUFFIX) and stem in names
 
+    def set_request(self, params: list[Parameter]) -> list[SetParametersResult]:
+        """One ``~/set_parameters`` request (``ros2 param set``, ``ros2 param load``), one result per parameter.
+
+        Its calibration parameters (sensors, per-sensor terms, frame, synchronisation: :meth:`_known`) are
+        validated and applied together, as one update between two sets: ``ros2 param load`` of a calibration
+        file otherwise swaps it in one parameter at a time, and sets in between are corrected with half a new
+        calibration. If they do not make a valid state, none is applied and each says why. With a calibration,
+        names that are neither this node's nor a sensor's (a calibration file's ``magcal_provenance`` block,
+        which ``ros2 param load`` offers with it) are answered ``ignored``. Every other parameter on its own."""
+        new_names = next((p.value for p in params if p.name == "sensor_names"), self._state.names)
+        names = list(new_names) if isinstance(new_names, (list, tuple)) else []
+        group = [i for i, p in enumerate(params) if self._known(p.name, names)]
+        calibration = any(params[i].name.rpartition(".")[2] in ("matrix", "offset") for i in group)
+        results: list[SetParametersResult | None] = [None] * len(params)
+        if len(group) > 1:
+            together = self.set_parameters_atomically([params[i] for i in group])
+            if not together.successful:
+                together = SetParametersResult(successful=False, reason=f"{together.reason} (applied together with "
+                                               f"the request's other calibration parameters: none was set)")
+            for i in group:
+                results[i] = together
+        for i, p in enumerate(params):
+            if results[i] is None and calibration and i not in group and not self.has_parameter(p.name) \
+                    and p.name.split(".")[0] not in names:
+                results[i] = SetParametersResult(successful=True, reason=PROVENANCE_IGNORED.format(
+                    node=self.get_fully_qualified_name()))
+            elif results[i] is None:
+                results[i] = self.set_parameters_atomically([p])
+        return [r for r in results if r is not None]
+
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate the combined new state; stash it for :meth:`_after_set_parameters`."""
         values = self._current_values()
@@ -455,6 +483,9 @@ class CorrectionNode(Node):
             drift.factors(updates, self._drift_thresholds)
         except InputError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        why = common.out_of_range(self, params)  # what the node's own checks leave (an integer out of range)
+        if why:
+            return SetParametersResult(successful=False, reason=why)
         values.update(updates)
         new_names = values.get("sensor_names") or []
         for p in params:
@@ -481,11 +512,8 @@ class CorrectionNode(Node):
         if not any(self._known(n, new_names) for n in updates):
             self._pending = None
             return SetParametersResult(successful=True)
-        before = self._current_values()
-        changed = {n for n, v in updates.items() if n not in before or _differs(before[n], v)}
         try:
-            self._pending = build_state(values, self._given | changed)
-            self._pending_names = changed  # a value set again as it was (ros2 param load of a dump) gives nothing
+            self._pending = build_state(values)
         except (InputError, TypeError, ValueError, ArithmeticError) as exc:  # a value of any type may come
             self._pending = None
             reason = str(exc) if isinstance(exc, InputError) else f"invalid value ({exc})"
@@ -505,7 +533,6 @@ class CorrectionNode(Node):
         new, self._pending = self._pending, None
         if new is None:
             return
-        self._given |= self._pending_names
         old = self._state
         if new.names != old.names:
             self._disconnect()
@@ -538,7 +565,7 @@ class CorrectionNode(Node):
     def _calibration_health(self, state: CorrectionState) -> None:
         """Judge the calibration of ``state`` afresh (its sets only), or say why it is not judged."""
         self._drifted = False
-        uncalibrated = [n for n in state.names if not {f"{n}.matrix", f"{n}.offset"} <= self._given]
+        uncalibrated = [n for n in state.names if n not in state.calibrated]
         if uncalibrated:
             self._health_cal: CalibrationHealth | None = None
             self._not_judged = drift.not_assessed(f"{', '.join(uncalibrated)} not calibrated")
@@ -557,9 +584,9 @@ class CorrectionNode(Node):
 
     def _describe(self, state: CorrectionState) -> str:
         names = state.names
-        calibrated = [n for n in names if {f"{n}.matrix", f"{n}.offset"} <= self._given]
-        raw = [n for n in names if n not in calibrated and n not in state.missing]
-        parts = [f"calibrated sensors: {', '.join(calibrated)}" if calibrated else "no calibration loaded"]
+        done = state.calibrated
+        raw = [n for n in names if n not in done and n not in state.missing]
+        parts = [f"calibrated sensors: {', '.join(done)}" if done else "no calibration loaded"]
         if raw:
             parts.append(f"uncorrected on purpose: {', '.join(raw)}")
         lags = [f"{n} {t * 1e3:g} ms" for n, t in zip(names, state.calibration.time_offsets) if t]  # type: ignore[arg-type]
@@ -794,8 +821,8 @@ class CorrectionNode(Node):
         if stale:
             extras.append(stale)
         stale, temperature_values = self._temperature_health.assess(self._temperatures, "withheld")
-        if stale:
-            extras.append(stale)
+        clock = self._sim_time.problem(bool(self.get_parameter("use_sim_time").value), now)
+        extras += [x for x in (stale, clock) if x]
         assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)
         assessment.values.update(current_values)
         assessment.values.update(temperature_values)
@@ -805,7 +832,8 @@ class CorrectionNode(Node):
         if ages:
             p50, p99, pmax = np.percentile(np.asarray(ages, dtype=float) / 1e6, [50.0, 99.0, 100.0])
             assessment.values.update(age_ms_p50=f"{p50:.3f}", age_ms_p99=f"{p99:.3f}", age_ms_max=f"{pmax:.3f}")
-        status = common.diagnostic_status(self.get_fully_qualified_name(), state.frame_id, assessment)
+        status = common.diagnostic_status(self.get_fully_qualified_name(), common.hardware_id(self, state.names),
+                                          assessment)
         self._status_pub.publish(status)
         calibration = self._report_calibration(state)
         self._diagnostics_pub.publish(common.diagnostic_array(self, [status, calibration]))
@@ -819,7 +847,7 @@ class CorrectionNode(Node):
                 self.get_logger().warn(report.message)
             else:
                 self.get_logger().info(f"calibration health back to normal: {report.message}")
-        return drift.status(self.get_fully_qualified_name(), ",".join(state.names), report)
+        return drift.status(self.get_fully_qualified_name(), common.hardware_id(self, state.names), report)
 
 
 def main(args: Sequence[str] | None = None, stop: StopFlag | None = None) -> int:
