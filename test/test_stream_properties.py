@@ -25,9 +25,11 @@ runs more (``benchmarks/bench_stream_properties.py`` prints the figures of a lon
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from stream_oracle import SensorPlan, Stream, arrivals, busy_receiver, make_stream, set_instants, true_lost
@@ -36,6 +38,22 @@ from magcal_ros.core.sync import stream_synchronizer, synchronise_streams
 from magcal_ros.core.units import NS_PER_S
 
 EXAMPLES = int(os.environ.get("MAGCAL_PROPERTY_EXAMPLES", "25"))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _same_examples_in_any_run() -> Iterator[None]:
+    """Hypothesis mixes into its draws the constants of every module of this repository imported so far;
+    which modules those are depends on the test files that ran before in the same process, so the
+    derandomised examples of this file alone and of the whole suite would differ (a failure found in one
+    and not the other). With no such constants the examples depend on the strategies alone."""
+    from hypothesis.internal.conjecture import providers
+
+    with pytest.MonkeyPatch.context() as patch:
+        if hasattr(providers, "_get_local_constants"):
+            empty = type(providers._local_constants)()
+            patch.setattr(providers, "_get_local_constants", lambda: empty)
+            providers.CONSTANTS_CACHE.cache.clear()
+        yield
 TOLERANCE = 1e-3
 """The default exact window (s)."""
 CLEAN = 1.0

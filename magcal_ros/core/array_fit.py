@@ -827,6 +827,40 @@ def fixed_parameters(model: ForwardModel, held: NDArray[np.bool_] | None = None)
     return fixed
 
 
+def _start_parameters(model: ForwardModel, s: int, f: float, start: Array | None, matrices: Array, offsets: Array,
+                      interference: Array | None) -> Array:
+    """The fit's start (S, P) in units of F: ``start`` when given, else from the matrices (S, 3, 3), offsets
+    (S, 3) T and interference (S, 3, m) T/A, the other blocks at zero."""
+    if start is not None:
+        return np.asarray(start, dtype=float).reshape(s, model.size).copy()
+    k0 = np.linalg.inv(np.asarray(matrices, dtype=float))
+    e_raw = np.zeros((s, 3, model.channels)) if interference is None else np.einsum("sab,sbc->sac", k0, interference)
+    w = np.concatenate([k0, (np.asarray(offsets, dtype=float) / f)[:, :, None], e_raw / f], axis=2)
+    return model.join(model.widen(w))
+
+
+def _completed_prior(model: ForwardModel, s: int, theta: Array, prior: ParameterPrior | None) -> ParameterPrior:
+    """``prior`` with the weak prior around ``theta`` on every parameter it does not cover (all of them
+    when there is none)."""
+    weak = weak_prior(theta)
+    if prior is None:
+        return weak
+    given = prior.fitted_to(model)
+    sig = np.asarray(given.sigma, dtype=float).reshape(s, -1)
+    open_ = ~np.isfinite(sig)
+    return ParameterPrior(np.where(open_, weak.mean, given.flat_mean()), np.where(open_, weak.sigma, sig))
+
+
+def _start_residuals(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None,
+                     weights: Array, attitude: bool, h: Array | None) -> Array:
+    """The start's residuals (N, S, 3) in units of F, each field direction at its optimum (``attitude``: the
+    fit has the IMU's blocks, ``h`` their site-gradient field or None)."""
+    if not attitude and _rank_one(model):
+        k, d, size, _, _, _ = _rank_one_parts(model, theta, x, inputs)
+        return np.asarray(_rank_one_residuals(k, d, size).T[:, None, :])
+    return _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h), inputs, rates, h) - x
+
+
 def fit_array(
     raw: Array,
     matrices: Array,
@@ -874,23 +908,10 @@ def fit_array(
     model = (ForwardModel(s, u.shape[1], temps is not None, t is not None) if attitude is None
              else attitude.model(s, u.shape[1], temps is not None, t is not None))
     inputs = SetInputs(u, temps, t)
-    if start is not None:
-        theta = np.asarray(start, dtype=float).reshape(s, model.size).copy()
-    else:
-        k0 = np.linalg.inv(np.asarray(matrices, dtype=float))
-        e_raw = np.zeros((s, 3, model.channels)) if interference is None else np.einsum("sab,sbc->sac", k0, interference)
-        w = np.concatenate([k0, (np.asarray(offsets, dtype=float) / f)[:, :, None], e_raw / f], axis=2)
-        theta = model.join(model.widen(w))
+    theta = _start_parameters(model, s, f, start, matrices, offsets, interference)
     x = r / f
     weights = np.ones((n, s)) if weights is None else np.asarray(weights, dtype=float).copy()
-    weak = weak_prior(theta)
-    if prior is None:
-        prior = weak
-    else:  # parameters the given prior does not cover: the weak prior
-        given = prior.fitted_to(model)
-        sig = np.asarray(given.sigma, dtype=float).reshape(s, -1)
-        open_ = ~np.isfinite(sig)
-        prior = ParameterPrior(np.where(open_, weak.mean, given.flat_mean()), np.where(open_, weak.sigma, sig))
+    prior = _completed_prior(model, s, theta, prior)
     fixed = fixed_parameters(model, held)
     if model.lag_index is not None:
         theta[0, model.lag_index] = 0.0
@@ -911,12 +932,7 @@ def fit_array(
     def h_of(a: _Att | None) -> Array | None:
         return None if a is None else a.h()
 
-    if att is None and _rank_one(model):  # the start's residuals, each direction at its optimum
-        k, d, size, _, _, _ = _rank_one_parts(model, theta, x, inputs)
-        e = _rank_one_residuals(k, d, size).T[:, None, :]
-    else:
-        e = _prediction(model, theta, _directions(model, theta, x, inputs, rates, weights, h_of(att)), inputs, rates,
-                        h_of(att)) - x
+    e = _start_residuals(model, theta, x, inputs, rates, weights, att is not None, h_of(att))
     sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
         theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,

@@ -364,53 +364,11 @@ class ArrayCalibration:
         ``uncorrected`` (then identity and zero, on purpose). ``covariance`` is optional
         and must be given for all sensors or none.
         """
-        try:
-            names = tuple(params["sensor_names"])
-            bounds.check_positions(params["positions"])
-            geometry = ArrayGeometry(names, np.asarray(params["positions"], dtype=float))
-        except KeyError as exc:
-            raise InputError(f"calibration is missing {exc.args[0]!r}") from None
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"calibration has malformed sensor_names/positions: {exc}") from None
-        channels = params.get("interference_channels") or []
-        if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
-            raise InputError("interference_channels must be a list of channel names")
-        mats, offs, covs, infs, lags = [], [], [], [], []
-        for name in names:
-            block = params.get(name)
-            if block is None or block == {}:
-                if name not in uncorrected:
-                    raise InputError(
-                        f"calibration has no matrix and offset for sensor {name!r}; calibrate it, or list it as "
-                        "uncorrected to use its raw readings on purpose"
-                    )
-                block = {}
-            if not isinstance(block, dict):
-                raise InputError(f"calibration entry {name!r} must be a mapping with matrix and offset")
-            if name not in uncorrected and not {"matrix", "offset"} <= set(block):
-                missing = sorted({"matrix", "offset"} - set(block))
-                raise InputError(f"calibration entry {name!r} has no {' or '.join(missing)}")
-            try:
-                mats.append(np.asarray(block.get("matrix", np.eye(3).reshape(-1)), dtype=float))
-                offs.append(np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float))
-                covs.append(np.asarray(block["covariance"], dtype=float).reshape(3, 3) if "covariance" in block
-                            else np.full((3, 3), np.nan))
-                lag = block.get("time_offset", 0.0)
-                if isinstance(lag, bool) or not isinstance(lag, (int, float)):
-                    raise InputError(f"{name}.time_offset must be a number of seconds, got {lag!r}")
-                lags.append(float(lag))
-                if channels:
-                    gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
-                    if gains.size != 3 * len(channels):
-                        raise InputError(f"{name}.interference needs {3 * len(channels)} numbers (3 x "
-                                         f"{len(channels)} row-major, T/A), got {gains.size}")
-                    bounds.check_bounded(f"{name}.interference", gains, bounds.MAX_INTERFERENCE, "T/A")
-                    infs.append(gains.reshape(3, len(channels)))
-                if "noise" in block:
-                    bounds.check_noise(f"{name}.noise", block["noise"])
-            except (TypeError, ValueError):
-                raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
-                                 "interference") from None
+        geometry = _geometry_of(params)
+        names = geometry.names
+        channels = _channels_of(params)
+        blocks = [_sensor_block(name, params.get(name), channels, name in uncorrected) for name in names]
+        mats, offs, covs, infs, lags = (list(x) for x in zip(*blocks))
         for name, cov in zip(names, covs):
             bounds.check_covariance(name, cov)
         if "calibration_intensity" in params:
@@ -425,8 +383,73 @@ class ArrayCalibration:
             if not np.isfinite(lag) or abs(lag) > MAX_TIME_OFFSET:
                 raise InputError(f"{name}.time_offset {lag} s is not a lag (finite, within +-{MAX_TIME_OFFSET:g} s)")
         return cls(geometry, np.stack([c[0] for c in checked]), np.stack([c[1] for c in checked]), dict(metadata or {}),
-                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None,
+                   np.stack(covs) if covs else None, tuple(channels), np.stack(infs) if channels else None,  # type: ignore[arg-type]
                    np.asarray(lags, dtype=float), **_temperature_and_frame(params, names))
+
+
+# -- reading a calibration's parameters --------------------------------------------------------------
+def _geometry_of(params: dict[str, Any]) -> ArrayGeometry:
+    """The array's sensor names and positions (m) from a calibration's parameters."""
+    try:
+        names = tuple(params["sensor_names"])
+        bounds.check_positions(params["positions"])
+        return ArrayGeometry(names, np.asarray(params["positions"], dtype=float))
+    except KeyError as exc:
+        raise InputError(f"calibration is missing {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"calibration has malformed sensor_names/positions: {exc}") from None
+
+
+def _channels_of(params: dict[str, Any]) -> list[str]:
+    """The interference channels' names (none when not given)."""
+    channels = params.get("interference_channels") or []
+    if not isinstance(channels, (list, tuple)) or not all(isinstance(c, str) for c in channels):
+        raise InputError("interference_channels must be a list of channel names")
+    return list(channels)
+
+
+def _sensor_mapping(name: str, block: Any, uncorrected: bool) -> dict[str, Any]:
+    """Sensor ``name``'s block of parameters; an uncorrected sensor may have none (identity, zero)."""
+    if block is None or block == {}:
+        if not uncorrected:
+            raise InputError(f"calibration has no matrix and offset for sensor {name!r}; calibrate it, or list it as "
+                             "uncorrected to use its raw readings on purpose")
+        block = {}
+    if not isinstance(block, dict):
+        raise InputError(f"calibration entry {name!r} must be a mapping with matrix and offset")
+    if not uncorrected and not {"matrix", "offset"} <= set(block):
+        missing = sorted({"matrix", "offset"} - set(block))
+        raise InputError(f"calibration entry {name!r} has no {' or '.join(missing)}")
+    return block
+
+
+def _sensor_block(name: str, block: Any, channels: list[str],
+                  uncorrected: bool) -> tuple[Array, Array, Array, Array | None, float]:
+    """Sensor ``name``'s matrix (9,), offset (3,) T, covariance (3, 3) (NaN when not given), interference
+    (3, channels) T/A (None without channels) and lag (s), checked against their bounds."""
+    block = _sensor_mapping(name, block, uncorrected)
+    try:
+        matrix = np.asarray(block.get("matrix", np.eye(3).reshape(-1)), dtype=float)
+        offset = np.asarray(block.get("offset", [0.0, 0.0, 0.0]), dtype=float)
+        cov = (np.asarray(block["covariance"], dtype=float).reshape(3, 3) if "covariance" in block
+               else np.full((3, 3), np.nan))
+        lag = block.get("time_offset", 0.0)
+        if isinstance(lag, bool) or not isinstance(lag, (int, float)):
+            raise InputError(f"{name}.time_offset must be a number of seconds, got {lag!r}")
+        gains = None
+        if channels:
+            gains = np.asarray(block.get("interference", np.zeros(3 * len(channels))), dtype=float)
+            if gains.size != 3 * len(channels):
+                raise InputError(f"{name}.interference needs {3 * len(channels)} numbers (3 x "
+                                 f"{len(channels)} row-major, T/A), got {gains.size}")
+            bounds.check_bounded(f"{name}.interference", gains, bounds.MAX_INTERFERENCE, "T/A")
+            gains = gains.reshape(3, len(channels))
+        if "noise" in block:
+            bounds.check_noise(f"{name}.noise", block["noise"])
+    except (TypeError, ValueError):
+        raise InputError(f"calibration entry {name!r} has a non-numeric matrix, offset, covariance or "
+                         "interference") from None
+    return matrix, offset, cov, gains, float(lag)
 
 
 # -- temperature terms and output frame in parameters ----------------------------------------------

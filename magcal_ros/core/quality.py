@@ -402,6 +402,192 @@ def implied_intensity(intensity: float, implied_gain: float) -> float:
     return intensity * implied_gain
 
 
+@dataclass
+class _Fit:
+    """What every gate reads: the fit's residuals (N, S, 3) T, weights (N, S), TMI residuals (N, S) T,
+    the per-sensor noise and residual (S,) T, seconds since the start (or set indices), and whether
+    the sets follow a continuous motion."""
+
+    names: tuple[str, ...]
+    residuals: Array
+    weights: Array
+    tmi_residuals: Array
+    raw: Array
+    clipped: NDArray[np.bool_]
+    noise: Array
+    resid: Array
+    t: Array
+    timed: bool
+    smooth: bool
+    shapes: list[ResidualShape | None]
+
+    def at(self, index: int) -> str:
+        """Where set ``index`` lies, for a message."""
+        if not self.timed:
+            return f"at set {index}"
+        return f"at t = {self.t[min(index, len(self.t) - 1)] - self.t[0]:.1f} s"
+
+    def step_of(self, i: int) -> tuple[Step, int]:
+        """The best step of sensor ``i``'s used TMI residuals and the set index where it lies."""
+        rows = np.flatnonzero(self.weights[:, i] > 0)
+        step = best_step(self.tmi_residuals[rows, i])
+        return step, int(rows[min(step.index, len(rows) - 1)]) if len(rows) else 0
+
+
+def _noise_and_residual(weights: Array, residuals: Array) -> tuple[Array, Array]:
+    """(S,) white noise and RMS residual per axis (T) of each sensor's used readings (NaN when too few)."""
+    s = weights.shape[1]
+    noise, resid = np.full(s, np.nan), np.full(s, np.nan)
+    for i in range(s):
+        used = weights[:, i] > 0
+        e = residuals[used, i]
+        if used.sum() >= 5:
+            noise[i] = float(np.nanmean(white_noise(e)))
+        if used.any():
+            resid[i] = float(np.sqrt(np.mean(e * e)))  # per axis, like the noise
+    return noise, resid
+
+
+def _outlier_gate(fit: _Fit, excluded: Array) -> str | None:
+    """Refused when a sensor lost more than :data:`MAX_OUTLIER_FRACTION` of its readings, naming why."""
+    n = len(fit.weights)
+    for i, name in enumerate(fit.names):
+        frac = excluded[i] / n
+        if frac <= MAX_OUTLIER_FRACTION:
+            continue
+        shape = fit.shapes[i]
+        if fit.clipped[:, i].sum() > 0.5 * excluded[i]:
+            return saturated(name, float(fit.clipped[:, i].mean()))
+        if shape is not None and shape.drifts:
+            return f"{drift_warning(name, shape)} ({frac:.0%} of its readings no longer fit one calibration)"
+        if longest_runs(fit.weights[:, i] == 0) > 0.5:
+            step = best_step(fit.tmi_residuals[:, i])
+            return (f"the field was not constant during the manoeuvre: {name}'s readings change by about "
+                    f"{abs(step.size) / NT:.0f} nT {fit.at(step.index)} ({frac:.0%} of them no longer fit); "
+                    "repeat the manoeuvre away from moving iron, or calibrate each part separately")
+        return (f"too many outliers: {frac:.0%} of {name}'s readings are spikes far from the rest "
+                f"(more than {MAX_OUTLIER_FRACTION:.0%}); check the sensor, its cable and nearby switching loads")
+    return None
+
+
+def _step_gate(fit: _Fit) -> str | None:
+    """Refused when one sensor's TMI residual steps: the field changed during the manoeuvre."""
+    for i, name in enumerate(fit.names):
+        step, index = fit.step_of(i)
+        # In time order the white noise is known and a change of the field must dwarf it (slow,
+        # correlated noise also splits well); sets in no order leave only the step's significance.
+        big = abs(step.size) > STEP_NOISE * fit.noise[i] if fit.smooth else step.t_statistic > 2 * STEP_SIGMAS
+        if step.explained > STEP_EXPLAINED and step.t_statistic > STEP_SIGMAS and big:
+            return (f"the field was not constant during the manoeuvre: {name}'s readings change by about "
+                    f"{step.size / NT:+.0f} nT {fit.at(index)} (moving iron, a passing vehicle, an anomaly); "
+                    "repeat the manoeuvre, or calibrate each part separately")
+    return None
+
+
+def _residual_limit(fit: _Fit, i: int, max_residual: float | None, intensity: float | None) -> tuple[float, str] | None:
+    """(limit T, the rule in words) for sensor ``i``'s residual, or None where no limit applies."""
+    if max_residual is not None:
+        return max_residual, f"the given limit max residual {max_residual / NT:.3g} nT"
+    if fit.smooth:
+        return (RESIDUAL_RATIO * fit.noise[i],
+                f"{RESIDUAL_RATIO:g}x the sensor noise the data show ({fit.noise[i] / NT:.3g} nT)")
+    if intensity is not None:
+        return (MAX_RESIDUAL_FRACTION * intensity,
+                f"{MAX_RESIDUAL_FRACTION:.1%} of F (the sets are not in time order, so the sensor noise "
+                "cannot be read from them)")
+    return None
+
+
+def _residual_warning(fit: _Fit, i: int, strict: bool, verdict: Verdict) -> None:
+    """The warning for sensor ``i`` whose residual is within its limit but shaped (drift, timing, excess)."""
+    name, shape = fit.names[i], fit.shapes[i]
+    if shape is not None and shape.drifts:
+        verdict.warnings.append(drift_warning(name, shape))
+        verdict.drift.append(f"{name} {shape.drift / NT:.0f} nT over {shape.duration:.0f} s")
+    elif shape is not None and shape.timing:
+        verdict.warnings.append(
+            f"{name}'s residual follows the turn rate: its readings are not taken at their stamps (a lag or "
+            "a clock error); give the sensors' own streams so that their lags are estimated")
+    elif fit.smooth and not strict and fit.resid[i] > WARN_RATIO * fit.noise[i]:
+        verdict.warnings.append(
+            f"{name}'s residual ({fit.resid[i] / NT:.3g} nT) is {fit.resid[i] / fit.noise[i]:.1f}x the white noise "
+            "the data show: time-correlated noise, or a field that is not quite uniform")
+
+
+def _residual_cause(fit: _Fit, i: int) -> str:
+    """Why sensor ``i``'s residual is above its limit, from the residual's shape."""
+    name, shape = fit.names[i], fit.shapes[i]
+    step, index = fit.step_of(i)
+    if step.explained > STEP_EXPLAINED:
+        return (f"the field was not constant during the manoeuvre: it changed by about {step.size / NT:+.0f} nT "
+                f"{fit.at(index)} (moving iron, a passing vehicle, an anomaly)")
+    if shape is not None and shape.drifts:
+        return drift_warning(name, shape).split(": ", 1)[0].replace(f"{name}'s offsets", "the offsets") + (
+            f" (about {shape.drift / NT:.0f} nT over {shape.duration:.0f} s): record the sensors' temperature or "
+            "calibrate over a shorter time")
+    if shape is not None and shape.timing:
+        return ("the residual follows the turn rate: the readings are not taken at their stamps (a lag, a clock "
+                "error, sensors not sampled together); give the sensors' own streams (a bag) so that the sets are "
+                "formed at one instant and the lags estimated")
+    return ("the field was not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving "
+            "through a gradient, drift), or the sensor is faulty")
+
+
+def _residual_gate(fit: _Fit, max_residual: float | None, intensity: float | None, verdict: Verdict) -> str | None:
+    """Refused when a sensor's residual is above its limit (naming the cause its shape shows); warnings
+    for residuals within it that drift, follow the turn rate or exceed the noise."""
+    for i, name in enumerate(fit.names):
+        limit = _residual_limit(fit, i, max_residual, intensity)
+        if limit is None:
+            continue
+        value, rule = limit
+        if not np.isfinite(fit.resid[i]) or not np.isfinite(value) or fit.resid[i] <= value:
+            _residual_warning(fit, i, max_residual is not None, verdict)
+            continue
+        return (f"{name}'s residual after calibration is {fit.resid[i] / NT:.3g} nT, above {rule}: "
+                f"{_residual_cause(fit, i)}; to accept it anyway raise the limit (magcal --max-residual, or the "
+                "calibration node's max_residual parameter)")
+    return None
+
+
+def _collapse_gate(fit: _Fit) -> str | None:
+    """Refused when a residual is far below the readings' quantisation: the fit has collapsed."""
+    for i, name in enumerate(fit.names):
+        q = quantisation_step(fit.raw[:, i])
+        if q > 0 and fit.resid[i] < COLLAPSE_RATIO * q / np.sqrt(12.0):
+            return (f"{name}'s residual ({fit.resid[i] / NT:.3g} nT) is far below its quantisation ({q / NT:.3g} nT "
+                    "steps): the fit has collapsed because the manoeuvre does not determine the calibration; "
+                    "turn the sensor about at least two axes")
+    return None
+
+
+def _reference_gate(implied_gain: float | None, intensity: float | None, verdict: Verdict) -> str | None:
+    """Refused when the reference intensity is far from what the data imply; a warning when it is off."""
+    if implied_gain is None or intensity is None:
+        return None
+    error = implied_gain - 1.0
+    implied = implied_intensity(intensity, implied_gain)
+    if abs(error) > MAX_GAIN_ERROR:
+        return (f"the reference intensity {intensity / NT:.0f} nT disagrees with the data, which imply about "
+                f"{implied / NT:.0f} nT (sensor gains would be off by {error:+.0%}): check --reference-field/--site "
+                "and that the readings are in Tesla")
+    if abs(error) > WARN_GAIN_ERROR:
+        verdict.warnings.append(
+            f"the reference intensity {intensity / NT:.0f} nT makes the sensor gains {error:+.1%} off "
+            f"(the data imply about {implied / NT:.0f} nT): check the reference, unless the sensors' gains "
+            "are known to be that far from 1")
+    return None
+
+
+def _excluded_warnings(fit: _Fit, excluded: Array, verdict: Verdict) -> None:
+    """A warning per sensor with readings excluded as outliers (and how many were at full scale)."""
+    for i, name in enumerate(fit.names):
+        if excluded[i]:
+            at_full_scale = int(np.sum(fit.clipped[:, i] & (fit.weights[:, i] == 0)))
+            why = f" ({at_full_scale} at its full-scale value: saturated)" if at_full_scale else ""
+            verdict.warnings.append(f"{int(excluded[i])} outlying readings of {name} excluded{why}")
+
+
 def judge(
     names: tuple[str, ...],
     residuals: Array,
@@ -417,7 +603,8 @@ def judge(
     rates: Array | None = None,
     smooth: bool | None = None,
 ) -> Verdict:
-    """Apply the gates to a fit.
+    """Apply the gates to a fit, in order (outliers, a step of the field, the residual, a collapse, the
+    reference intensity); the first that refuses gives the cause.
 
     ``residuals`` (N, S, 3) T and ``weights`` (N, S) of the fit; ``tmi_residuals`` (N, S) T
     (corrected norm minus F, all readings); ``raw`` (N, S, 3) T; all in time order.
@@ -427,140 +614,24 @@ def judge(
     (N, 3) the field direction's rate of change (1/s), to tell a timing error; ``smooth`` whether
     the sets follow a continuous motion (:func:`in_time_order` of ``directions`` when None).
     """
-    s = len(names)
     verdict = Verdict(excluded=np.sum(weights == 0, axis=0).astype(float))
-    noise = np.empty(s)
-    resid = np.empty(s)
-    for i in range(s):
-        used = weights[:, i] > 0
-        e = residuals[used, i]
-        noise[i] = float(np.nanmean(white_noise(e))) if used.sum() >= 5 else np.nan
-        resid[i] = float(np.sqrt(np.mean(e * e))) if used.any() else np.nan  # per axis, like the noise
+    noise, resid = _noise_and_residual(weights, residuals)
     verdict.noise, verdict.residual = noise, resid
     t = ns_to_seconds(stamps_ns) if stamps_ns is not None else np.arange(len(raw), dtype=float)
-
-    def at(index: int) -> str:
-        return f"at t = {t[min(index, len(t) - 1)] - t[0]:.1f} s" if stamps_ns is not None else f"at set {index}"
-
     if clipped is None:
         clipped = saturation(names, raw)[0]
     if smooth is None:
         smooth = directions is not None and in_time_order(directions)
-    smooth = smooth and directions is not None
-    shapes: list[ResidualShape | None] = [None] * s
+    smooth = bool(smooth and directions is not None)
+    shapes: list[ResidualShape | None] = [None] * len(names)
     if smooth and stamps_ns is not None:
         shapes = [residual_shape(tmi_residuals[:, i], residuals[:, i], weights[:, i] > 0, t, directions,  # type: ignore[arg-type]
-                                 rates, noise[i]) for i in range(s)]
-    for i, name in enumerate(names):
-        n = len(weights)
-        frac = verdict.excluded[i] / n
-        if frac > MAX_OUTLIER_FRACTION:
-            shape = shapes[i]
-            if clipped[:, i].sum() > 0.5 * verdict.excluded[i]:
-                verdict.cause = saturated(name, float(clipped[:, i].mean()))
-            elif shape is not None and shape.drifts:
-                verdict.cause = (f"{drift_warning(name, shape)} ({frac:.0%} of its readings no longer fit one "
-                                 "calibration)")
-            elif longest_runs(weights[:, i] == 0) > 0.5:
-                step = best_step(tmi_residuals[:, i])
-                verdict.cause = (
-                    f"the field was not constant during the manoeuvre: {name}'s readings change by about "
-                    f"{abs(step.size) / NT:.0f} nT {at(step.index)} ({frac:.0%} of them no longer fit); "
-                    "repeat the manoeuvre away from moving iron, or calibrate each part separately"
-                )
-            else:
-                verdict.cause = (
-                    f"too many outliers: {frac:.0%} of {name}'s readings are spikes far from the rest "
-                    f"(more than {MAX_OUTLIER_FRACTION:.0%}); check the sensor, its cable and nearby switching loads"
-                )
-            return verdict
-    for i, name in enumerate(names):
-        used = weights[:, i] > 0
-        step = best_step(tmi_residuals[used, i])
-        # In time order the white noise is known and a change of the field must dwarf it (slow,
-        # correlated noise also splits well); sets in no order leave only the step's significance.
-        big = abs(step.size) > STEP_NOISE * noise[i] if smooth else step.t_statistic > 2 * STEP_SIGMAS
-        if step.explained > STEP_EXPLAINED and step.t_statistic > STEP_SIGMAS and big:
-            index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
-            verdict.cause = (f"the field was not constant during the manoeuvre: {name}'s readings change by about "
-                             f"{step.size / NT:+.0f} nT {at(index)} (moving iron, a passing vehicle, an anomaly); "
-                             "repeat the manoeuvre, or calibrate each part separately")
-            return verdict
-    for i, name in enumerate(names):
-        if max_residual is not None:
-            limit, rule = max_residual, f"the given limit max residual {max_residual / NT:.3g} nT"
-        elif smooth:
-            limit = RESIDUAL_RATIO * noise[i]
-            rule = f"{RESIDUAL_RATIO:g}x the sensor noise the data show ({noise[i] / NT:.3g} nT)"
-        elif intensity is not None:
-            limit = MAX_RESIDUAL_FRACTION * intensity
-            rule = (f"{MAX_RESIDUAL_FRACTION:.1%} of F (the sets are not in time order, so the sensor noise "
-                    "cannot be read from them)")
-        else:
-            continue
-        shape = shapes[i]
-        if not np.isfinite(resid[i]) or not np.isfinite(limit) or resid[i] <= limit:
-            if shape is not None and shape.drifts:
-                verdict.warnings.append(drift_warning(name, shape))
-                verdict.drift.append(f"{name} {shape.drift / NT:.0f} nT over {shape.duration:.0f} s")
-            elif shape is not None and shape.timing:
-                verdict.warnings.append(
-                    f"{name}'s residual follows the turn rate: its readings are not taken at their stamps (a lag or "
-                    "a clock error); give the sensors' own streams so that their lags are estimated")
-            elif smooth and max_residual is None and resid[i] > WARN_RATIO * noise[i]:
-                verdict.warnings.append(
-                    f"{name}'s residual ({resid[i] / NT:.3g} nT) is {resid[i] / noise[i]:.1f}x the white noise the "
-                    "data show: time-correlated noise, or a field that is not quite uniform")
-            continue
-        used = weights[:, i] > 0
-        step = best_step(tmi_residuals[used, i])
-        if step.explained > STEP_EXPLAINED:
-            index = int(np.flatnonzero(used)[min(step.index, used.sum() - 1)])
-            why = (f"the field was not constant during the manoeuvre: it changed by about {step.size / NT:+.0f} nT "
-                   f"{at(index)} (moving iron, a passing vehicle, an anomaly)")
-        elif shape is not None and shape.drifts:
-            why = drift_warning(name, shape).split(": ", 1)[0].replace(f"{name}'s offsets", "the offsets") + (
-                f" (about {shape.drift / NT:.0f} nT over {shape.duration:.0f} s): record the sensors' temperature or "
-                "calibrate over a shorter time")
-        elif shape is not None and shape.timing:
-            why = ("the residual follows the turn rate: the readings are not taken at their stamps (a lag, a clock "
-                   "error, sensors not sampled together); give the sensors' own streams (a bag) so that the sets are "
-                   "formed at one instant and the lags estimated")
-        else:
-            why = ("the field was not uniform or not constant during the manoeuvre (iron nearby, the vehicle moving "
-                   "through a gradient, drift), or the sensor is faulty")
-        verdict.cause = (f"{name}'s residual after calibration is {resid[i] / NT:.3g} nT, above {rule}: {why}; "
-                         "to accept it anyway raise the limit (magcal --max-residual, or the calibration node's "
-                         "max_residual parameter)")
-        return verdict
-    for i, name in enumerate(names):
-        q = quantisation_step(raw[:, i])
-        if q > 0 and resid[i] < COLLAPSE_RATIO * q / np.sqrt(12.0):
-            verdict.cause = (
-                f"{name}'s residual ({resid[i] / NT:.3g} nT) is far below its quantisation ({q / NT:.3g} nT steps): "
-                "the fit has collapsed because the manoeuvre does not determine the calibration; "
-                "turn the sensor about at least two axes"
-            )
-            return verdict
-    if implied_gain is not None and intensity is not None:
-        error = implied_gain - 1.0
-        implied = implied_intensity(intensity, implied_gain)
-        if abs(error) > MAX_GAIN_ERROR:
-            verdict.cause = (
-                f"the reference intensity {intensity / NT:.0f} nT disagrees with the data, which imply about "
-                f"{implied / NT:.0f} nT (sensor gains would be off by {error:+.0%}): check --reference-field/--site "
-                "and that the readings are in Tesla"
-            )
-            return verdict
-        if abs(error) > WARN_GAIN_ERROR:
-            verdict.warnings.append(
-                f"the reference intensity {intensity / NT:.0f} nT makes the sensor gains {error:+.1%} off "
-                f"(the data imply about {implied / NT:.0f} nT): check the reference, unless the sensors' gains "
-                "are known to be that far from 1"
-            )
-    for i, name in enumerate(names):
-        if verdict.excluded[i]:
-            at_full_scale = int(np.sum(clipped[:, i] & (weights[:, i] == 0)))
-            why = f" ({at_full_scale} at its full-scale value: saturated)" if at_full_scale else ""
-            verdict.warnings.append(f"{int(verdict.excluded[i])} outlying readings of {name} excluded{why}")
+                                 rates, noise[i]) for i in range(len(names))]
+    fit = _Fit(names, residuals, weights, tmi_residuals, raw, clipped, noise, resid, t, stamps_ns is not None,
+               smooth, shapes)
+    verdict.cause = (_outlier_gate(fit, verdict.excluded) or _step_gate(fit)
+                     or _residual_gate(fit, max_residual, intensity, verdict) or _collapse_gate(fit)
+                     or _reference_gate(implied_gain, intensity, verdict))
+    if verdict.cause is None:
+        _excluded_warnings(fit, verdict.excluded, verdict)
     return verdict

@@ -35,7 +35,7 @@ import io
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,22 +126,18 @@ def _extra_kind(column: str) -> str | None:
     return None
 
 
-def parse_columns(header: list[str]) -> CsvLayout:
-    """The layout of a raw CSV header; :class:`InputError` (one line) if it is not the contract's
-    (``stamp``, three columns per sensor, then the extra columns of the module docstring in any order)."""
-    if header:
-        header = [header[0].lstrip("\ufeff")] + header[1:]  # a byte order mark is not a column name
-    if not header or header[0].strip() != "stamp":
-        raise InputError("CSV header must start with 'stamp' (then mag1.x,mag1.y,mag1.z,...)")
-    cols = [c.strip() for c in header[1:]]
-    sensors = len(cols)
-    for k, c in enumerate(cols):  # the first extra column no sensor triple claims
+def _sensor_columns(cols: list[str]) -> int:
+    """How many of ``cols`` are sensor columns: up to the first extra column no sensor triple claims."""
+    for k, c in enumerate(cols):
         if k % 3 == 0 and _extra_kind(c) is not None:
             stem = c.rsplit(".", 1)[0]
             if cols[k : k + 3] != [f"{stem}.{a}" for a in AXIS_NAMES]:
-                sensors = k
-                break
-    sensor_cols, extra = cols[:sensors], cols[sensors:]
+                return k
+    return len(cols)
+
+
+def _sensor_names(sensor_cols: list[str]) -> list[str]:
+    """The sensor names of the ``<name>.x,<name>.y,<name>.z`` triples, refused if they are not triples."""
     if len(sensor_cols) == 0 or len(sensor_cols) % 3:
         raise InputError(f"CSV needs 3 columns per sensor after 'stamp' (then current.<channel> columns), "
                          f"got {len(sensor_cols)}")
@@ -152,6 +148,11 @@ def parse_columns(header: list[str]) -> CsvLayout:
             raise InputError(f"CSV columns {sensor_cols[k:k + 3]} must be {stem}.x,{stem}.y,{stem}.z")
         names.append(stem)
     check_names(names)
+    return names
+
+
+def _check_extra(extra: list[str]) -> None:
+    """Refuse an extra column of no known kind, or one named twice."""
     first = _extra_kind(extra[0]) if extra else None
     for c in extra:
         kind = _extra_kind(c)
@@ -163,27 +164,52 @@ def parse_columns(header: list[str]) -> CsvLayout:
         kind = _extra_kind(twice[0])
         what = {"current": "a current channel", "temperature": "a temperature", "IMU": "an IMU column"}[kind or "IMU"]
         raise InputError(f"CSV names {what} twice: {', '.join(c for c in extra if c == twice[0])}")
-    channels = tuple(c[len(CURRENT_PREFIX):] for c in extra if c.startswith(CURRENT_PREFIX))
-    temps = tuple(c[len(TEMPERATURE_PREFIX):] for c in extra if c.startswith(TEMPERATURE_PREFIX))
-    if TEMPERATURE_COLUMN in extra:
-        if temps:
-            raise InputError("CSV has a 'temperature' column for every sensor and temperature.<name> columns: give one "
-                             "or the other")
-        temps = ("",)
-    elif temps:
-        strangers = [t for t in temps if t not in names]
-        if strangers:
-            raise InputError(f"CSV column temperature.{strangers[0]}: no sensor {strangers[0]} (sensors: {', '.join(names)})")
-        missing = [n for n in names if n not in temps]
-        if missing:
-            raise InputError(f"CSV has the temperature of {', '.join(temps)} but not of {', '.join(missing)}: give "
-                             "temperature.<name> for every sensor, or one 'temperature' column for all")
+
+
+def _check_imu_columns(extra: list[str]) -> None:
+    """Refuse an IMU given in part (some of its orientation or rate columns)."""
     for group in (IMU_ORIENTATION_COLUMNS, IMU_RATE_COLUMNS):
         present = [c for c in group if c in extra]
         if present and len(present) != len(group):
             raise InputError(f"CSV has {', '.join(present)} but not {', '.join(c for c in group if c not in extra)}: "
                              f"the IMU needs all of {','.join(group)}")
-    return CsvLayout(tuple(names), tuple(extra), channels, temps)
+
+
+def _temperature_names(extra: list[str], names: list[str]) -> tuple[str, ...]:
+    """The sensors with a temperature column (``("",)``: one column for all), refused unless every
+    sensor has one or there is one for all."""
+    temps = tuple(c[len(TEMPERATURE_PREFIX):] for c in extra if c.startswith(TEMPERATURE_PREFIX))
+    if TEMPERATURE_COLUMN in extra:
+        if temps:
+            raise InputError("CSV has a 'temperature' column for every sensor and temperature.<name> columns: give one "
+                             "or the other")
+        return ("",)
+    strangers = [t for t in temps if t not in names]
+    if strangers:
+        raise InputError(f"CSV column temperature.{strangers[0]}: no sensor {strangers[0]} (sensors: {', '.join(names)})")
+    missing = [n for n in names if n not in temps]
+    if temps and missing:
+        raise InputError(f"CSV has the temperature of {', '.join(temps)} but not of {', '.join(missing)}: give "
+                         "temperature.<name> for every sensor, or one 'temperature' column for all")
+    return temps
+
+
+def parse_columns(header: list[str]) -> CsvLayout:
+    """The layout of a raw CSV header; :class:`InputError` (one line) if it is not the contract's
+    (``stamp``, three columns per sensor, then the extra columns of the module docstring in any order)."""
+    if header:
+        header = [header[0].lstrip("\ufeff")] + header[1:]  # a byte order mark is not a column name
+    if not header or header[0].strip() != "stamp":
+        raise InputError("CSV header must start with 'stamp' (then mag1.x,mag1.y,mag1.z,...)")
+    cols = [c.strip() for c in header[1:]]
+    sensors = _sensor_columns(cols)
+    names = _sensor_names(cols[:sensors])
+    extra = cols[sensors:]
+    _check_extra(extra)
+    channels = tuple(c[len(CURRENT_PREFIX):] for c in extra if c.startswith(CURRENT_PREFIX))
+    temperatures = _temperature_names(extra, names)
+    _check_imu_columns(extra)
+    return CsvLayout(tuple(names), tuple(extra), channels, temperatures)
 
 
 def parse_header(header: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -375,6 +401,132 @@ def read_csv_names(path: str | os.PathLike[str]) -> tuple[str, ...]:
         raise InputError(f"{path}: {exc}") from None
 
 
+def _layout(path: str | os.PathLike[str], text: str) -> tuple[CsvLayout, list[list[str]] | None, Any]:
+    """The header's layout, the rows read one by one (None where the fast reader may take the table) and
+    the fast reader's parse of the table (None where the text is not a plain table)."""
+    parsed = _plain_table(text)
+    rows = None
+    if parsed is None:
+        try:
+            rows = _rows(text)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+    header = [parsed[0]] if parsed is not None else rows
+    if not header:
+        raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
+    try:
+        return parse_columns(header[0]), rows, parsed
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
+
+def _parse_rows(path: str | os.PathLike[str], rows: list[list[str]], width: int, checked: list[int],
+                imu_cols: set[int], nonfinite: NonFinite) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Stamps (ns) and values of the data rows read one at a time, each fault named with its line."""
+    if len(rows) == 1:
+        raise InputError(f"{path} has a header but no data rows")
+    stamps = np.empty(len(rows) - 1, np.int64)
+    data = np.empty((len(rows) - 1, width - 1))
+    for i, row in enumerate(rows[1:], start=2):
+        if len(row) != width:
+            raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
+        try:
+            stamps[i - 2] = parse_seconds(row[0])
+        except InputError as exc:
+            raise InputError(f"{path} line {i}: stamp: {exc}") from None
+        try:
+            data[i - 2] = [float(c) if k not in imu_cols or c.strip() else np.nan for k, c in enumerate(row[1:], 1)]
+        except ValueError:
+            raise InputError(f"{path} line {i}: non-numeric value") from None
+        if nonfinite == "error" and not np.all(np.isfinite(data[i - 2, [k - 1 for k in checked]])):
+            raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
+    return stamps, data
+
+
+def _table(path: str | os.PathLike[str],
+           nonfinite: NonFinite) -> tuple[NDArray[np.int64], NDArray[np.float64], CsvLayout]:
+    """Stamps (ns), values (N, columns - 1) and the layout of a CSV recording: the fast reader where the
+    table is regular, else row by row (which finds and names the fault)."""
+    text = _read_text(path)
+    layout, rows, parsed = _layout(path, text)
+    width = 1 + 3 * len(layout.names) + len(layout.extra)
+    imu_cols = {1 + 3 * len(layout.names) + k for k, c in enumerate(layout.extra) if _extra_kind(c) == "IMU"}
+    checked = [k for k in range(1, width) if k not in imu_cols]
+    fast = None if parsed is None else _fast_columns(text, parsed[1], parsed[2], width, checked, nonfinite, imu_cols)
+    del text
+    if fast is not None:
+        return fast[0], fast[1], layout
+    if rows is None:  # irregular somewhere: the row-by-row reading finds and names it
+        rows = _rows(_read_text(path))
+    return (*_parse_rows(path, rows, width, checked, imu_cols, nonfinite), layout)
+
+
+def _side_columns(path: str | os.PathLike[str], layout: CsvLayout,
+                  extra: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.bool_]]:
+    """Currents (N, channels) A, temperatures (N, sensors) deg C or None, and the rows with a value out of
+    range (made NaN: no value); a column in the wrong units is refused."""
+    names = layout.names
+    currents = extra[:, layout.columns(CURRENT_PREFIX + c for c in layout.channels)]
+    temperatures = None
+    if layout.temperatures == ("",):
+        temperatures = np.repeat(extra[:, layout.columns([TEMPERATURE_COLUMN])], len(names), axis=1)
+    elif layout.temperatures:
+        temperatures = extra[:, layout.columns(TEMPERATURE_PREFIX + n for n in names)]
+    out_t = np.zeros(len(extra), bool)
+    if temperatures is not None:
+        check_temperatures(temperatures, str(path))  # a column in kelvin is a units error ...
+        temperatures, out_t = no_value(side.TEMPERATURE, temperatures)  # ... one sample out of range is no value
+    check_currents(currents, str(path))
+    currents, out_of_range = no_value(side.CURRENT, currents)
+    return currents, temperatures, out_of_range | out_t
+
+
+def _kept_rows(stamps: NDArray[np.int64], vectors: NDArray[np.float64],
+               row_ok: NDArray[np.bool_]) -> tuple[NDArray[np.int64], SyncStats]:
+    """The rows the synchronisation rule keeps, and its counts.
+
+    Each sensor's messages carry their row number (scaled into the accepted range of a reading), so
+    the sets the rule keeps name their rows (and so their currents and temperatures); a faulty reading
+    goes in as it is, to be dropped and counted by the rule; a row whose side values are not finite
+    (``row_ok`` False) is a non-finite row."""
+    n, sensors = vectors.shape[:2]
+    scale = MAX_READING / 2 / max(n, 1)
+    row = np.arange(n, dtype=float) * scale
+    sync = SetSynchronizer(sensors, 0, max_pending=n + 1, reject_zero=False, max_reading=MAX_READING)
+    kept_parts = []
+    for a in range(0, n, SYNC_ROWS):  # a block at a time, as a bag is read: memory stays bounded
+        b = slice(a, a + SYNC_ROWS)
+        tags = np.where(row_ok[b, None], row[b, None] * np.array([1.0, 0.0, 0.0]), np.nan)
+        offered = np.empty((len(tags), sensors, 3))
+        for k in range(sensors):
+            faulty = np.logical_or.reduce(list(reading_faults(vectors[b, k]).values()))
+            offered[:, k] = np.where(faulty[:, None], vectors[b, k], tags)
+        sync.add_rows(stamps[b], offered)  # a row is every sensor's message at its stamp
+        sets = sync.pop(final=a + SYNC_ROWS >= n)
+        kept_parts.append(np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64))
+    return (np.concatenate(kept_parts) if kept_parts else np.empty(0, np.int64)), sync.stats
+
+
+def _imu_columns(path: str | os.PathLike[str], layout: CsvLayout, extra: NDArray[np.float64], kept: NDArray[np.int64],
+                 frame: str) -> ImuSamples | None:
+    """The IMU samples of the kept rows (orientations in ENU), or None without IMU columns."""
+    if not (layout.has_orientation or layout.has_rate):
+        return None
+    n = len(extra)
+    q = (extra[:, layout.columns(IMU_ORIENTATION_COLUMNS)] if layout.has_orientation
+         else np.full((n, 4), np.nan))[kept]
+    if frame == "ned":
+        q = ned_to_enu(q)
+    w = (extra[:, layout.columns(IMU_RATE_COLUMNS)] if layout.has_rate else np.full((n, 3), np.nan))[kept]
+    samples = list(zip(q.tolist(), w.tolist()))
+    side.refuse_units(side.IMU, [x for x in samples if side.imu_check(x) != "nonfinite"], str(path))
+    q, w = side.usable_imu(samples)  # an orientation that is not a unit quaternion, a rate beyond any gyro: none
+    try:
+        return ImuSamples(q, w)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
+
 def read_csv(
     path: str | os.PathLike[str], nonfinite: NonFinite = "error", imu_orientation_frame: str = "enu"
 ) -> tuple[Recording, SyncStats]:
@@ -388,106 +540,22 @@ def read_csv(
     (turned into ENU).
     """
     frame = imu_frame(imu_orientation_frame)
-    text = _read_text(path)
-    parsed = _plain_table(text)
-    if parsed is not None:
-        rows = [parsed[0]]
-    else:
-        try:
-            rows = _rows(text)
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}") from None
-    if not rows:
-        raise InputError(f"{path} is empty: expected a header 'stamp,mag1.x,...' and data rows")
-    try:
-        layout = parse_columns(rows[0])
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
-    names, channels = layout.names, layout.channels
-    width = 1 + 3 * len(names) + len(layout.extra)
-    imu_cols = {1 + 3 * len(names) + k for k, c in enumerate(layout.extra) if _extra_kind(c) == "IMU"}
-    checked = [k for k in range(1, width) if k not in imu_cols]
-    fast = None if parsed is None else _fast_columns(text, parsed[1], parsed[2], width, checked, nonfinite, imu_cols)
-    del text
-    if fast is not None:
-        stamps, data = fast
-    elif parsed is not None:  # irregular somewhere: the row-by-row reading finds and names it
-        rows = _rows(_read_text(path))
-    if fast is None and len(rows) == 1:
-        raise InputError(f"{path} has a header but no data rows")
-    if fast is None:
-        stamps = np.empty(len(rows) - 1, np.int64)
-        data = np.empty((len(rows) - 1, width - 1))
-    for i, row in enumerate(rows[1:] if fast is None else [], start=2):
-        if len(row) != width:
-            raise InputError(f"{path} line {i}: {len(row)} columns, header has {width}")
-        try:
-            stamps[i - 2] = parse_seconds(row[0])
-        except InputError as exc:
-            raise InputError(f"{path} line {i}: stamp: {exc}") from None
-        try:
-            data[i - 2] = [float(c) if k not in imu_cols or c.strip() else np.nan for k, c in enumerate(row[1:], 1)]
-        except ValueError:
-            raise InputError(f"{path} line {i}: non-numeric value") from None
-        if nonfinite == "error" and not np.all(np.isfinite(data[i - 2, [k - 1 for k in checked]])):
-            raise InputError(f"{path} line {i}: NaN or infinite value (pass --drop-nonfinite to skip such rows)")
+    stamps, data, layout = _table(path, nonfinite)
+    names = layout.names
     vectors = data[:, : 3 * len(names)].reshape(len(data), len(names), 3)
     check_tesla(vectors, names, str(path))  # a file in nT is a units error, not readings out of range
     extra = data[:, 3 * len(names) :]
-    currents = extra[:, layout.columns(CURRENT_PREFIX + c for c in channels)]
-    temperatures = None
-    if layout.temperatures == ("",):
-        temperatures = np.repeat(extra[:, layout.columns([TEMPERATURE_COLUMN])], len(names), axis=1)
-    elif layout.temperatures:
-        temperatures = extra[:, layout.columns(TEMPERATURE_PREFIX + n for n in names)]
-    if temperatures is not None:
-        check_temperatures(temperatures, str(path))  # a column in kelvin is a units error ...
-        temperatures, out_t = no_value(side.TEMPERATURE, temperatures)  # ... one sample out of range is no value
-    check_currents(currents, str(path))
-    currents, out_of_range = no_value(side.CURRENT, currents)
-    if temperatures is not None:
-        out_of_range |= out_t
-    # Each sensor's messages carry their row number (scaled into the accepted range of a
-    # reading), so the sets the rule keeps name their rows (and so their currents and
-    # temperatures); a faulty reading goes in as it is, to be dropped and counted by the rule;
-    # a row with a non-finite current or temperature is a non-finite row.
-    scale = MAX_READING / 2 / max(len(data), 1)
-    row = np.arange(len(data), dtype=float) * scale
+    currents, temperatures, out_of_range = _side_columns(path, layout, extra)
     row_ok = np.all(np.isfinite(currents), axis=1)
     if temperatures is not None:
         row_ok &= np.all(np.isfinite(temperatures), axis=1)
-    sync = SetSynchronizer(len(names), 0, max_pending=len(data) + 1, reject_zero=False, max_reading=MAX_READING)
-    kept_parts = []
-    for a in range(0, len(data), SYNC_ROWS):  # a block at a time, as a bag is read: memory stays bounded
-        b = slice(a, a + SYNC_ROWS)
-        tags = np.where(row_ok[b, None], row[b, None] * np.array([1.0, 0.0, 0.0]), np.nan)
-        offered = np.empty((len(tags), len(names), 3))
-        for k in range(len(names)):
-            faulty = np.logical_or.reduce(list(reading_faults(vectors[b, k]).values()))
-            offered[:, k] = np.where(faulty[:, None], vectors[b, k], tags)
-        sync.add_rows(stamps[b], offered)  # a row is every sensor's message at its stamp
-        sets = sync.pop(final=a + SYNC_ROWS >= len(data))
-        kept_parts.append(np.rint(sets.vectors[:, 0, 0] / scale).astype(np.int64))
-    kept = np.concatenate(kept_parts) if kept_parts else np.empty(0, np.int64)
-    _count_side_rows(sync.stats, out_of_range, vectors)
+    kept, stats = _kept_rows(stamps, vectors, row_ok)
+    _count_side_rows(stats, out_of_range, vectors)
     if len(kept) == 0:
-        raise InputError(f"{path}: no usable rows ({sync.stats.describe()})")
-    imu = None
-    if layout.has_orientation or layout.has_rate:
-        q = (extra[:, layout.columns(IMU_ORIENTATION_COLUMNS)] if layout.has_orientation
-             else np.full((len(data), 4), np.nan))[kept]
-        if frame == "ned":
-            q = ned_to_enu(q)
-        w = (extra[:, layout.columns(IMU_RATE_COLUMNS)] if layout.has_rate else np.full((len(data), 3), np.nan))[kept]
-        samples = list(zip(q.tolist(), w.tolist()))
-        side.refuse_units(side.IMU, [x for x in samples if side.imu_check(x) != "nonfinite"], str(path))
-        q, w = side.usable_imu(samples)  # an orientation that is not a unit quaternion, a rate beyond any gyro: none
-        try:
-            imu = ImuSamples(q, w)
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}") from None
-    return Recording(names, stamps[kept], vectors[kept], channels, currents[kept],
-                     None if temperatures is None else temperatures[kept], imu), sync.stats
+        raise InputError(f"{path}: no usable rows ({stats.describe()})")
+    imu = _imu_columns(path, layout, extra, kept, frame)
+    return Recording(names, stamps[kept], vectors[kept], layout.channels, currents[kept],
+                     None if temperatures is None else temperatures[kept], imu), stats
 
 
 def no_value(kind: side.SideKind, values: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:

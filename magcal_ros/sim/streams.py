@@ -124,6 +124,14 @@ class StreamSpec:
                                ("--lags", lags)):
             if not np.all(np.abs(values) <= MAX_SECONDS_OFF):
                 raise InputError(f"{option} must be finite seconds within +-{MAX_SECONDS_OFF:g}, got {_text(values)}")
+        self._check_events(size)
+        if not (0.0 < duration < np.inf):
+            raise InputError(f"the streams last {duration:g} s (the attitudes' span less the largest lead of --lags): "
+                             "no sensor has messages")
+        self._check_messages(names, duration, rates, ppm, phases, lags)
+
+    def _check_events(self, size: int) -> None:
+        """Raise :class:`InputError` for a glitch or restart off any time scale or naming no sensor of ``size``."""
         for option, events in (("--glitch TIME,SHIFT", [(w, x, (k,)) for k, w, x in self.glitches]),
                                ("--restart TIME,JUMP", self.restarts)):
             for when, shift, which in events:
@@ -132,9 +140,11 @@ class StreamSpec:
                                      f"{when:g},{shift:g}")
                 if not all(0 <= k < size for k in which):
                     raise InputError(f"{option}: a sensor index must be 0 .. {size - 1}, got {which}")
-        if not (0.0 < duration < np.inf):
-            raise InputError(f"the streams last {duration:g} s (the attitudes' span less the largest lead of --lags): "
-                             "no sensor has messages")
+
+    @staticmethod
+    def _check_messages(names: tuple[str, ...], duration: float, rates: Array, ppm: Array, phases: Array,
+                        lags: Array) -> None:
+        """Raise :class:`InputError` for a sensor that would sample too often or not at all over ``duration`` s."""
         for i, name in enumerate(names):
             period = (1.0 + ppm[i] * 1e-6) / rates[i]
             samples = (duration - phases[i]) / period
