@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
-from magcal_ros.core.imu import ImuStream, match_imu
+from magcal_ros.core.imu import match_imu
 from magcal_ros.core.matching import latest_before
 from magcal_ros.sim.spec import SimulationSpec, run
 
@@ -57,7 +57,7 @@ def per_set_cost() -> None:
     raw = np.full((1, 4, 3), 2e-5)
     print("ArrayCalibration.outputs of one set (best of 20 x 2000 calls)")
     for name, (cal, temps) in cases.items():
-        best = min(timeit.repeat(lambda: cal.outputs(raw, "difference", None, temps), number=2000, repeat=20)) / 2000
+        best = min(timeit.repeat(lambda cal=cal, temps=temps: cal.outputs(raw, "difference", None, temps), number=2000, repeat=20)) / 2000
         print(f"  {name:<18} {best * 1e6:6.1f} us")
 
 

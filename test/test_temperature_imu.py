@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Reader
 from scipy.spatial.transform import Rotation
 from test_offline import bag_messages, magcal, ok, read_corrected
 

@@ -691,9 +691,9 @@ def _solve_lm(
             t_new = theta + step[: s * p].reshape(s, p)
             if not _invertible(model, t_new):
                 return False
-            dd = -np.einsum("nab,nb->na", c_inv, at.g_d + at.b_times(step))
+            dd = -np.einsum("nab,nb->na", c_inv, at.g_d + at.b_times(step))  # noqa: B023 (called within this iteration)
             a_new = None if att is None else att.moved(step[s * p :], model)
-            d_new = d + np.einsum("nac,nc->na", at.basis, dd)
+            d_new = d + np.einsum("nac,nc->na", at.basis, dd)  # noqa: B023
             d_new /= row_norms(d_new)[:, None]
             new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)
             if new_cost > cost:

@@ -331,6 +331,20 @@ class SensorStream:
         last = tail[-1]
         return last + sum((c - last) - round((c - last) / period) * period for c in tail) / len(tail)
 
+    def off_grid(self, stamp: int) -> bool:
+        """Whether ``stamp`` (ns, this segment) lies off the segment's sample grid by more than a quarter
+        period and than its stamps' jitter allows (six median deviations of its intervals, about four
+        standard deviations): lost samples keep a sensor's grid, a step of its stamps moves it. False
+        while the grid is unknown or too jittery to tell (a quarter period and more)."""
+        period = self.grid_period()
+        if period is None or not self.tail or self.period is None:
+            return False
+        limit = max(period / 4, 6 * median_int([abs(i - self.period) for i in self.intervals]))
+        if 2 * limit >= period:
+            return False
+        k = (stamp + self.base - self.anchor(period)) / period
+        return abs(k - round(k)) * period > limit
+
     def unseen(self, stamp: int, receipt: int | None, period: int) -> bool | None:
         """Whether the arrivals did not see the time that ``stamp`` (ns, in this segment, ``receipt`` ns)
         says passed since the previous one: the stamps stepped forward. Both its lead over its arrival
@@ -680,12 +694,12 @@ class AcceptanceRule:
     def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals are known, when they did not see the time pass; without
-        them, when it is more than ``restart_ns`` ahead."""
+        them, when it is more than ``restart_ns`` ahead or off the sensor's sample grid."""
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
         if unseen is None:
-            return held[0] - s.last > self.restart_ns
+            return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
         return unseen
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
@@ -878,9 +892,10 @@ class AcceptanceRule:
                 near = off <= min(margin // 2, NS_PER_S // 1000)
             if near:
                 return other.base, self._leader(index, j)
-        before = s.before  # back just after the old sequence's last stamp (where arrivals say so too)
+        before = s.before  # back just after the old sequence's last stamp (on its grid; where arrivals say so too)
         if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
-                (not by_arrival or abs(stamp + before[1] - estimate) <= margin):
+                (abs(stamp + before[1] - estimate) <= margin if by_arrival else
+                 grid is None or _on_grid(stamp + before[1], grid)):
             return before[1], None
         return None
 
