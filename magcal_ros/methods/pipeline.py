@@ -12,27 +12,33 @@
    refusal naming the rotation that would determine it, and a weak one (determined near the
    attitudes flown only) a warning beside the envelope it bounds; with a prior it is kept;
 5. noise-aware quality gates (:mod:`magcal_ros.core.quality`) and the validity envelope.
+
+:func:`calibrate_array` runs these as named stages, each a short function of one state (``_Run``: the
+checked input, the start, the current solution and its analysis): ``_checked_input``, ``_choose_sets``,
+``_find_spikes``, ``_start_solution``, ``_switch_on_blocks``, ``_fit``, ``_hold_undetermined``,
+``_retry_from_spheres``, ``_refuse_undetermined``, ``_refine_on_every_set``, ``_analyse_result``,
+``_refuse_what_failed``, ``_gate`` and ``_report``.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core import uniformity
 from magcal_ros.core import identifiability as ident
-from magcal_ros.core import quality
+from magcal_ros.core import quality, uniformity
 from magcal_ros.core.array_fit import (
     JointSolution,
     ParameterPrior,
+    Refinement,
     direction_rates,
     fit_array,
-    Refinement,
     fix_rotation_gauge,
     leave_out_estimates,
     refine_on_all,
@@ -51,7 +57,7 @@ from magcal_ros.core.observability import (
 )
 from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.recording import ImuSamples
-from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
+from magcal_ros.core.scalar_fit import ScalarFit, trimmed_algebraic_fit
 from magcal_ros.core.set_reduction import choose_sets, direction_proxy, solve_budget
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import Covariance, centre_gauge_constraints, covariance
@@ -145,8 +151,8 @@ class CalibrationResult:
         size = self.calibration.geometry.size
         what = f"{size} sensors" if size > 1 else "1 sensor"
         parts = [
-            f"calibrated {what} from {self.samples} sets (method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
-            f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT"
+            (f"calibrated {what} from {self.samples} sets (method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
+             f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT")
         ]
         if self.gradient_kind != "none":
             label = "tensor" if self.gradient_kind == "tensor" else "baseline gradient"
@@ -384,7 +390,7 @@ def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_r
 
 
 def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
-              opts: SolveOptions, blocks: "BlockInputs | None" = None) -> ParameterPrior | None:
+              opts: SolveOptions, blocks: BlockInputs | None = None) -> ParameterPrior | None:
     model = None if blocks is None else blocks.model(geometry.size, len(channels))
     return None if prior is None else opts.drift.prior(prior, geometry, f, channels, model)
 
@@ -662,7 +668,7 @@ def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope
     """Why a manoeuvre is refused, in words: what it leaves undetermined and what to fly."""
     missing = ana.undetermined()
     sensors = sorted({q.sensor for q in missing})
-    who = "every sensor" if len(sensors) == len(set(q.sensor for q in ana.quantities)) else ", ".join(sensors)
+    who = "every sensor" if len(sensors) == len({q.sensor for q in ana.quantities}) else ", ".join(sensors)
     axis, flat = _manoeuvre_axis(sol.directions)
     others = _other_axes(axis)
     if flat < 0.05:
@@ -821,8 +827,8 @@ class _Run:
     """(N, S) readings on their sensor's trimmed closed-form fit (no spike)."""
     clean: NDArray[np.bool_] = field(init=False)
     """(N,) sets whose readings are all clean (every set when too few are)."""
-    trimmed: Any = None
-    """The last sensor's trimmed closed-form fit (a ScalarFit), None when it failed or not robust."""
+    trimmed: ScalarFit | None = None
+    """The last sensor's trimmed closed-form fit; None when it failed, or not robust."""
     matrices: Array = field(init=False)
     """(S, 3, 3) start matrices, raw axes to platform frame."""
     offsets: Array = field(init=False)
@@ -868,7 +874,7 @@ class _Run:
 
     def stage(self, name: str) -> None:
         """Announce a stage of a long solve to :attr:`SolveOptions.progress`."""
-        if self.opts.progress is not None:
+        if self.opts.progress:
             self.opts.progress(name)
 
 
@@ -1384,7 +1390,7 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
     meta: dict[str, Any] = {
         "method": result.method,
         "source": source,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),  # noqa: UP017 (datetime.UTC: Python 3.11+)
         "samples": result.samples,
         "reference_field": float(reference_field or 0.0),
         "intensity": result.intensity,
