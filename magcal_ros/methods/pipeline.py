@@ -1342,7 +1342,7 @@ def calibrate_array(
     run.stage("uncertainty")
     like, leave_out = _refine_on_every_set(run)
     _analyse_result(run, like, leave_out)
-    if run.unsolved:  # (the sets passed on are those the stages used, as they always were)
+    if run.unsolved:  # NB as before the stages: raw is every set, u/stamps/temperatures the subset's (a known bug)
         return _without_channels(run.unsolved, raw, geometry, reference_field, method, options, prior, run.u,
                                  run.channels, run.stamps, run.temperatures, imu)
     _refuse_what_failed(run)
