@@ -12,27 +12,33 @@
    refusal naming the rotation that would determine it, and a weak one (determined near the
    attitudes flown only) a warning beside the envelope it bounds; with a prior it is kept;
 5. noise-aware quality gates (:mod:`magcal_ros.core.quality`) and the validity envelope.
+
+:func:`calibrate_array` runs these as named stages, each a short function of one state (``_Run``: the
+checked input, the start, the current solution and its analysis): ``_checked_input``, ``_choose_sets``,
+``_find_spikes``, ``_start_solution``, ``_switch_on_blocks``, ``_fit``, ``_hold_undetermined``,
+``_retry_from_spheres``, ``_refuse_undetermined``, ``_refine_on_every_set``, ``_analyse_result``,
+``_refuse_what_failed``, ``_gate`` and ``_report``.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core import uniformity
 from magcal_ros.core import identifiability as ident
-from magcal_ros.core import quality
+from magcal_ros.core import quality, uniformity
 from magcal_ros.core.array_fit import (
     JointSolution,
     ParameterPrior,
+    Refinement,
     direction_rates,
     fit_array,
-    Refinement,
     fix_rotation_gauge,
     leave_out_estimates,
     refine_on_all,
@@ -51,7 +57,7 @@ from magcal_ros.core.observability import (
 )
 from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.recording import ImuSamples
-from magcal_ros.core.scalar_fit import trimmed_algebraic_fit
+from magcal_ros.core.scalar_fit import ScalarFit, trimmed_algebraic_fit
 from magcal_ros.core.set_reduction import choose_sets, direction_proxy, solve_budget
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import Covariance, centre_gauge_constraints, covariance
@@ -63,7 +69,7 @@ from magcal_ros.errors import (
     ObservabilityError,
 )
 from magcal_ros.methods import attitude as imu_blocks
-from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS, SensorFit
+from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS, Method, SensorFit
 
 Array = NDArray[np.float64]
 
@@ -145,8 +151,8 @@ class CalibrationResult:
         size = self.calibration.geometry.size
         what = f"{size} sensors" if size > 1 else "1 sensor"
         parts = [
-            f"calibrated {what} from {self.samples} sets (method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
-            f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT"
+            (f"calibrated {what} from {self.samples} sets (method {self.method}, {mode} {self.intensity / NT:.1f} nT): "
+             f"TMI RMS {np.max(self.tmi_before) / NT:.2f} -> {np.max(self.tmi_after) / NT:.3f} nT")
         ]
         if self.gradient_kind != "none":
             label = "tensor" if self.gradient_kind == "tensor" else "baseline gradient"
@@ -384,7 +390,7 @@ def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_r
 
 
 def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
-              opts: SolveOptions, blocks: "BlockInputs | None" = None) -> ParameterPrior | None:
+              opts: SolveOptions, blocks: BlockInputs | None = None) -> ParameterPrior | None:
     model = None if blocks is None else blocks.model(geometry.size, len(channels))
     return None if prior is None else opts.drift.prior(prior, geometry, f, channels, model)
 
@@ -662,7 +668,7 @@ def _refusal(ana: ident.Identifiability, sol: JointSolution, env: ident.Envelope
     """Why a manoeuvre is refused, in words: what it leaves undetermined and what to fly."""
     missing = ana.undetermined()
     sensors = sorted({q.sensor for q in missing})
-    who = "every sensor" if len(sensors) == len(set(q.sensor for q in ana.quantities)) else ", ".join(sensors)
+    who = "every sensor" if len(sensors) == len({q.sensor for q in ana.quantities}) else ", ".join(sensors)
     axis, flat = _manoeuvre_axis(sol.directions)
     others = _other_axes(axis)
     if flat < 0.05:
@@ -764,6 +770,532 @@ def _vector_covariances(sol: JointSolution, cov: Array) -> Array:
     return out
 
 
+# -- the pipeline, stage by stage ---------------------------------------------------------------
+@dataclass(frozen=True)
+class _Call:
+    """The arguments of :func:`calibrate_array` as the caller gave them (its second solves, without
+    undetermined channels or without the reference, call it again with them)."""
+
+    raw: ArrayLike
+    geometry: ArrayGeometry
+    reference_field: float | None
+    method: str
+    options: SolveOptions | None
+    prior: ArrayCalibration | None
+    currents: ArrayLike | None
+    channels: tuple[str, ...]
+    stamps: ArrayLike | None
+    temperatures: ArrayLike | None
+    imu: ImuSamples | None
+
+
+@dataclass
+class _Run:
+    """What the stages of one :func:`calibrate_array` share: the checked input, the start, the current
+    solution and its analysis. The sets are those the expensive stages use: every set, or the subset of a
+    long recording (:attr:`full` then holds every set). Frames: raw sensor axes in, platform (array) frame
+    out; units T, A, ns."""
+
+    call: _Call
+    spec: Method
+    opts: SolveOptions
+    channels: tuple[str, ...]
+    f_ref: float | None
+    """Reference intensity (T): given, or the prior's; None: relative (the fit estimates F)."""
+    joint: bool
+    """The joint fit is the method's last step (method ml, or any with a prior or currents)."""
+    t0: float
+    """``time.perf_counter()`` at the call."""
+    # -- the sets
+    r: Array
+    """(N, S, 3) raw sets (T, sensor axes)."""
+    u: Array
+    """(N, m) currents (A) of :attr:`channels`."""
+    stamps: ArrayLike | None
+    """(N,) int ns, or None."""
+    temperatures: ArrayLike | None
+    """(N, S) or (N,) deg C, or None."""
+    order: NDArray[np.int64]
+    """The sets in time order."""
+    excitation: Excitation
+    """Of every set (before any subset)."""
+    clipped: NDArray[np.bool_]
+    """(N, S) readings at a sensor's full scale."""
+    full: _AllSets | None = None
+    # -- the start
+    clean_reading: NDArray[np.bool_] = field(init=False)
+    """(N, S) readings on their sensor's trimmed closed-form fit (no spike)."""
+    clean: NDArray[np.bool_] = field(init=False)
+    """(N,) sets whose readings are all clean (every set when too few are)."""
+    trimmed: ScalarFit | None = None
+    """The last sensor's trimmed closed-form fit; None when it failed, or not robust."""
+    matrices: Array = field(init=False)
+    """(S, 3, 3) start matrices, raw axes to platform frame."""
+    offsets: Array = field(init=False)
+    """(S, 3) start offsets (T, raw axes)."""
+    intensity: float = field(init=False)
+    """Start F (T)."""
+    start_interference: Array | None = None
+    """(S, 3, m) T/A: the prior's, else None."""
+    start_failed: Exception | None = None
+    """Why the method's own start failed (the crude start taken instead); None once a start succeeded."""
+    # -- the fit
+    weights: Array = field(init=False)
+    """(N, S) 1 for the readings the fit starts with, 0 for spikes."""
+    blocks: BlockInputs = field(default_factory=BlockInputs)
+    param_prior: ParameterPrior | None = None
+    sol: JointSolution = field(init=False)
+    ana: ident.Identifiability = field(init=False)
+    cov: Covariance = field(init=False)
+    # -- the result
+    excluded: Array | None = None
+    """(S,) readings excluded on every set (after the refinement), None: from :attr:`sol`'s weights."""
+    vertical: Array = field(init=False)
+    """(N,) z component of each set's field direction (platform frame), for the envelope."""
+    smooth: bool = False
+    """The field directions follow a continuous motion in time order."""
+    unsolved: list[int] = field(default_factory=list)
+    """Channels whose interference the data do not determine (solved again without them)."""
+    env: ident.Envelope = field(init=False)
+
+    @property
+    def geometry(self) -> ArrayGeometry:
+        return self.call.geometry
+
+    @property
+    def free(self) -> bool:
+        """No prior: the rotation gauge is fixed, and what the data do not determine is refused."""
+        return self.call.prior is None
+
+    @property
+    def fits_jointly(self) -> bool:
+        """The joint fit runs: the method's last step, or in place of a method's start that failed."""
+        return self.joint or self.start_failed is not None
+
+    def stage(self, name: str) -> None:
+        """Announce a stage of a long solve to :attr:`SolveOptions.progress`."""
+        if self.opts.progress:
+            self.opts.progress(name)
+
+
+@dataclass(frozen=True)
+class _Gated:
+    """A result that passed the quality gates, and what the report says of it."""
+
+    calibration: ArrayCalibration
+    thermal: bool
+    """The temperature terms are significant (stored)."""
+    mounted: bool
+    """A single sensor's mounting rotation was applied."""
+    corrected: Array
+    """(N, S, 3) the sets corrected (T, platform frame), each sensor at the set's instant."""
+    tmi_residual: Array
+    """(N, S) ``|corrected| - F`` (T)."""
+    uniformity: Any
+    """:class:`~magcal_ros.core.uniformity.Uniformity` or None."""
+    verdict: quality.Verdict
+    warnings: list[str]
+
+
+def _reference_intensity(call: _Call, spec: Method) -> float | None:
+    """F (T): given, else the prior's, else None (relative); :class:`InputError` when the method needs it or
+    it is not an Earth-like intensity in Tesla."""
+    f_ref = float(call.reference_field) if call.reference_field else None
+    if f_ref is None and call.prior is not None and call.prior.metadata.get("intensity"):
+        f_ref = float(call.prior.metadata["intensity"])
+    if spec.needs_reference_field and f_ref is None:
+        raise InputError(
+            f"method {call.method!r} ({spec.source}) needs a reference field intensity in T "
+            "(--reference-field / reference_field); method 'ml' or 'paired' works without one"
+        )
+    low, high = EARTH_FIELD_RANGE
+    if f_ref is not None and not (np.isfinite(f_ref) and low <= f_ref <= high):
+        raise InputError(f"reference field {f_ref} T is not an Earth-like intensity ({low:g} .. {high:g} T): "
+                         "units are Tesla")
+    return f_ref
+
+
+def _check_manoeuvre(r: Array, exc: Excitation, prior: ArrayCalibration | None) -> None:
+    """:class:`ObservabilityError` for too few sets (N, S, 3), or readings that barely change without a prior."""
+    n = len(r)
+    if n < MIN_SAMPLES:
+        axis, flat = _manoeuvre_axis(r.mean(axis=1))
+        one_axis = f"; and the array was rotated about one axis only (about {axis}): turn it about " + " or ".join(
+            a for a in "xyz" if a != axis) + " too" if flat < 0.05 else ""
+        raise ObservabilityError(f"only {n} synchronized sets; need at least {MIN_SAMPLES}, collected while turning "
+                                 f"the array about at least two axes{one_axis}")
+    if exc.spread[0] < MIN_SPREAD and prior is None:
+        raise ObservabilityError("the readings barely change (the array hardly rotated); turn it through large "
+                                 "angles about at least two axes")
+
+
+def _checked_input(call: _Call, t0: float) -> _Run:
+    """Stage 1, check the input: a known method, raw sets (N, S, 3) finite in T, currents (N, m) A one
+    column per channel, what needs method ml, the reference intensity, enough sets that vary, no sensor
+    saturated. The run's state on every set."""
+    opts = call.options or SolveOptions()
+    if call.method not in METHODS:
+        raise InputError(f"unknown method {call.method!r}; choose one of {', '.join(METHODS)}")
+    spec = METHODS[call.method]
+    r = check_raw(call.raw, call.geometry)
+    n = len(r)
+    u = np.zeros((n, 0)) if call.currents is None else np.asarray(call.currents, dtype=float).reshape(n, -1)
+    channels = tuple(call.channels)
+    if u.shape[1] != len(channels) or not np.all(np.isfinite(u)):
+        raise InputError(f"currents must be finite, one column per channel ({len(channels)}), got shape {u.shape}")
+    joint = (spec.joint and opts.joint) or call.prior is not None or bool(channels)
+    if (call.prior is not None or channels) and not spec.joint:
+        raise InputError(f"a prior calibration and current channels need method 'ml', not {call.method!r}")
+    f_ref = _reference_intensity(call, spec)
+    order = _order(call.stamps, n)
+    exc = excitation(r.mean(axis=1))
+    _check_manoeuvre(r, exc, call.prior)
+    clipped, saturated = quality.saturation(call.geometry.names, r)
+    if saturated:
+        raise CalibrationFailed(saturated)
+    return _Run(call, spec, opts, channels, f_ref, joint, t0, r, u, call.stamps, call.temperatures, order, exc,
+                clipped)
+
+
+def _choose_sets(run: _Run) -> None:
+    """Stage 2, choose the sets: a long recording's expensive stages run on a subset keeping the attitude
+    coverage and the time order (:func:`choose_sets`); every set is kept in :attr:`_Run.full`. With the
+    IMU's blocks, every set."""
+    n, s = run.r.shape[:2]
+    budget = solve_budget(s, run.opts.max_solve_sets) if run.call.imu is None else 0
+    if not budget or n <= budget:
+        return
+    keep = choose_sets(direction_proxy(run.r), run.order, budget)
+    stamps = None if run.stamps is None else np.asarray(run.stamps)
+    run.full = _AllSets(run.r, run.u, stamps, run.temperatures)
+    run.r, run.u, run.clipped = run.r[keep], run.u[keep], run.clipped[keep]
+    run.stamps = None if stamps is None else stamps[keep]
+    run.temperatures = None if run.temperatures is None else np.asarray(run.temperatures, dtype=float)[keep]
+    run.order = _order(run.stamps, len(keep))
+
+
+def _find_spikes(run: _Run) -> None:
+    """Stage 3a: each sensor's trimmed closed-form fit marks its spikes (when robust); the clean sets are
+    those without one (every set when fewer than :data:`MIN_SAMPLES` are)."""
+    n, s = run.r.shape[:2]
+    run.clean_reading = np.ones((n, s), bool)
+    if run.opts.robust:
+        for i in range(s):
+            try:
+                run.trimmed, run.clean_reading[:, i] = trimmed_algebraic_fit(run.r[:, i], run.f_ref)
+            except (MagcalError, np.linalg.LinAlgError):
+                run.trimmed = None  # degenerate data: the identifiability analysis names why
+    run.clean = run.clean_reading.all(axis=1)
+    if run.clean.sum() < MIN_SAMPLES:
+        run.clean[:] = True
+
+
+def _closed_form_will_do(run: _Run) -> bool:
+    """One sensor fitted jointly whose trimmed closed form is a sensor's correction: the joint fit is its
+    maximum-likelihood fit, so the method's own start (a scalar fit, then the sensor aligned onto itself)
+    would solve it twice over (collapsed, as on a narrow noisy manoeuvre, it will not do)."""
+    t = run.trimmed
+    return (run.geometry.size == 1 and run.joint and t is not None
+            and run.clean_reading[:, 0].sum() >= MIN_SAMPLES and _sensor_like(t.matrix, t.offset,
+                                                                              run.excitation.quadric_ratio))
+
+
+def _start_solution(run: _Run) -> None:
+    """Stage 3b, start: the prior; else one sensor's closed form (:func:`_closed_form_will_do`); else the
+    method's own solution on the clean sets, the crude start when it fails (remembered in
+    :attr:`_Run.start_failed`). A relative start has the sensors' mean gain 1."""
+    if run.call.prior is not None:
+        run.matrices, run.offsets, run.start_interference, run.intensity = _prior_start(
+            run.call.prior, run.geometry, run.r, run.f_ref, run.channels)
+        return
+    if _closed_form_will_do(run):
+        matrices, offsets, intensity = run.trimmed.matrix[None], run.trimmed.offset[None], run.trimmed.intensity
+    else:
+        try:
+            matrices, offsets, intensity = _start(run.spec, run.r, run.clean, run.f_ref, run.opts)
+        except (MagcalError, np.linalg.LinAlgError, ValueError) as exc:
+            run.start_failed = exc
+            matrices, offsets, intensity = _crude_start(run.r, run.f_ref)
+    if run.f_ref is None:
+        matrices, intensity = _unit_mean_gain(matrices, intensity)
+    run.matrices, run.offsets, run.intensity = matrices, offsets, intensity
+
+
+def _switch_on_blocks(run: _Run) -> None:
+    """Stage 3c: the start's weights, the model's optional blocks the data can feed (temperatures, lags,
+    the IMU's attitudes; joint fit only) and the prior's parameters."""
+    run.weights = run.clean_reading.astype(float)
+    imu, n, s = run.call.imu, run.r.shape[0], run.r.shape[1]
+    if run.fits_jointly:
+        run.blocks = block_inputs(run.temperatures, run.stamps, _start_directions(run.r, run.matrices, run.offsets),
+                                  s, run.order)
+    elif run.temperatures is not None:
+        raise InputError(f"temperature terms need method 'ml', not {run.call.method!r}")
+    if imu is not None and (imu.has_orientation or imu.has_angular_velocity):
+        if not run.fits_jointly:
+            raise InputError(f"calibrating with the IMU needs method 'ml', not {run.call.method!r}")
+        imu_blocks.check_follows(imu, run.r)
+        run.blocks = replace(run.blocks, attitude=imu_blocks.attitude_for(imu, run.stamps, run.geometry, n,
+                                                                          run.opts.site_field))
+    run.param_prior = _prior_of(run.call.prior, run.geometry, run.intensity, run.channels, run.opts, run.blocks)
+
+
+def _solve(run: _Run, matrices: Array, offsets: Array, intensity: float, interference: Array | None,
+           start: Array | None = None) -> JointSolution:
+    """The joint fit from a start (matrices (S, 3, 3), offsets (S, 3) T, F T, interference (S, 3, m) T/A or
+    None; ``start`` the parameters (S, P) instead), with the run's blocks and prior; gauge fixed when free."""
+    fitted = fit_array(run.r, matrices, offsets, intensity, run.u, interference, run.param_prior, run.weights,
+                       robust=run.opts.robust, start=start, **run.blocks.fit_options())
+    return fix_rotation_gauge(fitted) if run.free else fitted
+
+
+def _quick_analysis(run: _Run, sol: JointSolution) -> tuple[ident.Identifiability, Covariance]:
+    """What ``sol`` determines, without the jackknife (which only widens)."""
+    return _analyse(sol, run.r, run.geometry, run.order, run.param_prior, run.channels, run.u, jackknife=False,
+                    blocks=run.blocks)
+
+
+def _fit(run: _Run) -> None:
+    """Stage 4, fit: the joint fit from the start, or (a method without it) the method's own solution
+    evaluated in its own frame; then what it determines."""
+    if run.fits_jointly:
+        run.sol = _solve(run, run.matrices, run.offsets, run.intensity, run.start_interference)
+    else:
+        run.sol = fit_array(run.r, run.matrices, run.offsets, run.intensity, run.u, None, None, run.weights,
+                            robust=False, iterations=0)
+    run.ana, run.cov = _quick_analysis(run, run.sol)
+
+
+def _hold_undetermined(run: _Run) -> None:
+    """Stage 5: temperature and lag quantities the data do not determine held at zero and the rest refitted,
+    at most :data:`HOLD_ROUNDS` times."""
+    for _ in range(HOLD_ROUNDS):
+        held = _holdable_undetermined(run.ana, run.sol.model, run.geometry.names, run.blocks.held)
+        if held is None:
+            return
+        run.blocks = replace(run.blocks, held=held)
+        sol = run.sol
+        run.sol = _solve(run, sol.matrices, sol.offsets, sol.intensity, None, start=np.where(held, 0.0, sol.theta))
+        run.ana, run.cov = _quick_analysis(run, run.sol)
+
+
+def _retry_from_spheres(run: _Run) -> None:
+    """Stage 6: a closed-form start on noisy, narrow data can land on a collapsed ellipsoid the joint fit
+    cannot leave (or the method's start failed, or something is undetermined): without a prior, fit again
+    from spheres (:func:`_sphere_start`) and keep that if it is plausible and determines more."""
+    badness = (run.start_failed is not None or not _plausible(run.sol, run.geometry), len(run.ana.undetermined()))
+    if not (run.free and run.fits_jointly and any(badness)):
+        return
+    matrices, offsets, intensity = _sphere_start(run.r, run.clean, run.f_ref)
+    if run.f_ref is None:
+        matrices, intensity = _unit_mean_gain(matrices, intensity)
+    retry = _solve(run, matrices, offsets, intensity, None)
+    ana, cov = _quick_analysis(run, retry)
+    if _plausible(retry, run.geometry) and (False, len(ana.undetermined())) < badness:
+        run.sol, run.ana, run.cov, run.start_failed = retry, ana, cov, None
+
+
+def _envelope(run: _Run, vertical: Array) -> ident.Envelope:
+    """The attitudes where the solution holds (``vertical`` (N,): each set's field direction's z)."""
+    sol = run.sol
+    return ident.envelope(sol.w, run.cov.matrix, sol.sigma, sol.intensity, _inclination(run.opts, vertical))
+
+
+def _refuse_undetermined(run: _Run) -> None:
+    """Stage 7: without a prior, what the data do not determine is refused (before paying for the
+    jackknife), naming the rotation that would determine it."""
+    if run.free and run.ana.undetermined():
+        raise ObservabilityError(_refusal(run.ana, run.sol, _envelope(run, run.sol.directions[:, 2])))
+
+
+def _refine_on_every_set(run: _Run) -> tuple[Covariance | None, Array | None]:
+    """Stage 8: a subset's joint solution refined by one pass over every set. The subset's covariance and
+    the leave-one-block-out estimates (K, P) of every set for the analysis (None, None: not refined)."""
+    run.vertical = run.sol.directions[:, 2]
+    if run.full is None or not run.fits_jointly:
+        return None, None
+    run.stage(f"refine on all {run.full.count} sets")
+    refined = _refine(run.sol, run.full, run.param_prior, run.blocks, bool(run.channels), run.free)
+    run.sol, run.excluded, run.vertical = refined.solution, refined.excluded, refined.vertical
+    return run.cov, refined.leave_out
+
+
+def _analyse_result(run: _Run, like: Covariance | None, leave_out: Array | None) -> None:
+    """Stage 9, analyse: the result's covariance (time-correlated, jackknifed) and what it determines, and
+    the channels whose interference it does not."""
+    run.smooth = quality.in_time_order(run.sol.directions[run.order])
+    run.ana, run.cov = _analyse(run.sol, run.r, run.geometry, run.order, run.param_prior, run.channels, run.u,
+                                blocks=run.blocks, like=like, leave_out=leave_out, in_order=run.smooth)
+    run.unsolved = _undetermined_channels(run.ana, run.sol.directions, run.u, run.channels, run.call.prior)
+
+
+def _refuse_what_failed(run: _Run) -> None:
+    """Stage 10: the validity envelope; without a prior what is still undetermined is refused, and a method
+    start that failed with no sphere start to replace it is."""
+    run.env = _envelope(run, run.vertical)
+    if run.free and run.ana.undetermined():
+        raise ObservabilityError(_refusal(run.ana, run.sol, run.env))
+    if run.start_failed is not None:
+        raise CalibrationFailed(f"calibration not possible: {run.start_failed}")
+
+
+def _mounting(run: _Run) -> Array | None:
+    """A single sensor's (3, 3) sensor-to-platform rotation, or None; :class:`InputError` when it is not one."""
+    if run.opts.mounting is None:
+        return None
+    if run.geometry.size != 1:
+        raise InputError("a mounting rotation applies to a single sensor; an array defines its own frame")
+    mounting = np.asarray(run.opts.mounting, dtype=float)
+    if mounting.shape != (3, 3) or not np.allclose(mounting @ mounting.T, np.eye(3), atol=1e-6):
+        raise InputError("mounting must be a 3x3 rotation matrix (sensor to platform)")
+    return mounting
+
+
+def _calibration(run: _Run, mounting: Array | None) -> tuple[ArrayCalibration, bool]:
+    """The calibration the solution gives (output frame turned by ``mounting``), and whether it carries the
+    temperature terms (significant ones only); :class:`CalibrationFailed` when it is no sensor's."""
+    sol, ana, blocks = run.sol, run.ana, run.blocks
+    matrices = sol.matrices if mounting is None else mounting[None] @ sol.matrices
+    vector_cov = _vector_covariances(sol, run.cov.matrix)
+    if mounting is not None:
+        vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
+    thermal = sol.model.temperature and significant_temperature_terms(ana)
+    try:
+        cal = ArrayCalibration(
+            run.geometry, matrices, sol.offsets, {}, vector_cov, run.channels,
+            sol.interference if run.channels else None,
+            time_offsets=_stored_time_offsets(ana, run.geometry.names, sol.time_offsets),
+            temperature_reference=blocks.reference if thermal else None,
+            offset_tempco=sol.offset_tempco if thermal else None,
+            matrix_tempco=-matrices * sol.gain_tempco[:, None, :] if thermal else None,
+            **imu_blocks.output_frame(sol, run.call.prior),
+        )
+    except InputError as exc:
+        raise CalibrationFailed(f"solution rejected: {exc}") from None
+    return cal, thermal
+
+
+def _corrected(run: _Run, cal: ArrayCalibration, thermal: bool) -> Array:
+    """(N, S, 3) the sets corrected by ``cal`` (T, array frame, the site gradient's field taken off), every
+    sensor brought to the set's instant: what the gates judge."""
+    sol, blocks = run.sol, run.blocks
+    temps = blocks.temperatures + blocks.reference if thermal else None
+    corrected = imu_blocks.without_site_field(cal.apply_array(run.r, run.u if run.channels else None, temps), sol)
+    if sol.time_offsets is not None and sol.rates is not None:
+        corrected = corrected + sol.intensity * sol.time_offsets[None, :, None] * sol.rates[:, None, :]
+    return corrected
+
+
+def _judge(run: _Run, corrected: Array, tmi_residual: Array) -> tuple[Any, quality.Verdict]:
+    """The uniformity of the field over the array and the noise-aware quality gates' verdict;
+    :class:`CalibrationFailed` naming the cause when either refuses (with a prior, a reference the data
+    disagree with named as the cause when it is)."""
+    sol, order, s = run.sol, run.order, run.geometry.size
+    implied = None  # the mean sensor gain a given reference implies (None: relative or prior)
+    if run.f_ref is not None and run.free:
+        implied = float(np.mean(np.abs(np.linalg.det(sol.matrices)) ** (-1.0 / 3.0)))
+    uniform = uniformity.check(corrected[order][(sol.weights[order] > 0).all(axis=1)], run.geometry.positions)
+    if uniform is not None and uniform.refused and run.opts.max_residual is None:
+        raise CalibrationFailed(f"{uniform.describe()}; to accept it anyway give a max residual (magcal "
+                                "--max-residual, the calibration node's max_residual)")
+    rates = sol.rates
+    if rates is None and run.stamps is not None and s > 1:  # (one sensor's direction takes up any lag)
+        rates = direction_rates(sol.directions, np.asarray(run.stamps, dtype=float) / NS_PER_S)
+    stamps = None if run.stamps is None else np.asarray(run.stamps)[order]
+    verdict = quality.judge(run.geometry.names, sol.residuals[order], sol.weights[order], tmi_residual[order],
+                            run.r[order], stamps, run.opts.max_residual, implied, sol.intensity,
+                            sol.directions[order], run.clipped[order], None if rates is None else rates[order],
+                            smooth=run.smooth)
+    if verdict.cause:
+        call = run.call
+        given = (call.raw, call.currents, call.stamps, call.temperatures)
+        raise CalibrationFailed(_reference_misfit(given, run.geometry, call.reference_field, call.method,
+                                                  call.options, call.prior, run.channels, call.imu)
+                                or verdict.cause)
+    return uniform, verdict
+
+
+def _envelope_warning(run: _Run) -> str | None:
+    """Without a prior: what the manoeuvre determined only near the attitudes flown, or where the result
+    holds when that is not everywhere (None: everywhere)."""
+    ana, env = run.ana, run.env
+    if ana.weak():
+        return _weak_warning(ana, run.sol, env)
+    if env.empty:
+        return f"{env.describe()}: more sets, or more attitudes, would bring the calibration error below the noise"
+    if not env.whole_sphere:
+        least = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
+        return (f"{env.describe()} (least determined: {', '.join(least)}); outside it the predicted TMI "
+                f"error exceeds {ident.ENVELOPE_RATIO:g}x the noise")
+    return None
+
+
+def _warnings(run: _Run, verdict: quality.Verdict, uniform: Any) -> list[str]:
+    """The gates' warnings, a field that is not quite uniform, the envelope, and a prior's intensity used."""
+    warnings = list(verdict.warnings) + ([uniform.describe()] if uniform is not None and uniform.detected else [])
+    if run.free:
+        note = _envelope_warning(run)
+        if note is not None:
+            warnings.append(note)
+    elif not run.call.reference_field:
+        warnings.append(f"used the prior's intensity {run.sol.intensity / NT:.1f} nT: if the site changed, give "
+                        "the new reference field")
+    return warnings
+
+
+def _gate(run: _Run) -> _Gated:
+    """Stage 11, gate: the calibration (a single sensor's mounting applied), the sets it corrects, the
+    uniformity and quality gates, and the warnings."""
+    mounting = _mounting(run)
+    cal, thermal = _calibration(run, mounting)
+    corrected = _corrected(run, cal, thermal)
+    tmi_residual = np.linalg.norm(corrected, axis=2) - run.sol.intensity
+    uniform, verdict = _judge(run, corrected, tmi_residual)
+    return _Gated(cal, thermal, mounting is not None, corrected, tmi_residual, uniform, verdict,
+                  _warnings(run, verdict, uniform))
+
+
+def _report(run: _Run, gated: _Gated) -> CalibrationResult:
+    """Stage 12, report: the result with its diagnostics (residuals before and after, analysis, envelope,
+    what the blocks found), and the calibration's provenance."""
+    sol, cov, blocks, s = run.sol, run.cov, run.blocks, run.geometry.size
+    imu_report = imu_blocks.imu_report(sol, run.order, None if run.param_prior is None else
+                                       run.param_prior.fitted_to(sol.model).precision().reshape(-1))
+    used = sol.weights > 0
+    clean_sets = used.all(axis=1)
+    span = None if blocks.temperatures is None else (float(blocks.temperatures.min() + blocks.reference),
+                                                     float(blocks.temperatures.max() + blocks.reference))
+    n = len(run.r)
+    result = CalibrationResult(
+        calibration=gated.calibration,
+        method=run.call.method,
+        samples=n if run.full is None else run.full.count,
+        intensity=sol.intensity,
+        relative=run.f_ref is None,
+        tmi_before=tmi_rms(run.r, sol.intensity),
+        tmi_after=np.array([rms(gated.tmi_residual[used[:, i], i]) for i in range(s)]),
+        tensor_before=_gradient_residual(run.r[clean_sets], run.geometry, run.opts.gradient_method),
+        tensor_after=_gradient_residual(gated.corrected[clean_sets], run.geometry, run.opts.gradient_method),
+        excitation=run.excitation,
+        identifiability=run.ana,
+        envelope=run.env,
+        noise=sol.sigma,
+        outliers=np.sum(~used, axis=0).astype(float) if run.excluded is None else run.excluded,
+        warnings=gated.warnings,
+        seconds=time.perf_counter() - run.t0,
+        prior=not run.free,
+        inflation=cov.inflation,
+        extras={"mounting": gated.mounted, "bandwidth": cov.bandwidth, "uniformity": gated.uniformity,
+                "temperature_range": span, "temperature_stored": gated.thermal,
+                "block_notes": blocks.notes + tuple(() if imu_report is None else imu_report.notes()),
+                "drift": gated.verdict.drift, "imu": imu_report,
+                "solved_on": None if run.full is None else (n, run.full.count, run.excluded is not None)},
+    )
+    object.__setattr__(gated.calibration, "metadata",
+                       provenance(result, run.spec.source, run.call.reference_field, gated.verdict))
+    return replace(result, seconds=time.perf_counter() - run.t0)
+
+
 def calibrate_array(
     raw: ArrayLike,
     geometry: ArrayGeometry,
@@ -794,258 +1326,27 @@ def calibrate_array(
     :class:`CalibrationFailed` when the result fails a quality gate (naming the cause).
     """
     t0 = time.perf_counter()
-    given = (raw, currents, stamps, temperatures)
-    opts = options or SolveOptions()
-    if method not in METHODS:
-        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    spec = METHODS[method]
-    r = check_raw(raw, geometry)
-    n, s, _ = r.shape
-    u = np.zeros((n, 0)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
-    channels = tuple(channels)
-    if u.shape[1] != len(channels) or not np.all(np.isfinite(u)):
-        raise InputError(f"currents must be finite, one column per channel ({len(channels)}), got shape {u.shape}")
-    joint = (spec.joint and opts.joint) or prior is not None or bool(channels)
-    if (prior is not None or channels) and not spec.joint:
-        raise InputError(f"a prior calibration and current channels need method 'ml', not {method!r}")
-    f_ref = float(reference_field) if reference_field else None
-    if f_ref is None and prior is not None and prior.metadata.get("intensity"):
-        f_ref = float(prior.metadata["intensity"])
-    if spec.needs_reference_field and f_ref is None:
-        raise InputError(
-            f"method {method!r} ({spec.source}) needs a reference field intensity in T "
-            "(--reference-field / reference_field); method 'ml' or 'paired' works without one"
-        )
-    low, high = EARTH_FIELD_RANGE
-    if f_ref is not None and not (np.isfinite(f_ref) and low <= f_ref <= high):
-        raise InputError(f"reference field {f_ref} T is not an Earth-like intensity ({low:g} .. {high:g} T): "
-                         "units are Tesla")
-    order = _order(stamps, n)
-    exc = excitation(r.mean(axis=1))
-    if n < MIN_SAMPLES:
-        axis, flat = _manoeuvre_axis(r.mean(axis=1))
-        one_axis = f"; and the array was rotated about one axis only (about {axis}): turn it about " + " or ".join(
-            a for a in "xyz" if a != axis) + " too" if flat < 0.05 else ""
-        raise ObservabilityError(f"only {n} synchronized sets; need at least {MIN_SAMPLES}, collected while turning "
-                                 f"the array about at least two axes{one_axis}")
-    if exc.spread[0] < MIN_SPREAD and prior is None:
-        raise ObservabilityError("the readings barely change (the array hardly rotated); turn it through large "
-                                 "angles about at least two axes")
-
-    clipped, saturated = quality.saturation(geometry.names, r)
-    if saturated:
-        raise CalibrationFailed(saturated)
-    stage = opts.progress or (lambda name: None)
-    full: _AllSets | None = None
-    budget = solve_budget(s, opts.max_solve_sets) if imu is None else 0  # the IMU's blocks: every set
-    if budget and n > budget:  # long recording: the expensive stages on a subset
-        keep = choose_sets(direction_proxy(r), order, budget)
-        full = _AllSets(r, u, None if stamps is None else np.asarray(stamps), temperatures)
-        r, u, clipped = r[keep], u[keep], clipped[keep]
-        stamps = None if stamps is None else np.asarray(stamps)[keep]
-        temperatures = None if temperatures is None else np.asarray(temperatures, dtype=float)[keep]
-        n = len(keep)
-        order = _order(stamps, n)
-    stage("start")
-
-    # 2. spikes and the start
-    clean_reading = np.ones((n, s), bool)
-    trimmed = None
-    if opts.robust:
-        for i in range(s):
-            try:
-                trimmed, clean_reading[:, i] = trimmed_algebraic_fit(r[:, i], f_ref)
-            except (MagcalError, np.linalg.LinAlgError):
-                trimmed = None  # degenerate data: the identifiability analysis below names why
-    clean = clean_reading.all(axis=1)
-    if clean.sum() < MIN_SAMPLES:
-        clean[:] = True
-    start_failed: Exception | None = None
-    start_interference = None
-    if prior is not None:
-        matrices, offsets, start_interference, intensity = _prior_start(prior, geometry, r, f_ref, channels)
-    elif s == 1 and joint and trimmed is not None and clean_reading[:, 0].sum() >= MIN_SAMPLES \
-            and _sensor_like(trimmed.matrix, trimmed.offset, exc.quadric_ratio):
-        # One sensor: the joint fit is its maximum-likelihood fit, so the method's own start (a scalar
-        # fit, then the sensor aligned onto itself) would solve it twice over; the closed form will do
-        # when it is a sensor's correction (collapsed, as on a narrow noisy manoeuvre, it is not).
-        matrices, offsets, intensity = trimmed.matrix[None], trimmed.offset[None], trimmed.intensity
-        if f_ref is None:
-            matrices, intensity = _unit_mean_gain(matrices, intensity)
-    else:
-        try:
-            matrices, offsets, intensity = _start(spec, r, clean, f_ref, opts)
-        except (MagcalError, np.linalg.LinAlgError, ValueError) as exc_start:
-            start_failed = exc_start
-            matrices, offsets, intensity = _crude_start(r, f_ref)
-        if f_ref is None:
-            matrices, intensity = _unit_mean_gain(matrices, intensity)
-    weights = clean_reading.astype(float)
-    blocks = BlockInputs()
-    if joint or start_failed is not None:
-        blocks = block_inputs(temperatures, stamps, _start_directions(r, matrices, offsets), s, order)
-    elif temperatures is not None:
-        raise InputError(f"temperature terms need method 'ml', not {method!r}")
-    if imu is not None and (imu.has_orientation or imu.has_angular_velocity):
-        if not (joint or start_failed is not None):
-            raise InputError(f"calibrating with the IMU needs method 'ml', not {method!r}")
-        imu_blocks.check_follows(imu, r)
-        blocks = replace(blocks, attitude=imu_blocks.attitude_for(imu, stamps, geometry, n, opts.site_field))
-    param_prior = _prior_of(prior, geometry, intensity, channels, opts, blocks)
-
-    def solve(m0: Array, o0: Array, f0: float, interference0: Array | None, start: Array | None = None) -> JointSolution:
-        fitted = fit_array(r, m0, o0, f0, u, interference0, param_prior, weights, robust=opts.robust, start=start,
-                           **blocks.fit_options())
-        return fix_rotation_gauge(fitted) if prior is None else fitted
-
-    stage("joint fit")
-    if joint or start_failed is not None:
-        sol = solve(matrices, offsets, intensity, start_interference)
-    else:  # the method's own solution, evaluated (its frame is the method's)
-        sol = fit_array(r, matrices, offsets, intensity, u, None, None, weights, robust=False, iterations=0)
-    # Undetermined already without the jackknife (which only widens): refuse before paying for it.
-    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
-    for _ in range(HOLD_ROUNDS):  # temperature and lag quantities the data do not determine: held at zero
-        held = _holdable_undetermined(ana, sol.model, geometry.names, blocks.held)
-        if held is None:
-            break
-        blocks = replace(blocks, held=held)
-        sol = solve(sol.matrices, sol.offsets, sol.intensity, None, start=np.where(held, 0.0, sol.theta))
-        ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
-    badness = (start_failed is not None or not _plausible(sol, geometry), len(ana.undetermined()))
-    if prior is None and (joint or start_failed is not None) and any(badness):
-        # A closed-form start on noisy, narrow data can land on a collapsed ellipsoid the joint
-        # fit cannot leave: try again from spheres, and keep that if it is better.
-        m2, o2, f2 = _sphere_start(r, clean, f_ref)
-        if f_ref is None:
-            m2, f2 = _unit_mean_gain(m2, f2)
-        retry = solve(m2, o2, f2, None)
-        ana2, cov2 = _analyse(retry, r, geometry, order, param_prior, channels, u, jackknife=False, blocks=blocks)
-        if _plausible(retry, geometry) and (False, len(ana2.undetermined())) < badness:
-            sol, ana, cov, start_failed = retry, ana2, cov2, None
-    if prior is None and ana.undetermined():
-        env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity,
-                             _inclination(opts, sol.directions[:, 2]))
-        raise ObservabilityError(_refusal(ana, sol, env))
-    stage("uncertainty")
-    refining = full is not None and (joint or start_failed is not None)
-    excluded = None
-    vertical = sol.directions[:, 2]
-    like = leave_out = None
-    if refining:  # the subset's result, refined on every set (the jackknife from every set's refinement)
-        stage(f"refine on all {full.count} sets")
-        refined = _refine(sol, full, param_prior, blocks, bool(channels), prior is None)
-        sol, excluded, vertical = refined.solution, refined.excluded, refined.vertical
-        like, leave_out = cov, refined.leave_out
-    smooth = quality.in_time_order(sol.directions[order])
-    ana, cov = _analyse(sol, r, geometry, order, param_prior, channels, u, blocks=blocks, like=like,
-                        leave_out=leave_out, in_order=smooth)
-    unsolved = _undetermined_channels(ana, sol.directions, u, channels, prior)
-    if unsolved:
-        return _without_channels(unsolved, raw, geometry, reference_field, method, options, prior, u, channels, stamps,
-                                 temperatures, imu)
-    env = ident.envelope(sol.w, cov.matrix, sol.sigma, sol.intensity, _inclination(opts, vertical))
-    if prior is None and ana.undetermined():
-        raise ObservabilityError(_refusal(ana, sol, env))
-    if start_failed is not None:
-        raise CalibrationFailed(f"calibration not possible: {start_failed}")
-
-    # 5. gates
-    matrices_out = sol.matrices
-    mounting = opts.mounting
-    if mounting is not None:
-        if s != 1:
-            raise InputError("a mounting rotation applies to a single sensor; an array defines its own frame")
-        mounting = np.asarray(mounting, dtype=float)
-        if mounting.shape != (3, 3) or not np.allclose(mounting @ mounting.T, np.eye(3), atol=1e-6):
-            raise InputError("mounting must be a 3x3 rotation matrix (sensor to platform)")
-        matrices_out = mounting[None] @ matrices_out
-    vector_cov = _vector_covariances(sol, cov.matrix)
-    if mounting is not None:
-        vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
-    thermal = sol.model.temperature and significant_temperature_terms(ana)
-    temps = blocks.temperatures + blocks.reference if thermal else None
-    try:
-        cal = ArrayCalibration(
-            geometry, matrices_out, sol.offsets, {}, vector_cov, channels, sol.interference if channels else None,
-            time_offsets=_stored_time_offsets(ana, geometry.names, sol.time_offsets),
-            temperature_reference=blocks.reference if thermal else None,
-            offset_tempco=sol.offset_tempco if thermal else None,
-            matrix_tempco=-matrices_out * sol.gain_tempco[:, None, :] if thermal else None,
-            **imu_blocks.output_frame(sol, prior),
-        )
-    except InputError as exc_cal:
-        raise CalibrationFailed(f"solution rejected: {exc_cal}") from None
-    # the gates judge the array frame, the site gradient's field (a block of the model) taken off
-    corrected = imu_blocks.without_site_field(cal.apply_array(r, u if channels else None, temps), sol)
-    if sol.time_offsets is not None and sol.rates is not None:  # every sensor brought to the set's instant
-        corrected = corrected + sol.intensity * sol.time_offsets[None, :, None] * sol.rates[:, None, :]
-    tmi_res = np.linalg.norm(corrected, axis=2) - sol.intensity
-    implied = None  # the mean sensor gain a given reference implies (None: relative or prior)
-    if f_ref is not None and prior is None:
-        implied = float(np.mean(np.abs(np.linalg.det(sol.matrices)) ** (-1.0 / 3.0)))
-    field = uniformity.check(corrected[order][(sol.weights[order] > 0).all(axis=1)], geometry.positions)
-    if field is not None and field.refused and opts.max_residual is None:
-        raise CalibrationFailed(f"{field.describe()}; to accept it anyway give a max residual (magcal "
-                                "--max-residual, the calibration node's max_residual)")
-    rates = sol.rates
-    if rates is None and stamps is not None and s > 1:  # (one sensor's direction takes up any lag: no timing to tell)
-        rates = direction_rates(sol.directions, np.asarray(stamps, dtype=float) / NS_PER_S)
-    verdict = quality.judge(geometry.names, sol.residuals[order], sol.weights[order], tmi_res[order], r[order],
-                            None if stamps is None else np.asarray(stamps)[order], opts.max_residual,
-                            implied, sol.intensity, sol.directions[order], clipped[order],
-                            None if rates is None else rates[order], smooth=smooth)
-    if verdict.cause:
-        raise CalibrationFailed(_reference_misfit(given, geometry, reference_field, method, options, prior, channels, imu)
-                                or verdict.cause)
-    warnings = list(verdict.warnings) + ([field.describe()] if field is not None and field.detected else [])
-    if prior is None and ana.weak():
-        warnings.append(_weak_warning(ana, sol, env))
-    elif prior is None and env.empty:
-        warnings.append(f"{env.describe()}: more sets, or more attitudes, would bring the calibration error "
-                        "below the noise")
-    elif prior is None and not env.whole_sphere:
-        least = sorted({q.name for q in sorted(ana.quantities, key=lambda q: -q.effect)[:4]})
-        warnings.append(f"{env.describe()} (least determined: {', '.join(least)}); outside it the predicted TMI "
-                        f"error exceeds {ident.ENVELOPE_RATIO:g}x the noise")
-    if prior is not None and not reference_field:
-        warnings.append(f"used the prior's intensity {sol.intensity / NT:.1f} nT: if the site changed, give the "
-                        "new reference field")
-    imu_report = imu_blocks.imu_report(sol, order, None if param_prior is None else
-                                       param_prior.fitted_to(sol.model).precision().reshape(-1))
-    used = sol.weights > 0
-    tmi_after = np.array([rms(tmi_res[used[:, i], i]) for i in range(s)])
-    tmi_before = tmi_rms(r, sol.intensity)
-    clean_sets = used.all(axis=1)
-    result = CalibrationResult(
-        calibration=cal,
-        method=method,
-        samples=n if full is None else full.count,
-        intensity=sol.intensity,
-        relative=f_ref is None,
-        tmi_before=tmi_before,
-        tmi_after=tmi_after,
-        tensor_before=_gradient_residual(r[clean_sets], geometry, opts.gradient_method),
-        tensor_after=_gradient_residual(corrected[clean_sets], geometry, opts.gradient_method),
-        excitation=exc,
-        identifiability=ana,
-        envelope=env,
-        noise=sol.sigma,
-        outliers=np.sum(~used, axis=0).astype(float) if excluded is None else excluded,
-        warnings=warnings,
-        seconds=time.perf_counter() - t0,
-        prior=prior is not None,
-        inflation=cov.inflation,
-        extras={"mounting": mounting is not None, "bandwidth": cov.bandwidth, "uniformity": field,
-                "temperature_range": None if blocks.temperatures is None else
-                (float(blocks.temperatures.min() + blocks.reference), float(blocks.temperatures.max() + blocks.reference)),
-                "temperature_stored": thermal,
-                "block_notes": blocks.notes + tuple(() if imu_report is None else imu_report.notes()),
-                "drift": verdict.drift, "imu": imu_report,
-                "solved_on": None if full is None else (n, full.count, excluded is not None)},
-    )
-    object.__setattr__(cal, "metadata", provenance(result, spec.source, reference_field, verdict))
-    return replace(result, seconds=time.perf_counter() - t0)
+    call = _Call(raw, geometry, reference_field, method, options, prior, currents, channels, stamps, temperatures,
+                 imu)
+    run = _checked_input(call, t0)
+    _choose_sets(run)
+    run.stage("start")
+    _find_spikes(run)
+    _start_solution(run)
+    _switch_on_blocks(run)
+    run.stage("joint fit")
+    _fit(run)
+    _hold_undetermined(run)
+    _retry_from_spheres(run)
+    _refuse_undetermined(run)
+    run.stage("uncertainty")
+    like, leave_out = _refine_on_every_set(run)
+    _analyse_result(run, like, leave_out)
+    if run.unsolved:  # NB as before the stages: raw is every set, u/stamps/temperatures the subset's (a known bug)
+        return _without_channels(run.unsolved, raw, geometry, reference_field, method, options, prior, run.u,
+                                 run.channels, run.stamps, run.temperatures, imu)
+    _refuse_what_failed(run)
+    return _report(run, _gate(run))
 
 
 def _reference_misfit(given: tuple[Any, Any, Any, Any], geometry: ArrayGeometry, reference: float | None, method: str,
@@ -1089,7 +1390,7 @@ def provenance(result: CalibrationResult, source: str, reference_field: float | 
     meta: dict[str, Any] = {
         "method": result.method,
         "source": source,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),  # noqa: UP017 (datetime.UTC: Python 3.11+)
         "samples": result.samples,
         "reference_field": float(reference_field or 0.0),
         "intensity": result.intensity,

@@ -1,0 +1,41 @@
+"""The staged calibration pipeline gives what the pipeline gave before it was split into stages.
+
+``test/data/pipeline_reference.json`` holds the outcome of every scenario of ``pipeline_scenarios.py``
+(matrices, offsets, interference, covariances, the analysis, the summary, warnings and metadata of a
+result; the type and message of a refusal; the progress stages announced) as recorded on the pipeline
+before the refactoring (``python test/pipeline_scenarios.py`` writes it). Numbers must agree to a
+relative 1e-9, texts exactly.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pipeline_scenarios as ps
+import pytest
+
+REFERENCE = json.loads(ps.REFERENCE.read_text())
+
+
+def test_every_scenario_has_a_reference() -> None:
+    assert sorted(REFERENCE) == sorted(ps.SCENARIOS)
+
+
+@pytest.mark.parametrize("name", list(ps.SCENARIOS))
+def test_the_outcome_is_the_recorded_one(name: str) -> None:
+    want = REFERENCE[name]
+    got = json.loads(json.dumps(ps.record(name)))  # the same plain data the reference was written as
+    found = ps.differences(got, want, name)
+    assert not found, "\n".join(found[:20])
+
+
+def test_the_comparison_sees_a_small_change() -> None:
+    """The comparison itself: a relative change of 1e-7 in one number, or one character, is a difference."""
+    want = REFERENCE["rotation"]
+    got = json.loads(json.dumps(want))
+    got["offsets"][1][2] *= 1.0 + 1e-7
+    assert ps.differences(got, want) == [f".offsets[1][2]: {got['offsets'][1][2]!r} != {want['offsets'][1][2]!r}"]
+    got = json.loads(json.dumps(want))
+    got["summary"] = got["summary"][:-1]
+    assert len(ps.differences(got, want)) == 1
+    assert ps.differences(json.loads(json.dumps(want)), want) == []
