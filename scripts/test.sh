@@ -12,6 +12,8 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 # Test files run in parallel (pytest-xdist, one file per worker at a time, module fixtures kept):
 # most of the time is spent waiting on node processes and replays, so three workers on two
 # cores take a third of the serial time. MAGCAL_TEST_WORKERS=0 runs serially.
+# Lint first (rules in ruff.toml: pyflakes, bugbear, McCabe complexity 15 for the package): a finding fails fast.
+"$venv/bin/ruff" check --quiet "$root" || { echo "ruff found the problems above (rules: ruff.toml)" >&2; exit 1; }
 workers="${MAGCAL_TEST_WORKERS:-3}"
 parallel=()
 [ "$workers" != 0 ] && parallel=(-n "$workers" --dist loadfile)

@@ -39,3 +39,18 @@ def test_the_comparison_sees_a_small_change() -> None:
     got["summary"] = got["summary"][:-1]
     assert len(ps.differences(got, want)) == 1
     assert ps.differences(json.loads(json.dumps(want)), want) == []
+
+
+def test_an_undetermined_channel_of_a_long_recording_is_left_out_of_every_set() -> None:
+    """A recording longer than the solve budget (the expensive stages on a subset) with a channel that never
+    varies: solved again without it from every set (it passed the subset's currents with every set's
+    readings: a reshape error), with the warning naming it and the calibration of the recording without it."""
+    import numpy as np
+    from magcal_ros.methods.pipeline import SolveOptions, calibrate_array
+
+    (raw, geometry, f), kwargs = ps.SCENARIOS["currents_one_undetermined"]()
+    result = calibrate_array(raw, geometry, f, options=SolveOptions(max_solve_sets=300), **kwargs)
+    assert result.calibration.metadata["interference_undetermined"] == [ps.CHANNELS[1]]
+    whole = calibrate_array(raw, geometry, f, **kwargs)
+    assert np.allclose(result.calibration.offsets, whole.calibration.offsets, atol=2e-9)
+    assert np.allclose(result.calibration.matrices, whole.calibration.matrices, atol=2e-4)

@@ -335,12 +335,12 @@ class SensorStream:
         """Whether ``stamp`` (ns, this segment) lies off the segment's sample grid by more than a quarter
         period and than its stamps' jitter allows (six median deviations of its intervals, about four
         standard deviations): lost samples keep a sensor's grid, a step of its stamps moves it. False
-        while the grid is unknown or too jittery to tell (a quarter period and more)."""
-        period = self.grid_period()
-        if period is None or not self.tail or self.period is None:
-            return False
-        limit = max(period / 4, 6 * median_int([abs(i - self.period) for i in self.intervals]))
-        if 2 * limit >= period:
+        while the grid is unknown, not kept by the recent intervals or too jittery to tell."""
+        period, short = self.grid_period(), self.period
+        if period is None or not self.tail or short is None or 8 * abs(period - short) > short:
+            return False  # no grid, or one the recent intervals do not keep
+        limit = max(short / 4, 6 * median_int([abs(i - short) for i in self.intervals]))
+        if 2 * limit >= short:
             return False
         k = (stamp + self.base - self.anchor(period)) / period
         return abs(k - round(k)) * period > limit

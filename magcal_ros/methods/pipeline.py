@@ -1342,9 +1342,10 @@ def calibrate_array(
     run.stage("uncertainty")
     like, leave_out = _refine_on_every_set(run)
     _analyse_result(run, like, leave_out)
-    if run.unsolved:  # NB as before the stages: raw is every set, u/stamps/temperatures the subset's (a known bug)
-        return _without_channels(run.unsolved, raw, geometry, reference_field, method, options, prior, run.u,
-                                 run.channels, run.stamps, run.temperatures, imu)
+    if run.unsolved:  # solved again from every set as given, without those channels
+        every = np.asarray(currents, dtype=float).reshape(np.shape(raw)[0], -1)
+        return _without_channels(run.unsolved, raw, geometry, reference_field, method, options, prior, every,
+                                 run.channels, stamps, temperatures, imu)
     _refuse_what_failed(run)
     return _report(run, _gate(run))
 
