@@ -1,0 +1,134 @@
+"""The temperatures a calibration was made at, recorded in its file and watched where it is applied.
+
+A glider's manoeuvre at the surface spans 0.8 K (18.2..19.0 C): too little for temperature terms, so
+none is stored, yet its dives are 16 K colder. The calibration file records per sensor the span
+(``<name>.calibration_temperatures``); ``magcal correct`` says, per sensor, how many sets were more than
+:data:`~magcal_ros.core.temperature.TEMPERATURE_MARGIN` outside it and how far; a file without the key
+(written before it existed) says nothing. The correction node counts the same with
+:class:`~magcal_ros.core.temperature.SpanExcursions`.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_model_blocks import GEO, F, thermal_array
+from test_offline import magcal, ok
+
+from magcal_ros.core import calibration_bounds as bounds
+from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.temperature import TEMPERATURE_MARGIN, SpanExcursions, temperature_span
+from magcal_ros.errors import InputError
+from magcal_ros.io import calibration_file as calfile
+from magcal_ros.io.csv_recording import write_csv
+from magcal_ros.methods.pipeline import calibrate_array
+from magcal_ros.sim.attitudes import uniform_random
+
+SURFACE = (18.2, 19.0)  # deg C: the manoeuvre at the surface
+COLD = 16.0  # K colder at depth
+
+
+class Surface:
+    """A calibration at the surface (no temperature terms) and fresh dives 16 K colder."""
+
+    def __init__(self) -> None:
+        self.sim = thermal_array(1)
+        temps = np.random.default_rng(3).uniform(*SURFACE, 1500)
+        self.manoeuvre, _ = self.sim.run(uniform_random(1500, 4), 5, temperatures=temps, rate=10.0)
+        self.result = calibrate_array(self.manoeuvre.vectors, GEO, F, stamps=self.manoeuvre.stamps,
+                                      temperatures=self.manoeuvre.temperatures)
+        cold = np.random.default_rng(6).uniform(SURFACE[0] - COLD - 0.5, SURFACE[0] - COLD + 0.5, 600)
+        self.dive, _ = self.sim.run(uniform_random(600, 7), 8, temperatures=cold, rate=10.0, start=1000.0)
+        surface = np.random.default_rng(9).uniform(*SURFACE, 300)
+        self.warm, _ = self.sim.run(uniform_random(300, 10), 11, temperatures=surface, rate=10.0, start=2000.0)
+
+
+@pytest.fixture(scope="module")
+def surface() -> Surface:
+    return Surface()
+
+
+def test_the_file_records_the_temperatures_the_calibration_was_made_at(surface: Surface, tmp_path: Path) -> None:
+    cal = surface.result.calibration
+    assert not cal.has_temperature_terms  # 0.8 K: no term stored
+    t = surface.manoeuvre.temperatures
+    np.testing.assert_array_equal(cal.temperature_span, np.column_stack([t.min(axis=0), t.max(axis=0)]))
+    path = tmp_path / "cal.yaml"
+    calfile.write(path, cal)
+    text = path.read_text()
+    assert text.count("calibration_temperatures: [") == 4
+    back = calfile.read(path)
+    np.testing.assert_array_equal(back.temperature_span, cal.temperature_span)
+    # without temperatures nothing is recorded
+    blind = calibrate_array(surface.manoeuvre.vectors, GEO, F).calibration
+    assert blind.temperature_span is None and "calibration_temperatures" not in calfile.dumps(blind)
+
+
+@pytest.mark.parametrize("value, message", [
+    ([19.0, 18.2], "minimum above its maximum"),
+    ([18.2, float("nan")], "two finite numbers"),
+    ([291.4, 292.2], "not a span of temperatures in deg C"),
+    ([18.2], "two finite numbers"),
+    ("warm", "must be \\[min, max\\]"),
+])
+def test_a_bad_span_is_refused_when_read(surface: Surface, value: object, message: str) -> None:
+    params = surface.result.calibration.to_parameters()
+    params["mag2"]["calibration_temperatures"] = value
+    with pytest.raises(InputError, match=f"mag2.calibration_temperatures.*{message}"):
+        ArrayCalibration.from_parameters(params)
+    assert bounds.check_temperature_span("x", [-2.0, 30.0]).tolist() == [-2.0, 30.0]
+
+
+def test_magcal_correct_names_the_sensors_and_sets_beyond_the_span(surface: Surface, tmp_path: Path) -> None:
+    cal_path = tmp_path / "cal.yaml"
+    calfile.write(cal_path, surface.result.calibration)
+    dive_csv, warm_csv = tmp_path / "dive.csv", tmp_path / "warm.csv"
+    write_csv(dive_csv, surface.dive)
+    write_csv(warm_csv, surface.warm)
+    proc = ok(magcal("correct", dive_csv, "-c", cal_path, "-o", tmp_path / "out.csv"))
+    lo, hi = surface.result.calibration.temperature_span[1]
+    far = lo - surface.dive.temperatures[:, 1].min()
+    for name in GEO.names:
+        assert re.search(rf"note: {name}: 600 sets up to [0-9.]+ K below the calibrated temperatures", proc.stderr), \
+            proc.stderr
+    assert f"mag2: 600 sets up to {far:.1f} K below the calibrated temperatures {lo:.1f}..{hi:.1f} C" in proc.stderr
+    assert f"more than {TEMPERATURE_MARGIN:g} K outside" in proc.stderr
+    # at the surface: nothing said
+    proc = ok(magcal("correct", warm_csv, "-c", cal_path, "-o", tmp_path / "warm_out.csv"))
+    assert "calibrated temperatures" not in proc.stderr, proc.stderr
+    # a file without the key (written before it existed): the same correction, nothing said
+    old = tmp_path / "old.yaml"
+    old.write_text("\n".join(line for line in cal_path.read_text().splitlines()
+                             if "calibration_temperatures" not in line) + "\n")
+    assert calfile.read(old).temperature_span is None
+    proc = ok(magcal("correct", dive_csv, "-c", old, "-o", tmp_path / "old_out.csv"))
+    assert "calibrated temperatures" not in proc.stderr, proc.stderr
+    assert (tmp_path / "old_out.csv").read_text() == (tmp_path / "out.csv").read_text()
+
+
+def test_span_excursions_count_per_sensor_once_each(surface: Surface) -> None:
+    """What the correction node counts, set by set: the first excursion of a sensor is named once."""
+    span = surface.result.calibration.temperature_span
+    watch = SpanExcursions(GEO.names, span)
+    t = surface.dive.temperatures
+    assert watch.add(surface.warm.temperatures) == []
+    first = watch.add(t[:1])
+    assert first == list(GEO.names)
+    assert watch.add(t[1:]) == []  # already named
+    fresh = np.ones_like(t, bool)
+    fresh[:, 3] = False  # mag4's temperature stale: not counted
+    watch.add(t, fresh)
+    np.testing.assert_array_equal(watch.counts, [1200, 1200, 1200, 600])
+    np.testing.assert_allclose(watch.below, span[:, 0] - t.min(axis=0))
+    assert np.all(watch.above == 0)
+    assert len(watch.notes()) == 4 and watch.notes()[0].startswith("mag1: 1,200 sets up to ")
+    # unknown for one sensor (a NaN row), or none given: nothing counted for it
+    span2 = span.copy()
+    span2[0] = np.nan
+    other = SpanExcursions(GEO.names, span2)
+    other.add(t)
+    assert other.counts[0] == 0 and other.counts[1] == 600
+    assert temperature_span(None, 4) is None
