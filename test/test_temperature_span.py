@@ -132,3 +132,21 @@ def test_span_excursions_count_per_sensor_once_each(surface: Surface) -> None:
     other.add(t)
     assert other.counts[0] == 0 and other.counts[1] == 600
     assert temperature_span(None, 4) is None
+
+
+def test_bag_to_bag_correct_notes_a_dive_below_the_surface_calibration(tmp_path: Path) -> None:
+    """The user's path: a surface manoeuvre bag at 18.6 C calibrated, a dive bag at 2.6 C corrected; the
+    bags' /<name>/temperature are read for the check only (no temperature terms, no set dropped)."""
+    ok(magcal("simulate", tmp_path / "surface", "--count", 1500, "--seed", 4, "--temperatures", 18.6,
+              "--temperature-noise", 0.2))
+    ok(magcal("calibrate", tmp_path / "surface", "-o", tmp_path / "cal.yaml", "--reference-field", F))
+    cal = calfile.read(tmp_path / "cal.yaml")
+    assert not cal.has_temperature_terms and cal.temperature_span is not None
+    assert np.all(np.abs(cal.temperature_span - 18.6) < 1.5)
+    ok(magcal("simulate", tmp_path / "dive", "--count", 300, "--seed", 4, "--temperatures", 2.6,
+              "--temperature-noise", 0.2))
+    proc = ok(magcal("correct", tmp_path / "dive", "-c", tmp_path / "cal.yaml", "-o", tmp_path / "out"))
+    assert "corrected 300 sets" in proc.stdout
+    for name in GEO.names:
+        assert re.search(rf"note: {name}: 300 sets up to 1[5-7]\.\d K below the calibrated temperatures", proc.stderr), \
+            proc.stderr
