@@ -483,7 +483,7 @@ def test_a_current_within_its_reading_noise_is_undetermined() -> None:
     truth_cal = ArrayCalibration(sim.geometry, truth.calibration.matrices, truth.calibration.offsets, {}, None,
                                  ("payload1",), truth.calibration.interference[:, :, :1])
     error = (in_true_frame(cal, truth_cal) - truth_cal.interference)[:, :, 0]  # (S, 3) T/A
-    sigma = np.array([[q.sigma for q in result.identifiability.quantities
-                       if q.sensor == name and q.name == f"interference payload1 {axis}"][0]
+    sigma = np.array([next(q.sigma for q in result.identifiability.quantities
+                            if q.sensor == name and q.name == f"interference payload1 {axis}")
                       for name in sim.geometry.names for axis in "xyz"]).reshape(-1, 3) * 1e-9  # nT/A -> T/A
     assert np.all(np.abs(error) < 4.0 * sigma), (error / sigma)

@@ -20,7 +20,11 @@ from test_offline import magcal, ok
 
 from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.temperature import TEMPERATURE_MARGIN, SpanExcursions, temperature_span
+from magcal_ros.core.temperature import (
+    TEMPERATURE_MARGIN,
+    SpanExcursions,
+    temperature_span,
+)
 from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io.csv_recording import write_csv

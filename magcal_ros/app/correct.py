@@ -407,7 +407,7 @@ class _SpanWatch:
 
     @classmethod
     def of(cls, reader: Any, path: Path, calibration: ArrayCalibration, given: Sequence[str] | None,
-           tolerance_ns: int) -> "_SpanWatch":
+           tolerance_ns: int) -> _SpanWatch:
         """The watch of ``calibration`` on the bag open in ``reader`` (nothing watched when the calibration
         does not record its temperatures, or the bag has no temperature topics)."""
         watch = span_excursions(calibration)

@@ -17,6 +17,8 @@ tolerance is seconds, not the milliseconds of the field sensors: 10 s old at 0.1
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -109,6 +111,25 @@ class SpanExcursions:
         self.counts = np.zeros(len(self.names), np.int64)
         self.below = np.zeros(len(self.names))
         self.above = np.zeros(len(self.names))
+        known = np.all(np.isfinite(self.span), axis=1)
+        self._limits = [(float(lo) - self.margin, float(hi) + self.margin) if k else (-math.inf, math.inf)
+                        for (lo, hi), k in zip(self.span, known)]
+
+    def add_one(self, values: Sequence[float], fresh: Sequence[bool]) -> list[str]:
+        """:meth:`add` for one set's temperatures (S,) deg C, plain numbers (the live hot path)."""
+        first: list[str] = []
+        for i, (t, ok) in enumerate(zip(values, fresh)):
+            low, high = self._limits[i]
+            if not ok or low <= t <= high or math.isnan(t):
+                continue
+            if not self.counts[i]:
+                first.append(self.names[i])
+            self.counts[i] += 1
+            if t < low:
+                self.below[i] = max(self.below[i], low + self.margin - t)
+            else:
+                self.above[i] = max(self.above[i], t - high + self.margin)
+        return first
 
     def add(self, temperatures: ArrayLike, fresh: ArrayLike | None = None) -> list[str]:
         """Count sets' temperatures (N, S) deg C (``fresh`` (N, S): which are values; default finite ones);
