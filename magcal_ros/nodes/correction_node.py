@@ -623,6 +623,9 @@ class CorrectionNode(Node):
         if state.temperatures:
             parts.append(f"correcting for temperature about {cal.temperature_reference:g} deg C "
                          f"(<name>/temperature within {state.temperature_tolerance_ns / 1e9:g} s)")
+        if cal.temperature_span is not None:
+            parts.append("comparing <name>/temperature with the temperatures the calibration was made at "
+                         "(<name>.calibration_temperatures)")
         if cal.rotated:
             parts.append(f"outputs turned by output_rotation into {state.frame_id}")
         return "; ".join(parts)
