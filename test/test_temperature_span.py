@@ -154,3 +154,26 @@ def test_bag_to_bag_correct_notes_a_dive_below_the_surface_calibration(tmp_path:
     for name in GEO.names:
         assert re.search(rf"note: {name}: 300 sets up to 1[5-7]\.\d K below the calibrated temperatures", proc.stderr), \
             proc.stderr
+
+
+def test_the_node_health_warns_in_the_period_sets_go_beyond_and_shows_the_counts() -> None:
+    """:class:`~magcal_ros.nodes.health.TemperatureSpanHealth`, what the correction node reports: per sensor keys
+    when its span is known, a WARN text in the period sets went beyond (naming the sensor), none after."""
+    from magcal_ros.nodes.health import TemperatureSpanHealth
+
+    span = np.array([[18.2, 19.0], [18.2, 19.0], [np.nan, np.nan]])
+    health = TemperatureSpanHealth(("mag1", "mag2", "mag3"), span)
+    assert health.count([18.5, 18.6, 2.0], [True, True, True]) == []  # mag3's span unknown: not counted
+    text, values = health.assess()
+    assert text is None and values["mag2.temperature_beyond_calibration"] == "0"
+    assert values["mag1.calibration_temperatures_C"] == "18.2..19.0" and not any(k.startswith("mag3") for k in values)
+    assert health.count([18.5, 2.1, 2.0], [True, True, True]) == ["mag2"]
+    assert health.count([18.5, 2.2, 2.0], [True, True, True]) == []  # named once
+    assert health.count([30.0, 2.2, 2.0], [False, True, True]) == []  # a stale temperature is not counted
+    text, values = health.assess()
+    assert text is not None and "mag2: 3 sets up to 16.1 K below the calibrated temperatures 18.2..19.0 C" in text
+    assert "mag1" not in text
+    assert values["mag2.temperature_beyond_calibration"] == "3" and values["mag2.temperature_beyond_calibration_K"] == "16.1"
+    assert health.assess()[0] is None  # nothing new this period
+    old = TemperatureSpanHealth(("mag1",), None)  # a calibration without the key
+    assert old.count([2.0], [True]) == [] and old.assess() == (None, {})
