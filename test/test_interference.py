@@ -453,3 +453,37 @@ def test_simulate_thruster_options_are_checked(tmp_path: Path) -> None:
 def ok_path(path: Path, *args: object) -> Path:
     ok(magcal("simulate", path, *args))
     return path
+
+
+PAYLOADS = ((-0.7, 0.25, 0.1, 0.0, 0.0, 0.07), (-0.7, -0.25, 0.1, 0.0, 0.0, 0.07))
+"""Two payloads behind the cross, 9-40 nT/A at the sensors (about 20 nT/A on average)."""
+PAYLOAD_CHANNELS = ("payload1", "payload2")
+PAYLOAD_NOISE = 0.01  # A, 1 sigma: the current monitors' reading noise
+
+
+def test_a_current_within_its_reading_noise_is_undetermined() -> None:
+    """payload1 steps 1 <-> 3 A every 25 sets; payload2 is off: its monitor reads N(0, 0.01 A) only. The
+    first is determined and its gains recovered within their uncertainty; the second is undetermined
+    (its interference not applied), whereas the old rule (variation above 1 mA) estimated it."""
+    sim, _ = build(SimulationSpec(count=1, seed=SEED, noise=NOISE, thrusters=PAYLOADS))
+    assert 15e-9 < np.linalg.norm(sim.interference(), axis=1).mean() < 25e-9
+    n = SETS
+    k = np.arange(n)
+    true = np.column_stack([np.where((k // 25) % 2, 3.0, 1.0), np.zeros(n)])
+    rec, truth = sim.run(uniform_random(n, SEED), SEED + 1, currents=true)
+    read = true + np.random.default_rng([SEED, 3]).normal(0.0, PAYLOAD_NOISE, (n, 2))
+    np.testing.assert_array_equal(undetermined_channels(read), [False, True])
+
+    result = calibrate_array(rec.vectors, sim.geometry, F, currents=read, channels=PAYLOAD_CHANNELS)
+    cal = result.calibration
+    assert cal.channels == ("payload1",)
+    assert cal.metadata["interference_undetermined"] == ["payload2"]
+    assert result.warnings[0].startswith("interference not solved (undetermined): payload2 (")
+    assert "varied only within its reading noise" in result.warnings[0]
+    truth_cal = ArrayCalibration(sim.geometry, truth.calibration.matrices, truth.calibration.offsets, {}, None,
+                                 ("payload1",), truth.calibration.interference[:, :, :1])
+    error = (in_true_frame(cal, truth_cal) - truth_cal.interference)[:, :, 0]  # (S, 3) T/A
+    sigma = np.array([next(q.sigma for q in result.identifiability.quantities
+                            if q.sensor == name and q.name == f"interference payload1 {axis}")
+                      for name in sim.geometry.names for axis in "xyz"]).reshape(-1, 3) * 1e-9  # nT/A -> T/A
+    assert np.all(np.abs(error) < 4.0 * sigma), (error / sigma)

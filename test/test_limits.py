@@ -14,7 +14,14 @@ import pytest
 from magcal_ros.core import identifiability as ident
 from magcal_ros.core import quality
 from magcal_ros.core.calibration import check_sensor
-from magcal_ros.core.interference import CurrentSamples, match_currents, undetermined_channels
+from magcal_ros.core.interference import (
+    MAX_READING_NOISE,
+    NOISE_RATIO,
+    CurrentSamples,
+    match_currents,
+    reading_noise,
+    undetermined_channels,
+)
 from magcal_ros.core.observability import excitation
 from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.errors import InputError
@@ -334,7 +341,8 @@ def test_a_correction_matrix_has_gains_between_0_1_and_10_and_an_offset_below_1_
 
 # -- current interference ----------------------------------------------------------------------------
 def test_a_current_channel_must_vary_by_1_mA() -> None:
-    alternating = (-1.0) ** np.arange(1000)
+    # steps of 25 sets: a current that changes at every set is its monitor's reading noise (next test)
+    alternating = (-1.0) ** (np.arange(1000) // 25)
     for amplitude, undetermined in ((INSIDE * 1e-3, True), (OUTSIDE * 1e-3, False)):
         assert bool(undetermined_channels((amplitude * alternating)[:, None])[0]) is undetermined, amplitude
 
@@ -343,10 +351,27 @@ def test_a_current_channel_is_left_out_when_its_gains_effect_would_exceed_30_noi
     """A current of mean ``c`` varying by ``v`` (RMS) over ``n`` sets: its gains' 1-sigma effect at
     its RMS current is ``sqrt(c^2 + v^2) / (sqrt(n) v)`` noise sd; above 30 it is left out."""
     n, v = 1000, 0.1
-    alternating = v * (-1.0) ** np.arange(n)
+    alternating = v * (-1.0) ** (np.arange(n) // 25)
     for effect, undetermined in ((INSIDE * 30, False), (OUTSIDE * 30, True)):
         c = np.sqrt((effect * np.sqrt(n) * v) ** 2 - v**2)
         assert bool(undetermined_channels((c + alternating)[:, None])[0]) is undetermined, effect
+
+
+def test_a_current_within_3_times_its_reading_noise_is_undetermined() -> None:
+    """Steps of +-a every 25 sets read with noise 10 mA (estimated from the set-to-set differences): RMS
+    ``sqrt(a^2 + noise^2)``, undetermined below 3x the noise; a reading noise above 0.1 A is taken for a
+    current changing at every set (determined)."""
+    n, sigma = 4000, 0.01
+    noise = np.random.default_rng(5).normal(0.0, sigma, n)
+    steps = (-1.0) ** (np.arange(n) // 25)
+    estimated = reading_noise(noise)
+    assert estimated == pytest.approx(sigma, rel=0.05)
+    for ratio, undetermined in ((0.7 * NOISE_RATIO, True), (1.3 * NOISE_RATIO, False)):
+        a = np.sqrt((ratio * estimated) ** 2 - estimated**2)
+        assert bool(undetermined_channels((5.0 + a * steps + noise)[:, None])[0]) is undetermined, ratio
+    for scale, undetermined in ((INSIDE, True), (OUTSIDE * 1.1, False)):
+        louder = MAX_READING_NOISE * scale / estimated * noise  # reading noise MAX_READING_NOISE * scale
+        assert bool(undetermined_channels(louder[:, None])[0]) is undetermined, scale
 
 
 def test_a_current_is_fresh_for_half_a_second_after_its_stamp() -> None:

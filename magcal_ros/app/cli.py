@@ -827,6 +827,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     for side in (report.currents, report.temperatures):
         if side is not None and side.note():
             _note(side.note())
+    for note in [] if report.span is None else report.span.notes():
+        _note(note)
     extra = f", {report.copied_messages} messages copied" if report.copied_messages else ""
     print(
         f"corrected {report.input_messages} sets of {_sensors(len(cal.geometry.names))} -> {args.output} "
@@ -857,6 +859,11 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
     rec = _with_currents(args, rec)
     if cal.has_temperature_terms:
         rec = _with_temperatures(args, rec, needed=True)
+    from magcal_ros.app.correct import temperature_span_notes
+
+    for note in temperature_span_notes(cal, rec, None if is_csv(args.input) else args.input, _temperature_topics(args),
+                                       args.temperature_tolerance):
+        _note(note)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 

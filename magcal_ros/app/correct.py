@@ -12,8 +12,12 @@ by time (:func:`~magcal_ros.core.interference.match_currents`); sets without a f
 current of every channel are dropped and counted. A calibration with temperature terms
 needs each sensor's temperature the same way: a CSV's ``temperature.<name>`` (or
 ``temperature``) columns, or a bag's ``/<name>/temperature`` topics (or the topics given),
-``sensor_msgs/msg/Temperature``. A calibration with an output frame writes its ``frame_id``
-unless another is given.
+``sensor_msgs/msg/Temperature``. A calibration that records the temperatures it was made at
+(``<name>.calibration_temperatures``) has the sets' temperatures, where the recording has them,
+compared with those: sets more than :data:`~magcal_ros.core.temperature.TEMPERATURE_MARGIN` outside
+are counted per sensor and said in a note (:class:`~magcal_ros.core.temperature.SpanExcursions`); no
+set is dropped or waits for a temperature it does not need. A calibration with an output frame writes
+its ``frame_id`` unless another is given.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from magcal_ros.core.matching import match_latest
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.sync import DEFAULT_MAX_GAP, DEFAULT_SYNC_MODE, DEFAULT_SYNC_TOLERANCE, SetBatch, SyncStats
 from magcal_ros.core.tensor import gradient, method_for
-from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, TemperatureStats
+from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, SpanExcursions, TemperatureStats
 from magcal_ros.core.units import check_tesla
 from magcal_ros.errors import InputError
 from magcal_ros.io import topics
@@ -201,10 +205,39 @@ def output_frame(calibration: ArrayCalibration, frame_id: str | None) -> str:
 
 
 def check_temperature_topics(calibration: ArrayCalibration, given: Sequence[str] | None) -> None:
-    """:class:`InputError` when temperature topics are given for a calibration without temperature terms."""
-    if given and not calibration.has_temperature_terms:
+    """:class:`InputError` when temperature topics are given for a calibration without temperature terms nor
+    the temperatures it was made at (``calibration_temperatures``, which the sets' temperatures are compared
+    with)."""
+    if given and not calibration.has_temperature_terms and calibration.temperature_span is None:
         raise InputError(f"--temperature-topics {','.join(given)} given, but the calibration has no temperature terms "
-                         "(no temperature_reference with offset_per_kelvin/matrix_per_kelvin)")
+                         "(no temperature_reference with offset_per_kelvin/matrix_per_kelvin) nor "
+                         "calibration_temperatures")
+
+
+def span_excursions(calibration: ArrayCalibration) -> SpanExcursions | None:
+    """A counter of the sets corrected beyond the temperatures ``calibration`` was made at (None: unknown)."""
+    span = calibration.temperature_span
+    return None if span is None else SpanExcursions(calibration.geometry.names, span)
+
+
+def temperature_span_notes(calibration: ArrayCalibration, recording: Recording, bag: str | os.PathLike[str] | None = None,
+                           given: Sequence[str] | None = None,
+                           tolerance: float = DEFAULT_TEMPERATURE_TOLERANCE) -> list[str]:
+    """The notes on the sets of ``recording`` corrected beyond the temperatures ``calibration`` was made at
+    (empty when within them, or either is unknown): its own temperatures, else those of the ``bag`` it was
+    read from (the ``given`` topics, or ``/<name>/temperature`` when it has them), no set dropped."""
+    watch = span_excursions(calibration)
+    if watch is None:
+        return []
+    if recording.temperatures is not None:
+        watch.add(recording.temperatures)
+        return watch.notes()
+    if bag is None:
+        return []
+    with open_bag(Path(bag)) as reader:
+        found = _SpanWatch.of(reader, Path(bag), calibration, given, tolerance_of(tolerance, "temperature"))
+    found.add(recording.stamps, None)
+    return [] if found.excursions is None else found.excursions.notes()
 
 
 @dataclass(frozen=True)
@@ -222,6 +255,9 @@ class CorrectionReport:
     """Sets dropped for lack of a fresh current (None: the calibration has no channels)."""
     temperatures: TemperatureStats | None = None
     """Sets dropped for lack of a fresh temperature (None: the calibration has no temperature terms)."""
+    span: SpanExcursions | None = None
+    """Sets beyond the temperatures the calibration was made at (None: those or the bag's temperatures
+    unknown); :meth:`~magcal_ros.core.temperature.SpanExcursions.notes` says them."""
 
 
 def _window(batch: SetBatch, start_ns: int | None, end_ns: int | None) -> SetBatch:
@@ -310,6 +346,7 @@ def correct_bag(
             found = list(temperature_topics) if temperature_topics else _bag_temperature_topics(reader, inp, names)
             temperatures = read_temperature_samples(reader, inp, names, found)
             temperature_stats = TemperatureStats(names, temp_tol, [t.counts for t in temperatures if t.counts])
+        span_watch = _SpanWatch.of(reader, inp, calibration, temperature_topics, temp_tol)
         extra = _copied(reader, inp, copy_topics, names)
         with atomic_path(out_path) as tmp, BagSink.create(tmp, out_storage) as sink:
             out = correction_output(sink, names, frame_id, calibration.geometry.gradient_kind, bool(raw_sensors))
@@ -345,6 +382,7 @@ def correct_bag(
                     temps, fresh = match_latest(batch.set_stamps, temperatures, temp_tol)
                     keep = temperature_stats.keep(fresh)
                     batch, temps, u = batch.take(keep), temps[keep], None if u is None else u[keep]
+                span_watch.add(batch.set_stamps, temps)
                 for a in range(0, len(batch), SETS_PER_WRITE):
                     part = SetBatch(batch.stamps[a : a + SETS_PER_WRITE], batch.vectors[a : a + SETS_PER_WRITE])
                     part_u = None if u is None else u[a : a + SETS_PER_WRITE]
@@ -354,7 +392,42 @@ def correct_bag(
                 n_in += len(batch)
             _check_sets_written(inp, names, sets.stats, n_in, current_stats, temperature_stats)
     return CorrectionReport(sets.stats, n_in, copied[0], str(out_path), out_storage, tuple(notes), current_stats,
-                            temperature_stats)
+                            temperature_stats, span_watch.excursions)
+
+
+@dataclass
+class _SpanWatch:
+    """The sets' temperatures compared with those a calibration was made at, chunk by chunk of a bag."""
+
+    excursions: SpanExcursions | None = None
+    samples: Sequence[Any] = ()
+    """The sensors' temperature samples, when the calibration has no temperature terms (else the sets'
+    own temperatures are compared)."""
+    tolerance_ns: int = 0
+
+    @classmethod
+    def of(cls, reader: Any, path: Path, calibration: ArrayCalibration, given: Sequence[str] | None,
+           tolerance_ns: int) -> _SpanWatch:
+        """The watch of ``calibration`` on the bag open in ``reader`` (nothing watched when the calibration
+        does not record its temperatures, or the bag has no temperature topics)."""
+        watch = span_excursions(calibration)
+        if watch is None or calibration.has_temperature_terms:
+            return cls(watch)
+        names = calibration.geometry.names
+        found = list(given) if given else temperature_topics(reader, names)
+        if not found:
+            return cls()
+        return cls(watch, read_temperature_samples(reader, path, names, found), tolerance_ns)
+
+    def add(self, stamps: Any, temperatures: Any) -> None:
+        """Count the sets stamped ``stamps`` (ns) at ``temperatures`` (N, S) deg C (None: matched here)."""
+        if self.excursions is None:
+            return
+        if temperatures is not None:
+            self.excursions.add(temperatures)
+        elif self.samples:
+            values, fresh = match_latest(stamps, self.samples, self.tolerance_ns)
+            self.excursions.add(values, fresh)
 
 
 def _check_sets_written(inp: Path, names: Sequence[str], stats: SyncStats, written: int,

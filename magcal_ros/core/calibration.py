@@ -134,6 +134,11 @@ class ArrayCalibration:
     """(3, 3) rotation from the array (platform) frame to the output frame; None: identity."""
     frame_id: str | None = None
     """The output frame's name (e.g. the IMU's); None: the user's choice (``magcal_array`` by default)."""
+    temperature_span: Array | None = None
+    """(S, 2) deg C: per sensor the lowest and highest temperature of the sets the calibration was made
+    from (``<name>.calibration_temperatures``; a row NaN: unknown for that sensor); None: unknown (no
+    temperatures given, or a file from before). Applied far outside it the calibration extrapolates
+    (:class:`~magcal_ros.core.temperature.SpanExcursions`)."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrices, dtype=float)
@@ -167,6 +172,20 @@ class ArrayCalibration:
                                  "or all NaN for a sensor whose covariance is unknown")
             object.__setattr__(self, "covariances", c)
         self._check_temperature_and_frame()
+        self._check_temperature_span()
+
+    def _check_temperature_span(self) -> None:
+        """Validate :attr:`temperature_span` (bounds of :func:`~magcal_ros.core.calibration_bounds.check_temperature_span`)."""
+        if self.temperature_span is None:
+            return
+        span = np.asarray(self.temperature_span, dtype=float)
+        s = self.geometry.size
+        if span.shape != (s, 2):
+            raise InputError(f"temperature_span must be {s} pairs [min, max] (deg C), got shape {span.shape}")
+        for name, row in zip(self.geometry.names, span):
+            if not np.all(np.isnan(row)):
+                bounds.check_temperature_span(f"{name}.calibration_temperatures", row)
+        object.__setattr__(self, "temperature_span", None if np.all(np.isnan(span)) else span)
 
     # -- temperature terms and output frame ----------------------------------------------------
     def _check_temperature_and_frame(self) -> None:
@@ -340,13 +359,18 @@ class ArrayCalibration:
 
     def _temperature_and_frame_parameters(self) -> dict[str, Any]:
         """``temperature_reference`` and per sensor ``offset_per_kelvin``, ``matrix_per_kelvin`` (when the
-        calibration has a reference); ``output_rotation`` and ``frame_id`` (when it has an output frame)."""
+        calibration has a reference); per sensor ``calibration_temperatures`` ([min, max] deg C, when known);
+        ``output_rotation`` and ``frame_id`` (when it has an output frame)."""
         out: dict[str, Any] = {}
         if self.temperature_reference is not None:
             out["temperature_reference"] = float(self.temperature_reference)
             for i, name in enumerate(self.geometry.names):
                 out[name] = {"offset_per_kelvin": [float(x) for x in self.offset_tempco[i]],  # type: ignore[index]
                              "matrix_per_kelvin": [float(x) for x in self.matrix_tempco[i].reshape(-1)]}  # type: ignore[index]
+        if self.temperature_span is not None:
+            for name, row in zip(self.geometry.names, self.temperature_span):
+                if np.all(np.isfinite(row)):
+                    out.setdefault(name, {})["calibration_temperatures"] = [float(x) for x in row]
         if self.rotated or self.frame_id:
             out["output_rotation"] = [float(x) for x in self.output_rotation.reshape(-1)]  # type: ignore[union-attr]
         if self.frame_id:
@@ -470,6 +494,18 @@ def _numbers(value: Any, count: int, what: str, unit: str) -> Array:
     return v
 
 
+def _temperature_span(params: dict[str, Any], names: Sequence[str]) -> Array | None:
+    """(S, 2) deg C of the sensors' ``calibration_temperatures`` (NaN where a sensor has none; None when
+    none has), each checked (:func:`~magcal_ros.core.calibration_bounds.check_temperature_span`)."""
+    rows = []
+    for name in names:
+        block = params.get(name) if isinstance(params.get(name), dict) else {}
+        value = block.get("calibration_temperatures")  # type: ignore[union-attr]
+        rows.append(np.full(2, np.nan) if _unset(value) else
+                    bounds.check_temperature_span(f"{name}.calibration_temperatures", value))
+    return None if all(np.isnan(r).all() for r in rows) else np.stack(rows)
+
+
 def _temperature_and_frame(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any]:
     """The temperature terms and output frame of a parameter dict (see :meth:`ArrayCalibration.to_parameters`)."""
     ref = params.get("temperature_reference")
@@ -490,6 +526,7 @@ def _temperature_and_frame(params: dict[str, Any], names: Sequence[str]) -> dict
     if not _unset(frame) and not isinstance(frame, str):
         raise InputError(f"frame_id must be a frame name, got {frame!r}")
     return {
+        "temperature_span": _temperature_span(params, names),
         "temperature_reference": None if ref is None else float(ref),
         "offset_tempco": np.stack(offsets),
         "matrix_tempco": np.stack(matrices),

@@ -18,6 +18,7 @@ key                                     bound
 ``<name>.offset_per_kelvin``            at most :data:`MAX_OFFSET_TEMPCO` T/K per axis
 ``<name>.matrix_per_kelvin``            at most :data:`MAX_MATRIX_TEMPCO` 1/K per element
 ``temperature_reference``               within :data:`TEMPERATURE_RANGE` (deg C)
+``<name>.calibration_temperatures``     [min, max] deg C, finite, min <= max, within :data:`TEMPERATURE_RANGE`
 ``<name>.time_offset``                  within +-0.5 s (``MAX_TIME_OFFSET``)
 ``<name>.covariance``                   finite, symmetric, a non-negative diagonal (T^2)
 ``output_rotation``                     a rotation (orthonormal, determinant +1)
@@ -40,7 +41,7 @@ from magcal_ros.errors import InputError
 
 __all__ = ["MAX_INTERFERENCE", "MAX_MATRIX_TEMPCO", "MAX_NOISE", "MAX_OFFSET_TEMPCO", "MAX_POSITION",
            "TEMPERATURE_RANGE", "check_bounded", "check_covariance", "check_intensity", "check_noise",
-           "check_positions"]
+           "check_positions", "check_temperature_span"]
 
 Array = NDArray[np.float64]
 
@@ -101,6 +102,23 @@ def check_intensity(name: str, value: Any) -> float:
     if not (f == 0.0 or low <= f <= high):
         raise InputError(f"{name} {f:g} T is not Earth-like ({low:g} .. {high:g} T, or 0 for unknown)")
     return f
+
+
+def check_temperature_span(name: str, value: Any) -> Array:
+    """The temperatures (deg C) a sensor was calibrated over as ``[min, max]``; :class:`InputError` naming
+    ``name`` unless two finite numbers, min <= max, both within :data:`TEMPERATURE_RANGE` (not kelvin)."""
+    try:
+        t = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be [min, max] in deg C, got {value!r}") from None
+    low, high = TEMPERATURE_RANGE
+    if t.size != 2 or not np.all(np.isfinite(t)):
+        raise InputError(f"{name} must be two finite numbers [min, max] in deg C, got {t.tolist()}")
+    if t[0] > t[1]:
+        raise InputError(f"{name} [{t[0]:g}, {t[1]:g}] has its minimum above its maximum (deg C)")
+    if t[0] < low or t[1] > high:
+        raise InputError(f"{name} [{t[0]:g}, {t[1]:g}] is not a span of temperatures in deg C ({low:g} .. {high:g})")
+    return t
 
 
 def _finite(name: str, value: Any, unit: str = "T") -> float:

@@ -14,7 +14,11 @@ manoeuvre during which the currents vary (:mod:`magcal_ros.core.array_fit`), or 
 from a still run with the currents stepped (:func:`estimate_interference`). A channel is
 determined only when its current varies on its own: a current that never varies acts as a
 constant offset, two currents in lockstep (or a current that follows the attitude) cannot
-be told apart (:func:`undetermined_channels`).
+be told apart (:func:`undetermined_channels`). Nor is a channel whose current varies only within
+its reading noise (a payload switched off reads its monitor's milliamperes of noise): the reading
+is then not the current, and a gain regressed on it is attenuated towards zero by
+``var(true) / (var(true) + var(noise))`` (errors in variables), whatever the number of sets
+(:func:`reading_noise`, :data:`NOISE_RATIO`).
 """
 
 from __future__ import annotations
@@ -38,6 +42,15 @@ DEFAULT_CURRENT_TOLERANCE: float = 0.5
 """Largest age (s) of a channel's latest current value at a set's stamp; older is stale."""
 MIN_CURRENT_VARIATION: float = 1e-3
 """A channel whose current varies by less than this RMS (A) never varies."""
+NOISE_RATIO: float = 3.0
+"""A channel whose current varies (RMS, A) by less than this many times its reading noise
+(:func:`reading_noise`) is undetermined: at 3x the gain regressed on the noisy reading is attenuated
+by at most 1 - 1/(1 + 1/9) = 10 % (errors in variables), below that the reading is mostly noise."""
+MAX_READING_NOISE: float = 0.1
+"""Largest sample-to-sample scatter (A, 1 sigma) taken for a current monitor's reading noise (shunt and
+hall monitors of a vehicle read to milliamperes, tens at most). A current whose set-to-set changes are
+larger changes truly at every set (a PWM-driven load read at the set rate, or simulated random
+currents): its first differences are the current, not noise."""
 
 
 def check_currents(values: ArrayLike, where: str) -> None:
@@ -128,20 +141,50 @@ def undetermined_channels(currents: ArrayLike, regressors: ArrayLike | None = No
         coef = np.linalg.lstsq(x, u[:, j], rcond=None)[0]
         v = float(np.sqrt(np.mean((u[:, j] - x @ coef) ** 2)))
         rms = float(np.sqrt(np.mean(u[:, j] ** 2)))
-        out[j] = v < MIN_CURRENT_VARIATION or rms > WEAK_EFFECT * np.sqrt(n) * v
+        out[j] = v < MIN_CURRENT_VARIATION or rms > WEAK_EFFECT * np.sqrt(n) * v or within_noise(u[:, j], v)
     return out
+
+
+def reading_noise(current: ArrayLike) -> float:
+    """The reading noise (A, 1 sigma) of one channel's currents (N,) in set order, from the data.
+
+    A real current holds or moves slowly from one set to the next (steps, ramps), its reading adds
+    independent noise to every set: the first differences are then ``sqrt(2)`` noise except at the few
+    steps. Robust scale of the differences (1.4826 median absolute difference, so that steps in fewer
+    than half of them do not count) over ``sqrt(2)``; 0 for fewer than 3 sets or a held reading (a
+    monitor read slower than the sets repeats its value: its noise does not show)."""
+    u = np.asarray(current, dtype=float).reshape(-1)
+    if len(u) < 3:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(np.diff(u))) / np.sqrt(2.0))
+
+
+def within_noise(current: ArrayLike, variation: float | None = None) -> bool:
+    """Whether a channel's current (N,) A varies only within its reading noise: its variation (RMS about
+    the mean, A; or ``variation`` given, e.g. what other regressors leave) below :data:`NOISE_RATIO` times
+    :func:`reading_noise`, that noise a monitor's (at most :data:`MAX_READING_NOISE`)."""
+    u = np.asarray(current, dtype=float).reshape(-1)
+    noise = reading_noise(u)
+    v = float(np.std(u)) if variation is None else variation
+    return 0.0 < noise <= MAX_READING_NOISE and v < NOISE_RATIO * noise
 
 
 def describe_undetermined(channels: Sequence[str], currents: ArrayLike, mask: ArrayLike) -> str:
     """Why the channels in ``mask`` are undetermined, in words (one clause per kind)."""
     u = np.asarray(currents, dtype=float)
     bad = [j for j in np.flatnonzero(np.asarray(mask, bool))]
-    never = [j for j in bad if undetermined_channels(u[:, [j]])[0]]
-    rest = [j for j in bad if j not in never]
+    noisy = [j for j in bad if within_noise(u[:, j])]
+    never = [j for j in bad if j not in noisy and undetermined_channels(u[:, [j]])[0]]
+    rest = [j for j in bad if j not in never and j not in noisy]
     parts = []
     if never:
         levels = ", ".join(f"{channels[j]} ({np.mean(u[:, j]):.3g} A)" for j in never)
         parts.append(f"{levels} never varied (a constant current is part of the offsets)")
+    if noisy:
+        levels = ", ".join(f"{channels[j]} ({np.std(u[:, j]):.2g} A RMS, reading noise {reading_noise(u[:, j]):.2g} A)"
+                           for j in noisy)
+        parts.append(f"{levels} varied only within {'its' if len(noisy) == 1 else 'their'} reading noise (e.g. a "
+                     "load switched off: a gain regressed on a reading that is mostly noise is not the channel's)")
     if rest:
         names = ", ".join(channels[j] for j in rest)
         parts.append(f"{names} varied in lockstep with {'each other' if len(rest) > 1 else 'another channel'} "

@@ -1312,13 +1312,15 @@ def _unset(param: Parameter) -> bool:
 
 
 def _neutral_terms(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any]:
-    """Zero temperature terms and an identity output rotation where ``params`` (nested) has none: pushed with a
-    calibration, so terms of an earlier one never outlive it on the correction node."""
+    """Zero temperature terms, no calibration temperatures and an identity output rotation where ``params``
+    (nested) has none: pushed with a calibration, so terms of an earlier one never outlive it on the correction
+    node."""
     out: dict[str, Any] = {}
     for name in names:
         block = dict(params.get(name) or {})
         block.setdefault("offset_per_kelvin", [0.0] * 3)
         block.setdefault("matrix_per_kelvin", [0.0] * 9)
+        block.setdefault("calibration_temperatures", [])  # unknown: nor an earlier calibration's span
         out[name] = block
     if "output_rotation" not in params:
         out["output_rotation"] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]

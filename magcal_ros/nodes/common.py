@@ -559,9 +559,9 @@ def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, 
 
 # -- the sensors' temperatures and the output frame (both nodes) -----------------------------------
 TEMPERATURE = "sensor_msgs/msg/Temperature"
-TEMPERATURE_SUFFIXES: tuple[str, ...] = ("offset_per_kelvin", "matrix_per_kelvin")
+TEMPERATURE_SUFFIXES: tuple[str, ...] = ("offset_per_kelvin", "matrix_per_kelvin", "calibration_temperatures")
 """Per-sensor temperature terms of a calibration (``<name>.offset_per_kelvin``: 3 T/K, ``<name>.matrix_per_kelvin``:
-9 1/K row-major)."""
+9 1/K row-major) and the temperatures it was made at (``<name>.calibration_temperatures``: [min, max] deg C)."""
 CALIBRATION_FRAME_PARAMETERS: tuple[str, ...] = ("temperature_reference", "output_rotation")
 """Array-wide calibration parameters of the temperature terms and the output frame."""
 

@@ -35,7 +35,12 @@ Temperature: a calibration with temperature terms (``temperature_reference``,
 ``<name>/temperature`` (sensor_msgs/Temperature, deg C) and correct each set with each
 sensor's latest temperature stamped at most ``temperature_tolerance`` before it; a set
 without one is withheld like a set without a current (``<name>.stale_temperature``). Without
-temperature terms nothing is subscribed and no set waits for a temperature. An
+temperature terms nothing is subscribed for them and no set waits for a temperature. A calibration
+that records the temperatures it was made at (``<name>.calibration_temperatures``, [min, max] deg C)
+has every ``<name>/temperature`` heard (sets never wait for it) and compared with them: sets more than
+2 K outside are counted per sensor on ``/diagnostics`` (``<name>.temperature_beyond_calibration``,
+``<name>.temperature_beyond_calibration_K``, ``<name>.calibration_temperatures_C``), a WARN status
+in the period it happens and one WARN log line when a sensor first leaves them. An
 ``output_rotation`` turns every output into the calibration's frame (``frame_id``, e.g. the
 IMU's).
 
@@ -98,7 +103,12 @@ from magcal_ros.io import topics
 from magcal_ros.io.cdr import decode_magnetic_field
 from magcal_ros.nodes import common, drift
 from magcal_ros.nodes.entry import StopFlag
-from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, TemperatureHealth
+from magcal_ros.nodes.health import (
+    ArrayHealth,
+    CurrentHealth,
+    TemperatureHealth,
+    TemperatureSpanHealth,
+)
 from magcal_ros.nodes.live_outputs import Listeners, SetOutputs
 
 NODE_NAME = "magcal_correction"
@@ -169,6 +179,12 @@ class CorrectionState:
     def temperatures(self) -> bool:
         """True when every set needs the sensors' temperatures (the calibration has temperature terms)."""
         return self.calibration.has_temperature_terms
+
+    @property
+    def heard_temperatures(self) -> bool:
+        """True when the sensors' temperatures are subscribed: for temperature terms, or to compare them with
+        the temperatures the calibration was made at (then no set waits for them)."""
+        return self.temperatures or self.calibration.temperature_span is not None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -382,6 +398,12 @@ class CorrectionNode(Node):
                   constraints="finite, |value| <= 1e-6 T/K", numbers=True),
             )
             common.declare_list(
+                self, f"{name}.calibration_temperatures", Parameter.Type.DOUBLE_ARRAY,
+                d(f"temperatures of {name} (deg C) the calibration was made at, [min, max]: sets more than 2 K "
+                  "outside are counted on /diagnostics and warned of once; [] = unknown",
+                  constraints="finite, min <= max, -60 .. 150 deg C, or []", numbers=True),
+            )
+            common.declare_list(
                 self, f"{name}.matrix_per_kelvin", Parameter.Type.DOUBLE_ARRAY,
                 d(f"matrix temperature coefficient of {name}, 9 numbers row-major (1/K): the matrix at temperature T is "
                   "matrix + (T - temperature_reference) matrix_per_kelvin; [] = 0",
@@ -497,7 +519,8 @@ class CorrectionNode(Node):
                     successful=False,
                     reason=f"unknown parameter {p.name!r}: per-sensor parameters are <name>.matrix, "
                     f"<name>.offset, <name>.covariance, <name>.interference, <name>.time_offset, "
-                    f"<name>.offset_per_kelvin and <name>.matrix_per_kelvin for a name in sensor_names (ros2 param "
+                    f"<name>.offset_per_kelvin, <name>.matrix_per_kelvin and <name>.calibration_temperatures for a name in "
+                    f"sensor_names (ros2 param "
                     f"load also offers a calibration file's magcal_provenance block, which is not for this node: "
                     f"ignored)",
                 )
@@ -551,8 +574,8 @@ class CorrectionNode(Node):
         elif new.currents.tolerance_ns != old.currents.tolerance_ns:
             self._currents.tolerance_ns = new.currents.tolerance_ns
             self._current_health.tolerance_ns = new.currents.tolerance_ns
-        if (new.names, new.temperatures, new.temperature_tolerance_ns) != \
-                (old.names, old.temperatures, old.temperature_tolerance_ns):
+        if (new.names, new.heard_temperatures, new.temperature_tolerance_ns) != \
+                (old.names, old.heard_temperatures, old.temperature_tolerance_ns):
             self._connect_temperatures(new)
         self.get_logger().info(
             f"parameters updated ({', '.join(p.name for p in params)}): {self._describe(new)}"
@@ -565,6 +588,7 @@ class CorrectionNode(Node):
     def _calibration_health(self, state: CorrectionState) -> None:
         """Judge the calibration of ``state`` afresh (its sets only), or say why it is not judged."""
         self._drifted = False
+        self._span_health = TemperatureSpanHealth(state.names, state.calibration.temperature_span)
         uncalibrated = [n for n in state.names if n not in state.calibrated]
         if uncalibrated:
             self._health_cal: CalibrationHealth | None = None
@@ -599,6 +623,9 @@ class CorrectionNode(Node):
         if state.temperatures:
             parts.append(f"correcting for temperature about {cal.temperature_reference:g} deg C "
                          f"(<name>/temperature within {state.temperature_tolerance_ns / 1e9:g} s)")
+        if cal.temperature_span is not None:
+            parts.append("comparing <name>/temperature with the temperatures the calibration was made at "
+                         "(<name>.calibration_temperatures)")
         if cal.rotated:
             parts.append(f"outputs turned by output_rotation into {state.frame_id}")
         return "; ".join(parts)
@@ -689,7 +716,7 @@ class CorrectionNode(Node):
         """Subscribe every ``<name>/temperature`` afresh when the calibration has temperature terms (else none)."""
         for s in self._temperature_subs:
             self.destroy_subscription(s)
-        names = state.names if state.temperatures else ()
+        names = state.names if state.heard_temperatures else ()
         self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns, check=side.TEMPERATURE.check,
                                           keep_ns=max(2 * state.temperature_tolerance_ns, 2 * 10**9))
         self._temperature_health = TemperatureHealth(
@@ -758,6 +785,8 @@ class CorrectionNode(Node):
         if stale:
             self._withheld += 1  # never corrected with a stale current or temperature
             return
+        if self._span_health.watch is not None:
+            self._watch_temperatures(synced.stamp, temperatures)
         listeners = self._listeners
         listeners.tick()
         health = self._health_cal
@@ -775,6 +804,25 @@ class CorrectionNode(Node):
             return
         self._published += 1
         self._ages.append(self._now() - synced.stamp)
+
+    def _watch_temperatures(self, stamp: int, temperatures: list[float] | None) -> None:
+        """Compare the sensors' temperatures at a set (those it is corrected with, else the latest heard) with
+        those the calibration was made at; one WARN line when a sensor first leaves them."""
+        fresh = [True] * len(self._state.names)
+        if temperatures is None:
+            temperatures, fresh = self._temperatures.at(stamp)
+        first = self._span_health.count(temperatures, fresh)
+        watch = self._span_health.watch
+        if not first or watch is None:
+            return
+        where = []
+        for name in first:
+            i = watch.names.index(name)
+            where.append(f"{name} at {temperatures[i]:.1f} C (calibrated at {watch.span[i][0]:.1f}..{watch.span[i][1]:.1f} C)")
+        self.get_logger().warn(
+            f"beyond the temperatures the calibration was made at (more than {watch.margin:g} K): {', '.join(where)}; "
+            "the calibration is applied where it extrapolates (counted per sensor as "
+            "<name>.temperature_beyond_calibration on /diagnostics; said once per sensor)")
 
     def _send(self, state: CorrectionState, out: SetOutputs, synced: SyncedSet, y: list[float],
               listening: list[bool]) -> None:
@@ -821,6 +869,9 @@ class CorrectionNode(Node):
         if stale:
             extras.append(stale)
         stale, temperature_values = self._temperature_health.assess(self._temperatures, "withheld")
+        beyond, span_values = self._span_health.assess()
+        temperature_values.update(span_values)
+        extras += [beyond] if beyond else []
         clock = self._sim_time.problem(bool(self.get_parameter("use_sim_time").value), now)
         extras += [x for x in (stale, clock) if x]
         assessment = self._health.assess(now, counters, "sets published", "; ".join(extras) or None)

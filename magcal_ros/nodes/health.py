@@ -22,6 +22,7 @@ Times are node-clock nanoseconds (simulated time with ``use_sim_time``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from typing import Any
@@ -279,3 +280,43 @@ class ImuHealth(StreamHealth):
     STALE_KEY = "{name}.stale"
     RECEIVED_KEY = "{name}.received"
     DROPPED_KEY = "{name}.{cause}"
+
+
+class TemperatureSpanHealth:
+    """Sets corrected more than :data:`~magcal_ros.core.temperature.TEMPERATURE_MARGIN` outside the
+    temperatures the calibration was made at (``<name>.calibration_temperatures``), per sensor: shown as
+    ``<name>.temperature_beyond_calibration`` (sets so far), ``<name>.temperature_beyond_calibration_K``
+    (the farthest outside, K) and ``<name>.calibration_temperatures_C`` (``min..max``) for every sensor
+    whose span is known, and a WARN naming the sensors in the period it happens. ``span`` None (a
+    calibration that does not record it): no key, nothing said."""
+
+    def __init__(self, names: tuple[str, ...], span: Any) -> None:
+        from magcal_ros.core.temperature import SpanExcursions  # (numpy only)
+
+        self.watch = None if span is None else SpanExcursions(names, span)
+        self._reported = [0] * len(names)
+
+    def count(self, values: Any, fresh: Any) -> list[str]:
+        """Count one set's temperatures (S,) deg C (``fresh`` per sensor); the sensors beyond for the first time."""
+        return [] if self.watch is None else self.watch.add_one(values, fresh)
+
+    def assess(self) -> tuple[str | None, dict[str, str]]:
+        """(WARN text naming the sensors with sets beyond since the last call, or None; values)."""
+        w = self.watch
+        if w is None:
+            return None, {}
+        values: dict[str, str] = {}
+        new = []
+        for i, name in enumerate(w.names):
+            lo, hi = w.span[i]
+            if math.isnan(lo):  # unknown for this sensor
+                continue
+            values[f"{name}.temperature_beyond_calibration"] = str(int(w.counts[i]))
+            values[f"{name}.temperature_beyond_calibration_K"] = f"{max(w.below[i], w.above[i]):.3g}"
+            values[f"{name}.calibration_temperatures_C"] = f"{lo:.1f}..{hi:.1f}"
+            if w.counts[i] > self._reported[i]:
+                new.append(w.describe(i))
+        self._reported = [int(c) for c in w.counts]
+        if not new:
+            return None, values
+        return (f"beyond the calibrated temperatures (more than {w.margin:g} K): " + "; ".join(new)), values
