@@ -40,12 +40,14 @@ from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import topics
 from magcal_ros.io.atomic import STOP_SIGNALS, recover
 from magcal_ros.io.recordings import (
+    CURRENTS,
+    IMU_TOPIC,
+    TEMPERATURES,
+    SideTopics,
     is_csv,
     open_recording,
     recording_sensors,
-    with_bag_currents,
-    with_bag_imu,
-    with_bag_temperatures,
+    with_bag_side_streams,
 )
 from magcal_ros.methods.strategies import DEFAULT_METHOD, METHODS
 
@@ -381,35 +383,6 @@ def _temperature_topics(args: argparse.Namespace) -> list[str] | None:
     return found or None
 
 
-def _with_temperatures(args: argparse.Namespace, rec: Recording, needed: bool = False) -> Recording:
-    """``rec`` with its bag's temperatures matched to its sets (the given topics, or /<name>/temperature when
-    the bag has them; a note when sets were dropped). ``needed``: a bag without them is refused."""
-    wanted = _temperature_topics(args)
-    if is_csv(args.input):
-        return rec
-    rec, stats = with_bag_temperatures(args.input, rec, wanted, args.temperature_tolerance)
-    if stats is None and needed:
-        raise InputError(f"{args.input}: the calibration corrects for temperature, but the bag has no "
-                         f"{', '.join(topics.absolute(topics.temperature(n)) for n in rec.names)} "
-                         "(sensor_msgs/msg/Temperature): name the temperature topics with --temperature-topics")
-    if stats is not None and stats.note():
-        _note(stats.note())
-    return rec
-
-
-def _with_imu(args: argparse.Namespace, rec: Recording) -> Recording:
-    """``rec`` with the --imu topic of its bag matched to its sets (a note when sets were dropped)."""
-    tolerance_of(args.imu_tolerance, "IMU")
-    if not args.imu:
-        return rec
-    if is_csv(args.input):
-        raise InputError("--imu names a bag topic; a CSV recording gives the IMU as imu.qx,...,imu.wz columns")
-    rec, stats = with_bag_imu(args.input, rec, args.imu, args.imu_tolerance, args.imu_frame)
-    if stats.note():
-        _note(stats.note())
-    return rec
-
-
 def _current_topics(args: argparse.Namespace) -> list[str]:
     """The --currents topics (absolute), or []; :class:`InputError` for a CSV input or a bad tolerance."""
     tolerance_of(args.current_tolerance)
@@ -419,15 +392,39 @@ def _current_topics(args: argparse.Namespace) -> list[str]:
     return found
 
 
-def _with_currents(args: argparse.Namespace, rec: Recording) -> Recording:
-    """``rec`` with the --currents of its bag matched to its sets (a note when sets were dropped)."""
-    wanted = _current_topics(args)
-    if not wanted:
+def _with_side_streams(args: argparse.Namespace, rec: Recording, currents: bool = True,
+                       temperatures: bool = True, imu: bool = True, needed: bool = False) -> Recording:
+    """``rec`` with the side topics of its bag matched to its sets, read in one pass
+    (:func:`~magcal_ros.io.recordings.with_bag_side_streams`): the --currents, the temperatures (the given
+    topics, or /<name>/temperature when the bag has them) and the --imu, in that order, each with a note
+    when sets were dropped. ``needed``: a bag without temperatures is refused. A CSV's come with its sets."""
+    wanted = _current_topics(args) if currents else []
+    temps = _temperature_topics(args) if temperatures else None
+    if imu:
+        tolerance_of(args.imu_tolerance, "IMU")
+        if args.imu and is_csv(args.input):
+            raise InputError("--imu names a bag topic; a CSV recording gives the IMU as imu.qx,...,imu.wz columns")
+    if is_csv(args.input):
         return rec
-    rec, stats = with_bag_currents(args.input, rec, wanted, args.current_tolerance)
-    if stats.note():
-        _note(stats.note())
-    return rec
+    requests = []
+    if wanted:
+        requests.append(SideTopics(CURRENTS, tuple(wanted), args.current_tolerance))
+    if temperatures:
+        requests.append(SideTopics(TEMPERATURES, tuple(temps) if temps else None, args.temperature_tolerance))
+    if imu and args.imu:
+        requests.append(SideTopics(IMU_TOPIC, (args.imu,), args.imu_tolerance, args.imu_frame))
+    if not requests:
+        return rec
+
+    def noted(request: SideTopics, stats: Any, matched: Recording) -> None:
+        if stats is None and needed:
+            raise InputError(f"{args.input}: the calibration corrects for temperature, but the bag has no "
+                             f"{', '.join(topics.absolute(topics.temperature(n)) for n in matched.names)} "
+                             "(sensor_msgs/msg/Temperature): name the temperature topics with --temperature-topics")
+        if stats is not None and stats.note():
+            _note(stats.note())
+
+    return with_bag_side_streams(args.input, rec, requests, noted)[0]
 
 
 def _report_sync(stats: SyncStats | None) -> None:
@@ -503,9 +500,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
-    rec = _with_currents(args, rec)
-    rec = _with_temperatures(args, rec)
-    rec = _with_imu(args, rec)
+    rec = _with_side_streams(args, rec)
     if args.interference_only:
         return _calibrate_interference(args, rec)
     prior = _read_calibration(args.prior) if args.prior else None
@@ -854,9 +849,7 @@ def _correct_via_recording(args: argparse.Namespace, cal: ArrayCalibration, out_
         )
     _report_sync(stats)
     check_tesla(rec.vectors, rec.names, args.input)
-    rec = _with_currents(args, rec)
-    if cal.has_temperature_terms:
-        rec = _with_temperatures(args, rec, needed=True)
+    rec = _with_side_streams(args, rec, temperatures=cal.has_temperature_terms, imu=False, needed=True)
     if out_csv:
         from magcal_ros.app.correct import correct_recording_csv
 
