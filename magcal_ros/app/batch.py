@@ -157,7 +157,7 @@ def max_workers() -> tuple[int, str]:
 
 def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
     """Add ``magcal batch`` to ``sub``; ``make`` is the CLI's subcommand factory."""
-    from magcal_ros.app import cli
+    from magcal_ros.app.commands import common
 
     p = make(
         sub, "batch", "correct a campaign's recordings at once (Dask), with a campaign report",
@@ -201,10 +201,10 @@ def add_batch_parser(sub: argparse._SubParsersAction, make: Callable[..., argpar
     copy = g.add_mutually_exclusive_group()
     copy.add_argument("--copy-topics", metavar="T1,T2", help="bag inputs: also copy these topics unchanged")
     copy.add_argument("--copy-all", action="store_true", help="bag inputs: also copy every topic unchanged")
-    cli.add_sync_options(g)
-    cli.add_current_options(g)
-    cli.add_temperature_options(g)
-    cli.add_common_options(p)
+    common.add_sync_options(g)
+    common.add_current_options(g)
+    common.add_temperature_options(g)
+    common.add_common_options(p)
     p.set_defaults(func=cmd_batch)
 
 

@@ -541,6 +541,42 @@ def resolve_sensor_topics(
     return tuple(names), conns
 
 
+@dataclass(frozen=True)
+class SideReading:
+    """The connections of a side stream's topics in an open bag, and how their messages become the stream's
+    samples: ``decode`` takes ``(connection id, bag time ns, bytes)`` rows of those connections in bag time
+    order (:func:`message_rows`, or one reading's share of :func:`read_side_rows`)."""
+
+    connections: list["Connection"]
+    decode: Callable[[Iterable[tuple[int, int, bytes]]], Any]
+
+    def read(self, reader: "Reader") -> Any:
+        """The samples, from a pass over these connections alone."""
+        return self.decode(message_rows(reader, self.connections))
+
+
+def read_side_rows(reader: "Reader", readings: Sequence[SideReading]) -> list[list[tuple[int, int, bytes]]]:
+    """One pass over the messages of every reading's connections, in bag time order: each reading's rows.
+
+    The side topics of a bag (currents, temperatures, the IMU: low rate) are read together, once; each
+    reading then decodes its own rows (:attr:`SideReading.decode`) with its own errors.
+    """
+    owners: dict[int, list[int]] = {}
+    conns: list[Connection] = []
+    for k, r in enumerate(readings):
+        for c in r.connections:
+            if c.id not in owners:
+                owners[c.id] = []
+                conns.append(c)
+            owners[c.id].append(k)
+    out: list[list[tuple[int, int, bytes]]] = [[] for _ in readings]
+    if conns:  # Reader.messages reads every topic when given none
+        for row in message_rows(reader, conns):
+            for k in owners[row[0]]:
+                out[k].append(row)
+    return out
+
+
 def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics: Sequence[str]) -> list[CurrentSamples]:
     """Every value of the current topics ``topics`` of an open bag, one channel per topic.
 
@@ -551,15 +587,27 @@ def read_current_samples(reader: "Reader", path: str | os.PathLike[str], topics:
     topics only, so the MagneticField fast paths are untouched. Raises :class:`InputError`
     naming a missing topic, a topic of another type or a message that does not decode.
     """
+    return current_reading(reader, path, topics).read(reader)
+
+
+def current_reading(reader: "Reader", path: str | os.PathLike[str], topics: Sequence[str]) -> SideReading:
+    """The current topics ``topics`` of an open bag as a :class:`SideReading` (as :func:`read_current_samples`
+    reads them); :class:`InputError` naming a topic named twice, missing or of another type."""
     wanted = [topic_names.absolute(t) for t in topics]
     if len(set(wanted)) != len(wanted) or not all(t.strip("/") for t in wanted):
         raise InputError(f"current topics must be named once each, got {', '.join(topics)}")
     conns = typed_connections(reader, path, wanted, CURRENT_TYPES, "current", "A")
+    return SideReading(conns, lambda rows: _current_samples(path, wanted, conns, rows))
+
+
+def _current_samples(path: str | os.PathLike[str], wanted: list[str], conns: list["Connection"],
+                     rows: Iterable[tuple[int, int, bytes]]) -> list[CurrentSamples]:
+    """The current channels of the absolute topics ``wanted`` from their connections' rows."""
     index = {c.id: wanted.index(c.topic) for c in conns}
     types = {c.id: c.msgtype for c in conns}
     stamps: list[list[int]] = [[] for _ in wanted]
     values: list[list[float]] = [[] for _ in wanted]
-    for cid, bag_time, data in message_rows(reader, conns):
+    for cid, bag_time, data in rows:
         try:
             stamp, current = decode_current(types[cid], data, bag_time)
         except InputError as exc:
@@ -614,6 +662,14 @@ def read_temperature_samples(reader: "Reader", path: str | os.PathLike[str], nam
     sensor, or one topic for all), ``sensor_msgs/msg/Temperature`` at its header stamp (the bag time when
     that is zero). A separate pass over these low-rate topics. :class:`InputError` naming a missing or
     mistyped topic, a message that does not decode, or temperatures that are not deg C."""
+    return temperature_reading(reader, path, names, topics).read(reader)
+
+
+def temperature_reading(reader: "Reader", path: str | os.PathLike[str], names: Sequence[str],
+                        topics: Sequence[str]) -> SideReading:
+    """The temperature topics ``topics`` of the sensors ``names`` as a :class:`SideReading` (as
+    :func:`read_temperature_samples` reads them); :class:`InputError` for a count of topics that fits
+    neither one per sensor nor one for all, or a missing or mistyped topic."""
     wanted = [topic_names.absolute(t) for t in topics]
     if len(wanted) == 1 and len(names) > 1:
         wanted = wanted * len(names)
@@ -622,10 +678,16 @@ def read_temperature_samples(reader: "Reader", path: str | os.PathLike[str], nam
                          "per sensor, or one for all")
     unique = list(dict.fromkeys(wanted))
     conns = typed_connections(reader, path, unique, (TEMPERATURE,), "temperature", "deg C")
+    return SideReading(conns, lambda rows: _temperature_samples(path, names, wanted, unique, conns, rows))
+
+
+def _temperature_samples(path: str | os.PathLike[str], names: Sequence[str], wanted: list[str], unique: list[str],
+                         conns: list["Connection"], rows: Iterable[tuple[int, int, bytes]]) -> list[TemperatureSamples]:
+    """Each sensor's temperatures (its topic in ``wanted``, of the distinct ``unique``) from the connections' rows."""
     index = {c.id: unique.index(c.topic) for c in conns}
     stamps: list[list[int]] = [[] for _ in unique]
     values: list[list[float]] = [[] for _ in unique]
-    for cid, bag_time, data in message_rows(reader, conns):
+    for cid, bag_time, data in rows:
         try:
             stamp, celsius = decode_temperature(data, bag_time)
         except InputError as exc:
@@ -645,13 +707,25 @@ def read_imu_stream(reader: "Reader", path: str | os.PathLike[str], topic: str, 
     orientation (none where orientation_covariance[0] is -1; ``frame="ned"``: an orientation to NED,
     turned into ENU) and angular velocity (none where its covariance[0] is -1). :class:`InputError` naming a
     missing or mistyped topic or a message that does not decode."""
+    return imu_reading(reader, path, topic, frame).read(reader)
+
+
+def imu_reading(reader: "Reader", path: str | os.PathLike[str], topic: str, frame: str = "enu") -> SideReading:
+    """The IMU topic ``topic`` as a :class:`SideReading` (as :func:`read_imu_stream` reads it);
+    :class:`InputError` naming a missing or mistyped topic."""
     wanted = topic_names.absolute(topic)
     conns = typed_connections(reader, path, [wanted], (IMU,), "IMU", "orientation, rad/s")
+    return SideReading(conns, lambda rows: _imu_stream(path, wanted, frame, rows))
+
+
+def _imu_stream(path: str | os.PathLike[str], wanted: str, frame: str,
+                rows: Iterable[tuple[int, int, bytes]]) -> ImuStream:
+    """The IMU samples of the topic ``wanted`` from its connections' rows."""
     stamps: list[int] = []
     q: list[tuple[float, ...]] = []
     w: list[tuple[float, ...]] = []
     frame_id = ""
-    for _, bag_time, data in message_rows(reader, conns):
+    for _, bag_time, data in rows:
         try:
             stamp, quat, rate, frame_id = decode_imu(data, bag_time)
         except InputError as exc:

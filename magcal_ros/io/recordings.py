@@ -5,12 +5,13 @@ bag topics matched to the sets by the rule of :mod:`magcal_ros.core.matching`)."
 from __future__ import annotations
 
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from magcal_ros.core.imu import DEFAULT_IMU_TOLERANCE, ImuStats, imu_frame, match_imu
 from magcal_ros.core.interference import (
@@ -19,8 +20,9 @@ from magcal_ros.core.interference import (
     match_currents,
     tolerance_of,
 )
-from magcal_ros.core.matching import match_latest
+from magcal_ros.core.matching import MatchStats, match_latest
 from magcal_ros.core.recording import Recording
+from magcal_ros.core.side_streams import SideCounts
 from magcal_ros.core.sync import (
     DEFAULT_MAX_GAP,
     DEFAULT_SYNC_MODE,
@@ -32,6 +34,11 @@ from magcal_ros.core.sync import (
 from magcal_ros.core.temperature import DEFAULT_TEMPERATURE_TOLERANCE, TemperatureStats
 from magcal_ros.errors import InputError
 from magcal_ros.io.csv_recording import read_csv, read_csv_names
+
+if TYPE_CHECKING:
+    from rosbags.rosbag2 import Reader
+
+    from magcal_ros.io.bag_reader import SideReading
 
 
 def is_csv(path: str | os.PathLike[str]) -> bool:
@@ -143,6 +150,172 @@ def _shifted_rows(path: Path, rec: Recording, stats: SyncStats, max_gap: float,
     return replace(side, stamps=batch.set_stamps, vectors=batch.vectors), merged
 
 
+# --------------------------------------------------------------------------- a bag's side topics
+
+
+@dataclass(frozen=True)
+class SideTopicKind:
+    """What differs between a bag's currents, temperatures and IMU when they are read with its sets: one
+    table row per kind (:data:`CURRENTS`, :data:`TEMPERATURES`, :data:`IMU_TOPIC`) instead of one function each.
+    The range check of each kind's values is :mod:`magcal_ros.core.side_streams`' (the bag readers apply it).
+    """
+
+    what: str
+    """The kind in messages (``the current tolerance``) and :func:`~magcal_ros.core.interference.tolerance_of`."""
+    csv_refusal: str
+    """Why a CSV path is refused: where a CSV gives this kind instead."""
+    stamps: str
+    """Whose stamps to check when no set is left (``the topics'``)."""
+    stats: type[MatchStats]
+    """The counts of the sets dropped (:class:`CurrentStats`, :class:`TemperatureStats`, :class:`ImuStats`)."""
+    reading: Callable[[Reader, Path, Recording, SideTopics], SideReading | None]
+    """The kind's topics in the open bag (None: the bag has none and none were named)."""
+    match: Callable[[NDArray[np.int64], Any, int], tuple[Any, NDArray[np.bool_]]]
+    """The matching rule: (set stamps, samples, tolerance ns) to (values, fresh (N, m))."""
+    streams: Callable[[Recording, SideTopics, Any], tuple[str, ...]]
+    """The streams the stats count (channels, sensors, the IMU topic)."""
+    counts: Callable[[Any], list[SideCounts]]
+    """What each stream's samples came to."""
+    attach: Callable[[Recording, tuple[str, ...], Any], Recording]
+    """The recording with the matched values."""
+    options: Callable[[SideTopics], object] = lambda request: None
+    """Checks the request's kind-specific options (:class:`InputError`), before the bag is opened."""
+
+    def refuse_csv(self, path: Path) -> None:
+        """:class:`InputError` for a CSV path: its topics are a bag's."""
+        if is_csv(path):
+            raise InputError(f"{path}: {self.csv_refusal}")
+
+    def checked(self, path: Path, request: SideTopics) -> int:
+        """The request's tolerance in ns, once the path and the options are checked (:class:`InputError` for a
+        CSV path, a bad option, a tolerance that is not a finite number >= 0)."""
+        self.refuse_csv(path)
+        self.options(request)
+        return tolerance_of(request.tolerance, self.what)
+
+    def matched(self, path: Path, recording: Recording, request: SideTopics, samples: Any,
+                tol: int) -> tuple[Recording, MatchStats]:
+        """``recording`` with the samples matched to its sets, the sets without a value dropped and counted;
+        :class:`InputError` when none is left."""
+        values, fresh = self.match(recording.stamps, samples, tol)
+        streams = self.streams(recording, request, samples)
+        stats = self.stats(streams, tol, self.counts(samples))
+        keep = stats.keep(fresh)
+        if not np.any(keep):
+            raise InputError(f"{path}: {stats.describe()}: no set left; check {self.stamps} stamps or widen the "
+                             "tolerance")
+        return self.attach(recording, streams, values).take(keep), stats
+
+
+@dataclass(frozen=True)
+class SideTopics:
+    """A request to read one kind of side topic of a bag with its sets."""
+
+    kind: SideTopicKind
+    topics: tuple[str, ...] | None = None
+    """The topics (a sensor's temperatures: one per sensor or one for all; None: ``/<name>/temperature``
+    when the bag has them); the IMU: one topic."""
+    tolerance: float = 0.0
+    """How much older than a set (s) its value may be (the IMU: also newer, to interpolate)."""
+    frame: str = "enu"
+    """The IMU's orientation frame (``enu`` or ``ned``, turned into ENU)."""
+
+
+def _current_reading(reader: Reader, path: Path, recording: Recording, request: SideTopics) -> SideReading:
+    from magcal_ros.io.bag_reader import current_reading
+
+    return current_reading(reader, path, request.topics or ())
+
+
+def _temperature_reading(reader: Reader, path: Path, recording: Recording, request: SideTopics) -> SideReading | None:
+    from magcal_ros.io.bag_reader import temperature_reading, temperature_topics
+
+    found = list(request.topics) if request.topics else temperature_topics(reader, recording.names)
+    return None if found is None else temperature_reading(reader, path, recording.names, found)
+
+
+def _imu_reading(reader: Reader, path: Path, recording: Recording, request: SideTopics) -> SideReading:
+    from magcal_ros.io.bag_reader import imu_reading
+
+    return imu_reading(reader, path, (request.topics or ("",))[0], imu_frame(request.frame))
+
+
+CURRENTS = SideTopicKind(
+    what="current",
+    csv_refusal="current topics are for bags; a CSV recording gives its currents as current.<channel> columns",
+    stamps="the topics'", stats=CurrentStats, reading=_current_reading, match=match_currents,
+    streams=lambda rec, req, samples: tuple(s.channel for s in samples),
+    counts=lambda samples: [s.counts for s in samples if s.counts],
+    attach=lambda rec, channels, currents: rec.with_currents(channels, currents),
+)
+"""Current channels: each set takes each channel's latest value not newer than it, at most the tolerance older."""
+TEMPERATURES = SideTopicKind(
+    what="temperature",
+    csv_refusal="temperature topics are for bags; a CSV recording gives them as temperature.<name> columns",
+    stamps="the topics'", stats=TemperatureStats, reading=_temperature_reading, match=match_latest,
+    streams=lambda rec, req, samples: rec.names,
+    counts=lambda samples: [s.counts for s in samples if s.counts],
+    attach=lambda rec, names, values: rec.with_temperatures(values),
+)
+"""The sensors' temperatures: each set takes each sensor's latest value not newer than it, at most the tolerance
+older."""
+IMU_TOPIC = SideTopicKind(
+    what="IMU",
+    csv_refusal="IMU topics are for bags; a CSV recording gives them as imu.qx,...,imu.wz columns",
+    stamps="the topic's", stats=ImuStats, reading=_imu_reading,
+    match=lambda stamps, stream, tol: _fresh_columns(match_imu(stamps, stream, tol)),
+    streams=lambda rec, req, stream: (req.topics or ("",))[0:1],
+    counts=lambda stream: [stream.counts] if stream.counts else [],
+    attach=lambda rec, topics, imu: rec.with_imu(imu),
+    options=lambda request: imu_frame(request.frame),
+)
+"""The IMU: interpolated to each set's instant, or the latest sample propagated
+(:func:`~magcal_ros.core.imu.match_imu`)."""
+
+
+def _fresh_columns(matched: tuple[Any, NDArray[np.bool_]]) -> tuple[Any, NDArray[np.bool_]]:
+    """A single stream's ``fresh`` (N,) as the (N, 1) of the stats."""
+    return matched[0], matched[1][:, None]
+
+
+def with_bag_side_streams(
+    path: str | os.PathLike[str],
+    recording: Recording,
+    requests: Sequence[SideTopics],
+    each: Callable[[SideTopics, MatchStats | None, Recording], None] | None = None,
+) -> tuple[Recording, list[MatchStats | None]]:
+    """``recording`` (read from the bag ``path``) with the side topics of every request at its sets, the bag
+    opened and its side topics read once.
+
+    The requests are checked (a CSV path, the options, the tolerances) and their topics found in the bag in
+    their order; one pass reads every message of them all; then each kind is decoded and matched, in the
+    requests' order, to the sets the previous ones left, by its own rule (:class:`SideTopicKind`): the same
+    recording, counts and errors as :func:`with_bag_currents`, :func:`with_bag_temperatures` and
+    :func:`with_bag_imu` one after the other (except that a missing or mistyped topic of any request is
+    refused before any is read).
+    Returns the recording and each request's stats (None: a temperature request the bag has no topics for,
+    the recording unchanged). ``each(request, stats, recording)`` is called after each kind is matched.
+    """
+    from magcal_ros.io.bag_reader import open_bag, read_side_rows
+
+    p = Path(path)
+    tolerances = [request.kind.checked(p, request) for request in requests]
+    with open_bag(p) as reader:
+        readings = [r.kind.reading(reader, p, recording, r) for r in requests]
+        rows = read_side_rows(reader, [r for r in readings if r is not None])
+    out: list[MatchStats | None] = []
+    taken = iter(rows)
+    for request, reading, tol in zip(requests, readings, tolerances):
+        stats = None
+        if reading is not None:
+            samples = reading.decode(next(taken))
+            recording, stats = request.kind.matched(p, recording, request, samples, tol)
+        out.append(stats)
+        if each is not None:
+            each(request, stats, recording)
+    return recording, out
+
+
 def with_bag_currents(
     path: str | os.PathLike[str],
     recording: Recording,
@@ -157,27 +330,8 @@ def with_bag_currents(
     the topics without their leading ``/``. Raises :class:`InputError` for a CSV path, a
     missing or mistyped topic, or when no set keeps a current of every channel.
     """
-    from magcal_ros.io.bag_reader import open_bag, read_current_samples
-
-    p = Path(path)
-    if is_csv(p):
-        raise InputError(f"{p}: current topics are for bags; a CSV recording gives its currents as "
-                         "current.<channel> columns")
-    tol = tolerance_of(tolerance)
-    with open_bag(p) as reader:
-        samples = read_current_samples(reader, p, topics)
-    currents, fresh = match_currents(recording.stamps, samples, tol)
-    stats = CurrentStats(tuple(s.channel for s in samples), tol, [s.counts for s in samples if s.counts])
-    keep = stats.keep(fresh)
-    if not np.any(keep):
-        raise InputError(f"{p}: {stats.describe()}: no set left; check the topics' stamps or widen the tolerance")
-    out = recording.with_currents(stats.channels, currents).take(keep)
-    return out, stats
-
-
-def _bag_only(path: Path, what: str, columns: str) -> None:
-    if is_csv(path):
-        raise InputError(f"{path}: {what} topics are for bags; a CSV recording gives them as {columns} columns")
+    rec, (stats,) = with_bag_side_streams(path, recording, [SideTopics(CURRENTS, tuple(topics), tolerance)])
+    return rec, stats  # type: ignore[return-value]
 
 
 def with_bag_temperatures(
@@ -195,22 +349,9 @@ def with_bag_temperatures(
     sensor are dropped and counted. :class:`InputError` for a CSV path, a missing or mistyped
     topic, or when no set keeps a temperature of every sensor.
     """
-    from magcal_ros.io.bag_reader import open_bag, read_temperature_samples, temperature_topics
-
-    p = Path(path)
-    _bag_only(p, "temperature", "temperature.<name>")
-    tol = tolerance_of(tolerance, "temperature")
-    with open_bag(p) as reader:
-        found = list(topics) if topics else temperature_topics(reader, recording.names)
-        if found is None:
-            return recording, None
-        samples = read_temperature_samples(reader, p, recording.names, found)
-    values, fresh = match_latest(recording.stamps, samples, tol)
-    stats = TemperatureStats(recording.names, tol, [s.counts for s in samples if s.counts])
-    keep = stats.keep(fresh)
-    if not np.any(keep):
-        raise InputError(f"{p}: {stats.describe()}: no set left; check the topics' stamps or widen the tolerance")
-    return recording.with_temperatures(values).take(keep), stats
+    request = SideTopics(TEMPERATURES, tuple(topics) if topics else None, tolerance)
+    rec, (stats,) = with_bag_side_streams(path, recording, [request])
+    return rec, stats  # type: ignore[return-value]
 
 
 def with_bag_imu(
@@ -227,17 +368,6 @@ def with_bag_imu(
     ``orientation_frame``: ``ned`` when the IMU gives its orientation to north-east-down (turned
     into ENU). :class:`InputError` for a CSV path, a missing or mistyped topic, or no set left.
     """
-    from magcal_ros.io.bag_reader import open_bag, read_imu_stream
-
-    p = Path(path)
-    _bag_only(p, "IMU", "imu.qx,...,imu.wz")
-    frame = imu_frame(orientation_frame)
-    tol = tolerance_of(tolerance, "IMU")
-    with open_bag(p) as reader:
-        stream = read_imu_stream(reader, p, topic, frame)
-    imu, fresh = match_imu(recording.stamps, stream, tol)
-    stats = ImuStats((topic,), tol, [stream.counts] if stream.counts else [])
-    keep = stats.keep(fresh[:, None])
-    if not np.any(keep):
-        raise InputError(f"{p}: {stats.describe()}: no set left; check the topic's stamps or widen the tolerance")
-    return recording.with_imu(imu).take(keep), stats
+    request = SideTopics(IMU_TOPIC, (topic,), tolerance, orientation_frame)
+    rec, (stats,) = with_bag_side_streams(path, recording, [request])
+    return rec, stats  # type: ignore[return-value]
