@@ -258,7 +258,8 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from", "burst_count")
+                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
+                 "burst_count", "seen_step")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -299,6 +300,9 @@ class SensorStream:
         self.burst_count = 0
         """... and its messages: a backlog holds no more samples than the gap before it; a longer run is a
         faster rate."""
+        self.seen_step = False
+        """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
+        a few bad stamps that the old sequence's placement could take back."""
 
     @property
     def busy(self) -> bool:
@@ -695,9 +699,11 @@ class AcceptanceRule:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals are known, when they did not see the time pass; without
         them, when it is more than ``restart_ns`` ahead or off the sensor's sample grid."""
+        s.seen_step = False
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
+        s.seen_step = unseen is True
         if unseen is None:
             return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
         return unseen
@@ -897,7 +903,7 @@ class AcceptanceRule:
         before = s.before  # back just after the old sequence's last stamp (on its grid; where arrivals say so too)
         if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
                 (abs(stamp + before[1] - estimate) <= margin if by_arrival else
-                 grid is None or _on_grid(stamp + before[1], grid)):
+                 not s.seen_step and (grid is None or _on_grid(stamp + before[1], grid))):
             return before[1], None
         return None
 
