@@ -22,6 +22,7 @@ from the hull change, and whether a node hung (its outputs or statuses stopped).
 from __future__ import annotations
 
 import math
+import re
 import tempfile
 import threading
 import time
@@ -71,10 +72,8 @@ LOSSLESS = {"raw_reliability": "reliable", "qos_depth": 10000}
 """Node parameters that deliver every message on a busy machine (reliable, deep queues)."""
 CORRECTION = "/magcal_correction"
 CALIBRATION = "/magcal_calibration"
-HANG_STATUS = 30.0
-"""s of wall time without a /diagnostics status of a node that count as a hang."""
-HANG_OUTPUT = 30.0
-"""s of wall time without an output (beyond a silent sensor's minutes) that count as a hang."""
+MAX_EVENTS = 80
+"""Status changes printed at most (the first and last halves)."""
 
 
 def floor() -> float:
@@ -110,6 +109,9 @@ class SoakPlan:
     health_window: float = 60.0
     recalibrate_window: float = 60.0
     seed: int = 7
+    hang: float = 30.0
+    """s of wall time without a status of a node, or without outputs beyond the silent sensor's minutes (at
+    ``speed``), that count as a hang."""
     tempco: bool = False
     """The sensors follow their temperature and the calibration carries temperature terms (the correction
     node then takes ``<name>/temperature``); without, the temperatures are published for the calibration
@@ -318,7 +320,7 @@ class Watch:
         """Mission s of the latest message published (set by the publisher)."""
         self.wall0 = time.monotonic()
         self.heard: dict[str, float] = {}
-        self.state: dict[str, tuple[int, str]] = {}
+        self.state: dict[str, tuple[int, str, str]] = {}
         self.pushes = 0
 
     def subscribe(self, node: Any) -> Any:
@@ -353,12 +355,14 @@ class Watch:
         return (parse_seconds(newest) - self.start_ns) / NS_PER_S if newest else self.mission
 
     def _change(self, status: Any, values: dict[str, str], now: float) -> None:
-        key = (_level(status), values.get("drifted", ""))
+        """A new level, drift verdict or kind of message (its numbers aside) of a correction node status."""
+        key = (_level(status), values.get("drifted", ""), re.sub(r"[-+]?\d[\d.]*", "#", status.message))
         if self.state.get(status.name) == key:
             return
         self.state[status.name] = key
         t = self._mission_time(values)
-        self.outcome.events.append(Event(t, now, status.name, key[0], status.message))
+        if len(self.outcome.events) < 10_000:  # bounded, whatever the node says
+            self.outcome.events.append(Event(t, now, status.name, key[0], status.message))
         hull = self.outcome.plan.at(self.outcome.plan.hull_at)
         if key[1] == "true" and t >= hull and self.outcome.named_at is None:
             self.outcome.named_at = t
@@ -570,7 +574,7 @@ class Soak:
         p, o = self.plan, self.outcome
         gap = time.monotonic() - self.last_output
         o.longest_output_gap = max(o.longest_output_gap, gap)
-        if gap > HANG_OUTPUT + p.silent_for / p.speed and "outputs" not in " ".join(o.hung):
+        if gap > p.hang + p.silent_for / p.speed and "outputs" not in " ".join(o.hung):
             o.hung.append(f"no outputs for {gap:.0f} s at {mission:.0f} s of mission")
         for name, proc in self.nodes.items():
             if not proc.alive() and not any(h.startswith(name) for h in o.hung):
@@ -598,7 +602,7 @@ class Soak:
             self.sample_memory(self.plan.duration - 1e-6)
         for name in self.nodes:
             gap = self.outcome.longest_status_gap.get("/magcal_" + name, float("inf"))
-            if gap > HANG_STATUS:
+            if gap > self.plan.hang:
                 self.outcome.hung.append(f"{name} node: no status for {gap:.0f} s")
 
     @property
@@ -659,7 +663,11 @@ def table(outcome: SoakOutcome) -> list[str]:
                  f"{(p.at(p.silent_at) + p.silent_for) / 60:.1f}, payload current on {p.at(p.current_at) / 60:.1f}, "
                  f"hull change {p.at(p.hull_at) / 60:.1f}")
     lines.append("status changes of the correction node (mission min, wall s, level, message):")
-    lines += [f"  {e.mission / 60:7.2f} {e.wall:7.1f} {e.level} {e.name}: {e.message}" for e in outcome.events]
+    shown = outcome.events if len(outcome.events) <= MAX_EVENTS else \
+        outcome.events[:MAX_EVENTS // 2] + outcome.events[-MAX_EVENTS // 2:]
+    lines += [f"  {e.mission / 60:7.2f} {e.wall:7.1f} {e.level} {e.name}: {e.message}" for e in shown]
+    if len(shown) < len(outcome.events):
+        lines.append(f"  ({len(outcome.events) - len(shown)} more changes in the middle not shown)")
     lines.append("recalibrations pushed (mission min; latency from the hull change):")
     hull = p.at(p.hull_at)
     lines += [f"  {e.mission / 60:7.2f} latency {e.mission - hull:6.0f} s: {e.message[:200]}" for e in outcome.pushes]
