@@ -9,6 +9,7 @@ and mission-time figures (the nodes judge by stamps), with generous bounds: neve
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -45,3 +46,17 @@ def test_a_short_mission_soak(tmp_path: Path) -> None:
     # memory: no growth beyond a generous bound after the first block (the calibration node solves once)
     for process in ("correction", "calibration"):
         assert out.rss_growth(process) < 64.0, story
+
+
+@pytest.mark.xfail(strict=True, reason="a time offset set after a driver restart (as a recalibration that fitted "
+                                       "time offsets pushes it) restarts the correction node's synchroniser, which "
+                                       "forgets where the restarted sensor's stamps lie: every later set is withheld "
+                                       "(stale current); found by the 2 h soak (docs/benchmarks.md)")
+def test_outputs_go_on_after_a_time_offset_is_set_following_a_driver_restart(tmp_path: Path) -> None:
+    plan = replace(PLAN, duration=180.0, restart_at=0.1, silent_at=2.0, current_at=0.15, hull_at=2.0, offset_at=0.4)
+    lines: list[str] = []
+    out = run_soak(plan, lines.append, tmp_path)
+    story = "\n".join(lines + table(out))
+    sent = sum(b.sent for b in out.blocks.values())
+    got = sum(b.outputs for b in out.blocks.values())
+    assert got >= 0.8 * sent, story

@@ -112,6 +112,9 @@ class SoakPlan:
     hang: float = 30.0
     """s of wall time without a status of a node, or without outputs beyond the silent sensor's minutes (at
     ``speed``), that count as a hang."""
+    offset_at: float | None = None
+    """When set: at this fraction of the mission the soak sets ``mag2.time_offset`` on the correction node (as a
+    recalibration that fitted time offsets pushes it), which restarts its set synchroniser."""
     tempco: bool = False
     """The sensors follow their temperature and the calibration carries temperature terms (the correction
     node then takes ``<name>/temperature``); without, the temperatures are published for the calibration
@@ -550,6 +553,8 @@ class Soak:
             t1 = min(t0 + p.chunk, p.duration)
             when, items = source.stretch(t0, t1)
             self.block(t0).sent += len(source.instants(0, t0, t1))
+            if p.offset_at is not None and t0 <= p.at(p.offset_at) < t1:
+                d.set_parameters(CORRECTION, {"mag2.time_offset": 1e-4})
             for k, (kind, index, stamp, value) in enumerate(items):
                 delay = wall0 + when[k] / p.speed - time.monotonic()
                 if delay > 0.002:
