@@ -35,6 +35,8 @@ def test_a_short_mission_soak(tmp_path: Path) -> None:
     got = sum(b.outputs for b in out.blocks.values())
     silent = PLAN.silent_for * PLAN.rate
     assert got >= 0.8 * (sent - silent), story  # outputs for most sets, the restart and the silence included
+    counted = out.counters  # the correction node's own counts: the restart seen, most sets published
+    assert int(counted.get("restarts", "0")) >= 1 and int(counted.get("published", "0")) >= 0.8 * (sent - silent), story
     # before the hull change (restart, silence and current on): at the floor
     assert out.tensor_before_hull() <= 2.0 * floor(), story
     # the hull change named by the health (mission time of the sets it judged) within a minute
