@@ -32,9 +32,11 @@ def main() -> None:
     parser.add_argument("--block-minutes", type=float, default=10.0, help="minutes of mission per table row")
     parser.add_argument("--silent-minutes", type=float, default=3.0, help="how long one sensor is silent")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--tempco", action="store_true",
+                        help="sensors that follow the temperature, a calibration with temperature terms")
     args = parser.parse_args()
     plan = SoakPlan(duration=args.hours * 3600.0, speed=args.speed, rate=args.rate, block=args.block_minutes * 60.0,
-                    silent_for=args.silent_minutes * 60.0, seed=args.seed)
+                    silent_for=args.silent_minutes * 60.0, seed=args.seed, tempco=args.tempco)
     t0 = time.monotonic()
     out = run_soak(plan, lambda s: print(s, flush=True))
     print(f"\nmission soak: {args.hours:g} h of mission at {args.speed:g}x, {args.rate:g} Hz per sensor, "
