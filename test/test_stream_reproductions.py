@@ -187,3 +187,28 @@ def test_a_busy_node_draining_its_queue_counts_each_lost_sample_and_no_step() ->
     assert [sync.lost(k) for k in range(4)] == [0, 18, 0, 0]
     assert [sync.gaps(k) for k in range(4)] == [0, 18, 0, 0]
     assert sync.stats.restarts == 0
+
+
+def test_a_new_synchroniser_for_new_time_offsets_keeps_a_restarted_sensors_placement() -> None:
+    """A node's synchroniser is rebuilt when a recalibration sets time offsets; mag3's driver had restarted
+    30 s back before that. The new synchroniser knew nothing of the restart: mag3 was paired 30 s off (or
+    not at all) for the rest of the mission. It goes on placing each sensor as the old one did."""
+    ns, t0, period = 1_000_000_000, 1_700_000_000 * 1_000_000_000, 20_000_000
+    names = ["mag1", "mag2", "mag3", "mag4"]
+
+    def feed(sync, first: int, count: int) -> list:  # type: ignore[no-untyped-def,type-arg]
+        sets = []
+        for n in range(first, first + count):
+            for k in range(4):
+                stamp = t0 + n * period + (-30 * ns if k == 2 and n >= 300 else 0)  # mag3 restarted at set 300
+                sets += sync.add(k, stamp, 1e-5 + 1e-9 * n, 2e-5, 3e-5, t0 + n * period + 3_000_000 + k * 100_000)
+        return sets
+
+    old = stream_synchronizer(names, mode="interpolate")
+    assert len(feed(old, 0, 600)) > 590 and old.stats.restarts == 1
+    new = stream_synchronizer(names, mode="auto", time_offsets={"mag2": 0.001})
+    new.keep_placements(old.placements())
+    sets = feed(new, 600, 400)
+    assert len(sets) >= 390
+    common = np.array([s.stamps for s in sets], dtype=np.int64)  # on the common time line
+    assert np.max(np.ptp(common[:, [0, 2, 3]], axis=1)) <= 1_000_000  # every set pairs one instant

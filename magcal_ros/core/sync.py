@@ -754,6 +754,8 @@ class StreamSynchronizer:
         self._arrivals = 0
         """Messages held while choosing (their order, for the replay)."""
         self._held_batches: list[list[tuple[Any, Any, Any]]] = [[] for _ in range(sensors)]
+        self._placed: list[tuple[int, int | None]] | None = None
+        """Placements kept from a synchroniser this one replaced (see :meth:`keep_placements`)."""
         if mode != "auto" or any(offsets):
             chosen = "interpolate" if any(offsets) else mode
             self._start(chosen, "time offsets are set" if chosen != mode else f"sync mode {mode}")
@@ -821,6 +823,26 @@ class StreamSynchronizer:
                                                     pause_ns=self.pause_ns)
         self.engine.max_reading = self.max_reading
         self.reason = reason
+        for stream, (base, follows) in zip(self.engine.streams, self._placed or []):
+            stream.base, stream.follows = base, follows
+
+    def placements(self) -> list[tuple[int, int | None]] | None:
+        """Each sensor's placement on the common time line: (base ns, the sensor whose clock it follows or
+        None); None before any was made."""
+        if self.engine is None:
+            return self._placed
+        return [(s.base, s.follows) for s in self.engine.streams]
+
+    def keep_placements(self, placed: list[tuple[int, int | None]] | None) -> None:
+        """Go on placing each sensor's stamps as ``placed`` (:meth:`placements` of the synchroniser this one
+        replaces, for the same sensors): a sensor whose driver restarted before a reconfiguration (new time
+        offsets, say) keeps its segment's placement instead of being paired ``jump`` seconds off."""
+        if placed is None or len(placed) != self.size:
+            return
+        self._placed = list(placed)
+        if self.engine is not None:
+            for stream, (base, follows) in zip(self.engine.streams, self._placed):
+                stream.base, stream.follows = base, follows
 
     # -- choosing ---------------------------------------------------------------------
     def _candidates(self) -> list[list[int]]:

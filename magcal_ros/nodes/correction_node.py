@@ -661,8 +661,10 @@ class CorrectionNode(Node):
     def _resync(self, state: CorrectionState) -> None:
         """A new synchroniser for changed sync settings or time offsets (what was queued is dropped, counted)."""
         old = self._sync
+        placed = old.placements() if list(old.names) == list(state.names) else None
         old.reset()
         self._sync = self._synchronizer(state, old.stats)
+        self._sync.keep_placements(placed)  # a sensor that restarted stays where its stamps were placed
         self._sync.set_pause(self._limits.silent_after_ns)
         self._health.sync = self._sync
         self._sync_reason = ""
