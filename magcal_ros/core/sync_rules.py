@@ -456,24 +456,30 @@ def arrival_order(receipts: Sequence[NDArray[np.int64]]) -> list[tuple[int, int]
 
 
 
+def arrival_ratio(arrivals: Sequence[tuple[int, int]]) -> float | None:
+    """The median ratio of receipt to stamp intervals of (common stamp, receipt) pairs (ns, in order): 1 live,
+    the inverse of the speed of a replay; None with fewer than :data:`TIMED_MIN`."""
+    if len(arrivals) < TIMED_MIN:
+        return None
+    pairs = list(arrivals)
+    ratios = sorted((r1 - r0) / (c1 - c0) for (c0, r0), (c1, r1) in zip(pairs, pairs[1:]) if c1 > c0)
+    return ratios[len(ratios) // 2] if ratios else None
+
+
 def timed_arrivals(arrivals: Sequence[tuple[int, int]]) -> bool:
     """Whether (common stamp, receipt) pairs (ns, in order) advance alike: the median ratio of receipt to
     stamp intervals within 0.5 .. 2 and the stamps' lead over the arrivals not growing (see
     :meth:`SensorStream.timed`)."""
-    if len(arrivals) < TIMED_MIN:
+    ratio = arrival_ratio(arrivals)
+    if ratio is None or not 0.5 <= ratio <= 2.0:
         return False
     pairs = list(arrivals)
-    steps = [(c1 - c0, r1 - r0) for (c0, r0), (c1, r1) in zip(pairs, pairs[1:]) if c1 > c0]
-    if not steps:
-        return False
-    ratios = sorted(r / c for c, r in steps)
-    if not 0.5 <= ratios[len(ratios) // 2] <= 2.0:
-        return False
+    intervals = sorted(c1 - c0 for (c0, _), (c1, _) in zip(pairs, pairs[1:]) if c1 > c0)
     # A backlog drained a little faster than it was stamped (or a receiver falling behind) has such a
     # ratio too, but its stamps' lead over the arrivals moves all along: the least delayed of the newer
     # half lead by over an interval more (or less) than those of the older half.
     half = len(pairs) // 2
-    interval = sorted(c for c, _ in steps)[len(steps) // 2]
+    interval = intervals[len(intervals) // 2]
     return abs(max(c - r for c, r in pairs[half:]) - max(c - r for c, r in pairs[:half])) <= interval
 
 
@@ -697,16 +703,22 @@ class AcceptanceRule:
 
     def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
-        or the sensor paused): where arrivals are known, when they did not see the time pass; without
-        them, when it is more than ``restart_ns`` ahead or off the sensor's sample grid."""
+        or the sensor paused): where arrivals keep time, when they did not see the time pass; otherwise, unless
+        its arrival came at least half the gap after the previous one at the arrivals' pace (a sensor silent
+        for a while in a replay at another speed or on a busy receiver), when it is more than ``restart_ns``
+        ahead or off the sensor's sample grid."""
         s.seen_step = False
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
         s.seen_step = unseen is True
-        if unseen is None:
-            return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
-        return unseen
+        if unseen is not None:
+            return unseen
+        ratio = arrival_ratio(s.arrivals)
+        if held[3] is not None and s.last_receipt is not None and ratio is not None and \
+                2 * (held[3] - s.last_receipt) >= ratio * (held[0] - s.last):
+            return False  # arrivals that keep no time (a replay at another speed, a busy receiver) saw the gap pass
+        return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
         """The held suspect is behind its sequence: a step back when ``message`` goes on from it below the
