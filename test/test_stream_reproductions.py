@@ -212,3 +212,25 @@ def test_a_new_synchroniser_for_new_time_offsets_keeps_a_restarted_sensors_place
     assert len(sets) >= 390
     common = np.array([s.stamps for s in sets], dtype=np.int64)  # on the common time line
     assert np.max(np.ptp(common[:, [0, 2, 3]], axis=1)) <= 1_000_000  # every set pairs one instant
+
+
+def test_a_sensor_silent_for_20_s_in_a_replay_five_times_faster_is_a_pause_not_a_step() -> None:
+    """A recording replayed five times faster than it was made (its arrivals keep no time: a fifth of the
+    stamps' intervals) in which mag3, sampling on its own clock, is silent for 20 s: its next stamp is 20 s
+    on, its arrival 4 s on. It was taken for a step (more than 1 s ahead with arrivals that keep no time) and
+    placed one period after its last sample: 20 s off the others for the rest of the replay. The arrivals at
+    their own pace saw the gap pass: a pause, and every later set pairs one instant."""
+    t0, period = 1_700_000_000 * 1_000_000_000, 50_000_000
+    phases = (0, 16_000_000, 33_000_000)  # each sensor on its own clock, none in line with another
+    sync = stream_synchronizer(["mag1", "mag2", "mag3"], mode="interpolate")
+    sets = []
+    for n in range(2000):
+        for k in range(3):
+            if k == 2 and 600 <= n < 1000:  # mag3 silent from 30 s to 50 s
+                continue
+            t = n * period + phases[k]
+            sets += sync.add(k, t0 + t, 1e-6 * t / 1e9, 2e-5, 3e-5, t0 + t // 5 + 200_000)  # x: the true time
+    assert sync.stats.restarts == 0
+    late = np.array([[v[0] for v in s.values] for s in sets if s.stamps[0] >= t0 + 1000 * period])
+    assert len(late) >= 990  # the sets after the silence, every one
+    assert np.max(np.abs(late - late[:, :1])) < 1e-9  # interpolated to one instant (1 ms of x)
