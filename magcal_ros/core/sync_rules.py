@@ -81,6 +81,11 @@ MAX_STALL: int = 10 * NS_PER_S
 faster rate, not a backlog."""
 TIMED_MIN: int = 16
 """Arrivals needed before they are trusted to keep the stamps' time."""
+PACED_PAUSE: int = 4
+"""A gap of the stamps longer than this many ``restart_ns`` whose arrival came at least half of it later at the
+arrivals' own pace (a replay at another speed, a busy receiver) is a pause of the sensor, not a step. Shorter
+gaps are left to the stamps: sensors whose stamps all jump by a second or so (a replay started again) would
+otherwise be judged one by one, some paused and some stepped, and never pair again."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
@@ -704,9 +709,9 @@ class AcceptanceRule:
     def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals keep time, when they did not see the time pass; otherwise, unless
-        its arrival came at least half the gap after the previous one at the arrivals' pace (a sensor silent
-        for a while in a replay at another speed or on a busy receiver), when it is more than ``restart_ns``
-        ahead or off the sensor's sample grid."""
+        it is a long gap its arrival saw pass at the arrivals' pace (:data:`PACED_PAUSE`: a sensor silent for a
+        while in a replay at another speed or on a busy receiver), when it is more than ``restart_ns`` ahead or
+        off the sensor's sample grid."""
         s.seen_step = False
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
@@ -715,8 +720,9 @@ class AcceptanceRule:
         if unseen is not None:
             return unseen
         ratio = arrival_ratio(s.arrivals)
+        jump = held[0] - s.last
         if held[3] is not None and s.last_receipt is not None and ratio is not None and \
-                2 * (held[3] - s.last_receipt) >= ratio * (held[0] - s.last):
+                jump > PACED_PAUSE * self.restart_ns and 2 * (held[3] - s.last_receipt) >= ratio * jump:
             return False  # arrivals that keep no time (a replay at another speed, a busy receiver) saw the gap pass
         return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
 
