@@ -899,13 +899,11 @@ class AcceptanceRule:
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
         places both alike. First of all, where the new stamps are another sensor's latest to half a period
         or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
-        sensor's placement; where arrivals place the segment, only a latest sample of the same time (a
-        silent sensor's last stamp, long before, says nothing of the clock)."""
+        sensor's placement."""
         s = self.streams[index]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
-            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid) and \
-                    (not by_arrival or grid is None or abs(estimate - other.lastc) <= 1.25 * grid[1]):
+            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
