@@ -426,6 +426,7 @@ class SetSynchronizer(AcceptanceRule):
         st.lastc = st.last + st.base
         st.last_receipt = None if r is None else int(r[-1])
         if r is not None:
+            st.heard = st.last_receipt
             st.arrivals.extend(zip((s[-LEAD_WINDOW:] + st.base).tolist(), r[-LEAD_WINDOW:].tolist()))
         st.since += len(s)
         if st.since > PERIOD_WINDOW:
@@ -865,9 +866,9 @@ class StreamSynchronizer:
             return True
         if min(counts) < DECIDE_EARLY[0]:
             return False
-        candidates = self._candidates()
-        return all(len(c) >= DECIDE_AFTER or (len(c) >= DECIDE_EARLY[0] and c[-1] - c[0] >= DECIDE_EARLY[1])
-                   for c in candidates)
+        candidates = self._candidates()  # (a sensor whose stamps jumped back early has few: enough of its messages)
+        return all(len(c) >= DECIDE_AFTER or n >= 2 * DECIDE_AFTER or
+                   (len(c) >= DECIDE_EARLY[0] and c[-1] - c[0] >= DECIDE_EARLY[1]) for c, n in zip(candidates, counts))
 
     def _coarse(self) -> bool:
         """Whether the reference sensor's field jumps between consecutive readings (median angle beyond

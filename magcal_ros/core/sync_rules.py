@@ -93,6 +93,11 @@ MAX_PLACE_MESSAGES: int = 256
 """... or, where the arrivals never catch up with the stamps (a recording replayed faster than it was made,
 arrivals too jittery), this many: then the stamps alone place the segment."""
 TAIL: int = 16
+JUMPS_KEPT: int = 32
+"""Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
+SAME_JUMP: int = NS_PER_S // 1000
+"""Two sensors' jumps of their stamps are one clock's when they agree to this (ns) or a quarter period, the
+less, in size, and start within a period and a quarter of each other."""
 """The last stamps of a segment that anchor its grid where a step leaves it (their jitter averaged)."""
 SHARED_STEP: int = NS_PER_S // 2
 """Sensors whose stamps step within this time (ns) of each other by the same jump share one stamping
@@ -264,7 +269,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step")
+                 "burst_count", "seen_step", "jumps", "heard")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -273,6 +278,8 @@ class SensorStream:
         """The same on the common timeline."""
         self.base = 0
         self.last_receipt: int | None = None
+        self.heard: int | None = None
+        """Receipt (ns) of the latest message offered, taken or held (None: unknown): the sensor is not silent."""
         self.intervals: list[int] = []
         self.period: int | None = None
         """Median of the last :data:`PERIOD_WINDOW` intervals (ns), None before the first."""
@@ -305,6 +312,10 @@ class SensorStream:
         self.burst_count = 0
         """... and its messages: a backlog holds no more samples than the gap before it; a longer run is a
         faster rate."""
+        self.jumps: deque[tuple[int, int, int | None, int]] = deque(maxlen=JUMPS_KEPT)
+        """The latest jumps of the stamps this sensor took, a pause or a step: (stamp before, stamp after, its
+        receipt or None, base after; ns). Sensors stamped by one clock make the same jump: the first to decide
+        it decides for all (:meth:`AcceptanceRule._partner`)."""
         self.seen_step = False
         """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
         a few bad stamps that the old sequence's placement could take back."""
@@ -588,7 +599,7 @@ class AcceptanceRule:
             return True
         streams = self.streams
         for k in silent:
-            last = streams[k].last_receipt
+            last = streams[k].heard
             if last is not None and now - last <= lag:
                 return False
         return True
@@ -646,6 +657,8 @@ class AcceptanceRule:
             self.stats.count(acceptance.stamp_fault(stamp) or "zero_stamp")
             return []
         s = self.streams[index]
+        if receipt is not None:
+            s.heard = receipt
         out: Accepted = []
         message = (stamp, payload, fault, receipt)
         if s.placing is not None and self._placing(index, message, out):
@@ -698,9 +711,13 @@ class AcceptanceRule:
             self._take(index, held[:4], False, out)
             return False
         if step > 0 and (step <= self.restart_ns or held[0] - s.last <= self.restart_ns):  # the held one goes on
+            partner = self._partner(index, held[0], held[3])
+            if partner is not None:  # another sensor made this jump of one clock: as it did
+                return self._jump_with(index, partner, [held[:4], message], out)
             if self._stepped_ahead(s, held):
                 self._step(index, [held[:4], message], out)
                 return True
+            s.jumps.append((s.last, held[0], held[3], s.base))
             self._take(index, held[:4], False, out)  # a pause or lost samples
             return False
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
@@ -739,6 +756,9 @@ class AcceptanceRule:
         stamp, h = message[0], held[0]
         after = stamp - h
         if 0 < after <= self.restart_ns:
+            partner = self._partner(index, h, held[3])
+            if partner is not None:  # another sensor made this jump of one clock: as it did
+                return self._jump_with(index, partner, [held[:4], message], out)
             period = s.suspect_period()
             below = s.last - stamp > (period or 0) // 2  # clearly below the old sequence, not its jitter
             if below or (period is not None and ((0 <= stamp - s.last or 2 * (s.last - h) > period)
@@ -776,7 +796,7 @@ class AcceptanceRule:
         otherwise the segment is placed at once."""
         s = self.streams[index]
         if not s.timed() or any(m[3] is None for m in messages):
-            self._place(index, [messages[0][0]], None)
+            self._place(index, [messages[0][0]], None, messages[0][3])
             self._take(index, messages[0], True, out)
             for m in messages[1:]:
                 self._take(index, m, False, out)
@@ -817,7 +837,7 @@ class AcceptanceRule:
         lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
-        self._place(index, [m[0] for m in held], estimate if by_arrival else None)
+        self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
@@ -852,12 +872,17 @@ class AcceptanceRule:
             payload = None
         out.append((stamp, c, payload, cap, restart))
 
-    def _place(self, index: int, stamps: list[int], estimate: int | None) -> None:
-        """Place sensor ``index``'s new segment, whose first stamps are ``stamps``, on the common timeline: its
-        first sample at ``estimate`` (ns, from its arrivals; None: unknown, one period after its last
-        sample) on its old sample grid (each stamp's jitter averaged out), unless that is where another
-        sensor's stamps (or its own old segment's) put it."""
+    def _place(self, index: int, stamps: list[int], estimate: int | None, receipt: int | None = None) -> None:
+        """Place sensor ``index``'s new segment, whose first stamps are ``stamps`` (the first received at
+        ``receipt`` ns, None: unknown), on the common timeline: as another sensor that made the same jump of its
+        stamps placed its own (one clock stamps both); else its first sample at ``estimate`` (ns, from its
+        arrivals; None: unknown, one period after its last sample) on its old sample grid (each stamp's jitter
+        averaged out), unless that is where another sensor's stamps (or its own old segment's) put it."""
         s = self.streams[index]
+        partner = self._partner(index, stamps[0], receipt)
+        if partner is not None and partner[1] is not None:
+            self._follow(index, partner, stamps[0], receipt)
+            return
         s.follows = None
         period = s.grid_period()
         margin = self.restart_ns // 2
@@ -882,10 +907,72 @@ class AcceptanceRule:
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
+        s.jumps.append((s.last, stamp, receipt, s.base))
+        if shared is not None:
             if s.base == s.before[1]:
                 s.before = None
             return
         self.stats.restarts += 1
+
+    def _partner(self, index: int, stamp: int, receipt: int | None) -> tuple[int, int | None] | None:
+        """(sensor, its base after, ns; None while it is still placing its new segment) of another sensor whose
+        stamps made the jump sensor ``index``'s make now (from its previous stamp to ``stamp``, received at
+        ``receipt``; ns): the same size to :data:`SAME_JUMP` or a quarter period, from a stamp within a period and
+        a quarter of this one's, received within :attr:`lag_ns` where both receipts are known. One clock stamps
+        both: whichever decided the jump first (a pause, or a step and where it lies) decides it for the other,
+        whatever each one's arrivals say (a loaded computer takes one topic's messages well before another's)."""
+        s = self.streams[index]
+        if s.last == NEVER:
+            return None
+        period = s.grid_period()
+        tol = SAME_JUMP if not period else min(SAME_JUMP, int(period) // 4)
+        near = 1.25 * period if period else SAME_JUMP
+        size = stamp - s.last
+
+        def same(a: int, b: int, r: int | None) -> bool:
+            return abs(b - a - size) <= tol and abs(a - s.last) <= near and \
+                (receipt is None or r is None or abs(r - receipt) <= self.lag_ns)
+
+        others = [(j, other) for j, other in enumerate(self.streams) if j != index]
+        for j, other in others:  # one that decided the jump ...
+            for a, b, r, base in reversed(other.jumps):
+                if same(a, b, r):
+                    return j, base
+        for j, other in others:  # ... else one still placing it
+            if other.placing is not None and same(other.last, other.placing[0][0], other.placing[0][3]):
+                return j, None
+        return None
+
+    def _follow(self, index: int, partner: tuple[int, int | None], stamp: int, receipt: int | None) -> None:
+        """Place sensor ``index``'s new segment from ``stamp`` (ns) where its ``partner`` (sensor, base ns) placed
+        its own."""
+        s = self.streams[index]
+        j, base = partner
+        assert base is not None
+        s.before = (s.last, s.base, int(s.grid_period() or 0)) if s.before is None else s.before
+        s.base = base
+        s.follows = self._leader(index, j)
+        s.placed_at = stamp + base
+        s.jumps.append((s.last, stamp, receipt, base))
+
+    def _jump_with(self, index: int, partner: tuple[int, int | None], messages: list[Message],
+                   out: Accepted) -> bool:
+        """Take the first of ``messages`` (a held stamp and the next), whose stamp jumped as ``partner``'s (sensor,
+        base after ns, None: still placing) did: a pause where it kept this sensor's base, the first of a new
+        segment placed alike where it moved it; or both, a new segment to place like that sensor's while it
+        places its own. Whether the next message was taken too."""
+        s = self.streams[index]
+        first = messages[0]
+        if partner[1] is None:
+            self._step(index, messages, out)
+            return True
+        if partner[1] == s.base:
+            s.jumps.append((s.last, first[0], first[3], s.base))
+            self._take(index, first, False, out)
+        else:
+            self._follow(index, partner, first[0], first[3])
+            self._take(index, first, True, out)
+        return False
 
     def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
                      grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
