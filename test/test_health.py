@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal_ros.core.sync import SetSynchronizer
+from magcal_ros.core.sync import SetSynchronizer, stream_synchronizer
 from magcal_ros.nodes.health import ERROR, OK, WARN, ArrayHealth, HealthLimits
 
 MS = 1_000_000
@@ -55,6 +55,23 @@ def test_levels_name_a_silent_sensor_and_no_output_is_an_error() -> None:
     error = health.assess(3200 * MS, sync.stats.as_dict(), "sets published")
     assert error.level == ERROR and error.message.startswith("no sets published for 3.1 s")
     assert np.isclose(float(error.values["mag1.period_ms"]), 10.0)
+
+
+def test_a_sensor_restarted_and_placed_is_not_called_late() -> None:
+    """mag2's driver restarts 2 s in, its stamps 30 s back: placed on the common time line it keeps up with
+    mag1, and the report does not call it 30 s behind (its stamps are, its samples are not)."""
+    sync = stream_synchronizer(["mag1", "mag2"])
+    health = ArrayHealth(("mag1", "mag2"), sync, LIMITS, 0)
+    start = 100_000 * MS
+    for k in range(400):
+        for i in (0, 1):
+            stamp = start + k * 10 * MS - (30_000 * MS if i == 1 and k >= 200 else 0)
+            health.seen(i, stamp)
+            sync.add(i, stamp, 1e-5, 2e-5, 3e-5, start + k * 10 * MS + MS)
+    health.output(300, start + 4000 * MS)
+    report = health.assess(start + 4000 * MS, sync.stats.as_dict(), "sets published")
+    assert sync.stats.restarts == 1, sync.stats.describe()
+    assert "behind" not in report.message and report.level == OK, report.message
 
 
 def test_drops_above_the_fraction_are_a_warning_with_the_losses_named() -> None:

@@ -98,6 +98,16 @@ class ArrayHealth:
         if stamp_ns > last or (stamp_ns and last - stamp_ns > self.sync.restart_ns):
             self._last[index] = stamp_ns  # newest stamp (a restart starts a new sequence)
 
+    def _placed_last(self) -> list[int]:
+        """Each sensor's newest stamp (ns) on the common time line: a sensor whose driver restarted (stamps
+        jumped back) and was placed where it belongs is not behind the others (0: none yet)."""
+        sync = self.sync
+        if hasattr(sync, "placements"):
+            bases = [b for b, _ in sync.placements() or [(0, None)] * len(self._last)]
+        else:
+            bases = [s.base for s in getattr(sync, "streams", ())] or [0] * len(self._last)
+        return [last + base if last else 0 for last, base in zip(self._last, bases)]
+
     def output(self, count: int, now_ns: int) -> None:
         """Outputs so far (sets published or collected), at node time ``now_ns``."""
         if count != self._outputs:
@@ -126,15 +136,16 @@ class ArrayHealth:
         values: dict[str, str] = {}
         silent, late = [], []
         lost_by = self.lost
-        newest = max(self._last) if any(self._last) else 0
+        placed = self._placed_last()
+        newest = max(placed) if any(self._last) else 0
         for k, name in enumerate(self.names):
             if self.received[k] != self._counted[k]:
                 self._counted[k], self._heard[k] = self.received[k], now_ns
             quiet = now_ns - self._heard[k]
             if quiet > lim.silent_after_ns:
                 silent.append(f"{name} ({quiet / NS_PER_S:.1f} s)")
-            elif self._last[k] and newest - self._last[k] > lim.silent_after_ns:
-                late.append(f"{name} ({(newest - self._last[k]) / NS_PER_S:.1f} s behind)")
+            elif self._last[k] and newest - placed[k] > lim.silent_after_ns:
+                late.append(f"{name} ({(newest - placed[k]) / NS_PER_S:.1f} s behind)")
             period = self.sync.period_ns(k)
             values[f"{name}.received"] = str(self.received[k])
             values[f"{name}.lost"] = str(lost_by[k])
