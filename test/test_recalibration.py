@@ -19,8 +19,8 @@ from magcal_ros.methods.pipeline import calibrate_array
 from magcal_ros.methods.progress import Assessment
 from magcal_ros.nodes.buffer import MissionWindow
 from magcal_ros.sim.attitudes import uniform_random
-from magcal_ros.sim.mission import Leg, mission
-from magcal_ros.sim.simulator import ArraySimulation, hard_iron_moved, random_sensor_errors
+from magcal_ros.sim.mission import Leg, mission, mission_attitudes
+from magcal_ros.sim.simulator import ArraySimulation, Thruster, hard_iron_moved, random_sensor_errors
 
 INTENSITY = 51_500 * NT
 NOISE = 1.0 * NT
@@ -346,3 +346,61 @@ def test_a_hull_change_common_to_every_sensor_is_recalibrated_against_the_refere
     fresh, truth = moved.run(uniform_random(1000, rng), rng)
     error = lambda cal: np.sqrt(np.mean((cal.apply(fresh.vectors) - truth.field) ** 2))  # noqa: E731
     assert error(judged.result.calibration) < 1.5 * NOISE and error(running) > 200 * NOISE
+
+
+def _payload_leg(seed: int, steps: bool, wobble: float = 0.3) -> tuple:
+    """An array whose payload (20-90 nT/A at the sensors) was off during the calibration manoeuvre (the running
+    calibration knows no interference), then a straight leg (+-0.3 deg of wobble) with the payload at 1 <-> 3 A
+    (every 4 s, or ``steps`` False: smoothly over 30 s); the sets at 20/s, their seconds and currents."""
+    rng = np.random.default_rng(seed)
+    geo = ArrayGeometry.cross()
+    payload = Thruster("payload/battery", np.array([0.0, 0.0, 0.45]), np.array([0.03, -0.02, 0.05]))
+    sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names),
+                          earth_field(INTENSITY, 60.0, 5.0), noise=NOISE, thrusters=(payload,))
+    truth = sim.true_calibration()
+    running = replace(truth, channels=(), interference=None, metadata={"intensity": INTENSITY})
+    rate = 20.0
+    attitudes = mission_attitudes([Leg(60.0, 0.0)], rate, wobble, rng)
+    t = np.arange(len(attitudes)) / rate
+    current = np.where((t // 4) % 2 == 0, 1.0, 3.0) if steps else 2.0 + np.sin(2 * np.pi * t / 30.0)
+    rec, _ = sim.run(attitudes, rng, rate=rate, currents=current[:, None])
+    return sim, truth, running, (t * NS_PER_S).astype(np.int64), rec.vectors, current[:, None], rng
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_payload_switched_on_during_a_straight_leg_is_learnt_from_its_steps(seed: int) -> None:
+    """The straight leg determines no offset across the track, so the whole fit is not pushed; the payload's
+    steps determine its interference: the running calibration with those gains is pushed (matrices and offsets
+    kept exactly), the gains within 1 nT/A of the truth, and fresh sets with the payload on at the floor (the
+    running calibration: tens of times it)."""
+    sim, truth, running, stamps, raw, currents, rng = _payload_leg(seed, steps=True)
+    fit, held = recalibration.split(stamps)
+    result = calibrate_array(raw[fit], running.geometry, None, "ml", None, running, currents[fit],
+                             ("payload/battery",), stamps[fit])
+    assert recalibration.undetermined_offsets(result)  # the whole fit may not be pushed
+    judged = recalibration.judge(result, running, raw[fit], raw[held], currents[fit], currents[held],
+                                 ("mag1", "mag2", "mag3", "mag4"), seconds_fit=stamps[fit] / 1e9)
+    assert judged.problem is None and judged.result is not None, judged.problem
+    assert "interference of payload/battery learnt from the currents' steps" in judged.scope
+    pushed = judged.result.calibration
+    assert np.array_equal(pushed.matrices, running.matrices) and np.array_equal(pushed.offsets, running.offsets)
+    assert pushed.channels == ("payload/battery",)
+    assert np.max(np.abs(pushed.interference - truth.interference)) < 1.0 * NT
+    fresh_attitudes = uniform_random(1000, rng)
+    on = rng.uniform(0.5, 3.5, (1000, 1))
+    fresh, _ = sim.run(fresh_attitudes, rng, currents=on)
+    floor = tensor_floor(NOISE, 0.4)
+    assert tensor_rms(pushed.field_and_gradient(fresh.vectors, currents=on)[2]) < 1.2 * floor
+    assert tensor_rms(running.field_and_gradient(fresh.vectors)[2]) > 10 * floor
+
+
+def test_a_current_that_only_varies_smoothly_on_a_straight_leg_is_not_learnt() -> None:
+    """The same leg with the payload's current varying smoothly (a 30 s sine): the field's own smooth change
+    cannot be told from it, so nothing is learnt and the verdict still asks for turns."""
+    _, _, running, stamps, raw, currents, _ = _payload_leg(3, steps=False)
+    fit, held = recalibration.split(stamps)
+    result = calibrate_array(raw[fit], running.geometry, None, "ml", None, running, currents[fit],
+                             ("payload/battery",), stamps[fit])
+    judged = recalibration.judge(result, running, raw[fit], raw[held], currents[fit], currents[held],
+                                 seconds_fit=stamps[fit] / 1e9)
+    assert judged.result is None and judged.problem.startswith("the sets do not determine what changed")

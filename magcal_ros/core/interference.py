@@ -247,3 +247,64 @@ def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: Arra
     sigma[:, :, solved] = np.sqrt(np.outer(var, np.diag(xtx_inv)[1:])).reshape(s, 3, len(solved))
     residual = np.sqrt(np.mean(e.reshape(n, s, 3) ** 2, axis=(0, 2)))
     return InterferenceEstimate(gains, sigma, coef[0].reshape(s, 3), residual, bad)
+
+
+# -- the mission: the currents' steps under a smooth field -----------------------------------
+STEP_KNOTS: float = 0.5
+"""Knot spacing (s) of the smooth field :func:`interference_from_steps` fits under a current's steps: a
+cubic spline this fine follows a vehicle's wobble and turns to well under the noise."""
+
+
+def smooth_basis(seconds: ArrayLike, knots_s: float = STEP_KNOTS) -> Array:
+    """(N, K) cubic B-spline basis over the times ``seconds`` (N,) s (in order), knots every ``knots_s``: any
+    smooth function of time (the field a moving vehicle's sensors see) is a combination of its columns."""
+    from scipy.interpolate import BSpline  # here: the live correction node needs no scipy
+
+    t = np.asarray(seconds, dtype=float).reshape(-1)
+    lo, hi = float(t.min()), float(t.max())
+    inner = np.linspace(lo, hi, max(int(np.ceil((hi - lo) / knots_s)), 1) + 1)
+    knots = np.concatenate([[lo] * 3, inner, [hi] * 3])
+    return BSpline.design_matrix(np.clip(t, lo, hi), knots, 3).toarray()
+
+
+def interference_from_steps(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration,
+                            seconds: ArrayLike) -> InterferenceEstimate:
+    """Interference gains from the steps of the currents while the vehicle moves: raw sets (N, S, 3) T at times
+    ``seconds`` (N,) s, channel currents (N, m) A, the calibration's matrices and offsets held (its own
+    interference not applied; no temperature terms).
+
+    The field each sensor sees changes smoothly as the vehicle turns and wobbles; a current that steps (a payload
+    switched, a thruster's demand changed) moves it at once. Per sensor and axis, the corrected field is a
+    cubic spline in time (:func:`smooth_basis`) plus ``D_i u_k``, by linear least squares: what the spline cannot
+    follow of the currents determines the gains, on a straight leg too (where the offsets across the track are
+    not determined and the calibration's are kept). Channels whose currents only vary smoothly are not solved
+    (:func:`undetermined_channels` with the spline as regressors: gains 0, sigma inf)."""
+    r = np.asarray(raw, dtype=float)
+    u = np.asarray(currents, dtype=float)
+    s = calibration.geometry.size
+    if r.ndim != 3 or r.shape[1:] != (s, 3) or u.ndim != 2 or len(u) != len(r):
+        raise InputError(f"need raw sets (N, {s}, 3) and currents (N, m), got {r.shape} and {u.shape}")
+    if calibration.has_temperature_terms:
+        raise InputError("interference from the currents' steps needs a calibration without temperature terms")
+    basis = smooth_basis(seconds)
+    n, m = u.shape
+    bad = undetermined_channels(u, basis) if m else np.zeros(0, bool)
+    solved = np.flatnonzero(~bad)
+    x = np.concatenate([basis, u[:, solved]], axis=1)
+    if n < x.shape[1] + 2:
+        raise InputError(f"{n} sets cannot determine {len(solved)} channels under a smooth field: record more sets")
+    held = replace(calibration, channels=(), interference=None)
+    b = held.apply_array(r).reshape(n, 3 * s)
+    coef, *_ = np.linalg.lstsq(x, b, rcond=None)
+    e = b - x @ coef
+    var = np.sum(e * e, axis=0) / (n - x.shape[1])
+    k = basis.shape[1]
+    # the gains' variance: the currents' part the spline leaves (Frisch-Waugh), inverted
+    resid = u[:, solved] - basis @ np.linalg.lstsq(basis, u[:, solved], rcond=None)[0]
+    inv = np.linalg.inv(resid.T @ resid) if len(solved) else np.zeros((0, 0))
+    gains = np.zeros((s, 3, m))
+    sigma = np.full((s, 3, m), np.inf)
+    gains[:, :, solved] = coef[k:].T.reshape(s, 3, len(solved))
+    sigma[:, :, solved] = np.sqrt(np.outer(var, np.diag(inv))).reshape(s, 3, len(solved))
+    residual = np.sqrt(np.mean(e.reshape(n, s, 3) ** 2, axis=(0, 2)))
+    return InterferenceEstimate(gains, sigma, np.mean(b, axis=0).reshape(s, 3), residual, bad)

@@ -10,7 +10,10 @@ with the running calibration as the prior, exactly as ``~/calibrate`` does
 1. the window **determines what changed**: a hard-iron change moves the offsets, so every
    sensor's three offsets must be updated by the data (not kept at the prior) to within
    :data:`OFFSET_SIGMA` times the sensor's noise (straight running leaves the offsets across
-   the track undetermined: such a window never pushes);
+   the track undetermined: such a window never pushes the whole fit). Where it leaves offsets
+   undetermined but a current steps in it (a payload switched on, a thruster's demand changed on a
+   straight leg), what it does determine is judged instead: the running calibration with the
+   interference gains the steps give (:func:`interference_only`; matrices and offsets kept);
 2. the new calibration **holds on held-out sets**: every :data:`HOLD_OUT_EVERY`-th of
    :data:`CHUNKS` stretches of the window in time is left out of the fit, and each sensor is judged
    on them by itself (:func:`judge`). A sensor's TMI residual (``|B| - F``) there, new against
@@ -39,6 +42,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.calibration_health import DRIFTED_SENSORS, MESSAGE_LIMIT, residual_projector, within
+from magcal_ros.core.interference import interference_from_steps
 from magcal_ros.core.metrics import rms
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import CalibrationResult
@@ -242,22 +246,49 @@ class Verdict:
     """The new result with the sensors it did not improve back at the running calibration (None: refused)."""
     kept: tuple[str, ...] = ()
     """The sensors that keep their running calibration."""
+    scope: str = ""
+    """What was pushed where it is not the whole new calibration, in words (empty: the whole of it)."""
+
+
+def interference_only(running: ArrayCalibration, raw: Array, currents: Array, channels: Sequence[str],
+                      seconds: Array) -> tuple[ArrayCalibration, tuple[str, ...]] | None:
+    """``running`` with the interference gains the currents' steps determine in the sets ``raw`` (N, S, 3) T at
+    ``seconds`` (N,) s (:func:`~magcal_ros.core.interference.interference_from_steps`; ``currents`` (N, m) A of
+    ``channels``), matrices and offsets kept; and the channels learnt. A channel the steps do not determine keeps
+    the running gains (none where it has none). None where no channel is determined, or where the running
+    calibration has temperature terms (the window keeps no temperatures)."""
+    if not channels or running.has_temperature_terms or len(raw) < 3:
+        return None
+    est = interference_from_steps(raw, currents, running, seconds)
+    learnt = tuple(c for c, bad in zip(channels, est.undetermined) if not bad)
+    if not learnt:
+        return None
+    gains = est.gains.copy()
+    old = np.asarray(running.interference) if running.channels else np.zeros((running.geometry.size, 3, 0))
+    for j, c in enumerate(channels):
+        if est.undetermined[j]:
+            gains[:, :, j] = old[:, :, running.channels.index(c)] if c in running.channels else 0.0
+    return replace(running, channels=tuple(channels), interference=gains), learnt
 
 
 def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
           currents_fit: Array | None = None, currents_held: Array | None = None,
-          drifted: Sequence[str] = ()) -> Verdict:
+          drifted: Sequence[str] = (), seconds_fit: Array | None = None) -> Verdict:
     """Whether ``result`` (fitted to ``raw_fit`` from ``running``) may replace ``running``, judged per sensor
     on ``raw_held`` (N, S, 3) T; ``drifted``: the sensors the calibration health named (see the module
-    docstring)."""
+    docstring). Where the window leaves offsets undetermined but the currents step in it (``seconds_fit`` (N,)
+    s of the sets fitted given), the running calibration with the interference gains the steps determine
+    (:func:`interference_only`) is judged instead: what the window determines is pushed, the rest kept."""
     if running is None:
         return Verdict("there is no running calibration to start from (the prior): recalibrate with ~/calibrate",
                        None, None)
     missing = undetermined_offsets(result)
     if missing:
         shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
-        return Verdict(f"the sets do not determine what changed ({shown}): turn through a full circle of heading, "
-                       "with some pitch and roll", None, None)
+        why = (f"the sets do not determine what changed ({shown}): turn through a full circle of heading, "
+               "with some pitch and roll")
+        return _judge_interference(result, running, (raw_fit, raw_held, currents_fit, currents_held), drifted,
+                                   seconds_fit, why)
     check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
     why = check.change_problem(drifted)
     if why:
@@ -272,6 +303,30 @@ def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: 
         kept = ()
     why = check.problem()
     return Verdict(why, check, None if why else result, kept)
+
+
+def _judge_interference(result: CalibrationResult, running: ArrayCalibration,
+                        sets: tuple[Array, Array, Array | None, Array | None], drifted: Sequence[str],
+                        seconds_fit: Array | None, undetermined: str) -> Verdict:
+    """The verdict on the running calibration with the interference the currents' steps determine (see
+    :func:`judge`); refused with ``undetermined`` (why the whole fit may not be pushed) where there is none."""
+    raw_fit, raw_held, currents_fit, currents_held = sets
+    channels = result.calibration.channels or running.channels
+    candidate = None
+    if seconds_fit is not None and currents_fit is not None and currents_held is not None and channels and \
+            np.shape(currents_fit)[1:] == (len(channels),):
+        candidate = interference_only(running, raw_fit, currents_fit, channels, np.asarray(seconds_fit, float))
+    if candidate is None:
+        return Verdict(undetermined, None, None)
+    calibration, learnt = candidate
+    only = replace(result, calibration=calibration)
+    check = held_out(only, running, raw_fit, raw_held, currents_fit, currents_held)
+    why = check.change_problem(drifted) or check.problem()
+    if why:
+        return Verdict(f"{undetermined}; with only the interference of {', '.join(learnt)} from the currents' "
+                       f"steps: {why}", check, None)
+    return Verdict(None, check, only, (), f"interference of {', '.join(learnt)} learnt from the currents' steps, "
+                   "matrices and offsets kept as running (the window does not determine them)")
 
 
 def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:

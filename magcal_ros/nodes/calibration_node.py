@@ -862,7 +862,8 @@ class CalibrationNode(Node):
 
             def check(result: CalibrationResult,
                       prior: ArrayCalibration | None) -> tuple[str | None, CalibrationResult]:
-                judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted)
+                judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted,
+                                             seconds_fit=(stamps[fit] - stamps[0]) / 1e9)
                 seen.update(verdict=judged, prior=prior)
                 return judged.problem, judged.result or result
 
@@ -871,6 +872,7 @@ class CalibrationNode(Node):
             if pushed:
                 judged = seen["verdict"]
                 kept = f" ({', '.join(judged.kept)} kept as running)" if judged.kept else ""
+                kept += f" ({judged.scope})" if judged.scope else ""
                 message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
                            f"calibration health said: {health}): "
                            f"{recalibration.changes(seen['prior'], judged.result.calibration)}{kept}; "
