@@ -95,6 +95,8 @@ arrivals too jittery), this many: then the stamps alone place the segment."""
 TAIL: int = 16
 JUMPS_KEPT: int = 32
 """Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
+SAME_STAMP: int = 10_000
+"""Two sensors whose stamps jumped to the same stamp, to this (ns), jumped by one clock."""
 SAME_JUMP: int = NS_PER_S // 1000
 """Two sensors' jumps of their stamps are one clock's when they agree to this (ns) or a quarter period, the
 less, in size, and start within a period and a quarter of each other."""
@@ -517,6 +519,12 @@ def _in_line(offset: int, grid: tuple[float, float] | None) -> bool:
     return abs(k) <= 1 and abs(offset - k * grid[1]) <= 0.25 * grid[1]
 
 
+def _stale(receipt: int | None, since: int | None) -> bool:
+    """Whether another sensor's latest message (received at ``receipt`` ns) came before this one's previous
+    (``since`` ns): its latest stamp is where its topic was held back, not where its stamps are now."""
+    return receipt is not None and since is not None and receipt < since
+
+
 def caught_up(held: list[Message], period: int | None) -> bool:
     """Whether the arrivals of a new segment's held messages have caught up with their stamps: over the last
     four, the stamps' lead over the arrivals grew by less than a period (a backlog delivered at once
@@ -665,6 +673,8 @@ class AcceptanceRule:
             return out
         if s.held is not None and self._decide(index, message, out):
             return out
+        if s.last == NEVER:  # its first message: where others of its clock placed that stamp
+            s.base = self._first_base(index, stamp, s.base)
         verdict = s.classify(stamp, receipt, self.restart_ns)
         if verdict == OK:
             self._take(index, message, False, out)
@@ -845,6 +855,8 @@ class AcceptanceRule:
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
         s = self.streams[index]
+        if s.last == NEVER:  # its first stamp: where others of its clock that jump to it follow it
+            s.jumps.append((NEVER, stamp, receipt, s.base))
         if restart or s.last == NEVER:
             s.intervals, s.period = [], None
             s.since = 0
@@ -885,6 +897,9 @@ class AcceptanceRule:
             return
         s.follows = None
         period = s.grid_period()
+        short = s.suspect_period()
+        if period and short and 8 * abs(period - short) > short:
+            period = short  # the rate changed within the segment (after a pause): the recent one
         margin = self.restart_ns // 2
         stamp = stamps[0]
         grid = None
@@ -896,6 +911,8 @@ class AcceptanceRule:
             anchor = s.anchor(period)
             grid = (anchor, period)
             steps = 1 if estimate is None else max(1, round((estimate - anchor) / period))
+            if estimate is None:  # nor after the data others placed there since (one clock, this one silent)
+                steps = max(steps, math.ceil((self._placed_since(index, stamp, period) - period / 2 - anchor) / period))
             first = anchor + steps * period  # the sensor kept sampling: whole periods after its last sample
             base = int(round(sum(first + round((t - stamp) / period) * period - t for t in stamps) / len(stamps)))
         base = max(base, s.lastc + 1 - stamp)
@@ -914,13 +931,47 @@ class AcceptanceRule:
             return
         self.stats.restarts += 1
 
+    def _placed_since(self, index: int, stamp: int, period: float) -> float:
+        """The earliest common stamp (ns; :data:`NEVER`: no limit) for the new ``stamp`` (ns) of sensor ``index``
+        (sample ``period`` ns) by the data other sensors placed after jumps of their stamps from at or after its
+        last stamp and up to ``stamp`` (one clock stamps them all): a period (theirs or its own, the longer)
+        after that data, or where ``stamp`` lies inside it, where it lies there. A sensor silent through a piece
+        the others were placed in goes after that piece, not back over it (placed one period after its own last
+        sample, its stamps would pair with the piece's)."""
+        s = self.streams[index]
+        floor: float = NEVER
+        for j, other in enumerate(self.streams):
+            if j == index:
+                continue
+            records = list(other.jumps)
+            for k, (a, b, _, base) in enumerate(records):
+                if a >= s.last - SAME_STAMP and b <= stamp + SAME_STAMP:
+                    end = records[k + 1][0] if k + 1 < len(records) else other.last
+                    floor = max(floor, stamp + base if stamp <= end else end + base + max(period, other.grid_period() or 0))
+        return floor
+
+    def _first_base(self, index: int, stamp: int, base: int) -> int:
+        """The base (ns) of a sensor's first ``stamp`` (ns): that of another sensor whose stamps jumped to it, or
+        whose current segment (from its latest jump on) holds it (one clock stamps both: the sensor started late,
+        after the others' stamps had been placed); ``base`` otherwise (its own: 0, or a placement kept from a
+        synchroniser this one replaced)."""
+        for j, other in enumerate(self.streams):
+            if j == index or not other.jumps:
+                continue
+            _, b, _, placed = other.jumps[-1]
+            if b - SAME_STAMP <= stamp <= other.last + SAME_STAMP:
+                return placed
+        return base
+
     def _partner(self, index: int, stamp: int, receipt: int | None) -> tuple[int, int | None] | None:
         """(sensor, its base after, ns; None while it is still placing its new segment) of another sensor whose
         stamps made the jump sensor ``index``'s make now (from its previous stamp to ``stamp``, received at
         ``receipt``; ns): the same size to :data:`SAME_JUMP` or a quarter period, from a stamp within a period and
-        a quarter of this one's, received within :attr:`lag_ns` where both receipts are known. One clock stamps
-        both: whichever decided the jump first (a pause, or a step and where it lies) decides it for the other,
-        whatever each one's arrivals say (a loaded computer takes one topic's messages well before another's)."""
+        a quarter of this one's, or a jump of any size to this very stamp (to :data:`SAME_STAMP`: one sensor had
+        been silent, the other not); received within :attr:`lag_ns` where both receipts are known. One clock
+        stamps both: whichever decided the jump first (a pause, or a step and where it lies) decides it for the
+        other, whatever each one's arrivals say (a loaded computer takes one topic's messages well before
+        another's)."""
         s = self.streams[index]
         if s.last == NEVER:
             return None
@@ -930,7 +981,7 @@ class AcceptanceRule:
         size = stamp - s.last
 
         def same(a: int, b: int, r: int | None) -> bool:
-            return abs(b - a - size) <= tol and abs(a - s.last) <= near and \
+            return (abs(b - a - size) <= tol and abs(a - s.last) <= near or abs(b - stamp) <= SAME_STAMP) and \
                 (receipt is None or r is None or abs(r - receipt) <= self.lag_ns)
 
         others = [(j, other) for j, other in enumerate(self.streams) if j != index]
@@ -990,7 +1041,8 @@ class AcceptanceRule:
         s = self.streams[index]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
-            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid):
+            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid) and \
+                    not _stale(other.last_receipt, s.last_receipt):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
