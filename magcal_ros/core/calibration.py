@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -248,6 +248,15 @@ class ArrayCalibration:
         if t.shape != (count, s) or not np.all(np.isfinite(t)):
             raise InputError(f"need finite temperatures (N, {s}) deg C, one per sensor and set, got shape {t.shape}")
         return t - self.temperature_reference  # type: ignore[operator]
+
+    def at_reference(self, reference: float) -> "ArrayCalibration":
+        """The same correction with its matrices and offsets at ``reference`` deg C (its terms per kelvin kept):
+        itself without temperature terms."""
+        if not self.has_temperature_terms:
+            return self
+        dt = float(reference) - float(self.temperature_reference)  # type: ignore[arg-type]
+        return replace(self, matrices=self.matrices + dt * self.matrix_tempco,
+                                   offsets=self.offsets + dt * self.offset_tempco, temperature_reference=float(reference))
 
     def to_output_frame(self, vectors: Array) -> Array:
         """Vectors (..., 3) from the array frame into the output frame (``R v``)."""

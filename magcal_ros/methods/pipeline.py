@@ -393,6 +393,8 @@ def _prior_start(prior: ArrayCalibration, geometry: ArrayGeometry, r: Array, f_r
 def _prior_of(prior: ArrayCalibration | None, geometry: ArrayGeometry, f: float, channels: tuple[str, ...],
               opts: SolveOptions, blocks: BlockInputs | None = None) -> ParameterPrior | None:
     model = None if blocks is None else blocks.model(geometry.size, len(channels))
+    if prior is not None and blocks is not None and blocks.reference is not None:
+        prior = prior.at_reference(blocks.reference)  # its matrices and offsets where the fit's hold
     return None if prior is None else opts.drift.prior(prior, geometry, f, channels, model)
 
 
@@ -472,9 +474,10 @@ class BlockInputs:
 
 
 def block_inputs(temperatures: ArrayLike | None, stamps: ArrayLike | None, directions: Array, sensors: int,
-                 order: NDArray[np.int64]) -> BlockInputs:
+                 order: NDArray[np.int64], prior_terms: bool = False) -> BlockInputs:
     """Which optional blocks the data can feed: temperatures (N, S) deg C spanning at least
-    :data:`MIN_TEMPERATURE_SPAN`; stamps (N,) ns of sets that follow a continuous motion
+    :data:`MIN_TEMPERATURE_SPAN` (any span where ``prior_terms``: the prior's temperature terms are kept, the
+    sets moving them only as far as they determine); stamps (N,) ns of sets that follow a continuous motion
     (``directions`` (N, 3) from the start, two or more sensors)."""
     n = len(directions)
     notes: list[str] = []
@@ -487,7 +490,7 @@ def block_inputs(temperatures: ArrayLike | None, stamps: ArrayLike | None, direc
             raise InputError(f"temperatures must be finite, one per set and sensor ({n}, {sensors}) deg C, "
                              f"got shape {t.shape}")
         span = float(t.max() - t.min())
-        if span < MIN_TEMPERATURE_SPAN:
+        if span < MIN_TEMPERATURE_SPAN and not prior_terms:
             notes.append(f"temperature span {span:.1f} K: too small to determine temperature coefficients "
                          f"(needs {MIN_TEMPERATURE_SPAN:g} K); none fitted")
         else:
@@ -1031,8 +1034,9 @@ def _switch_on_blocks(run: _Run) -> None:
     run.weights = run.clean_reading.astype(float)
     imu, n, s = run.call.imu, run.r.shape[0], run.r.shape[1]
     if run.fits_jointly:
+        prior = run.call.prior
         run.blocks = block_inputs(run.temperatures, run.stamps, _start_directions(run.r, run.matrices, run.offsets),
-                                  s, run.order)
+                                  s, run.order, prior is not None and prior.has_temperature_terms)
     elif run.temperatures is not None:
         raise InputError(f"temperature terms need method 'ml', not {run.call.method!r}")
     if imu is not None and (imu.has_orientation or imu.has_angular_velocity):
@@ -1157,13 +1161,15 @@ def _mounting(run: _Run) -> Array | None:
 
 def _calibration(run: _Run, mounting: Array | None) -> tuple[ArrayCalibration, bool]:
     """The calibration the solution gives (output frame turned by ``mounting``), and whether it carries the
-    temperature terms (significant ones only); :class:`CalibrationFailed` when it is no sensor's."""
+    temperature terms (significant ones, or the prior's); :class:`CalibrationFailed` when it is no sensor's."""
     sol, ana, blocks = run.sol, run.ana, run.blocks
     matrices = sol.matrices if mounting is None else mounting[None] @ sol.matrices
     vector_cov = _vector_covariances(sol, run.cov.matrix)
     if mounting is not None:
         vector_cov = mounting[None] @ vector_cov @ mounting.T[None]
-    thermal = sol.model.temperature and significant_temperature_terms(ana)
+    prior = run.call.prior  # a prior's terms are kept: a window that barely changes temperature keeps them as they were
+    thermal = sol.model.temperature and (significant_temperature_terms(ana) or
+                                         (prior is not None and prior.has_temperature_terms))
     try:
         cal = ArrayCalibration(
             run.geometry, matrices, sol.offsets, {}, vector_cov, run.channels,

@@ -65,6 +65,9 @@ alone leaves there: a calibration that fits every sensor's TMI but turns one sen
 (a rotation the window does not determine) is refused even when it disagrees as much on its own sets."""
 OFFSET_SIGMA: float = 3.0
 """An offset counts as determined when its 1-sigma is below this many noise sd of its sensor."""
+OFFSET_NAMES: tuple[str, ...] = ("offset x", "offset y", "offset z")
+"""The offsets (not their temperature coefficients, which a window that barely changes temperature leaves at
+the running calibration's)."""
 
 
 def split(stamps: Sequence[int] | NDArray[np.int64]) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
@@ -86,7 +89,7 @@ def undetermined_offsets(result: CalibrationResult) -> list[str]:
     for i, name in enumerate(result.calibration.geometry.names):
         noise = float(result.noise[i]) / NT
         for q in result.identifiability.quantities:
-            if q.sensor == name and q.name.startswith("offset "):
+            if q.sensor == name and q.name in OFFSET_NAMES:
                 if q.status == "kept" or q.sigma > OFFSET_SIGMA * max(noise, 1e-3):
                     out.append(f"{name} {q.name} (+- {q.sigma:.3g} nT)")
     return out
@@ -179,15 +182,22 @@ def _disagreement(vectors: Array, projector: Array | None) -> float:
 
 
 def held_out(result: CalibrationResult, running: ArrayCalibration, raw_fit: Array, raw_held: Array,
-             currents_fit: Array | None = None, currents_held: Array | None = None) -> HeldOut:
-    """Judge ``result`` (fitted to ``raw_fit``) against ``running`` on ``raw_held`` (N, S, 3) T."""
+             currents_fit: Array | None = None, currents_held: Array | None = None,
+             temperatures: tuple[Array, Array] | None = None) -> HeldOut:
+    """Judge ``result`` (fitted to ``raw_fit``) against ``running`` on ``raw_held`` (N, S, 3) T; ``temperatures``:
+    each sensor's (fit, held out; (N, S) deg C), for calibrations with temperature terms."""
     new = result.calibration
     f = result.intensity
     projector = residual_projector(new.geometry)
     use = bool(new.channels)
-    b_new = new.apply(raw_held, currents_held if use else None)
-    b_fit = new.apply(raw_fit, currents_fit if use else None)
-    b_old = running.apply(raw_held, currents_held if running.channels else None)
+    t_fit, t_held = temperatures if temperatures is not None else (None, None)
+
+    def warm(cal: ArrayCalibration, t: Array | None) -> Array | None:
+        return t if cal.has_temperature_terms else None
+
+    b_new = new.apply(raw_held, currents_held if use else None, warm(new, t_held))
+    b_fit = new.apply(raw_fit, currents_fit if use else None, warm(new, t_fit))
+    b_old = running.apply(raw_held, currents_held if running.channels else None, warm(running, t_held))
     tmi = lambda b: rms(np.linalg.norm(b, axis=2) - f, axis=0)  # noqa: E731
     noise = np.asarray(result.noise, dtype=float)
     return HeldOut(len(raw_held), tmi(b_new), tmi(b_old), tmi(b_fit), _disagreement(b_new, projector),
@@ -273,12 +283,14 @@ def interference_only(running: ArrayCalibration, raw: Array, currents: Array, ch
 
 def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: Array, raw_held: Array,
           currents_fit: Array | None = None, currents_held: Array | None = None,
-          drifted: Sequence[str] = (), seconds_fit: Array | None = None) -> Verdict:
+          drifted: Sequence[str] = (), seconds_fit: Array | None = None,
+          temperatures: tuple[Array, Array] | None = None) -> Verdict:
     """Whether ``result`` (fitted to ``raw_fit`` from ``running``) may replace ``running``, judged per sensor
     on ``raw_held`` (N, S, 3) T; ``drifted``: the sensors the calibration health named (see the module
     docstring). Where the window leaves offsets undetermined but the currents step in it (``seconds_fit`` (N,)
     s of the sets fitted given), the running calibration with the interference gains the steps determine
-    (:func:`interference_only`) is judged instead: what the window determines is pushed, the rest kept."""
+    (:func:`interference_only`) is judged instead: what the window determines is pushed, the rest kept.
+    ``temperatures``: each sensor's (fit, held out; (N, S) deg C) where a calibration has temperature terms."""
     if running is None:
         return Verdict("there is no running calibration to start from (the prior): recalibrate with ~/calibrate",
                        None, None)
@@ -289,7 +301,7 @@ def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: 
                "with some pitch and roll")
         return _judge_interference(result, running, (raw_fit, raw_held, currents_fit, currents_held), drifted,
                                    seconds_fit, why)
-    check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
+    check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held, temperatures)
     why = check.change_problem(drifted)
     if why:
         return Verdict(why, check, None)
@@ -298,7 +310,7 @@ def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: 
     merged = keep_running(result.calibration, running, kept)
     if merged is not result.calibration:
         result = replace(result, calibration=merged)
-        check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held)
+        check = held_out(result, running, raw_fit, raw_held, currents_fit, currents_held, temperatures)
     else:
         kept = ()
     why = check.problem()

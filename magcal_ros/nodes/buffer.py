@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -142,9 +143,24 @@ def collected_recording(names: Sequence[str], channels: Sequence[str], stamps: N
     return rec, notes
 
 
+class MissionSets(NamedTuple):
+    """Sets of a mission window: stamps (N,) ns, raw sets (N, S, 3) T, currents (N, m) A and each sensor's
+    temperature (N, S) deg C (None: not heard)."""
+
+    stamps: NDArray[np.int64]
+    raw: NDArray[np.float64]
+    currents: NDArray[np.float64]
+    temperatures: NDArray[np.float64] | None = None
+
+    def take(self, keep: NDArray[np.bool_]) -> "MissionSets":
+        """The sets selected by ``keep`` (boolean mask)."""
+        t = None if self.temperatures is None else self.temperatures[keep]
+        return MissionSets(self.stamps[keep], self.raw[keep], self.currents[keep], t)
+
+
 class MissionWindow:
-    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents), at most
-    one set every ``spacing_ns`` (a set closer than that to the last one kept is skipped), so that
+    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents and temperatures), at
+    most one set every ``spacing_ns`` (a set closer than that to the last one kept is skipped), so that
     a long window at a high rate stays small."""
 
     def __init__(self, seconds_ns: int, spacing_ns: int, sensors: int, channels: int = 0) -> None:
@@ -152,7 +168,8 @@ class MissionWindow:
         self.spacing_ns = max(int(spacing_ns), 0)
         self.sensors = sensors
         self.channels = channels
-        self._sets: deque[tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...]]] = deque()
+        self._sets: deque[tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...],
+                               tuple[float, ...] | None]] = deque()
         self._next = -(2**62)
         self.newest = 0
         """Stamp (ns) of the newest set seen (kept or not): the mission's time."""
@@ -171,12 +188,13 @@ class MissionWindow:
             self.newest = stamp_ns
         return stamp_ns >= self._next
 
-    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = ()) -> None:
-        """Keep one set (S raw vectors, T; the channels' currents, A) if :meth:`due`; forget sets older
-        than the window."""
+    def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = (),
+            temperatures: Sequence[float] | None = None) -> None:
+        """Keep one set (S raw vectors, T; the channels' currents, A; each sensor's temperature, deg C, or None)
+        if :meth:`due`; forget sets older than the window."""
         if not self.due(stamp_ns):
             return
-        self._sets.append((stamp_ns, tuple(values), tuple(currents)))
+        self._sets.append((stamp_ns, tuple(values), tuple(currents), None if temperatures is None else tuple(temperatures)))
         self._next = stamp_ns + self.spacing_ns
         self.newest = max(self.newest, stamp_ns)
         first = stamp_ns - self.seconds_ns
@@ -188,10 +206,15 @@ class MissionWindow:
         self._sets.clear()
         self._next = -(2**62)
 
-    def snapshot(self, since_ns: int | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-        """Stamps (N,) ns, raw sets (N, S, 3) T and currents (N, m) A of the sets stamped ``since_ns`` or later."""
+    def snapshot(self, since_ns: int | None = None) -> MissionSets:
+        """The sets stamped ``since_ns`` or later; temperatures where every one of them has its sensors'
+        (sets kept before the temperatures were first heard are left out then), None where none has."""
         rows = [s for s in self._sets if since_ns is None or s[0] >= since_ns]
+        if any(r[3] is not None for r in rows):
+            rows = [r for r in rows if r[3] is not None]
         stamps = np.array([r[0] for r in rows], dtype=np.int64)
         raw = np.array([r[1] for r in rows], dtype=float).reshape(len(rows), self.sensors, 3)
         currents = np.array([r[2] for r in rows], dtype=float).reshape(len(rows), self.channels)
-        return stamps, raw, currents
+        heard = bool(rows) and rows[0][3] is not None
+        temperatures = np.array([r[3] for r in rows], dtype=float).reshape(len(rows), self.sensors) if heard else None
+        return MissionSets(stamps, raw, currents, temperatures)

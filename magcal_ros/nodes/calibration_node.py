@@ -116,7 +116,7 @@ from magcal_ros.methods.pipeline import (
 )
 from magcal_ros.nodes import common, drift
 from magcal_ros.nodes.analysis import AnalysisWorker
-from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
+from magcal_ros.nodes.buffer import MissionSets, MissionWindow, SetBuffer, collected_recording
 from magcal_ros.nodes.entry import StopFlag
 from magcal_ros.nodes.health import ArrayHealth, CurrentHealth, ImuHealth, TemperatureHealth
 
@@ -613,6 +613,17 @@ class CalibrationNode(Node):
         if self._imu_health.count([fresh]):
             self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
 
+    def _keep_for_mission(self, stamp: int, values: Any) -> None:
+        """One set into the mission window with its currents and, once heard, its sensors' temperatures, when
+        they are fresh (lock held)."""
+        currents, fresh = self._currents.at(stamp) if self._inputs.channels else ([], [])
+        temperatures = None
+        if any(self._temperatures.received):
+            temperatures, warm = self._temperatures.at(stamp)
+            fresh = [*fresh, *warm]
+        if all(fresh):
+            self._mission.add(stamp, values, currents, temperatures)
+
     def _disconnect(self) -> None:
         for s in self._subs:
             self.destroy_subscription(s)
@@ -628,9 +639,7 @@ class CalibrationNode(Node):
                 self._health.seen(index, stamp)
                 for synced in self._sync.add(index, stamp, f.x, f.y, f.z, arrival):
                     if self._mission.due(synced.stamp):  # the mission's rolling window, for a recalibration at sea
-                        values, fresh = self._currents.at(synced.stamp) if self._inputs.channels else ([], [])
-                        if all(fresh):
-                            self._mission.add(synced.stamp, synced.values, values)
+                        self._keep_for_mission(synced.stamp, synced.values)
                     if not self._collecting:
                         continue
                     self._newest_set = max(self._newest_set, synced.stamp)
@@ -848,7 +857,7 @@ class CalibrationNode(Node):
         self._drift_worker = threading.Thread(target=target, args=args, name="magcal-recalibrate", daemon=True)
         self._drift_worker.start()
 
-    def _auto_recalibrate(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def _auto_recalibrate(self, now: int, window: MissionSets) -> None:
         """Fit the sets flown since the drift was named (held-out sets aside), check, push and save (worker thread)."""
         pushed = False
         with self._lock:
@@ -856,19 +865,20 @@ class CalibrationNode(Node):
             drifted = self._watch.sensors
             self._recalibration["attempts"] = str(int(self._recalibration["attempts"]) + 1)
         try:
-            stamps, raw, currents = window
+            stamps, raw, currents, temperatures = window
             fit, held = recalibration.split(stamps)
             seen: dict[str, Any] = {}
+            warm = None if temperatures is None else (temperatures[fit], temperatures[held])
 
             def check(result: CalibrationResult,
                       prior: ArrayCalibration | None) -> tuple[str | None, CalibrationResult]:
                 judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted,
-                                             seconds_fit=(stamps[fit] - stamps[0]) / 1e9)
+                                             seconds_fit=(stamps[fit] - stamps[0]) / 1e9, temperatures=warm)
                 seen.update(verdict=judged, prior=prior)
                 return judged.problem, judged.result or result
 
             fallback = self._running_intensity() if self._reference()[0] is None else None
-            pushed, message = self._calibrate((stamps[fit], raw[fit], currents[fit]), check, fallback)
+            pushed, message = self._calibrate(window.take(fit), check, fallback)
             if pushed:
                 judged = seen["verdict"]
                 kept = f" ({', '.join(judged.kept)} kept as running)" if judged.kept else ""
@@ -907,10 +917,10 @@ class CalibrationNode(Node):
             return None
         return float(value) if isinstance(value, (int, float)) and value > 0 else None
 
-    def _advise(self, now: int, window: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def _advise(self, now: int, window: MissionSets) -> None:
         """What to fly so that ~/calibrate fixes the drift: the progress analysis of the sets flown since it was
         named, with the running calibration as the prior (worker thread; the math in the analysis process)."""
-        stamps, raw, currents = window
+        stamps, raw, currents, _ = window
         try:
             prior, _ = self._resolve_prior(self._geometry)
             reference, site = self._reference()
@@ -1035,14 +1045,14 @@ class CalibrationNode(Node):
         return collected_recording(self._geometry.names, self._inputs.channels, stamps, raw, currents, temperatures,
                                    imu, self._imu.frame_id)
 
-    def _calibrate(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, check: Any = None,
+    def _calibrate(self, window: MissionSets | None = None, check: Any = None,
                    reference_fallback: float | None = None) -> tuple[bool, str]:
         """Solve, save and push (the ~/calibrate service; a recalibration during the mission), in stages: the
         sets (:meth:`_take_sets`), the settings and prior (:meth:`_settle`), the solve (:meth:`_solve`), the
         hand-over to the file and the correction node (:meth:`_hand_over`). Every stage that refuses changes
         nothing and says why.
 
-        ``window``: (stamps, raw, currents) to fit instead of the collected sets; ``check(result, prior)``:
+        ``window``: the mission's sets to fit instead of the collected ones; ``check(result, prior)``:
         (why the result must not be applied or None, the result to apply), asked before anything changes;
         ``reference_fallback``: the intensity (T) when neither reference_field nor site gives one."""
         job = self._take_sets(window)
@@ -1061,7 +1071,7 @@ class CalibrationNode(Node):
             return self._fail(failed)
         return self._succeeded(job, result, path)
 
-    def _take_sets(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> CalibrationJob:
+    def _take_sets(self, window: MissionSets | None) -> CalibrationJob:
         """Stage 1: the sets to solve (the collected ones, or a mission window) and what they were taken with."""
         with self._lock:
             if window is None:
@@ -1069,7 +1079,8 @@ class CalibrationNode(Node):
                 snapshot = self._buffer.collected()
             else:
                 snapshot = None
-                collected = Recording(self._geometry.names, window[0], window[1], self._inputs.channels, window[2])
+                collected = Recording(self._geometry.names, window.stamps, window.raw, self._inputs.channels,
+                                      window.currents, window.temperatures)
                 notes = []
             return CalibrationJob(collected, notes, self._geometry, self._inputs, snapshot)
 
