@@ -11,6 +11,7 @@ none is stored, yet its dives are 16 K colder. The calibration file records per 
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,9 @@ from test_offline import magcal, ok
 
 from magcal_ros.core import calibration_bounds as bounds
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.temperature import (
+    span_with_prior,
     TEMPERATURE_MARGIN,
     SpanExcursions,
     temperature_span,
@@ -177,3 +180,20 @@ def test_the_node_health_warns_in_the_period_sets_go_beyond_and_shows_the_counts
     assert health.assess()[0] is None  # nothing new this period
     old = TemperatureSpanHealth(("mag1",), None)  # a calibration without the key
     assert old.count([2.0], [True]) == [] and old.assess() == (None, {})
+
+
+def test_a_recalibration_holds_over_what_its_prior_held_over_too() -> None:
+    """A recalibration from a short window (20.5..21.7 C) with a prior made over 5..15 C holds over 5..21.7 C
+    (what the window does not determine, the prior's temperature dependence with it, is kept); with a prior
+    whose span is unknown, unknown (not the window's alone: a mission's dives would be called beyond it);
+    without a prior, the window's."""
+    geo = ArrayGeometry.cross()
+    window = np.column_stack([np.full(4, 20.5), np.full(4, 21.7)])
+    prior = replace(ArrayCalibration.identity(geo), temperature_span=np.tile([5.0, 15.0], (4, 1)))
+    assert np.array_equal(span_with_prior(window, geo.names, prior), np.tile([5.0, 21.7], (4, 1)))
+    assert span_with_prior(window, geo.names, ArrayCalibration.identity(geo)) is None
+    assert span_with_prior(window, geo.names, None) is window
+    partly = np.tile([5.0, 15.0], (4, 1))
+    partly[2] = np.nan  # mag3's unknown in the prior
+    both = span_with_prior(window, geo.names, replace(prior, temperature_span=partly))
+    assert np.all(np.isnan(both[2])) and np.array_equal(both[[0, 1, 3]], np.tile([5.0, 21.7], (3, 1)))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -89,6 +90,21 @@ def temperature_span(temperatures: ArrayLike | None, sensors: int) -> Array | No
     known = finite.any(axis=0)
     span = np.column_stack([np.where(known, low, np.nan), np.where(known, high, np.nan)])
     return None if not known.any() else span
+
+
+def span_with_prior(span: Array | None, names: tuple[str, ...], prior: Any) -> Array | None:
+    """The temperatures (S, 2) deg C a calibration of sensors ``names`` made over ``span`` (its sets') from a
+    ``prior`` calibration (or None) holds over: what the prior held over too, where it was fitted (a
+    recalibration from a short window keeps what the window does not determine, and its temperature
+    dependence with it); unknown (None, or a NaN row) where the prior's is."""
+    if prior is None or span is None:
+        return span
+    theirs = prior.temperature_span
+    if theirs is None:
+        return None
+    rows = [theirs[prior.geometry.names.index(n)] if n in prior.geometry.names else (np.nan, np.nan) for n in names]
+    before = np.asarray(rows, dtype=float)
+    return np.column_stack([np.minimum(span[:, 0], before[:, 0]), np.maximum(span[:, 1], before[:, 1])])
 
 
 @dataclass

@@ -59,7 +59,7 @@ from magcal_ros.core.prior import DriftModel
 from magcal_ros.core.recording import ImuSamples
 from magcal_ros.core.scalar_fit import ScalarFit, trimmed_algebraic_fit
 from magcal_ros.core.set_reduction import choose_sets, direction_proxy, solve_budget
-from magcal_ros.core.temperature import temperature_span
+from magcal_ros.core.temperature import span_with_prior, temperature_span
 from magcal_ros.core.tensor import baseline_gradient, gradient
 from magcal_ros.core.uncertainty import Covariance, centre_gauge_constraints, covariance
 from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S, NT, check_tesla
@@ -1178,7 +1178,8 @@ def _calibration(run: _Run, mounting: Array | None) -> tuple[ArrayCalibration, b
             temperature_reference=blocks.reference if thermal else None,
             offset_tempco=sol.offset_tempco if thermal else None,
             matrix_tempco=-matrices * sol.gain_tempco[:, None, :] if thermal else None,
-            temperature_span=temperature_span(run.call.temperatures, run.geometry.size),  # made at, per sensor
+            temperature_span=span_with_prior(temperature_span(run.call.temperatures, run.geometry.size),
+                                             run.geometry.names, run.call.prior),  # made at, per sensor
             **imu_blocks.output_frame(sol, run.call.prior),
         )
     except InputError as exc:
