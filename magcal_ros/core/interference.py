@@ -195,14 +195,15 @@ def describe_undetermined(channels: Sequence[str], currents: ArrayLike, mask: Ar
 # -- the still run --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class InterferenceEstimate:
-    """Interference gains from a still run, platform frame of the held calibration."""
+    """Interference gains (a still run, or the currents' steps in a mission), platform frame of the held
+    calibration."""
 
     gains: Array
     """(S, 3, m) T/A; 0 for undetermined channels."""
     sigma: Array
     """(S, 3, m) 1-sigma of ``gains`` (T/A); inf for undetermined channels."""
     field: Array
-    """(S, 3) the constant field (T) at each sensor during the run, currents off."""
+    """(S, 3) the field (T) at each sensor during the run, currents off (its mean over the sets)."""
     residual: Array
     """(S,) RMS per axis (T) of what the model leaves."""
     undetermined: NDArray[np.bool_]
@@ -222,6 +223,16 @@ def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: Arra
     currents cannot determine are not solved (gains 0, sigma inf); the 1-sigma assumes
     white noise, estimated per sensor and axis from the residuals.
     """
+    n = len(np.asarray(raw))
+    return _regressed_gains(raw, currents, calibration, np.ones((n, 1)), temperatures, "")
+
+
+def _regressed_gains(raw: ArrayLike, currents: ArrayLike, calibration: ArrayCalibration, nuisance: Array,
+                     temperatures: ArrayLike | None, why: str) -> InterferenceEstimate:
+    """Per sensor and axis, the corrected field (``calibration``'s matrices and offsets held, its own interference
+    not applied) as the columns of ``nuisance`` (N, k) (a constant field; a smooth one) plus ``D_i u``, by linear
+    least squares; channels ``nuisance`` explains are not solved (gains 0, sigma inf). ``why``: what the sets
+    need more of, for the error when there are too few."""
     r = np.asarray(raw, dtype=float)
     u = np.asarray(currents, dtype=float)
     s = calibration.geometry.size
@@ -230,23 +241,27 @@ def estimate_interference(raw: ArrayLike, currents: ArrayLike, calibration: Arra
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(u))):
         raise InputError("raw sets and currents must be finite")
     n, m = u.shape
-    bad = undetermined_channels(u) if m else np.zeros(0, bool)
+    k = nuisance.shape[1]
+    bad = undetermined_channels(u, nuisance if k > 1 else None) if m else np.zeros(0, bool)
     solved = np.flatnonzero(~bad)
-    x = np.concatenate([np.ones((n, 1)), u[:, solved]], axis=1)
+    x = np.concatenate([nuisance, u[:, solved]], axis=1)
     if n < x.shape[1] + 2:
-        raise InputError(f"{n} sets cannot determine {len(solved)} channels: record more sets")
+        raise InputError(f"{n} sets cannot determine {len(solved)} channels{why}: record more sets")
     held = replace(calibration, channels=(), interference=None)  # its own interference is not applied
     b = held.apply_array(r, temperatures=temperatures).reshape(n, 3 * s)
-    coef, *_ = np.linalg.lstsq(x, b, rcond=None)  # (1 + k, 3 S)
+    coef, *_ = np.linalg.lstsq(x, b, rcond=None)  # (k + solved, 3 S)
     e = b - x @ coef
     var = np.sum(e * e, axis=0) / (n - x.shape[1])  # (3 S,) per sensor and axis
-    xtx_inv = np.linalg.inv(x.T @ x)
+    # the gains' variance: the currents' part the nuisance leaves (Frisch-Waugh), inverted (an empty knot
+    # interval of the spline leaves the whole normal matrix singular, this part not)
+    part = u[:, solved] - nuisance @ np.linalg.lstsq(nuisance, u[:, solved], rcond=None)[0]
+    inv = np.linalg.inv(part.T @ part) if len(solved) else np.zeros((0, 0))
     gains = np.zeros((s, 3, m))
     sigma = np.full((s, 3, m), np.inf)
-    gains[:, :, solved] = coef[1:].T.reshape(s, 3, len(solved))
-    sigma[:, :, solved] = np.sqrt(np.outer(var, np.diag(xtx_inv)[1:])).reshape(s, 3, len(solved))
+    gains[:, :, solved] = coef[k:].T.reshape(s, 3, len(solved))
+    sigma[:, :, solved] = np.sqrt(np.outer(var, np.diag(inv))).reshape(s, 3, len(solved))
     residual = np.sqrt(np.mean(e.reshape(n, s, 3) ** 2, axis=(0, 2)))
-    return InterferenceEstimate(gains, sigma, coef[0].reshape(s, 3), residual, bad)
+    return InterferenceEstimate(gains, sigma, np.mean(x[:, :k] @ coef[:k], axis=0).reshape(s, 3), residual, bad)
 
 
 # -- the mission: the currents' steps under a smooth field -----------------------------------
@@ -279,32 +294,6 @@ def interference_from_steps(raw: ArrayLike, currents: ArrayLike, calibration: Ar
     follow of the currents determines the gains, on a straight leg too (where the offsets across the track are
     not determined and the calibration's are kept). Channels whose currents only vary smoothly are not solved
     (:func:`undetermined_channels` with the spline as regressors: gains 0, sigma inf)."""
-    r = np.asarray(raw, dtype=float)
-    u = np.asarray(currents, dtype=float)
-    s = calibration.geometry.size
-    if r.ndim != 3 or r.shape[1:] != (s, 3) or u.ndim != 2 or len(u) != len(r):
-        raise InputError(f"need raw sets (N, {s}, 3) and currents (N, m), got {r.shape} and {u.shape}")
     if calibration.has_temperature_terms:
         raise InputError("interference from the currents' steps needs a calibration without temperature terms")
-    basis = smooth_basis(seconds)
-    n, m = u.shape
-    bad = undetermined_channels(u, basis) if m else np.zeros(0, bool)
-    solved = np.flatnonzero(~bad)
-    x = np.concatenate([basis, u[:, solved]], axis=1)
-    if n < x.shape[1] + 2:
-        raise InputError(f"{n} sets cannot determine {len(solved)} channels under a smooth field: record more sets")
-    held = replace(calibration, channels=(), interference=None)
-    b = held.apply_array(r).reshape(n, 3 * s)
-    coef, *_ = np.linalg.lstsq(x, b, rcond=None)
-    e = b - x @ coef
-    var = np.sum(e * e, axis=0) / (n - x.shape[1])
-    k = basis.shape[1]
-    # the gains' variance: the currents' part the spline leaves (Frisch-Waugh), inverted
-    resid = u[:, solved] - basis @ np.linalg.lstsq(basis, u[:, solved], rcond=None)[0]
-    inv = np.linalg.inv(resid.T @ resid) if len(solved) else np.zeros((0, 0))
-    gains = np.zeros((s, 3, m))
-    sigma = np.full((s, 3, m), np.inf)
-    gains[:, :, solved] = coef[k:].T.reshape(s, 3, len(solved))
-    sigma[:, :, solved] = np.sqrt(np.outer(var, np.diag(inv))).reshape(s, 3, len(solved))
-    residual = np.sqrt(np.mean(e.reshape(n, s, 3) ** 2, axis=(0, 2)))
-    return InterferenceEstimate(gains, sigma, np.mean(b, axis=0).reshape(s, 3), residual, bad)
+    return _regressed_gains(raw, currents, calibration, smooth_basis(seconds), None, " under a smooth field")
