@@ -75,3 +75,30 @@ def test_outputs_go_on_after_a_time_offset_is_set_following_a_driver_restart(tmp
     sent = sum(b.sent for b in out.blocks.values())
     got = sum(b.outputs for b in out.blocks.values())
     assert got >= 0.8 * sent, story
+
+
+UNKNOWN_PAYLOAD = replace(PLAN, duration=330.0, current_at=0.3, hull_at=2.0, payload_known=False)
+"""The manoeuvre was flown with the payload off: the running calibration does not know its interference and the
+correction node watches its current; switched on at 99 s (1-3 A, 20-50 nT at the sensors), no hull change."""
+
+
+def test_a_payload_switched_on_mid_mission_is_named_and_learnt(tmp_path: Path) -> None:
+    """Issue 37 item 3 through both nodes: the health names the payload's channel as soon as its current varies,
+    auto_recalibrate learns its interference from the mission's sets with the running calibration as prior,
+    and the tensor a minute after the push is back near the floor (far above it before the push)."""
+    lines: list[str] = []
+    plan = UNKNOWN_PAYLOAD
+    out = run_soak(plan, lines.append, tmp_path)
+    story = "\n".join(lines + table(out) + _recalibration_log(tmp_path))
+    assert out.exit_codes == {"correction": 0, "calibration": 0}, story
+    on = plan.at(plan.current_at)
+    # named from the current itself, within seconds of mission (its readings, not a window of residuals)
+    assert out.current_named_at is not None and on <= out.current_named_at <= on + 10.0, story
+    assert out.named_at is not None and out.named_at <= on + 10.0, story
+    assert any("payload/battery varies, interference unknown: recalibrate" in e.message for e in out.events), story
+    # learnt: pushed with the payload's interference, and near the floor a minute after
+    assert out.pushed_at is not None and out.pushes, story
+    assert "payload/battery" in out.pushes[0].message, story
+    assert out.after_push_sets >= 500 and out.tensor_after_push() <= 1.5 * floor(), story
+    # before the payload came on: at the floor
+    assert out.tensor_before_hull() <= 1.5 * floor(), story

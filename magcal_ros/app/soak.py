@@ -115,6 +115,10 @@ class SoakPlan:
     offset_at: float | None = None
     """When set: at this fraction of the mission the soak sets ``mag2.time_offset`` on the correction node (as a
     recalibration that fitted time offsets pushes it), which restarts its set synchroniser."""
+    payload_known: bool = True
+    """The correction node starts knowing the payload's interference; without, it starts without (the manoeuvre
+    was flown with the payload off) and watches its current (``watch_channels``): the health must name it when
+    it is switched on and the calibration node learn it."""
     tempco: bool = False
     """The sensors follow their temperature and the calibration carries temperature terms (the correction
     node then takes ``<name>/temperature``); without, the temperatures are published for the calibration
@@ -123,6 +127,12 @@ class SoakPlan:
     def at(self, fraction: float) -> float:
         """Mission time (s) of a fraction of the duration."""
         return fraction * self.duration
+
+    @property
+    def change_at(self) -> float:
+        """Fraction of the mission at which the running calibration stops fitting: the hull change, or the
+        payload switched on when its interference is unknown."""
+        return self.hull_at if self.payload_known else min(self.hull_at, self.current_at)
 
 
 @dataclass
@@ -166,9 +176,12 @@ class SoakOutcome:
     events: list[Event] = field(default_factory=list)
     pushes: list[Event] = field(default_factory=list)
     named_at: float | None = None
-    """Mission s at which the health first named a drift after the hull change (its newest set judged)."""
+    """Mission s at which the health first named a drift after the change (its newest set judged; the hull
+    change, or the payload switched on when unknown: :attr:`SoakPlan.change_at`)."""
+    current_named_at: float | None = None
+    """Mission s at which the health first named the payload's current (its interference unknown)."""
     pushed_at: float | None = None
-    """Mission s at which the first recalibration after the hull change was seen pushed."""
+    """Mission s at which the first recalibration after the change was seen pushed."""
     after_push_ss: float = 0.0
     after_push_sets: int = 0
     before_hull_ss: float = 0.0
@@ -187,7 +200,8 @@ class SoakOutcome:
         return math.sqrt(self.after_push_ss / (6 * self.after_push_sets)) if self.after_push_sets else float("nan")
 
     def tensor_before_hull(self) -> float:
-        """Tensor RMS (T/m) of the sets before the hull change."""
+        """Tensor RMS (T/m) of the sets before the change (:attr:`SoakPlan.change_at`: the hull change, or the
+        payload switched on when unknown)."""
         return math.sqrt(self.before_hull_ss / (6 * self.before_hull_sets)) if self.before_hull_sets else float("nan")
 
     def rss_growth(self, process: str) -> float:
@@ -360,14 +374,16 @@ class Watch:
     def _change(self, status: Any, values: dict[str, str], now: float) -> None:
         """A new level, drift verdict or kind of message (its numbers aside) of a correction node status."""
         key = (_level(status), values.get("drifted", ""), re.sub(r"[-+]?\d[\d.]*", "#", status.message))
+        t = self._mission_time(values)
+        if values.get("unknown_interference") and self.outcome.current_named_at is None:
+            self.outcome.current_named_at = t
         if self.state.get(status.name) == key:
             return
         self.state[status.name] = key
-        t = self._mission_time(values)
         if len(self.outcome.events) < 10_000:  # bounded, whatever the node says
             self.outcome.events.append(Event(t, now, status.name, key[0], status.message))
-        hull = self.outcome.plan.at(self.outcome.plan.hull_at)
-        if key[1] == "true" and t >= hull and self.outcome.named_at is None:
+        change = self.outcome.plan.at(self.outcome.plan.change_at)
+        if key[1] == "true" and t >= change and self.outcome.named_at is None:
             self.outcome.named_at = t
 
     def _recalibration(self, status: Any, values: dict[str, str], now: float) -> None:
@@ -377,8 +393,8 @@ class Watch:
         self.pushes = count
         event = Event(self.mission, now, status.name, _level(status), values.get("last_recalibration", ""))
         self.outcome.pushes.append(event)
-        hull = self.outcome.plan.at(self.outcome.plan.hull_at)
-        if self.outcome.pushed_at is None and self.mission >= hull:
+        change = self.outcome.plan.at(self.outcome.plan.change_at)
+        if self.outcome.pushed_at is None and self.mission >= change:
             self.outcome.pushed_at = self.mission
 
 
@@ -428,13 +444,17 @@ class Soak:
         )
         from magcal_ros.io import calibration_file as calfile
 
+        p = self.plan
         cal = self.workdir / "calibration.yaml"
-        calfile.write(cal, replace(source.sim.true_calibration(), metadata={"noise": [NOISE] * 4,
-                                                                           "intensity": INTENSITY}))
+        truth = source.sim.true_calibration()
+        if not p.payload_known:
+            truth = replace(truth, channels=(), interference=None)
+        calfile.write(cal, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
         self.domain = pick_domain_id()
         env = ros_environment(self.domain)
-        p = self.plan
         correction = {**LOSSLESS, "health_window": p.health_window}
+        if not p.payload_known:
+            correction["watch_channels"] = [CHANNEL]
         calibration = {**LOSSLESS, "reference_field": INTENSITY, "calibration_file": str(cal),
                        "auto_recalibrate": True, "recalibrate_window": p.recalibrate_window,
                        "interference_channels": [CHANNEL]}
@@ -534,7 +554,7 @@ class Soak:
     def _segments(self, t: Array, tensor_ss: Array) -> None:
         """The tensor before the hull change, and a minute after the first push after it on."""
         o, p = self.outcome, self.plan
-        before = t < p.at(p.hull_at)
+        before = t < p.at(p.change_at)
         o.before_hull_ss += float(tensor_ss[before].sum())
         o.before_hull_sets += int(before.sum())
         if o.pushed_at is not None:
@@ -673,11 +693,17 @@ def table(outcome: SoakOutcome) -> list[str]:
     lines += [f"  {e.mission / 60:7.2f} {e.wall:7.1f} {e.level} {e.name}: {e.message}" for e in shown]
     if len(shown) < len(outcome.events):
         lines.append(f"  ({len(outcome.events) - len(shown)} more changes in the middle not shown)")
-    lines.append("recalibrations pushed (mission min; latency from the hull change):")
-    hull = p.at(p.hull_at)
-    lines += [f"  {e.mission / 60:7.2f} latency {e.mission - hull:6.0f} s: {e.message[:200]}" for e in outcome.pushes]
-    named = f"{outcome.named_at - hull:.0f} s" if outcome.named_at is not None else "never"
-    lines.append(f"hull change named by the health after {named}; tensor before the hull change "
+    what = "hull change" if p.change_at == p.hull_at else "payload switched on (interference unknown)"
+    lines.append(f"recalibrations pushed (mission min; latency from the {what}):")
+    change = p.at(p.change_at)
+    lines += [f"  {e.mission / 60:7.2f} latency {e.mission - change:6.0f} s: {e.message[:200]}"
+              for e in outcome.pushes]
+    named = f"{outcome.named_at - change:.0f} s" if outcome.named_at is not None else "never"
+    if not p.payload_known:
+        on = p.at(p.current_at)
+        heard = f"{outcome.current_named_at - on:.0f} s" if outcome.current_named_at is not None else "never"
+        lines.append(f"payload current named by the health (interference unknown) {heard} after it was switched on")
+    lines.append(f"{what} named by the health after {named}; tensor before it "
                  f"{outcome.tensor_before_hull() / fl:.2f}x the floor, from a minute after the push on "
                  f"{outcome.tensor_after_push() / fl:.2f}x ({outcome.after_push_sets} sets)")
     growth = ", ".join(f"{n} {outcome.rss_growth(n):+.1f} MiB" for n in procs)

@@ -768,3 +768,24 @@ def noise_and_intensity(metadata: dict[str, object], names: Sequence[str]) -> tu
     if isinstance(intensity, (int, float)) and not isinstance(intensity, bool) and not np.isnan(intensity):
         f = bounds.check_intensity("intensity", intensity) or None
     return values, f
+
+
+UNKNOWN_INTERFERENCE = "unknown_interference"
+"""Key of the calibration health's value naming the current channels that vary with an unknown interference."""
+
+
+def with_unknown_currents(report: DriftReport, named: dict[str, str]) -> DriftReport:
+    """``report`` with the current channels ``named`` (channel -> how it varied, in words;
+    :class:`~magcal_ros.core.interference.CurrentWatch`) that vary while the calibration does not know their
+    interference: at least a WARN, drifted (a recalibration learns their gains), the channels in the message
+    and under :data:`UNKNOWN_INTERFERENCE`, how they varied under ``unknown_interference_detail``."""
+    values = dict(report.values)
+    values[UNKNOWN_INTERFERENCE] = ",".join(named)
+    if not named:
+        return replace(report, values=values)
+    values["drifted"] = "true"
+    values["unknown_interference_detail"] = "; ".join(named.values())
+    message = f"{', '.join(named)} {'varies' if len(named) == 1 else 'vary'}, interference unknown: recalibrate"
+    if report.drifted:
+        values["sensor_health"] = report.message
+    return replace(report, level=max(report.level, WARN), message=message, drifted=True, values=values)

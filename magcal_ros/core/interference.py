@@ -23,6 +23,7 @@ is then not the current, and a gain regressed on it is attenuated towards zero b
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import ClassVar
@@ -167,6 +168,48 @@ def within_noise(current: ArrayLike, variation: float | None = None) -> bool:
     noise = reading_noise(u)
     v = float(np.std(u)) if variation is None else variation
     return 0.0 < noise <= MAX_READING_NOISE and v < NOISE_RATIO * noise
+
+
+WATCH_SAMPLES: int = 400
+"""Latest readings per watched channel its variation is judged over (40 s of a 10 Hz monitor)."""
+WATCH_MIN_VARIATION: float = 0.05
+"""A watched current that varies by less than this RMS (A) is not named: at a payload's tens of nT/A it moves
+the field by about a fluxgate's noise, and a monitor that reads in steps of milliamperes varies by that much."""
+
+
+class CurrentWatch:
+    """Channels whose interference the running calibration does not know (left undetermined by its manoeuvre,
+    or new): each one's latest readings (A), and which have varied beyond their reading noise since the watch
+    began. A channel named stays named (its interference is still unknown when its current holds again) until
+    a new watch, with a new calibration, begins."""
+
+    def __init__(self, channels: Sequence[str], samples: int = WATCH_SAMPLES) -> None:
+        self.channels = tuple(channels)
+        self._values = [deque(maxlen=samples) for _ in self.channels]
+        self.named: dict[str, str] = {}
+        """Channel -> how it varied, in words, for the channels named so far (in naming order)."""
+
+    def add(self, index: int, stamp_ns: int, value: float) -> None:
+        """One reading (A) of channel ``index`` (its stamp does not matter: the latest readings as they come);
+        not a current (:data:`~magcal_ros.core.side_streams.CURRENT`'s check): ignored."""
+        if CURRENT.check(value) is None:
+            self._values[index].append(float(value))
+
+    def judge(self) -> list[str]:
+        """The channels named by this judgement (newly): a current that varies by at least
+        :data:`WATCH_MIN_VARIATION` RMS and :data:`NOISE_RATIO` times its reading noise over its latest
+        readings."""
+        new = []
+        for name, values in zip(self.channels, self._values):
+            if name in self.named or len(values) < 3:
+                continue
+            u = np.fromiter(values, float, len(values))
+            v, noise = float(np.std(u)), reading_noise(u)
+            if v >= max(WATCH_MIN_VARIATION, NOISE_RATIO * noise):
+                self.named[name] = (f"{name} varies ({u.min():.3g} .. {u.max():.3g} A, {v:.2g} A RMS over its last "
+                                    f"{len(u)} readings, reading noise {noise:.2g} A)")
+                new.append(name)
+        return new
 
 
 def describe_undetermined(channels: Sequence[str], currents: ArrayLike, mask: ArrayLike) -> str:

@@ -475,35 +475,36 @@ def _strings(name: str, value: Any) -> list[str]:
     return [v.strip() for v in value]
 
 
-def current_inputs(values: dict[str, Any]) -> CurrentInputs:
+def current_inputs(values: dict[str, Any], prefix: str = "interference") -> CurrentInputs:
     """The current channels from parameter values (dotted names): ``interference_channels``,
     ``interference_topics`` (default: each channel's name, relative), ``interference_types``
-    (default BatteryState) and ``current_tolerance`` (s). :class:`InputError` naming what is wrong."""
+    (default BatteryState) and ``current_tolerance`` (s); with ``prefix`` ``watch``, those of
+    ``watch_channels``, ``watch_topics`` and ``watch_types``. :class:`InputError` naming what is wrong."""
     from rclpy.exceptions import InvalidTopicNameException
     from rclpy.validate_topic_name import validate_topic_name
 
-    channels = _strings("interference_channels", values.get("interference_channels"))
+    channels = _strings(f"{prefix}_channels", values.get(f"{prefix}_channels"))
     if len(set(channels)) != len(channels) or not all(channels):
-        raise InputError(f"interference_channels must be unique, non-empty names, got {channels}")
+        raise InputError(f"{prefix}_channels must be unique, non-empty names, got {channels}")
     tolerance = values.get("current_tolerance", DEFAULT_CURRENT_TOLERANCE)
     if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0:
         raise InputError(f"current_tolerance must be a positive number of seconds, got {tolerance!r}")
     if not channels:  # no interference: the topics and types of earlier channels do not matter
         return CurrentInputs((), (), (), tolerance_of(float(tolerance)))
-    topics_ = _strings("interference_topics", values.get("interference_topics")) or list(channels)
-    types = _strings("interference_types", values.get("interference_types")) or [BATTERY_STATE] * len(channels)
-    for name, given in (("interference_topics", topics_), ("interference_types", types)):
+    topics_ = _strings(f"{prefix}_topics", values.get(f"{prefix}_topics")) or list(channels)
+    types = _strings(f"{prefix}_types", values.get(f"{prefix}_types")) or [BATTERY_STATE] * len(channels)
+    for name, given in ((f"{prefix}_topics", topics_), (f"{prefix}_types", types)):
         if len(given) != len(channels):
-            raise InputError(f"{name} needs one entry per interference channel ({len(channels)}: "
+            raise InputError(f"{name} needs one entry per {prefix} channel ({len(channels)}: "
                              f"{', '.join(channels) or 'none'}), got {len(given)}")
     for topic in topics_:
         try:
             validate_topic_name(topic)
         except InvalidTopicNameException as exc:
-            raise InputError(f"interference_topics: {str(exc).splitlines()[0]}: {topic!r}") from None
+            raise InputError(f"{prefix}_topics: {str(exc).splitlines()[0]}: {topic!r}") from None
     bad = [t for t in types if t not in CURRENT_TYPES]
     if bad:
-        raise InputError(f"interference_types {bad[0]!r} is not supported; use {' or '.join(CURRENT_TYPES)}")
+        raise InputError(f"{prefix}_types {bad[0]!r} is not supported; use {' or '.join(CURRENT_TYPES)}")
     return CurrentInputs(tuple(channels), tuple(topics_), tuple(types), tolerance_of(float(tolerance)))
 
 
@@ -534,9 +535,32 @@ def declare_currents(node: Any) -> None:
           numbers=True, floats=(0.0, 3600.0)))
 
 
-def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents, qos: QoSProfile,
+WATCH_PARAMETERS: tuple[str, ...] = ("watch_channels", "watch_topics", "watch_types")
+"""The correction node's current channels whose interference its calibration does not know (watched, not
+applied): the calibration node sets them with every calibration it pushes."""
+
+
+def declare_watched(node: Any) -> None:
+    """Declare the correction node's watched current channels (none by default)."""
+    d = describe
+    strings = Parameter.Type.STRING_ARRAY
+    declare_list(
+        node, "watch_channels", strings,
+        d("current channels whose interference the calibration does not know (its manoeuvre left them "
+          "undetermined, or they are new): read, not applied; the calibration health names one as soon as its "
+          "current varies beyond its reading noise (a recalibration then learns it). The calibration node sets "
+          "them with every calibration it pushes: the channels of its interference_channels left unsolved"))
+    declare_list(node, "watch_topics", strings,
+                 d("topic of each watched channel's current, in watch_channels order; [] = the channel names"))
+    declare_list(node, "watch_types", strings,
+                 d(f"message type of each watched channel's topic: {BATTERY_STATE} (default) or {FLOAT64}",
+                   constraints=" | ".join(CURRENT_TYPES)))
+
+
+def subscribe_currents(node: Any, inputs: CurrentInputs, store: LatestCurrents | Any, qos: QoSProfile,
                        clock: Callable[[], int]) -> list[Any]:
-    """Subscribe every channel's topic, feeding its values into ``store`` (BatteryState at its
+    """Subscribe every channel's topic, feeding its values into ``store`` (``add(channel index, stamp ns,
+    value A)``: a :class:`LatestCurrents`, or a watch) (BatteryState at its
     header stamp, or at ``clock()`` ns on receipt when that is zero; Float64 on receipt)."""
     from sensor_msgs.msg import BatteryState
     from std_msgs.msg import Float64
@@ -640,7 +664,8 @@ def running_calibration(values: dict[str, Any], geometry: ArrayGeometry) -> tupl
         return None, f"its calibration is unusable ({exc})"
 
 
-STRING_LISTS: frozenset[str] = frozenset({"sensor_names", "uncorrected_sensors", *INTERFERENCE_PARAMETERS[:3]})
+STRING_LISTS: frozenset[str] = frozenset({"sensor_names", "uncorrected_sensors", *INTERFERENCE_PARAMETERS[:3],
+                                          *WATCH_PARAMETERS})
 """Parameters that are lists of strings, also when empty."""
 
 

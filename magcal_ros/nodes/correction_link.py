@@ -83,7 +83,8 @@ class CorrectionLink:
         """The correction node's parameters that make up its calibration for sensors ``names``."""
         per_sensor = [f"{n}.{s}" for n in names
                       for s in ("matrix", "offset", "covariance", "interference", "noise", *common.TEMPERATURE_SUFFIXES)]
-        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], *common.CALIBRATION_FRAME_PARAMETERS,
+        return ["sensor_names", "positions", *common.INTERFERENCE_PARAMETERS[:3], *common.WATCH_PARAMETERS,
+                *common.CALIBRATION_FRAME_PARAMETERS,
                 "frame_id", "calibration_intensity"] + per_sensor
 
     def _fetch(self, names: Sequence[str]) -> dict[str, Any]:
@@ -107,7 +108,7 @@ class CorrectionLink:
         """The correction node's current calibration parameters, to restore if needed."""
         found = self._fetch(self._wanted(names))
         out = [ParameterMsg(name=n, value=v) for n, v in found.items()]
-        for name in common.INTERFERENCE_PARAMETERS[:3]:  # none before: none again on restore
+        for name in (*common.INTERFERENCE_PARAMETERS[:3], *common.WATCH_PARAMETERS):  # none before: none again
             if name not in found:
                 out.append(common.parameter_message(name, []))
         neutral = neutral_terms({}, names)  # no temperature terms or rotation before: none again
@@ -151,7 +152,12 @@ def neutral_terms(params: dict[str, Any], names: Sequence[str]) -> dict[str, Any
 
 def channel_parameters(inputs: common.CurrentInputs, solved: Sequence[str]) -> dict[str, list[str]]:
     """The channels of a calibration with the topics and types they were read from (the correction node
-    is to read the same currents; channels a calibration left unsolved are left out)."""
+    is to read the same currents; channels a calibration left unsolved are left out of them and watched:
+    ``watch_*``, so that the calibration health names one when it starts to vary)."""
     keep = [inputs.channels.index(c) for c in solved]
+    unsolved = [j for j, c in enumerate(inputs.channels) if c not in solved]
     return {"interference_channels": list(solved), "interference_topics": [inputs.topics[j] for j in keep],
-            "interference_types": [inputs.types[j] for j in keep]}
+            "interference_types": [inputs.types[j] for j in keep],
+            "watch_channels": [inputs.channels[j] for j in unsolved],
+            "watch_topics": [inputs.topics[j] for j in unsolved],
+            "watch_types": [inputs.types[j] for j in unsolved]}

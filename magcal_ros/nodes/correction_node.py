@@ -93,8 +93,8 @@ from std_msgs.msg import Float64MultiArray
 from magcal_ros.core import side_streams as side
 from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
-from magcal_ros.core.calibration_health import CalibrationHealth
-from magcal_ros.core.interference import LatestCurrents
+from magcal_ros.core.calibration_health import CalibrationHealth, with_unknown_currents
+from magcal_ros.core.interference import CurrentWatch, LatestCurrents
 from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
@@ -116,7 +116,7 @@ WAIT_CHECK: float = 0.02
 """How often (s) the node looks whether a set waiting for a current or temperature may go."""
 CORE_PARAMETERS: tuple[str, ...] = (
     "sensor_names", "positions", "frame_id", "sync_tolerance", "sync_mode", "max_gap", "gradient_method",
-    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
+    "uncorrected_sensors", *common.INTERFERENCE_PARAMETERS, *common.WATCH_PARAMETERS, *common.CALIBRATION_FRAME_PARAMETERS,
     "temperature_tolerance", drift.INTENSITY,
 )
 SENSOR_SUFFIXES: tuple[str, ...] = ("matrix", "offset", "covariance", "interference", "time_offset",
@@ -170,6 +170,9 @@ class CorrectionState:
     """Largest age of a sensor's temperature at a set (used when the calibration has temperature terms)."""
     calibrated: tuple[str, ...] = ()
     """Sensors with a calibration (matrix and offset given), in set order."""
+    watched: common.CurrentInputs = common.CurrentInputs()
+    """The current channels whose interference the calibration does not know (``watch_channels``): read, not
+    applied; the calibration health names one that varies."""
 
     def sync_settings(self) -> tuple[Any, ...]:
         """What the set synchroniser is built from (a change rebuilds it)."""
@@ -226,6 +229,16 @@ def calibrated(values: dict[str, Any], name: str) -> bool:
     return bool(values.get(f"{name}.matrix")) and bool(values.get(f"{name}.offset"))
 
 
+def _watched(values: dict[str, Any], currents: common.CurrentInputs) -> common.CurrentInputs:
+    """The watched current channels (``watch_*``); :class:`InputError` for one that is also applied."""
+    watched = common.current_inputs(values, "watch")
+    both = sorted(set(watched.channels) & set(currents.channels))
+    if both:
+        raise InputError(f"{', '.join(both)} in both interference_channels and watch_channels: a channel's "
+                         "interference is either known (applied) or watched")
+    return watched
+
+
 def build_state(values: dict[str, Any]) -> CorrectionState:
     """Validate a complete parameter state (dotted names) and build the correction from it.
 
@@ -246,6 +259,7 @@ def build_state(values: dict[str, Any]) -> CorrectionState:
     if strangers:
         raise InputError(f"uncorrected_sensors names {', '.join(strangers)}, not in sensor_names")
     currents = common.current_inputs(values)
+    watched = _watched(values, currents)
     params: dict[str, Any] = {"sensor_names": list(geo.names), "positions": list(geo.positions.reshape(-1)),
                               "interference_channels": list(currents.channels)}
     for name in geo.names:
@@ -287,7 +301,7 @@ def build_state(values: dict[str, Any]) -> CorrectionState:
         raise InputError(f"{lagging} {verb} sync_mode interpolate or auto: exact matching pairs stamps as they are")
     noise, intensity = drift.reference(values, geo.names)
     return CorrectionState(cal, method, frame, tolerance, missing, covariances, field_covariance, currents, noise,
-                           intensity, mode, gap, temperature_tolerance, done)
+                           intensity, mode, gap, temperature_tolerance, done, watched)
 
 
 def sync_mode_line(synchronizer: StreamSynchronizer) -> str:
@@ -314,6 +328,7 @@ class CorrectionNode(Node):
         self._corrected_pubs: list[Any] = []
         self._gradient_pubs: dict[str, Any] = {}
         self._current_subs: list[Any] = []
+        self._watch_subs: list[Any] = []
         self._temperature_subs: list[Any] = []
         self._out: SetOutputs | None = None
         self._out_state: CorrectionState | None = None
@@ -339,6 +354,7 @@ class CorrectionNode(Node):
         self._connect(self._state)
         self._gradient_outputs(self._state.gradient_kind)
         self._connect_currents(self._state.currents)
+        self._connect_watched(self._state.watched)
         self.add_pre_set_parameters_callback(common.numbers_from_text(self._numeric))
         self._connect_temperatures(self._state)
         self._outputs_for(self._state)  # now, not at the first set (the first build loads the CDR templates)
@@ -429,6 +445,7 @@ class CorrectionNode(Node):
               "matrix and offset stops field and gradient output; [] = none"),
         )
         common.declare_currents(self)
+        common.declare_watched(self)
         drift.declare_reference(self, names)
         self.declare_parameter("frame_id", topics.DEFAULT_FRAME_ID,
                                d("frame of all outputs: the platform (array) frame, or the frame output_rotation "
@@ -574,6 +591,8 @@ class CorrectionNode(Node):
         elif new.currents.tolerance_ns != old.currents.tolerance_ns:
             self._currents.tolerance_ns = new.currents.tolerance_ns
             self._current_health.tolerance_ns = new.currents.tolerance_ns
+        if new.watched.sources() != old.watched.sources():
+            self._connect_watched(new.watched)
         if (new.names, new.heard_temperatures, new.temperature_tolerance_ns) != \
                 (old.names, old.heard_temperatures, old.temperature_tolerance_ns):
             self._connect_temperatures(new)
@@ -588,6 +607,8 @@ class CorrectionNode(Node):
     def _calibration_health(self, state: CorrectionState) -> None:
         """Judge the calibration of ``state`` afresh (its sets only), or say why it is not judged."""
         self._drifted = False
+        self._current_watch = CurrentWatch(state.watched.channels)
+        """The watched channels' latest readings and which varied (a new calibration: a new watch)."""
         self._span_health = TemperatureSpanHealth(state.names, state.calibration.temperature_span)
         uncalibrated = [n for n in state.names if n not in state.calibrated]
         if uncalibrated:
@@ -619,6 +640,9 @@ class CorrectionNode(Node):
         if state.currents.channels:
             parts.append("subtracting current interference of " + ", ".join(
                 f"{c} ({t}, {k.rsplit('/', 1)[-1]})" for c, t, k in state.currents.sources()))
+        if state.watched.channels:
+            parts.append("watching the currents of " + ", ".join(
+                f"{c} ({t})" for c, t, _ in state.watched.sources()) + " (interference unknown: named when they vary)")
         cal = state.calibration
         if state.temperatures:
             parts.append(f"correcting for temperature about {cal.temperature_reference:g} deg C "
@@ -713,6 +737,21 @@ class CorrectionNode(Node):
                                              inputs.tolerance_ns)
         self._current_subs = common.subscribe_currents(self, inputs, self._currents, self._raw_qos,
                                                        lambda: self._now())
+
+    def _connect_watched(self, inputs: common.CurrentInputs) -> None:
+        """Subscribe the watched channels afresh: their readings go to the calibration health's current watch."""
+        for s in self._watch_subs:
+            self.destroy_subscription(s)
+        node = self
+
+        class Forward:
+            """The subscriptions' store: the node's current watch of the moment."""
+
+            @staticmethod
+            def add(index: int, stamp: int, value: float) -> None:
+                node._current_watch.add(index, stamp, value)
+
+        self._watch_subs = common.subscribe_currents(self, inputs, Forward(), self._raw_qos, lambda: self._now())
 
     def _connect_temperatures(self, state: CorrectionState) -> None:
         """Subscribe every ``<name>/temperature`` afresh when the calibration has temperature terms (else none)."""
@@ -894,6 +933,12 @@ class CorrectionNode(Node):
     def _report_calibration(self, state: CorrectionState) -> DiagnosticStatus:
         """The calibration health's status; a drift (and its end) is logged once."""
         report = self._health_cal.assess() if self._health_cal is not None else self._not_judged
+        if self._health_cal is not None:
+            for name in self._current_watch.judge():
+                self.get_logger().warn(f"{self._current_watch.named[name]}, and the calibration does not know its "
+                                       "interference: the corrected outputs carry its field; recalibrate (the "
+                                       "calibration node with it among its interference_channels learns it)")
+            report = with_unknown_currents(report, self._current_watch.named)
         if report.drifted != self._drifted:
             self._drifted = report.drifted
             if report.drifted:
