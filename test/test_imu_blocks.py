@@ -69,6 +69,65 @@ def test_orientation_outputs_in_the_imu_frame_on_fresh_attitudes(tumble):
     assert params["frame_id"] == "imu_link"
 
 
+def test_without_a_lag_none_is_applied(tumble):
+    """The tumble's IMU stamps its samples when the array does: the array lag block finds nothing significant
+    and the calibration carries no time offsets (sets formed as the sensors stamp them)."""
+    _, _, _, _, result = tumble
+    lag = result.extras["imu"].by_name("array lag behind the IMU")
+    assert abs(lag.value) < 3 * lag.sigma and lag.sigma < 0.1
+    assert not np.any(result.calibration.time_offsets)
+    assert any(n.startswith("array lag behind the IMU: ") and n.endswith("not significant; none applied")
+               for n in result.extras["block_notes"])
+
+
+def test_the_array_lag_behind_the_imu_is_fitted_and_applied_offline(tmp_path):
+    """Magnetometer drivers that stamp 10 ms late on the IMU's clock (an IMU at 100 Hz, tumbling): the
+    calibration finds the lag, adds it to every sensor's time offset, and ``magcal correct`` stamps the
+    outputs at the IMU's instants, where the centre field in the IMU frame matches the truth at the IMU's
+    instant within 2 nT RMS per axis (the same bound as without a lag); stamped as the array stamps, the
+    field is 100 nT and more off the truth at those stamps."""
+    import yaml
+    from test_offline import magcal, ok, read_corrected
+
+    from magcal_ros.io import calibration_file as calfile
+    from magcal_ros.io.recordings import read_recording
+    from magcal_ros.io.truth_file import load_truth
+
+    bag, lag = tmp_path / "bag", 0.010
+    ok(magcal("simulate", bag, "--schedule", "tumble", "--count", 600, "--seed", 11, "--imu", "--imu-rate", 100,
+              "--imu-orientation-noise", 0.02, "--imu-mounting", "2,-2.5,3", "--imu-array-lag", lag))
+    proc = ok(magcal("calibrate", bag, "-o", tmp_path / "cal.yaml", "--imu", "/imu", "--reference-field", 5.5e-5))
+    cal = calfile.read(tmp_path / "cal.yaml")
+    fitted = float(cal.time_offsets[0])
+    assert np.all(cal.time_offsets == fitted) and abs(fitted - lag) < 2e-4, cal.time_offsets
+    imu = cal.metadata["imu"]
+    assert imu["values"]["array_lag_behind_the_imu_ms"] == pytest.approx(fitted * 1e3)
+    assert 0 < imu["sigma"]["array_lag_behind_the_imu_ms"] < 0.1
+    assert "array lag behind the IMU: 9.9" in proc.stdout + proc.stderr
+    ok(magcal("correct", bag, "-c", tmp_path / "cal.yaml", "-o", tmp_path / "out.csv"))
+    out = read_corrected(tmp_path / "out.csv")
+    rec = read_recording(bag)
+    rec = rec[0] if isinstance(rec, tuple) else rec
+    assert np.array_equal(rec.stamps - out["stamps"], np.full(len(rec.stamps), round(fitted * 1e9)))
+    # the truth: the centre field in the IMU frame at each sample; sample k (path time t_k) is stamped
+    # s_0 + t_k by the array and taken at s_0 + t_k - lag on the IMU's clock
+    truth = load_truth(bag)
+    mounting = np.reshape(yaml.safe_load((tmp_path / "bag.truth.yaml").read_text())["magcal_simulation"]
+                          ["ros__parameters"]["imu_mounting_matrix"], (3, 3))
+    centre = truth["field"].mean(axis=1) @ mounting.T
+    t = (rec.stamps - rec.stamps[0]) / 1e9
+
+    def truth_at(imu_stamps):
+        path = (imu_stamps - rec.stamps[0]) / 1e9 + lag
+        return np.stack([np.interp(path, t, centre[:, a]) for a in range(3)], axis=1)
+
+    inner = slice(5, -5)
+    at_outputs = np.sqrt(np.mean((out["field"] - truth_at(out["stamps"]))[inner] ** 2, axis=0))
+    assert np.all(at_outputs < 2 * NT), at_outputs / NT
+    as_stamped = np.sqrt(np.mean((out["field"] - truth_at(rec.stamps))[inner] ** 2, axis=0))
+    assert np.all(as_stamped > 100 * NT), as_stamped / NT
+
+
 def test_mounting_and_field_direction_within_three_sigma_of_truth(tumble):
     spec, _, truth, sim, result = tumble
     report = result.extras["imu"]
@@ -205,6 +264,37 @@ def test_jacobians_of_the_global_blocks_match_finite_differences():
     num_h = _finite_difference(lambda s: ab.gradient_field(att, s), state, model, g)
     assert np.allclose(ab.gradient_jacobian(att, state, model), num_h, atol=1e-9)
     assert np.all(ab.gradient_field(att, state)[4] == 0)  # a set without attitude sees none
+
+
+def test_the_array_lag_turns_the_attitude_back_and_its_jacobian_matches_finite_differences():
+    """With the IMU's angular velocity the attitude at a set's stamp ``t`` is turned back to ``t - lag``:
+    ``Q(t - lag)^T f`` for a constant rate is exactly ``exp(lag [w]x) Q(t)^T f``; every global block's
+    Jacobian (mounting, field, gradient, lag) matches finite differences at a non-zero lag."""
+    rng = np.random.default_rng(5)
+    n = 7
+    q = _random_rotations(rng, n)
+    rates = rng.normal(0.0, 0.8, (n, 3))
+    rates[5] = 0.0  # a set without a rate: the lag does not move it
+    att = ab.AttitudeInputs(q, np.array([0, 0, 0, 0, -1, 0, 0]), 1, True, rng.normal(0, 0.2, (4, 3)), rates=rates)
+    model = att.model(4)
+    assert model.array_lag and model.global_blocks[-1] == "array lag" and model.array_lag_index == model.global_size - 1
+    fields = np.array([[0.2, 0.6, -0.77]])
+    state = ab.GlobalState(ab.rotation_of([0.03, -0.04, 1.2]), fields / np.linalg.norm(fields),
+                           ab.gradient_matrix([3e-4, 1e-4, -2e-4, 5e-4, 1e-4]), lag=0.012)
+    # the truth: the IMU turning at w from Q(t - lag): Q(t) = Q(t - lag) exp(lag [w]x)
+    earlier = np.einsum("nab,nbc->nac", q, np.stack([ab.rotation_of(-0.012 * w) for w in rates]))
+    u_true = np.einsum("nji,j->ni", earlier, state.fields[0])
+    u = ab.reference_field(att, state)
+    known = att.known
+    assert np.allclose(u[known], u_true[known], atol=1e-12) and np.all(u[~known] == 0)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    g = model.global_size
+    num = _finite_difference(lambda s: ab.attitude_residuals(att, s, d), state, model, g)
+    assert np.allclose(ab.attitude_jacobian(att, state, model), num, atol=1e-6)
+    assert np.abs(num[:, :, -1]).max() > 0.1  # the lag column is not zero
+    num_h = _finite_difference(lambda s: ab.gradient_field(att, s), state, model, g)
+    assert np.allclose(ab.gradient_jacobian(att, state, model), num_h, atol=1e-9)
 
 
 def test_site_gradient_field_is_the_world_gradient_at_each_sensor():

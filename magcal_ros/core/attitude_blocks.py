@@ -51,6 +51,8 @@ GRADIENT_BASIS: Array = np.array([
 ], dtype=float)
 """Symmetric traceless 3x3 matrices of the gradient's parameters xx, xy, xz, yy, yz."""
 GRADIENT_NAMES: tuple[str, ...] = ("xx", "xy", "xz", "yy", "yz")
+ARRAY_LAG = "array lag behind the IMU"
+"""The name of the array lag block's quantity (ms)."""
 
 
 def skew(v: Array) -> Array:
@@ -103,6 +105,9 @@ class AttitudeInputs:
     """(3,) unit field direction in the world frame ENU to hold (the site's model); None: fitted."""
     frame_id: str = ""
     """The IMU's frame (the output frame of the calibration)."""
+    rates: Array | None = None
+    """(N, 3) rad/s, IMU frame: the IMU's angular velocity at each set (0 where it gives none), which turns
+    its attitude back by the array's lag; None: no array lag block."""
 
     def __post_init__(self) -> None:
         if self.positions is not None and not self.world:
@@ -117,11 +122,13 @@ class AttitudeInputs:
 
     def model(self, sensors: int, channels: int = 0, temperature: bool = False, lag: bool = False) -> ForwardModel:
         """The forward model with these global blocks on."""
-        return ForwardModel(sensors, channels, temperature, lag, True, self.count, self.positions is not None)
+        return ForwardModel(sensors, channels, temperature, lag, True, self.count, self.positions is not None,
+                            self.rates is not None)
 
     def take(self, keep: NDArray[np.bool_] | NDArray[np.int64]) -> "AttitudeInputs":
         """The sets selected by a mask or index array (every reference kept)."""
-        return replace(self, rotations=self.rotations[keep], groups=self.groups[keep])
+        return replace(self, rotations=self.rotations[keep], groups=self.groups[keep],
+                       rates=None if self.rates is None else self.rates[keep])
 
     def fixed(self, model: ForwardModel) -> NDArray[np.bool_]:
         """(G,) global parameters kept at their start: a held field direction."""
@@ -141,6 +148,8 @@ class GlobalState:
     """(count, 3) unit field direction of each reference."""
     gradient: Array
     """(3, 3) ``G_w / F`` (1/m), world ENU; zeros without the gradient block."""
+    lag: float = 0.0
+    """s: how late the array's stamps are on the IMU's clock (0 without the array lag block)."""
 
     def moved(self, step: Array, model: ForwardModel) -> "GlobalState":
         """The state after a step of the global parameters (model layout)."""
@@ -154,7 +163,8 @@ class GlobalState:
         grad = self.gradient
         if model.gradient_slice is not None:
             grad = grad + gradient_matrix(step[model.gradient_slice])
-        return GlobalState(a, fields, grad)
+        lag = self.lag if model.array_lag_index is None else self.lag + float(step[model.array_lag_index])
+        return GlobalState(a, fields, grad, lag)
 
     def deviation(self, start: "GlobalState", model: ForwardModel) -> Array:
         """(G,) where this state lies from ``start`` in the global parameters (for the weak prior)."""
@@ -168,6 +178,8 @@ class GlobalState:
             out[model.field_slice(g)] = tangent(self.fields[g]).T @ (self.fields[g] - start.fields[g])
         if model.gradient_slice is not None:
             out[model.gradient_slice] = gradient_params(self.gradient)
+        if model.array_lag_index is not None:
+            out[model.array_lag_index] = self.lag
         return out
 
     def rotated(self, qmat: Array) -> "GlobalState":
@@ -175,10 +187,27 @@ class GlobalState:
         return replace(self, mounting=self.mounting @ np.asarray(qmat).T)
 
 
+def rotate(rotvecs: Array, v: Array) -> Array:
+    """(N, 3) vectors ``v`` (N, 3) turned by the rotations of rotation vectors ``rotvecs`` (N, 3) rad (Rodrigues)."""
+    angle = np.linalg.norm(rotvecs, axis=1, keepdims=True)
+    axis = rotvecs / np.maximum(angle, 1e-300)
+    c, s = np.cos(angle), np.sin(angle)
+    return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c)
+
+
+def _back(att: AttitudeInputs, state: GlobalState, v: Array) -> Array:
+    """IMU-frame vectors (N, 3) at the sets' stamps as the IMU saw them ``lag`` earlier: ``exp(lag [w]x) v``
+    (``Q(t - lag) = Q(t) exp(-lag [w]x)``); ``v`` itself without the array lag block."""
+    if att.rates is None or state.lag == 0.0:
+        return v
+    return rotate(state.lag * att.rates, v)
+
+
 def reference_field(att: AttitudeInputs, state: GlobalState) -> Array:
-    """(N, 3) ``u_k = Q_k^T f_g``: each set's field direction in the IMU frame (zeros without attitude)."""
+    """(N, 3) ``u_k = exp(lag [w_k]x) Q_k^T f_g``: each set's field direction in the IMU frame at the array's
+    sample instant (zeros without attitude)."""
     f = state.fields[np.maximum(att.groups, 0)]
-    u = np.einsum("nji,nj->ni", att.rotations, f)
+    u = _back(att, state, np.einsum("nji,nj->ni", att.rotations, f))
     return np.where(att.known[:, None], u, 0.0)
 
 
@@ -199,7 +228,12 @@ def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     for g in range(model.field_groups):
         rows = att.groups == g
         t = tangent(state.fields[g])
-        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,ncb,cd->nad", at, att.rotations[rows], t, optimize=True)
+        cols = np.einsum("ncb,cd->nbd", att.rotations[rows], t, optimize=True)  # (n, 3, 2) Q^T t
+        part = replace(att, rates=None if att.rates is None else att.rates[rows])
+        cols = np.stack([_back(part, state, cols[:, :, j]) for j in range(2)], axis=2)
+        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,nbd->nad", at, cols)
+    if model.array_lag_index is not None and att.rates is not None:
+        jac[:, :, model.array_lag_index] = -np.cross(att.rates, u) @ state.mounting
     return jac
 
 
@@ -290,9 +324,11 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
     (N, 3) rad/s; ``stamps`` (N,) int ns. Orientations are used when the IMU gives any (with
     ``gradient``, the site gradient block too, sensors at ``positions`` (S, 3) m); otherwise the
     gyro, integrated in continuous segments. ``field_world`` (3,) the site's field (world ENU,
-    any units): its direction is held.
+    any units): its direction is held. With the angular velocity at :data:`MIN_SEGMENT_SETS` sets or more,
+    the array's lag behind the IMU is a block too (:func:`lag_rates`).
     """
     q = np.asarray(orientation, dtype=float)
+    rates = lag_rates(angular_velocity)
     known = np.all(np.isfinite(q), axis=1)
     n = len(q)
     field = None if field_world is None else np.asarray(field_world, dtype=float) / np.linalg.norm(field_world)
@@ -303,7 +339,7 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
         if gradient and positions is not None and len(positions) > 1:
             p = np.asarray(positions, dtype=float)
             centred = p - p.mean(axis=0)
-        return AttitudeInputs(rot, np.where(known, 0, -1).astype(np.int64), 1, True, centred, field, frame_id)
+        return AttitudeInputs(rot, np.where(known, 0, -1).astype(np.int64), 1, True, centred, field, frame_id, rates)
     w = np.asarray(angular_velocity, dtype=float)
     if np.sum(np.all(np.isfinite(w), axis=1)) < MIN_SEGMENT_SETS:
         return None
@@ -314,7 +350,17 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
         return None
     rot, groups = np.empty_like(rot_o), np.empty_like(groups_o)
     rot[order], groups[order] = rot_o, groups_o
-    return AttitudeInputs(rot, groups, count, False, None, None, frame_id)
+    return AttitudeInputs(rot, groups, count, False, None, None, frame_id, rates)
+
+
+def lag_rates(angular_velocity: Array) -> Array | None:
+    """(N, 3) rad/s: the IMU's angular velocity at each set (0 where it gives none) for the array lag block,
+    or None (no block) when it gives one at fewer than :data:`MIN_SEGMENT_SETS` sets."""
+    w = np.asarray(angular_velocity, dtype=float).reshape(-1, 3)
+    ok = np.all(np.isfinite(w), axis=1)
+    if ok.sum() < MIN_SEGMENT_SETS:
+        return None
+    return np.where(ok[:, None], w, 0.0)
 
 
 # -- the closed-form start ----------------------------------------------------------------------------
@@ -392,7 +438,7 @@ def global_quantities(state: GlobalState, cov: Array, model: ForwardModel, inten
     """The global blocks in physical words with 1-sigma from their covariance ``cov`` (G, G):
     the mounting as roll, pitch, yaw (deg), each world field direction as declination and
     inclination (deg, ENU: declination east of the world's north, inclination down), the
-    gradient's entries (nT/m, world ENU)."""
+    gradient's entries (nT/m, world ENU), the array's lag behind the IMU (ms)."""
     out: list[GlobalQuantity] = []
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     if model.mounting_slice is not None:
@@ -425,4 +471,7 @@ def global_quantities(state: GlobalState, cov: Array, model: ForwardModel, inten
         values = gradient_params(state.gradient) * intensity / NT
         for name, v, e in zip(GRADIENT_NAMES, values, sig[sl] * intensity / NT):
             out.append(GlobalQuantity("site gradient", f"site gradient {name}", "nT/m", float(v), float(e)))
+    if model.array_lag_index is not None:
+        k = model.array_lag_index
+        out.append(GlobalQuantity("array lag", ARRAY_LAG, "ms", state.lag * 1e3, float(sig[k]) * 1e3))
     return out

@@ -39,17 +39,22 @@ global block         parameters                          enters when
 ``site gradient``    ``G_w`` (5: xx, xy, xz, yy, yz;     orientations are given: a constant
                      symmetric, traceless, T/m, world    world-frame gradient over the array
                      ENU, in units of F per m)
+``array lag``        ``lag`` (s): the array's sets       the IMU gives its angular velocity: the
+                     stamped ``t`` are the field at      attitude at ``t`` turned back by it
+                     ``t - lag`` on the IMU's clock
 =================== =================================== ==========================================
 
 Each set ``k`` with a known attitude ``Q_k`` (IMU frame -> its reference) adds the residual
-``(d_k - A^T Q_k^T f_g) / sigma_att`` that ties its free direction to the IMU, and with the
+``(d_k - A^T exp(lag [w_k]x) Q_k^T f_g) / sigma_att`` (``w_k`` the IMU's angular velocity at the set,
+IMU frame: the attitude the IMU had ``lag`` earlier) that ties its free direction to the IMU, and with the
 gradient each sensor at ``p_i`` (array frame, about the centre) sees the extra field
 ``F R_k^T Gamma R_k p_i`` with ``R_k = Q_k A`` (array -> world) and ``Gamma = G_w / F``.
 
 ``d~_ik = normalise(d_k - tau_i d'_k)`` is the direction the sensor saw, ``d'_k`` the rate of
 change of the field direction (1/s) at the set. A common lag of every sensor, like a common
 rotation of every ``K_i``, is absorbed by the directions: only lags relative to the reference
-sensor (and the frame up to the gauge of :mod:`magcal_ros.core.uncertainty`) are determined.
+sensor (and the frame up to the gauge of :mod:`magcal_ros.core.uncertainty`) are determined; the
+IMU's attitudes determine the common one (``array lag``).
 
 The solver (:mod:`magcal_ros.core.array_fit`) works in units of ``F`` on one flat parameter
 vector per sensor: ``W_i = [K_i | o_i / F | E_i / F | c_i / F]`` (3 x q, row-major, linear in
@@ -68,7 +73,7 @@ Array = NDArray[np.float64]
 
 BLOCKS: tuple[str, ...] = ("sensor", "interference", "temperature", "lag")
 """The per-sensor blocks of the forward model, in parameter order."""
-GLOBAL_BLOCKS: tuple[str, ...] = ("mounting", "field direction", "site gradient")
+GLOBAL_BLOCKS: tuple[str, ...] = ("mounting", "field direction", "site gradient", "array lag")
 """The global blocks (one set of parameters for the array, after every sensor's), in order."""
 HOLDABLE: tuple[str, ...] = ("temperature", "lag")
 """Blocks whose quantities are held at zero (and named) when the data cannot determine them,
@@ -91,6 +96,9 @@ class ForwardModel:
     """Global block: field directions, one per attitude reference (2 each)."""
     site_gradient: bool = False
     """Global block: a constant world-frame gradient over the array (5)."""
+    array_lag: bool = False
+    """Global block: how late (s) the array's stamps are on the IMU's clock (1): the IMU's attitude at a set's
+    stamp ``t`` is turned back to ``t - lag`` with its angular velocity."""
 
     @property
     def q(self) -> int:
@@ -116,13 +124,13 @@ class ForwardModel:
     @property
     def global_size(self) -> int:
         """Global parameters ``G`` after the ``S P`` per-sensor ones (0 without an IMU)."""
-        return 3 * int(self.mounting) + 2 * self.field_groups + 5 * int(self.site_gradient)
+        return 3 * int(self.mounting) + 2 * self.field_groups + 5 * int(self.site_gradient) + int(self.array_lag)
 
     @property
     def global_blocks(self) -> tuple[str, ...]:
         """The global blocks that are on."""
         on = {"mounting": self.mounting, "field direction": self.field_groups > 0,
-              "site gradient": self.site_gradient}
+              "site gradient": self.site_gradient, "array lag": self.array_lag}
         return tuple(b for b in GLOBAL_BLOCKS if on[b])
 
     @property
@@ -142,6 +150,11 @@ class ForwardModel:
             return None
         start = 3 * int(self.mounting) + 2 * self.field_groups
         return slice(start, start + 5)
+
+    @property
+    def array_lag_index(self) -> int | None:
+        """Index in the global vector of the array's lag behind the IMU (s), None without the block."""
+        return self.global_size - 1 if self.array_lag else None
 
     # -- where things are ------------------------------------------------------------------
     @property

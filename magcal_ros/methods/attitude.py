@@ -60,6 +60,11 @@ IMU_STILL_FRACTION: float = 0.1
 """An IMU whose orientation turns by less than this fraction of the readings' turn does not follow the array."""
 MIN_READINGS_TURN_DEG: float = 10.0
 """Readings that turn less than this (deg) say nothing about whether the IMU follows them."""
+LAG_SIGMAS: float = 3.0
+"""The array's lag behind the IMU is applied when it is beyond this many of its 1-sigma ..."""
+MAX_LAG_SIGMA: float = 2e-3
+"""... and its 1-sigma (s) is at most this: a manoeuvre that turns too slowly leaves it undetermined (held at
+zero and said so)."""
 
 
 def check_follows(imu: ImuSamples | None, raw: Array) -> None:
@@ -123,7 +128,31 @@ class ImuReport:
         if grad:
             out.append("site gradient (world ENU, modelled, not calibration error): " + ", ".join(
                 f"{q.name.split()[-1]} {q.value:.1f} +- {float(f'{q.sigma:.2g}'):g} nT/m" for q in grad))
+        out += self._lag_notes()
         return out
+
+    def _lag_notes(self) -> list[str]:
+        lag = [q for q in self.quantities if q.block == "array lag"]
+        if not lag:
+            return []
+        q = lag[0]
+        figure = f"{q.value:.3f} +- {float(f'{q.sigma:.2g}'):g} ms"
+        if self.array_lag:
+            return [f"{ab.ARRAY_LAG}: {figure} (its stamps late on the IMU's clock; added to every sensor's time "
+                    "offset, so the outputs are stamped at the IMU's instants)"]
+        if q.sigma * 1e-3 > MAX_LAG_SIGMA:
+            return [f"{ab.ARRAY_LAG}: undetermined ({figure}: the manoeuvre turns too slowly to tell); none applied"]
+        return [f"{ab.ARRAY_LAG}: {figure}, not significant; none applied"]
+
+    @property
+    def array_lag(self) -> float:
+        """s the array's stamps are late on the IMU's clock, as applied: the fitted lag where determined and
+        significant (:data:`MAX_LAG_SIGMA`, :data:`LAG_SIGMAS`), else 0."""
+        lag = [q for q in self.quantities if q.block == "array lag"]
+        if not lag:
+            return 0.0
+        value, sigma = lag[0].value * 1e-3, lag[0].sigma * 1e-3
+        return value if sigma <= MAX_LAG_SIGMA and abs(value) > LAG_SIGMAS * sigma else 0.0
 
     def provenance(self) -> dict[str, Any]:
         """Calibration-file provenance keys (``imu``: the blocks' values and 1-sigma)."""
@@ -137,7 +166,7 @@ class ImuReport:
 
 def quantity_key(name: str) -> str:
     """A quantity name as a parameter key: ``array to IMU roll`` -> ``array_to_imu_roll_deg``."""
-    unit = "nT_per_m" if name.startswith("site gradient") else "deg"
+    unit = "nT_per_m" if name.startswith("site gradient") else "ms" if name == ab.ARRAY_LAG else "deg"
     return name.lower().replace(" ", "_") + "_" + unit
 
 
@@ -185,6 +214,16 @@ def imu_report(sol: JointSolution, order: NDArray[np.int64], prior_precision: Ar
     excluded = 0 if weights is None else int(np.sum(att.known & (weights < OUTLYING_WEIGHT)))
     return ImuReport(quantities, cov, "orientation" if att.world else "gyro", int(att.known.sum()), att.count,
                      sigma_deg, att.frame_id, excluded)
+
+
+def with_array_lag(offsets: Array | None, report: ImuReport | None, sensors: int) -> Array | None:
+    """Every sensor's time offset (s, ``offsets`` relative to the first, None: none) with the array's lag
+    behind the IMU added (:attr:`ImuReport.array_lag`): a set stamped ``t`` is then the field at ``t - lag``
+    on the IMU's clock, and the outputs are stamped so."""
+    lag = 0.0 if report is None else report.array_lag
+    if not lag:
+        return offsets
+    return (np.zeros(sensors) if offsets is None else np.asarray(offsets, dtype=float)) + lag
 
 
 def output_frame(sol: JointSolution, prior: ArrayCalibration | None = None) -> dict[str, Any]:

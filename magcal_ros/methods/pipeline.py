@@ -864,6 +864,8 @@ class _Run:
     unsolved: list[int] = field(default_factory=list)
     """Channels whose interference the data do not determine (solved again without them)."""
     env: ident.Envelope = field(init=False)
+    imu: imu_blocks.ImuReport | None = None
+    """What the IMU's blocks found (with their 1-sigma), once analysed (stage 11)."""
 
     @property
     def geometry(self) -> ArrayGeometry:
@@ -1174,7 +1176,8 @@ def _calibration(run: _Run, mounting: Array | None) -> tuple[ArrayCalibration, b
         cal = ArrayCalibration(
             run.geometry, matrices, sol.offsets, {}, vector_cov, run.channels,
             sol.interference if run.channels else None,
-            time_offsets=_stored_time_offsets(ana, run.geometry.names, sol.time_offsets),
+            time_offsets=imu_blocks.with_array_lag(_stored_time_offsets(ana, run.geometry.names, sol.time_offsets),
+                                                   run.imu, run.geometry.size),
             temperature_reference=blocks.reference if thermal else None,
             offset_tempco=sol.offset_tempco if thermal else None,
             matrix_tempco=-matrices * sol.gain_tempco[:, None, :] if thermal else None,
@@ -1259,6 +1262,8 @@ def _gate(run: _Run) -> _Gated:
     """Stage 11, gate: the calibration (a single sensor's mounting applied), the sets it corrects, the
     uniformity and quality gates, and the warnings."""
     mounting = _mounting(run)
+    run.imu = imu_blocks.imu_report(run.sol, run.order, None if run.param_prior is None else
+                                    run.param_prior.fitted_to(run.sol.model).precision().reshape(-1))
     cal, thermal = _calibration(run, mounting)
     corrected = _corrected(run, cal, thermal)
     tmi_residual = np.linalg.norm(corrected, axis=2) - run.sol.intensity
@@ -1271,8 +1276,7 @@ def _report(run: _Run, gated: _Gated) -> CalibrationResult:
     """Stage 12, report: the result with its diagnostics (residuals before and after, analysis, envelope,
     what the blocks found), and the calibration's provenance."""
     sol, cov, blocks, s = run.sol, run.cov, run.blocks, run.geometry.size
-    imu_report = imu_blocks.imu_report(sol, run.order, None if run.param_prior is None else
-                                       run.param_prior.fitted_to(sol.model).precision().reshape(-1))
+    imu_report = run.imu
     used = sol.weights > 0
     clean_sets = used.all(axis=1)
     span = None if blocks.temperatures is None else (float(blocks.temperatures.min() + blocks.reference),

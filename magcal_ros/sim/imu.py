@@ -45,12 +45,18 @@ class ImuModel:
     rate: float = 0.0
     """Samples per second of the IMU's own stream (0: one sample at each set's stamp)."""
     frame_id: str = DEFAULT_IMU_FRAME_ID
+    array_lag: float = 0.0
+    """s: how late the array's stamps are on the IMU's clock (drivers that stamp on receipt): a set stamped
+    ``t`` was sampled at ``t - array_lag`` on the IMU's clock, where the IMU's own samples are stamped when
+    they are taken. Needs attitudes flown in time."""
 
     def __post_init__(self) -> None:
         m = np.asarray(self.mounting, dtype=float).reshape(3, 3)
         if not np.all(np.isfinite(m)) or np.max(np.abs(m @ m.T - np.eye(3))) > 1e-9 or np.linalg.det(m) <= 0:
             raise InputError("the IMU mounting must be a rotation matrix")
         bias = np.asarray(self.gyro_bias, dtype=float).reshape(3)
+        if not (np.isfinite(self.array_lag) and abs(self.array_lag) <= 0.5):
+            raise InputError("the array's lag behind the IMU must be a finite number of seconds within +-0.5 s")
         for name, v in (("orientation noise", self.orientation_noise), ("gyro noise", self.gyro_noise),
                         ("IMU rate", self.rate)):
             if not (np.isfinite(v) and v >= 0):
@@ -98,18 +104,25 @@ def simulate_imu(model: ImuModel, attitudes: ArrayLike, stamps: NDArray[np.int64
                  rng: np.random.Generator) -> ImuOutput:
     """The IMU for sets at ``stamps`` (ns) with platform-to-NED ``attitudes``; ``path``: the continuous
     attitude the sets sample (times in s from the first stamp), None when the attitudes are not a path
-    in time (then no angular velocity, and no stream at its own rate)."""
+    in time (then no angular velocity, and no stream at its own rate). With the model's ``array_lag`` the
+    IMU at a set's stamp is the path ``array_lag`` after the set's sample; the true values are at the
+    samples."""
     rot = np.asarray(attitudes, dtype=float).reshape(-1, 3, 3)
     q_true = model.true_orientation(rot)
     t_sets = (np.asarray(stamps, np.int64) - stamps[0]) / NS_PER_S
+    lag = model.array_lag
     if path is None:
-        if model.rate > 0:
-            raise InputError("an IMU at its own rate needs attitudes flown in time (a schedule of "
-                             "single-axis, sea or tumble)")
+        if model.rate > 0 or lag:
+            raise InputError("an IMU at its own rate, or an array lagging the IMU, needs attitudes flown in time (a "
+                             "schedule of single-axis, sea or tumble)")
         w_true = np.full((len(rot), 3), np.nan)
     else:
         w_true = model.true_angular_velocity(path.angular_velocity(t_sets))
-    q, w = model.measure(q_true, w_true, rng)
+    if lag:  # what the IMU says at the sets' stamps: the path lag later
+        q, w = model.measure(model.true_orientation(path.attitude(t_sets + lag)),
+                             model.true_angular_velocity(path.angular_velocity(t_sets + lag)), rng)
+    else:
+        q, w = model.measure(q_true, w_true, rng)
     measured = ImuSamples(q, w, model.frame_id)
     if model.rate > 0 and path is not None:
         span = t_sets[-1]
@@ -118,7 +131,7 @@ def simulate_imu(model: ImuModel, attitudes: ArrayLike, stamps: NDArray[np.int64
         t_imu = t_imu[t_imu <= span]
         sq, sw = model.measure(model.true_orientation(path.attitude(t_imu)),
                                model.true_angular_velocity(path.angular_velocity(t_imu)), rng)
-        stream = ImuStream(stamps[0] + seconds_to_ns(t_imu), sq, sw, model.frame_id)
+        stream = ImuStream(stamps[0] + seconds_to_ns(t_imu - lag), sq, sw, model.frame_id)  # taken at t_imu
     else:
-        stream = ImuStream(np.asarray(stamps, np.int64), q, w, model.frame_id)
+        stream = ImuStream(np.asarray(stamps, np.int64), q, w, model.frame_id)  # at the stamps: what it says there
     return ImuOutput(measured, q_true, w_true, stream)

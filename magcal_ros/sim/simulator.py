@@ -184,7 +184,8 @@ class ArraySimulation:
     def true_calibration(self) -> ArrayCalibration:
         """Corrections that map raw readings exactly into the true platform frame (and the
         thrusters' true interference); with tempcos, the exact temperature terms; with an IMU,
-        its mounting as the output rotation and its frame."""
+        its mounting as the output rotation and its frame, and the array's lag behind it as every
+        sensor's time offset."""
         pairs = [s.correction() for s in self.sensors]
         matrices = np.stack([p[0] for p in pairs])
         extra: dict[str, object] = {}
@@ -194,6 +195,8 @@ class ArraySimulation:
                          matrix_tempco=-matrices * g[:, None, :])  # -M diag(g)
         if self.imu is not None:
             extra.update(output_rotation=self.imu.mounting, frame_id=self.imu.frame_id)
+            if self.imu.array_lag:  # every sensor's stamps that late on the IMU's clock
+                extra.update(time_offsets=np.full(self.geometry.size, self.imu.array_lag))
         return ArrayCalibration(
             self.geometry, matrices, np.stack([p[1] for p in pairs]), {"method": "truth"},
             None, self.channels, self.interference() if self.thrusters else None, **extra,  # type: ignore[arg-type]

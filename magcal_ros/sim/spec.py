@@ -171,6 +171,8 @@ class SimulationSpec:
     imu_rate: float = 0.0
     """Samples per second of the IMU's own topic in a bag (0: one at each set's stamp)."""
     imu_frame_id: str = DEFAULT_IMU_FRAME_ID
+    imu_array_lag: float = 0.0
+    """s the array's stamps are late on the IMU's clock (magnetometer drivers that stamp on receipt)."""
     world_gradient: tuple[float, ...] = ()
     """A constant gradient over the array (T/m, world frame NED): 5 numbers xx, xy, xz, yy, yz
     (symmetric and traceless) or all 9 row-major."""
@@ -270,7 +272,7 @@ class SimulationSpec:
                 and self.temperature_noise >= 0):
             raise InputError("--temperature-reference must be finite and --temperature-noise finite and >= 0")
         if not self.imu and (any(self.imu_mounting) or self.imu_orientation_noise or self.imu_gyro_noise
-                             or any(self.imu_gyro_bias) or self.imu_rate):
+                             or any(self.imu_gyro_bias) or self.imu_rate or self.imu_array_lag):
             raise InputError("the --imu-* options need --imu")
         if len(self.imu_mounting) != 3 or len(self.imu_gyro_bias) != 3:
             raise InputError("--imu-mounting needs ROLL,PITCH,YAW (deg) and --imu-gyro-bias 3 numbers (rad/s)")
@@ -322,7 +324,8 @@ class SimulationSpec:
         roll, pitch, yaw = self.imu_mounting
         mounting = attitudes.yaw_pitch_roll(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
         return ImuModel(mounting, np.radians(self.imu_orientation_noise), self.imu_gyro_noise,
-                        np.asarray(self.imu_gyro_bias, dtype=float), self.imu_rate, self.imu_frame_id)
+                        np.asarray(self.imu_gyro_bias, dtype=float), self.imu_rate, self.imu_frame_id,
+                        self.imu_array_lag)
 
     def world_gradient_matrix(self) -> np.ndarray | None:
         """The world gradient (3, 3) T/m (NED), None without one."""

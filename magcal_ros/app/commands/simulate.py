@@ -169,6 +169,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="the IMU's own rate in a bag (its clock offset from the sets'; default 0: one sample at each "
                    "set's stamp)")
     g.add_argument("--imu-frame-id", default=d.imu_frame_id, help=f"the IMU's frame (default {d.imu_frame_id})")
+    g.add_argument("--imu-array-lag", type=float, default=d.imu_array_lag, metavar="S",
+                   help="how late the array's stamps are on the IMU's clock (s; magnetometer drivers that stamp on "
+                   "receipt), for schedules flown in time; the calibration fits it (default 0)")
     g.add_argument("--world-gradient", metavar="XX,XY,XZ,YY,YZ",
                    help="a constant gradient over the array (T/m, world frame NED, symmetric and traceless: 5 "
                    "numbers, or all 9 row-major), e.g. 30e-9,0,0,-15e-9,0")
@@ -377,5 +380,5 @@ def _simulate_temperature_and_imu(args: argparse.Namespace) -> dict[str, Any]:
         "imu": args.imu, "imu_mounting": _numbers(args.imu_mounting, 3, "--imu-mounting"),
         "imu_orientation_noise": args.imu_orientation_noise, "imu_gyro_noise": args.imu_gyro_noise,
         "imu_gyro_bias": _numbers(args.imu_gyro_bias, 3, "--imu-gyro-bias"), "imu_rate": args.imu_rate,
-        "imu_frame_id": args.imu_frame_id, "world_gradient": numbers(args.world_gradient, "--world-gradient"),
+        "imu_frame_id": args.imu_frame_id, "imu_array_lag": args.imu_array_lag, "world_gradient": numbers(args.world_gradient, "--world-gradient"),
     }
