@@ -195,8 +195,9 @@ class CalibrationResult:
         hand), so a heading taken from ``field`` is off by as much until an IMU or a known mounting turns it."""
         cal = self.calibration
         if cal.rotated:
-            return (f"outputs in the IMU's frame {cal.frame_id or ''}: output_rotation (array to IMU) was fitted from "
-                    "its orientations, so vectors, field and gradient are in the vehicle's navigation frame").replace("  ", " ")
+            frame = cal.frame_id or "(the recording names none: magcal correct --frame-id, or frame_id in the file)"
+            return (f"outputs in the IMU's frame {frame}: output_rotation (array to IMU) was fitted from its "
+                    "orientations, so vectors, field and gradient are in the vehicle's navigation frame")
         if cal.geometry.size == 1:
             if self.extras.get("mounting"):
                 return "output in the platform frame: the given mounting turns the sensor's corrected axes into it"
@@ -857,6 +858,8 @@ class _Run:
     # -- the result
     excluded: Array | None = None
     """(S,) readings excluded on every set (after the refinement), None: from :attr:`sol`'s weights."""
+    keep: NDArray[np.int64] | None = None
+    """The sets of the subset (indices into every set), None: every set."""
     vertical: Array = field(init=False)
     """(N,) z component of each set's field direction (platform frame), for the envelope."""
     smooth: bool = False
@@ -968,13 +971,14 @@ def _checked_input(call: _Call, t0: float) -> _Run:
 
 def _choose_sets(run: _Run) -> None:
     """Stage 2, choose the sets: a long recording's expensive stages run on a subset keeping the attitude
-    coverage and the time order (:func:`choose_sets`); every set is kept in :attr:`_Run.full`. With the
-    IMU's blocks, every set."""
+    coverage and the time order (:func:`choose_sets`); every set is kept in :attr:`_Run.full`. The IMU's
+    blocks too (their attitudes taken on every set, then the subset's)."""
     n, s = run.r.shape[:2]
-    budget = solve_budget(s, run.opts.max_solve_sets) if run.call.imu is None else 0
+    budget = solve_budget(s, run.opts.max_solve_sets)
     if not budget or n <= budget:
         return
     keep = choose_sets(direction_proxy(run.r), run.order, budget)
+    run.keep = keep
     stamps = None if run.stamps is None else np.asarray(run.stamps)
     run.full = _AllSets(run.r, run.u, stamps, run.temperatures)
     run.r, run.u, run.clipped = run.r[keep], run.u[keep], run.clipped[keep]
@@ -1045,8 +1049,10 @@ def _switch_on_blocks(run: _Run) -> None:
         if not run.fits_jointly:
             raise InputError(f"calibrating with the IMU needs method 'ml', not {run.call.method!r}")
         imu_blocks.check_follows(imu, run.r)
-        run.blocks = replace(run.blocks, attitude=imu_blocks.attitude_for(imu, run.stamps, run.geometry, n,
-                                                                          run.opts.site_field))
+        every = run.full is not None  # the attitudes of every set (a gyro integrates from set to set), then the subset's
+        att = imu_blocks.attitude_for(imu, run.full.stamps if every else run.stamps, run.geometry,
+                                      run.full.count if every else n, run.opts.site_field)
+        run.blocks = replace(run.blocks, attitude=att if att is None or run.keep is None else att.take(run.keep))
     run.param_prior = _prior_of(run.call.prior, run.geometry, run.intensity, run.channels, run.opts, run.blocks)
 
 
@@ -1122,8 +1128,8 @@ def _refine_on_every_set(run: _Run) -> tuple[Covariance | None, Array | None]:
     """Stage 8: a subset's joint solution refined by one pass over every set. The subset's covariance and
     the leave-one-block-out estimates (K, P) of every set for the analysis (None, None: not refined)."""
     run.vertical = run.sol.directions[:, 2]
-    if run.full is None or not run.fits_jointly:
-        return None, None
+    if run.full is None or not run.fits_jointly or run.blocks.attitude is not None:
+        return None, None  # with the IMU's blocks the subset's solution stands (the pass has no global blocks)
     run.stage(f"refine on all {run.full.count} sets")
     refined = _refine(run.sol, run.full, run.param_prior, run.blocks, bool(run.channels), run.free)
     run.sol, run.excluded, run.vertical = refined.solution, refined.excluded, refined.vertical
