@@ -7,7 +7,8 @@ The correction node starts with the true calibration (temperature terms, a paylo
 interference), the calibration node with ``auto_recalibrate`` on; a 4-sensor cross turning while it
 dives through a thermocline, each sensor stamped on receipt (delay and jitter), one driver restarting
 (its stamps jump back), one sensor silent for minutes, a payload current switched on, the hull's hard
-iron jumping (see :mod:`magcal_ros.app.soak`). Prints progress while it runs, then per block of
+iron jumping (see :mod:`magcal_ros.app.soak`); with ``--payload-unknown`` the payload's interference is not in
+the starting calibration (it was off during the manoeuvre) and must be named and learnt when it comes on. Prints progress while it runs, then per block of
 mission the sets offered and output, the tensor RMS error over the floor sqrt(2) noise / baseline,
 the TMI error over the noise and each process's RSS (min-max, MiB); every status change of the
 correction node on /diagnostics; every recalibration pushed and its latency from the hull change;
@@ -34,9 +35,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--tempco", action="store_true",
                         help="sensors that follow the temperature, a calibration with temperature terms")
+    parser.add_argument("--payload-unknown", action="store_true",
+                        help="the payload was off during the manoeuvre: the running calibration does not know its "
+                        "interference and the correction node watches its current (named and learnt when it comes on)")
     args = parser.parse_args()
     plan = SoakPlan(duration=args.hours * 3600.0, speed=args.speed, rate=args.rate, block=args.block_minutes * 60.0,
-                    silent_for=args.silent_minutes * 60.0, seed=args.seed, tempco=args.tempco)
+                    silent_for=args.silent_minutes * 60.0, seed=args.seed, tempco=args.tempco,
+                    payload_known=not args.payload_unknown)
     t0 = time.monotonic()
     out = run_soak(plan, lambda s: print(s, flush=True))
     print(f"\nmission soak: {args.hours:g} h of mission at {args.speed:g}x, {args.rate:g} Hz per sensor, "
