@@ -67,6 +67,27 @@ def test_sensor_errors_round_trip_through_matrices():
     np.testing.assert_allclose(back.offset, e.offset, atol=1e-20)
 
 
+def test_sensor_errors_take_any_three_numbers_and_refuse_what_is_not_a_sensor():
+    """Three numbers in any shape are a vector, a nested list a soft-iron matrix (both stored as arrays,
+    the forward model by hand); a wrong count, a NaN, a scale <= 0, a singular K or one with a reflection
+    is an error naming what is wrong."""
+    e = SensorErrors(scale=[[2.0], [0.5], [1.0]], offset=np.array([[1e-6, 0.0, -2e-6]]),
+                     soft_iron=[[0.0, 0.1, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert e.scale.shape == e.offset.shape == (3,) and isinstance(e.soft_iron, np.ndarray)
+    k, o = e.forward()  # K = diag(2, 0.5, 1) (I + S), o = the offset
+    np.testing.assert_allclose(k, [[2.0, 0.2, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 1.0]], atol=1e-15)
+    np.testing.assert_allclose(o, [1e-6, 0.0, -2e-6], atol=1e-21)
+    for kw, name in [({"scale": [1.0, 1.0, 1.0, 1.0]}, "scale"), ({"offset": [0.0, np.nan, 0.0]}, "offset"),
+                     ({"angles": [0.0, 0.0]}, "angles"), ({"hard_iron": [np.inf, 0.0, 0.0]}, "hard_iron"),
+                     ({"soft_iron": np.zeros(3)}, "soft_iron"), ({"soft_iron": np.full((3, 3), np.nan)}, "soft_iron"),
+                     ({"scale": [1.0, 0.0, 1.0]}, "scale"), ({"scale": [1.0, 1.0, -1.0]}, "scale")]:
+        with pytest.raises(InputError, match=name):
+            SensorErrors(**kw)
+    for k_bad in (np.diag([1.0, 1.0, -1.0]), np.diag([1.0, 1.0, 0.0]), np.full((3, 3), np.nan), np.eye(4)):
+        with pytest.raises(InputError, match="determinant"):
+            SensorErrors.from_forward(k_bad, np.zeros(3))
+
+
 def test_the_identifiability_reads_known_physical_errors_from_a_stack_of_parameter_vectors():
     """The identifiability's stacked decomposition gives back the scale, non-orthogonality,
     misalignment and offset a sensor was built with, for several sensors at once (one with ``-K``),
