@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import truth_tools as tt
 from scipy.spatial.transform import Rotation
 
 from magcal_ros.core.alignment import li2018_angles
+from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.array_fit import _inv2, chi2_isf, fit_array
 from magcal_ros.core.field import Dipole, earth_field
 from magcal_ros.core.geometry import ArrayGeometry
@@ -921,3 +924,180 @@ def test_the_one_rq_decomposition_gives_an_upper_factor_with_a_positive_diagonal
     one_upper, one_q = rq_positive(stack[4])
     np.testing.assert_allclose(one_upper, upper[4], atol=1e-14)
     np.testing.assert_allclose(one_q, q[4], atol=1e-14)
+
+
+# -- current interference against hand-built truth -----------------------------------------------------
+def _interfered(seed: int, currents: np.ndarray, field: np.ndarray, noise: float = 0.0):
+    """A cross with a known calibration (matrices near I, offsets of hundreds of nT), known gains ``D``
+    (tens of nT/A) and the field ``field`` (N, S, 3) T: the raw sets ``r = M^-1 (B + D u + e) + o``."""
+    rng = np.random.default_rng(seed)
+    s, m = 4, currents.shape[1]
+    cal = ArrayCalibration(CROSS, np.eye(3) + rng.normal(0, 0.03, (s, 3, 3)), rng.normal(0, 300 * NT, (s, 3)))
+    gains = rng.normal(0, 40 * NT, (s, 3, m))
+    b = field + np.einsum("sac,nc->nsa", gains, currents) + rng.normal(0, noise, field.shape)
+    raw = np.einsum("sij,nsj->nsi", np.linalg.inv(cal.matrices), b) + cal.offsets
+    return cal, gains, raw
+
+
+def test_still_run_gains_are_the_true_ones_with_the_textbook_uncertainty():
+    """A still vehicle, two currents stepped independently and one held at 5 A: the gains of the two are the
+    true ones (exactly without noise), the held one is not solved (0, sigma inf); the field is the true
+    constant field; with 1 nT of noise the 1-sigma is ``noise / sqrt(sum (u - mean u)^2)`` per channel (the
+    two channels' steps are uncorrelated by construction) and every gain lies within 4 of it."""
+    from magcal_ros.core.interference import estimate_interference
+
+    n = 400
+    k = np.arange(n)
+    u = np.column_stack([np.where((k // 20) % 2, 10.0, 0.0), np.where((k // 40) % 2, 4.0, -4.0), np.full(n, 5.0)])
+    field = np.broadcast_to(np.random.default_rng(1).normal(0, 20_000 * NT, (1, 4, 3)), (n, 4, 3))
+    cal, gains, raw = _interfered(2, u, field)
+    est = estimate_interference(raw, u, cal)
+    np.testing.assert_array_equal(est.undetermined, [False, False, True])
+    np.testing.assert_allclose(est.gains[:, :, :2], gains[:, :, :2], atol=1e-9 * NT)
+    assert np.all(est.gains[:, :, 2] == 0.0) and np.all(np.isinf(est.sigma[:, :, 2]))
+    # the held channel's field is part of the constant field
+    np.testing.assert_allclose(est.field, field[0] + 5.0 * gains[:, :, 2], atol=1e-6 * NT)
+    assert np.all(est.residual < 1e-6 * NT)
+
+    noise = 1 * NT
+    cal, gains, raw = _interfered(2, u, field, noise)
+    est = estimate_interference(raw, u, cal)
+    textbook = noise / np.sqrt(np.sum((u[:, :2] - u[:, :2].mean(axis=0)) ** 2, axis=0))  # (2,) T/A
+    np.testing.assert_allclose(est.sigma[:, :, :2] / textbook, 1.0, atol=0.15)
+    assert np.all(np.abs(est.gains[:, :, :2] - gains[:, :, :2]) < 4 * textbook)
+    np.testing.assert_allclose(est.residual / noise, 1.0, atol=0.1)
+    np.testing.assert_allclose(est.field, field[0] + 5.0 * gains[:, :, 2], atol=5 * noise / np.sqrt(n))
+
+
+def test_gains_from_the_steps_under_a_smoothly_turning_field_and_what_is_refused():
+    """A vehicle whose field swings by 2,000 nT over 20 s (a turn) at 20 sets/s, two currents that step and
+    one that ramps smoothly: the steps give the true gains, the ramp is not solved (a spline in time
+    explains it); a still-run fit of the same sets cannot. Too few sets, wrong shapes, NaN and temperature
+    terms are refused."""
+    from magcal_ros.core.interference import estimate_interference, interference_from_steps
+
+    n = 800
+    t = 3.0 + np.arange(n) / 20.0
+    k = np.arange(n)
+    u = np.column_stack([np.where((k // 37) % 2, 8.0, 1.0), np.where((k // 53) % 3 == 1, 3.0, 0.0), 2.0 + 0.1 * t])
+    swing = np.sin(2 * np.pi * t / 20.0)[:, None, None] * np.array([1000, -600, 400]) * NT
+    field = np.random.default_rng(1).normal(0, 20_000 * NT, (1, 4, 3)) + swing
+    cal, gains, raw = _interfered(3, u, field)
+    est = interference_from_steps(raw, u, cal, t)
+    np.testing.assert_array_equal(est.undetermined, [False, False, True])
+    np.testing.assert_allclose(est.gains[:, :, :2], gains[:, :, :2], atol=1e-3 * NT)
+    assert np.all(est.gains[:, :, 2] == 0.0) and np.all(np.isinf(est.sigma[:, :, 2]))
+    assert np.all(est.residual < 0.01 * NT)
+    still = estimate_interference(raw, u[:, :2], cal)  # a constant field cannot follow the turn
+    assert np.abs(still.gains - gains[:, :, :2]).max() > 1 * NT
+    # too few sets: a fit needs two more sets than unknowns (4 spline columns in 0.25 s; 1 field + 1 gain)
+    with pytest.raises(InputError, match="5 sets cannot determine 0 channels under a smooth field: record more sets"):
+        interference_from_steps(raw[:5], u[:5], cal, t[:5])
+    assert interference_from_steps(raw[:6], u[:6], cal, t[:6]).undetermined.all()
+    few = np.array([[0.0], [10.0], [0.0], [10.0]])
+    with pytest.raises(InputError, match="^3 sets cannot determine 1 channels: record more sets"):
+        estimate_interference(raw[:3], few[:3], cal)
+    assert not estimate_interference(raw[:4], few, cal).undetermined[0]
+    with pytest.raises(InputError, match="need raw sets"):
+        estimate_interference(raw[:, :3], u, cal)
+    with pytest.raises(InputError, match="need raw sets"):
+        estimate_interference(raw, u[:-1], cal)
+    bad = u.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        estimate_interference(raw, bad, cal)
+    warm = replace(cal, temperature_reference=20.0, offset_tempco=np.full((4, 3), 1 * NT))
+    with pytest.raises(InputError, match="temperature terms"):
+        interference_from_steps(raw, u, warm, t)
+
+
+def test_the_smooth_basis_is_a_cubic_spline_with_knots_every_half_second():
+    """Columns: one per knot interval (the span over the spacing, rounded up) plus 3; the rows sum to 1;
+    any cubic in time is a combination of them, a step is not."""
+    from magcal_ros.core.interference import smooth_basis
+
+    t = np.sort(np.random.default_rng(4).uniform(0.0, 10.2, 300))
+    t[0], t[-1] = 0.0, 10.2
+    basis = smooth_basis(t)
+    assert basis.shape == (300, 21 + 3)  # 10.2 s / 0.5 s = 20.4 -> 21 intervals
+    assert smooth_basis(t, 2.5).shape == (300, 5 + 3)  # 4.08 -> 5
+    assert smooth_basis(t, 20.0).shape == (300, 1 + 3)
+    np.testing.assert_allclose(basis.sum(axis=1), 1.0, atol=1e-12)
+    for y, fits in ((1.0 - 0.3 * t + 0.05 * t**2 - 0.004 * t**3, True), ((t > 5.1).astype(float), False)):
+        coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
+        assert bool(np.abs(basis @ coef - y).max() < 1e-9) is fits
+
+
+def test_a_current_tolerance_is_whole_nanoseconds_and_never_negative():
+    from magcal_ros.core.interference import tolerance_of
+
+    assert tolerance_of(0.5) == 500_000_000 and tolerance_of(0.0) == 0 and tolerance_of(2) == 2_000_000_000
+    for bad in (-1e-9, np.nan, np.inf):
+        with pytest.raises(InputError, match=r"the imu tolerance must be a finite number of seconds >= 0, got"):
+            tolerance_of(bad, "imu")
+
+
+def test_undetermined_channels_are_described_by_kind():
+    """A held current is named with its level, a noisy one with its RMS and reading noise (the robust scale of
+    its set-to-set differences over sqrt 2), currents in lockstep as such; one clause per kind."""
+    from magcal_ros.core.interference import describe_undetermined
+
+    n = 200
+    k = np.arange(n)
+    steps = np.where((k // 10) % 2, 6.0, 2.0)
+    flicker = 0.01 * (-1.0) ** k  # RMS 0.01 A, every difference 0.02 A: reading noise 1.4826 * 0.02 / sqrt 2
+    u = np.column_stack([steps, np.full(n, 12.0), flicker, 0.5 * steps + 1.0, 2 * flicker])
+    names = ("a", "b", "c", "d", "e")
+    text = describe_undetermined(names, u, [True, True, True, True, False])
+    assert text == ("b (12 A) never varied (a constant current is part of the offsets); c (0.01 A RMS, reading "
+                    "noise 0.021 A) varied only within its reading noise (e.g. a load switched off: a gain regressed "
+                    "on a reading that is mostly noise is not the channel's); a, d varied in lockstep with each other "
+                    "or with the attitude")
+    text = describe_undetermined(names, u, [False, False, True, True, True])
+    assert text.startswith("c (0.01 A RMS, reading noise 0.021 A), e (0.02 A RMS, reading noise 0.042 A) varied "
+                           "only within their reading noise")
+    assert text.endswith("; d varied in lockstep with another channel or with the attitude")
+    assert describe_undetermined(names, u, [False] * 5) == ""
+
+
+def test_current_inputs_are_checked_and_stored_as_int64_stamps_and_float_amperes():
+    """Samples: int32 stamps become int64 ns, integer currents floats, one value per stamp or an error naming
+    the channel; recorded currents mostly beyond 10 kA (mA taken for A) are refused naming where, one such
+    sample among amperes is a bad sample, not a units error."""
+    from magcal_ros.core.interference import CurrentSamples, check_currents
+
+    s = CurrentSamples("thruster1", np.array([10, 20, 30], dtype=np.int32), [[1], [2], [3]])
+    assert s.stamps.dtype == np.int64 and s.values.dtype == np.float64 and s.values.shape == (3,)
+    np.testing.assert_array_equal(s.values, [1.0, 2.0, 3.0])
+    with pytest.raises(InputError, match="^channel thruster1: need integer ns stamps and one current per stamp$"):
+        CurrentSamples("thruster1", np.array([10, 20]), [1.0])
+    with pytest.raises(InputError, match="^bag thrusters.csv: current 20000 A and most others are out of range"):
+        check_currents([[20_000.0, 15_000.0], [12_000.0, 3.0]], "bag thrusters.csv")
+    check_currents([[2.0, 15_000.0], [1.0, 3.0]], "bag thrusters.csv")
+
+
+def test_reading_noise_of_a_few_sets_by_hand():
+    """1.4826 times the median absolute set-to-set difference over sqrt 2; 0 below three sets; a column of
+    currents is the same series."""
+    from magcal_ros.core.interference import reading_noise, within_noise
+
+    assert reading_noise([5.0, 6.0]) == 0.0 and reading_noise([]) == 0.0
+    assert reading_noise([0.0, 1.0, 0.0]) == pytest.approx(1.4826 / np.sqrt(2.0), rel=1e-12)
+    series = [1.0, 1.02, 0.99, 1.01, 1.0]  # differences 0.02, 0.03, 0.02, 0.01: median 0.02
+    assert reading_noise(np.array(series)[:, None]) == pytest.approx(1.4826 * 0.02 / np.sqrt(2.0), rel=1e-9)
+    flicker = 0.01 * (-1.0) ** np.arange(100)  # RMS 0.01 A, reading noise 0.021 A
+    assert within_noise(flicker) and not within_noise(flicker, 0.07) and within_noise(flicker, 0.06)
+
+
+def test_a_channel_that_is_another_in_lockstep_plus_its_monitors_noise_is_undetermined():
+    """Channel b reads 0.5 a + 2 A plus 10 mA of monitor noise: what a (and a constant) leave of it is that
+    noise, so b is undetermined although it varies by amps; a (its reading noise 0: held between steps) is
+    determined."""
+    from magcal_ros.core.interference import undetermined_channels
+
+    k = np.arange(1000)
+    a = np.where((k // 25) % 2, 10.0, 0.0)
+    b = 0.5 * a + 2.0 + np.random.default_rng(6).normal(0.0, 0.01, 1000)
+    out = undetermined_channels(np.column_stack([a, b]))
+    assert out.dtype == bool
+    np.testing.assert_array_equal(out, [False, True])
