@@ -927,15 +927,24 @@ def test_the_one_rq_decomposition_gives_an_upper_factor_with_a_positive_diagonal
 
 
 # -- current interference against hand-built truth -----------------------------------------------------
-def _interfered(seed: int, currents: np.ndarray, field: np.ndarray, noise: float = 0.0):
+def _interfered(seed: int, currents: np.ndarray, field: np.ndarray, noise: float | np.ndarray = 0.0,
+                temperatures: np.ndarray | None = None):
     """A cross with a known calibration (matrices near I, offsets of hundreds of nT), known gains ``D``
-    (tens of nT/A) and the field ``field`` (N, S, 3) T: the raw sets ``r = M^-1 (B + D u + e) + o``."""
+    (tens of nT/A) and the field ``field`` (N, S, 3) T: the raw sets ``r = M^-1 (B + D u + e) + o`` (``e``
+    of 1-sigma ``noise``, one per sensor when (S, 1)). With ``temperatures`` (N, S) deg C the calibration has
+    temperature terms about 20 deg C and ``r = (M + dT M1)^-1 (B + D u + e) + o + dT c``."""
     rng = np.random.default_rng(seed)
     s, m = 4, currents.shape[1]
     cal = ArrayCalibration(CROSS, np.eye(3) + rng.normal(0, 0.03, (s, 3, 3)), rng.normal(0, 300 * NT, (s, 3)))
     gains = rng.normal(0, 40 * NT, (s, 3, m))
-    b = field + np.einsum("sac,nc->nsa", gains, currents) + rng.normal(0, noise, field.shape)
-    raw = np.einsum("sij,nsj->nsi", np.linalg.inv(cal.matrices), b) + cal.offsets
+    b = field + np.einsum("sac,nc->nsa", gains, currents) + rng.normal(0, 1, field.shape) * noise
+    if temperatures is None:
+        return cal, gains, np.einsum("sij,nsj->nsi", np.linalg.inv(cal.matrices), b) + cal.offsets
+    cal = replace(cal, temperature_reference=20.0, offset_tempco=rng.normal(0, 2 * NT, (s, 3)),
+                  matrix_tempco=rng.normal(0, 1e-4, (s, 3, 3)))
+    dt = temperatures - 20.0
+    m_t = cal.matrices + dt[:, :, None, None] * cal.matrix_tempco
+    raw = np.einsum("nsij,nsj->nsi", np.linalg.inv(m_t), b) + cal.offsets + dt[:, :, None] * cal.offset_tempco
     return cal, gains, raw
 
 
@@ -959,14 +968,51 @@ def test_still_run_gains_are_the_true_ones_with_the_textbook_uncertainty():
     np.testing.assert_allclose(est.field, field[0] + 5.0 * gains[:, :, 2], atol=1e-6 * NT)
     assert np.all(est.residual < 1e-6 * NT)
 
-    noise = 1 * NT
+    # a calibration that has channels of its own: they are not applied (nor needed), the result is the same
+    own = replace(cal, channels=("p", "q"), interference=np.full((4, 3, 2), 50 * NT))
+    np.testing.assert_array_equal(estimate_interference(raw, u, own).gains, est.gains)
+    # no channels: the field alone
+    alone = estimate_interference(raw, np.zeros((n, 0)), cal)
+    assert alone.gains.shape == alone.sigma.shape == (4, 3, 0) and alone.undetermined.shape == (0,)
+    np.testing.assert_allclose(alone.field, cal.apply(raw).mean(axis=0), atol=1e-6 * NT)
+
+    noise = np.array([[0.5], [1.0], [1.5], [2.0]]) * NT  # per sensor
     cal, gains, raw = _interfered(2, u, field, noise)
     est = estimate_interference(raw, u, cal)
-    textbook = noise / np.sqrt(np.sum((u[:, :2] - u[:, :2].mean(axis=0)) ** 2, axis=0))  # (2,) T/A
+    textbook = noise[:, :, None] / np.sqrt(np.sum((u[:, :2] - u[:, :2].mean(axis=0)) ** 2, axis=0))  # (S, 1, 2)
     np.testing.assert_allclose(est.sigma[:, :, :2] / textbook, 1.0, atol=0.15)
     assert np.all(np.abs(est.gains[:, :, :2] - gains[:, :, :2]) < 4 * textbook)
-    np.testing.assert_allclose(est.residual / noise, 1.0, atol=0.1)
-    np.testing.assert_allclose(est.field, field[0] + 5.0 * gains[:, :, 2], atol=5 * noise / np.sqrt(n))
+    assert est.residual.shape == (4,)
+    np.testing.assert_allclose(est.residual / noise[:, 0], 1.0, atol=0.1)
+    assert np.all(np.abs(est.field - field[0] - 5.0 * gains[:, :, 2]) < 5 * noise / np.sqrt(n))
+
+
+def test_still_run_gains_with_temperature_terms_and_an_unbiased_variance_from_ten_sets():
+    """A calibration with temperature terms is applied at the sensors' temperatures (30 K of swing): the true
+    gains. From 10 sets (7 degrees of freedom per axis) over 60 repetitions, the stated variance of a gain
+    averages the true one, ``noise^2 / sum (u - mean u)^2`` (unbiased), and so does the squared error."""
+    from magcal_ros.core.interference import estimate_interference
+
+    n = 300
+    k = np.arange(n)
+    u = np.column_stack([np.where((k // 20) % 2, 10.0, 0.0), np.where((k // 30) % 2, 4.0, -4.0)])
+    temps = 5.0 + 30.0 * np.random.default_rng(8).uniform(size=(n, 4))
+    field = np.broadcast_to(np.random.default_rng(1).normal(0, 20_000 * NT, (1, 4, 3)), (n, 4, 3))
+    cal, gains, raw = _interfered(4, u, field, temperatures=temps)
+    est = estimate_interference(raw, u, cal, temps)
+    np.testing.assert_allclose(est.gains, gains, atol=1e-9 * NT)
+
+    noise = 1 * NT
+    u10 = np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0, 0], [1, 0], [0, 1], [1, 1], [0, 0], [1, 1]], float) * 5.0
+    true_var = noise**2 / np.sum((u10 - u10.mean(axis=0)) ** 2, axis=0)  # the columns are uncorrelated
+    stated, squared = [], []
+    for seed in range(60):
+        cal, gains, raw = _interfered(100 + seed, u10, np.zeros((10, 4, 3)), noise)
+        est = estimate_interference(raw, u10, cal)
+        stated.append(est.sigma**2 / true_var)
+        squared.append((est.gains - gains) ** 2 / true_var)
+    assert np.mean(stated) == pytest.approx(1.0, abs=0.06)
+    assert np.mean(squared) == pytest.approx(1.0, abs=0.15)
 
 
 def test_gains_from_the_steps_under_a_smoothly_turning_field_and_what_is_refused():
@@ -1022,6 +1068,7 @@ def test_the_smooth_basis_is_a_cubic_spline_with_knots_every_half_second():
     assert basis.shape == (300, 21 + 3)  # 10.2 s / 0.5 s = 20.4 -> 21 intervals
     assert smooth_basis(t, 2.5).shape == (300, 5 + 3)  # 4.08 -> 5
     assert smooth_basis(t, 20.0).shape == (300, 1 + 3)
+    np.testing.assert_array_equal(smooth_basis(t[:, None]), basis)  # a column of times is the same times
     np.testing.assert_allclose(basis.sum(axis=1), 1.0, atol=1e-12)
     for y, fits in ((1.0 - 0.3 * t + 0.05 * t**2 - 0.004 * t**3, True), ((t > 5.1).astype(float), False)):
         coef, *_ = np.linalg.lstsq(basis, y, rcond=None)
@@ -1035,6 +1082,8 @@ def test_a_current_tolerance_is_whole_nanoseconds_and_never_negative():
     for bad in (-1e-9, np.nan, np.inf):
         with pytest.raises(InputError, match=r"the imu tolerance must be a finite number of seconds >= 0, got"):
             tolerance_of(bad, "imu")
+    with pytest.raises(InputError, match="^the current tolerance must"):
+        tolerance_of(-0.5)
 
 
 def test_undetermined_channels_are_described_by_kind():
@@ -1046,18 +1095,18 @@ def test_undetermined_channels_are_described_by_kind():
     k = np.arange(n)
     steps = np.where((k // 10) % 2, 6.0, 2.0)
     flicker = 0.01 * (-1.0) ** k  # RMS 0.01 A, every difference 0.02 A: reading noise 1.4826 * 0.02 / sqrt 2
-    u = np.column_stack([steps, np.full(n, 12.0), flicker, 0.5 * steps + 1.0, 2 * flicker])
-    names = ("a", "b", "c", "d", "e")
-    text = describe_undetermined(names, u, [True, True, True, True, False])
-    assert text == ("b (12 A) never varied (a constant current is part of the offsets); c (0.01 A RMS, reading "
+    u = np.column_stack([steps, np.full(n, 12.0), flicker, 0.5 * steps + 1.0, 2 * flicker, np.zeros(n)])
+    names = ("a", "b", "c", "d", "e", "f")
+    text = describe_undetermined(names, u, [True, True, True, True, False, True])
+    assert text == ("b (12 A), f (0 A) never varied (a constant current is part of the offsets); c (0.01 A RMS, reading "
                     "noise 0.021 A) varied only within its reading noise (e.g. a load switched off: a gain regressed "
                     "on a reading that is mostly noise is not the channel's); a, d varied in lockstep with each other "
                     "or with the attitude")
-    text = describe_undetermined(names, u, [False, False, True, True, True])
+    text = describe_undetermined(names, u, [False, False, True, True, True, False])
     assert text.startswith("c (0.01 A RMS, reading noise 0.021 A), e (0.02 A RMS, reading noise 0.042 A) varied "
                            "only within their reading noise")
     assert text.endswith("; d varied in lockstep with another channel or with the attitude")
-    assert describe_undetermined(names, u, [False] * 5) == ""
+    assert describe_undetermined(names, u, [False] * 6) == ""
 
 
 def test_current_inputs_are_checked_and_stored_as_int64_stamps_and_float_amperes():
