@@ -1150,3 +1150,56 @@ def test_a_channel_that_is_another_in_lockstep_plus_its_monitors_noise_is_undete
     out = undetermined_channels(np.column_stack([a, b]))
     assert out.dtype == bool
     np.testing.assert_array_equal(out, [False, True])
+
+
+def test_the_outputs_of_a_calibration_are_the_true_field_and_gradient_turned_into_the_output_frame():
+    """A linear field ``B(x) = B0 + x G`` (G symmetric, traceless) at the cross, raw through a known calibration
+    with one current channel and temperature terms: the outputs are ``R b``, ``R B0`` and ``R G R^T`` for the
+    output rotation ``R`` (30 deg about z), the same as the affine map of one set (no temperature terms); a
+    pair of sensors gives ``R (dB/ds)``. At another reference the matrices and offsets move by ``dT`` times
+    their terms per kelvin; identity is no correction."""
+    rng = np.random.default_rng(11)
+    c, s_ = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    g = np.array([[40.0, -15.0, 8.0], [-15.0, -25.0, 12.0], [8.0, 12.0, -15.0]]) * NT  # T/m
+    b0 = np.array([20_000.0, -3_000.0, 45_000.0]) * NT
+    n = 5
+    field = b0 + np.einsum("si,ij->sj", CROSS.positions, g)[None] + rng.normal(0, 1000 * NT, (n, 1, 3))  # (N, S, 3)
+    u = rng.uniform(0.0, 10.0, (n, 1))
+    d = rng.normal(0, 40 * NT, (4, 3, 1))
+    mats, offs = np.eye(3) + rng.normal(0, 0.03, (4, 3, 3)), rng.normal(0, 300 * NT, (4, 3))
+    raw = np.einsum("sij,nsj->nsi", np.linalg.inv(mats), field + np.einsum("sac,nc->nsa", d, u)) + offs
+    cal = ArrayCalibration(CROSS, mats, offs, channels=("thruster",), interference=d, output_rotation=rot)
+    out = cal.outputs(raw, currents=u)
+    np.testing.assert_allclose(out.vectors, field @ rot.T, atol=1e-6 * NT)
+    np.testing.assert_allclose(out.centre, field.mean(axis=1) @ rot.T, atol=1e-6 * NT)
+    np.testing.assert_allclose(out.tensor, np.broadcast_to(rot @ g @ rot.T, (n, 3, 3)), atol=1e-6 * NT)
+    assert out.baseline is None
+    b, centre, tensor = cal.field_and_gradient(raw, currents=u)
+    np.testing.assert_allclose(b, out.vectors, atol=1e-12 * NT)
+    np.testing.assert_allclose(centre, out.centre, atol=1e-12 * NT)
+    np.testing.assert_allclose(tensor, out.tensor, atol=1e-9 * NT)
+    affine = cal.affine_outputs()
+    assert affine.kind == "tensor" and affine.sensors == 4 and affine.matrix.shape == (12 + 3 + 9, 12 + 1)
+    y = np.hstack([raw.reshape(n, -1), u]) @ affine.matrix.T + affine.offset
+    np.testing.assert_allclose(y, np.hstack([out.vectors.reshape(n, -1), out.centre, out.tensor.reshape(n, 9)]),
+                               atol=1e-6 * NT)
+    # two sensors on the x axis: the baseline gradient dB/dx = the first row of G, turned
+    pair = ArrayGeometry(("a", "b"), CROSS.positions[[2, 0]])
+    two = ArrayCalibration(pair, mats[[2, 0]], offs[[2, 0]], output_rotation=rot)
+    out2 = two.outputs(np.einsum("sij,nsj->nsi", np.linalg.inv(mats[[2, 0]]), field[:, [2, 0]]) + offs[[2, 0]])
+    assert out2.tensor is None
+    np.testing.assert_allclose(out2.baseline, np.broadcast_to(g[0] @ rot.T, (n, 3)), atol=1e-6 * NT)
+    affine2 = two.affine_outputs()
+    assert affine2.kind == "baseline" and affine2.matrix.shape == (6 + 3 + 3, 6)
+    # temperature terms: at reference 25 deg C instead of 20, M + 5 M1 and o + 5 c; no affine map
+    warm = replace(cal, temperature_reference=20.0, offset_tempco=np.full((4, 3), 2 * NT),
+                   matrix_tempco=np.full((4, 3, 3), 1e-4))
+    assert warm.affine_outputs() is None
+    moved = warm.at_reference(25.0)
+    np.testing.assert_allclose(moved.matrices, mats + 5e-4, atol=1e-15)
+    np.testing.assert_allclose(moved.offsets, offs + 10 * NT, atol=1e-21)
+    assert moved.temperature_reference == 25.0 and cal.at_reference(25.0) is cal
+    ident = ArrayCalibration.identity(CROSS)
+    np.testing.assert_array_equal(ident.apply(raw), raw)
+    assert ident.metadata == {"method": "identity"} and not ident.rotated
