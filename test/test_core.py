@@ -1203,3 +1203,51 @@ def test_the_outputs_of_a_calibration_are_the_true_field_and_gradient_turned_int
     ident = ArrayCalibration.identity(CROSS)
     np.testing.assert_array_equal(ident.apply(raw), raw)
     assert ident.metadata == {"method": "identity"} and not ident.rotated
+
+
+def test_a_calibration_applied_at_the_sensors_temperatures_with_two_channels_by_hand():
+    """``B = (M + dT M1)(r - o - dT c) - D u`` written out in numpy, through apply, outputs and field_and_gradient
+    (by least squares on a tetrahedron, which is no cross); one sensor takes its temperatures as (N,) or (N, 1);
+    missing or malformed temperatures and currents are errors naming what is needed."""
+    rng = np.random.default_rng(12)
+    n = 6
+    tetra = ArrayGeometry(("m1", "m2", "m3", "m4"), np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) * 0.2)
+    mats, offs = np.eye(3) + rng.normal(0, 0.03, (4, 3, 3)), rng.normal(0, 300 * NT, (4, 3))
+    m1, c = rng.normal(0, 1e-4, (4, 3, 3)), rng.normal(0, 2 * NT, (4, 3))
+    d = rng.normal(0, 40 * NT, (4, 3, 2))
+    cal = ArrayCalibration(tetra, mats, offs, channels=("thruster", "pump"), interference=d, temperature_reference=20.0,
+                           offset_tempco=c, matrix_tempco=m1)
+    raw = rng.normal(0, 30_000 * NT, (n, 4, 3))
+    temps = rng.uniform(0.0, 40.0, (n, 4))
+    u = rng.uniform(0.0, 10.0, (n, 2))
+    dt = temps - 20.0
+    expected = np.empty((n, 4, 3))
+    for k in range(n):
+        for i in range(4):
+            expected[k, i] = (mats[i] + dt[k, i] * m1[i]) @ (raw[k, i] - offs[i] - dt[k, i] * c[i]) - d[i] @ u[k]
+    np.testing.assert_allclose(cal.apply(raw, u, temps), expected, atol=1e-6 * NT)
+    out = cal.outputs(raw, "least_squares", u, temps)
+    np.testing.assert_allclose(out.vectors, expected, atol=1e-6 * NT)
+    b, centre, tensor = cal.field_and_gradient(raw, "least_squares", u, temps)
+    np.testing.assert_allclose(b, expected, atol=1e-6 * NT)
+    np.testing.assert_allclose(tensor, out.tensor, atol=1e-12 * NT)
+    # a linear field on the tetrahedron: least squares gives its gradient (the difference formula needs a cross)
+    g = np.array([[40.0, -15.0, 8.0], [-15.0, -25.0, 12.0], [8.0, 12.0, -15.0]]) * NT
+    ident = ArrayCalibration.identity(tetra)
+    linear = (np.array([1e-5, 2e-5, 4e-5]) + tetra.positions @ g)[None]
+    np.testing.assert_allclose(ident.outputs(linear, "least_squares").tensor[0], g, atol=1e-6 * NT)
+    np.testing.assert_allclose(ident.field_and_gradient(linear, "least_squares")[2][0], g, atol=1e-6 * NT)
+    with pytest.raises(InputError, match="give the temperatures \\(deg C\\) of m1, m2, m3, m4$"):
+        cal.apply(raw, u)
+    for bad in (temps[:, :3], np.where(temps > 30.0, np.nan, temps)):
+        with pytest.raises(InputError, match=r"^need finite temperatures \(N, 4\) deg C, one per sensor and set"):
+            cal.apply(raw, u, bad)
+    with pytest.raises(InputError, match="give the currents of thruster, pump$"):
+        cal.apply(raw, temperatures=temps)
+    with pytest.raises(InputError, match="^3 current channels given, the calibration has 2$"):
+        cal.apply(raw, np.ones((n, 3)), temps)
+    one = ArrayCalibration(ArrayGeometry(("m1",), np.zeros((1, 3))), mats[:1], offs[:1], temperature_reference=20.0,
+                           offset_tempco=c[:1], matrix_tempco=m1[:1])
+    for t in (temps[:, 0], temps[:, :1]):
+        np.testing.assert_allclose(one.apply(raw[:, :1], temperatures=t), expected[:, :1] + np.einsum("ac,nc->na", d[0], u)[:, None],
+                                   atol=1e-6 * NT)
