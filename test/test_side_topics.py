@@ -124,3 +124,25 @@ def _shifted(rec):  # noqa: ANN001, ANN202
     from dataclasses import replace
 
     return replace(rec, stamps=rec.stamps - 3600 * 10**9)
+
+
+def test_a_set_waits_for_its_due_sample_through_a_stall_of_the_node() -> None:
+    """WaitingSets: a set nothing is due for goes at once; one whose sample is due waits MAX_WAIT of the node's
+    awake time for it (released at the first look after 0.5 s of regular 20 ms looks); a stall of the process
+    (its clock jumps 1 s between two looks: the node was not scheduled, its timers run before the messages
+    queued meanwhile) counts as AWAKE_STEP only, so the set is still there when its sample is taken in."""
+    from magcal_ros.core.side_streams import AWAKE_STEP, MAX_WAIT, WaitingSets
+
+    ms = 1_000_000
+    waiting = WaitingSets()
+    waiting.add(10, 0, "free")
+    assert waiting.release(0, lambda stamp: False) == ["free"]
+    waiting.add(20, 0, "due")
+    looks = [t * 20 * ms for t in range(1, 40)]
+    released_at = next(t for t in looks if waiting.release(t, lambda stamp: True))
+    assert MAX_WAIT < released_at <= MAX_WAIT + 20 * ms
+    stalled = WaitingSets()
+    stalled.add(30, 5 * ms, "set")
+    assert stalled.release(5 * ms + 1000 * ms, lambda stamp: True) == []  # woke from a 1 s stall: still waiting
+    assert AWAKE_STEP < MAX_WAIT
+    assert stalled.release(5 * ms + 1001 * ms, lambda stamp: False) == ["set"]  # its sample came: it goes

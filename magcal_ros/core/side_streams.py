@@ -45,6 +45,9 @@ INTERVALS: int = 16
 """Stamp intervals of a stream whose median is its rhythm."""
 MAX_WAIT: int = NS_PER_S // 2
 """Longest a set waits (ns, node clock) for a side-stream sample that is due."""
+AWAKE_STEP: int = NS_PER_S // 10
+"""Longest step of a node's clock between two looks at its waiting sets that counts whole towards their wait
+(:class:`WaitingSets`): a longer one is a stall of the process, not time it could have received in."""
 MAX_CURRENT: float = 1e4
 """Largest magnitude (A) of a current a vehicle's channel can carry; beyond it the values are not
 amperes (mA?) or a broken reading."""
@@ -276,26 +279,44 @@ class WaitingSets:
     the order they formed: each is released once nothing is due at its stamp, or once it waited
     :data:`MAX_WAIT` (``now``: the node's clock, ns) for a sample that does not come. So a set uses the
     samples stamped at or before it that arrive a little after it, as offline, where every sample is at
-    hand; only a sample delayed beyond the wait can make the two differ."""
+    hand; only a sample delayed beyond the wait can make the two differ.
 
-    def __init__(self, max_wait_ns: int = MAX_WAIT) -> None:
+    The wait counts the time the node was awake to receive: a step of its clock between two calls longer
+    than :data:`AWAKE_STEP` (the process was not scheduled, on a loaded computer) counts as that step. A node
+    that wakes from such a stall handles its timers before the messages queued meanwhile: counted whole,
+    the stall released sets just before their due sample was taken in (a payload's current of the set
+    before applied)."""
+
+    def __init__(self, max_wait_ns: int = MAX_WAIT, awake_step_ns: int | None = None) -> None:
         self.max_wait_ns = int(max_wait_ns)
+        self.awake_step_ns = int(AWAKE_STEP if awake_step_ns is None else awake_step_ns)
         self._sets: deque[tuple[int, int, Any]] = deque()
+        self._awake = 0
+        """ns the node was awake (clock steps capped at :attr:`awake_step_ns`)."""
+        self._last: int | None = None
 
     def __len__(self) -> int:
         return len(self._sets)
 
+    def _tick(self, now: int) -> int:
+        """The awake time at node clock ``now`` (ns)."""
+        if self._last is not None and now > self._last:
+            self._awake += min(now - self._last, self.awake_step_ns)
+        self._last = now if self._last is None else max(self._last, now)
+        return self._awake
+
     def add(self, stamp: int, arrival: int, item: Any) -> None:
         """Hold ``item``, a set stamped ``stamp`` (ns) that formed at ``arrival`` (node clock, ns)."""
-        self._sets.append((stamp, arrival, item))
+        self._sets.append((stamp, self._tick(arrival), item))
 
     def release(self, now: int, due: Callable[[int], bool], force: bool = False) -> list[Any]:
         """The held sets that may go now, oldest first (every one with ``force``)."""
         out = []
         sets = self._sets
+        awake = self._tick(now)
         while sets:
-            stamp, arrival, item = sets[0]
-            if not (force or now - arrival > self.max_wait_ns or not due(stamp)):
+            stamp, formed, item = sets[0]
+            if not (force or awake - formed > self.max_wait_ns or not due(stamp)):
                 break
             out.append(item)
             sets.popleft()
