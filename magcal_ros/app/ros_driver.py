@@ -541,6 +541,8 @@ class ArrayDriver:
         self.imu_publisher = self.node.create_publisher(Imu, self.topic(imu_topic), reliable) if imu_topic else None
         self.outputs = Outputs()
         self._lock = threading.Lock()
+        self._retired: list[Any] = []
+        """Subscriptions and clients to destroy in the spinning thread (:meth:`_retire`)."""
         # The ``gradient`` topic has no stamp: each is credited to the set whose ``gradient_stamped`` carries
         # the same nine numbers (robust to a message lost or cleared on one topic only, which pairing in
         # arrival order is not: one lost message shifted every later pair).
@@ -588,12 +590,30 @@ class ArrayDriver:
         while not self._closing.is_set() and self.context.ok():
             try:
                 self._executor.spin_once(timeout_sec=0.2)
+                self._destroy_retired()
             except Exception as exc:  # noqa: BLE001 - see the docstring
                 if self._closing.is_set() or not self.context.ok():
                     return
                 self.spin_errors.append(f"{type(exc).__name__}: {exc}")
                 print(f"magcal driver: a callback raised (the driver carries on):\n{traceback.format_exc()}",
                       file=sys.stderr, flush=True)
+
+    def _retire(self, entity: Any) -> None:
+        """Have the spinning thread destroy a subscription or client between two waits: destroyed from another
+        thread while the executor builds its wait set, it makes that wait raise (``InvalidHandle``)."""
+        with self._lock:
+            self._retired.append(entity)
+
+    def _destroy_retired(self) -> None:
+        with self._lock:
+            retired, self._retired = self._retired, []
+        from rclpy.client import Client
+
+        for entity in retired:
+            if isinstance(entity, Client):
+                self.node.destroy_client(entity)
+            else:
+                self.node.destroy_subscription(entity)
 
     def close(self) -> None:
         """Stop spinning and shut the context down."""
@@ -953,7 +973,7 @@ class ArrayDriver:
             client = self.node.create_client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
             if new:
-                self.node.destroy_client(client)
+                self._retire(client)
             raise TimeoutError(f"service {name} not available after {timeout:g} s")
         if new:
             time.sleep(SERVICE_SETTLE)
@@ -1084,7 +1104,7 @@ class ArrayDriver:
         try:
             done.wait(timeout)
         finally:
-            self.node.destroy_subscription(sub)
+            self._retire(sub)
         if raised:
             raise raised[0]
         return got[0] if got else None
