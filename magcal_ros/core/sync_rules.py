@@ -271,7 +271,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard")
+                 "burst_count", "seen_step", "jumps", "heard", "pausing")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -299,6 +299,10 @@ class SensorStream:
         largest ``common - receipt`` is how far the stamps run ahead of the least delayed arrivals."""
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
+        self.pausing = False
+        """Whether :attr:`placing` holds the messages after a gap the arrivals saw pass (a pause, by its
+        first arrival), held until the later arrivals confirm it: a backlog delivered after a busy spell
+        arrives late and shows a step forward of the stamps only in the messages after the first."""
         self.since = 0
         """Messages taken since the latest step (for :attr:`before`)."""
         self.placed_at: int | None = None
@@ -381,6 +385,35 @@ class SensorStream:
         return 2 * (stamp - self.last - (receipt - last)) > period and \
             2 * (stamp + self.base - receipt - self.lead()) > period
 
+    def untold(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int, backlog: bool) -> bool:
+        """Whether the arrivals of a stamp ahead of its sequence (``held``) and the next (``message``; (stamp, ...,
+        receipt)) cannot tell a pause from a step forward: they keep time but one of them came more than half a
+        ``period`` (ns) late or another sensor's latest did (``backlog``: the later arrivals will tell, early
+        once it has drained if the stamps stepped); not where the next
+        arrived more than twice its stamp interval after the suspect (a replay slower than the stamps, not a
+        backlog, which drains faster)."""
+        if held[3] is None or message[3] is None or not self.timed() or \
+                message[3] - held[3] > 2 * (message[0] - held[0]):  # arrivals slower than the stamps: a replay
+            return False
+        return backlog or self.late(held[0], held[3], period) or self.late(message[0], message[3], period)
+
+    def late(self, stamp: int, receipt: int | None, period: int) -> bool:
+        """Whether ``stamp`` (ns, this segment) arrived (``receipt`` ns) more than half a ``period`` (ns) later
+        than the least delayed recent arrivals: it cannot tell whether the time its stamp says passed did."""
+        return receipt is not None and 2 * (self.lead() - (stamp + self.base - receipt)) > period
+
+    def last_before(self, receipt: int | None) -> tuple[int, int | None]:
+        """This sensor's latest stamp (ns, its own clock) taken from a message received at or before ``receipt``
+        (ns; None, or older than the recent arrivals kept: its latest stamp), and that message's receipt: where
+        its stamps were when another sensor's message arrived, whose placement was held until later arrivals
+        came."""
+        if receipt is None or not self.arrivals or self.last_receipt is None or self.last_receipt <= receipt:
+            return self.last, self.last_receipt
+        for common, r in reversed(self.arrivals):
+            if r <= receipt:
+                return common - self.base, r
+        return self.last, self.last_receipt
+
     def lead(self) -> int:
         """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
         return max(c - r for c, r in self.arrivals)
@@ -440,8 +473,10 @@ class SensorStream:
             return CROWDED
         if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
             return AHEAD
-        if 2 * d > 3 * period and self.unseen(stamp, receipt, period):  # lost samples, unless the arrivals saw no gap
-            return AHEAD
+        if 2 * d > 3 * period:  # lost samples, unless the arrivals saw no gap or came too late to tell
+            unseen = self.unseen(stamp, receipt, period)
+            if unseen or unseen is False and self.late(stamp, receipt, period):
+                return AHEAD
         return OK
 
     def record(self, interval: int) -> int:
@@ -525,15 +560,27 @@ def _stale(receipt: int | None, since: int | None) -> bool:
     return receipt is not None and since is not None and receipt < since
 
 
-def caught_up(held: list[Message], period: int | None) -> bool:
+def caught_up(held: list[Message], period: int | None, settled: bool = False) -> bool:
     """Whether the arrivals of a new segment's held messages have caught up with their stamps: over the last
     four, the stamps' lead over the arrivals grew by less than a period (a backlog delivered at once
-    arrives late and catches up: its lead grows by a period a message)."""
+    arrives late and catches up: its lead grows by a period a message); ``settled``: also, of the last
+    :data:`PLACE_MESSAGES` and as many before them, the least delayed of the newer ones arrived no earlier
+    (to a quarter period) than the least delayed of the older ones (a backlog drained a little faster than it
+    filled catches up by a little each message: its arrivals keep coming earlier until it is gone)."""
     if len(held) < 5:
         return False
     a, b = held[-5], held[-1]
     grew = (b[0] - b[3]) - (a[0] - a[3])  # type: ignore[operator]
-    return grew < (period or NS_PER_S)
+    if grew >= (period or NS_PER_S):
+        return False
+    n = PLACE_MESSAGES
+    if not settled:
+        return True
+    if len(held) < 2 * n:
+        return False
+    older = min(r - t for t, _, _, r in held[-2 * n:-n])  # type: ignore[operator]
+    newer = min(r - t for t, _, _, r in held[-n:])  # type: ignore[operator]
+    return 4 * (older - newer) < (period or NS_PER_S)
 
 
 Accepted = list[tuple[int, int, Any, int, bool]]
@@ -727,10 +774,24 @@ class AcceptanceRule:
             if self._stepped_ahead(s, held):
                 self._step(index, [held[:4], message], out)
                 return True
+            if s.untold(held, message, period or self.restart_ns, self._backlog(index)):
+                s.placing, s.pausing = [held[:4], message], True  # a pause, unless later arrivals are early
+                return True
             s.jumps.append((s.last, held[0], held[3], s.base))
             self._take(index, held[:4], False, out)  # a pause or lost samples
             return False
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
+        return False
+
+    def _backlog(self, index: int) -> bool:
+        """Whether another sensor's latest message came more than half its period late, where its arrivals keep
+        time (the receiver is draining
+        a backlog: an arrival then says little of when its sample was taken)."""
+        for j, o in enumerate(self.streams):
+            period = o.suspect_period()
+            if j != index and period is not None and o.arrivals and o.late(o.last, o.last_receipt, period) and \
+                    o.timed():
+                return True
         return False
 
     def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
@@ -830,11 +891,30 @@ class AcceptanceRule:
         if len(held) < PLACE_MESSAGES:
             return True
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
-        if timed and caught_up(held, period):
+        if timed and caught_up(held, period, True):
             self._place_held(index, out)
-        elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
-            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
-        return True
+        elif len(held) >= MAX_PLACE_MESSAGES:  # arrivals that never catch up with the stamps: the stamps place
+            self._place_held(index, out, by_arrival=s.pausing)  # (a pause seen early: the best bound of its step)
+        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.pausing and not self._backlog(index):
+            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time (a replay
+        return True  # at another speed; not a backlog, whose arrivals will catch up)
+
+    @staticmethod
+    def _arrival_estimate(s: SensorStream) -> int:
+        """Where (common ns) the arrivals of the held new segment of sensor stream ``s`` put its first message:
+        each message's arrival says where the segment lies, a late one says too late: the earliest wins."""
+        held = s.placing
+        assert held is not None and s.arrivals
+        first, lead = held[0][0], s.lead()
+        return min(first + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
+
+    def _early(self, s: SensorStream) -> bool:
+        """Whether a message held after a gap (:attr:`SensorStream.pausing`) arrived more than half a period
+        before its stamp says it could (an arrival is never early): the stamps stepped forward."""
+        held = s.placing
+        assert held is not None
+        period = s.grid_period() or s.suspect_period() or self.restart_ns
+        return 2 * (held[0][0] + s.base - self._arrival_estimate(s)) > period
 
     def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
         """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
@@ -842,15 +922,44 @@ class AcceptanceRule:
         s = self.streams[index]
         held = s.placing
         assert held is not None and s.arrivals
-        s.placing = None
         first = held[0]
-        lead = s.lead()
-        # each message's arrival says where the segment lies; a late one says too late: the earliest wins
-        estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
+        if s.pausing and self._paused_with(index, held, out):
+            return
+        if s.pausing:
+            early = by_arrival and self._early(s)
+            s.pausing = False
+            if not early:  # a pause: its stamps as they are
+                s.placing = None
+                s.jumps.append((s.last, first[0], first[3], s.base))
+                for m in held:
+                    self._take(index, m, False, out)
+                return
+            s.seen_step = True  # arrivals before the stamps' time: the stamps stepped forward
+        estimate = self._arrival_estimate(s)
+        s.placing = None
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
+
+    def _paused_with(self, index: int, held: list[Message], out: Accepted) -> bool:
+        """Let the ``held`` messages of sensor ``index`` (after a gap held as a pause to confirm) through as another
+        sensor that made the same jump decided it, where one has (one clock stamps both); whether one had."""
+        s = self.streams[index]
+        first = held[0]
+        partner = self._partner(index, first[0], first[3])
+        if partner is None or partner[1] is None:
+            return False
+        s.placing, s.pausing = None, False
+        if partner[1] == s.base:  # a pause
+            s.jumps.append((s.last, first[0], first[3], s.base))
+            self._take(index, first, False, out)
+        else:
+            self._follow(index, partner, first[0], first[3])
+            self._take(index, first, True, out)
+        for m in held[1:]:
+            self._take(index, m, False, out)
+        return True
 
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
@@ -920,7 +1029,7 @@ class AcceptanceRule:
         old = s.base
         s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
-        shared = self._shared_base(index, stamp, estimate, margin, grid)
+        shared = self._shared_base(index, stamp, receipt, estimate, margin, grid)
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
@@ -1015,7 +1124,10 @@ class AcceptanceRule:
         s = self.streams[index]
         first = messages[0]
         if partner[1] is None:
-            self._step(index, messages, out)
+            if self.streams[partner[0]].pausing:  # a pause unless the arrivals say otherwise: as that sensor's
+                s.placing, s.pausing = list(messages), True
+            else:
+                self._step(index, messages, out)
             return True
         if partner[1] == s.base:
             s.jumps.append((s.last, first[0], first[3], s.base))
@@ -1025,7 +1137,7 @@ class AcceptanceRule:
             self._take(index, first, True, out)
         return False
 
-    def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
+    def _shared_base(self, index: int, stamp: int, receipt: int | None, estimate: int, margin: int,
                      grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
@@ -1035,14 +1147,16 @@ class AcceptanceRule:
         whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
         :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
-        places both alike. First of all, where the new stamps are another sensor's latest to half a period
-        or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
+        places both alike. First of all, where the new stamps (the first received at ``receipt`` ns, None: unknown)
+        are another sensor's latest at that arrival to half a period or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
         sensor's placement."""
         s = self.streams[index]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
-            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid) and \
-                    not _stale(other.last_receipt, s.last_receipt):
+            if j == index or other.last == NEVER or other.busy:
+                continue
+            latest, heard = other.last_before(receipt)
+            if _in_line(stamp - latest, grid) and not _stale(heard, s.last_receipt):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
