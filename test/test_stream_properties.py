@@ -265,6 +265,9 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # ... 0.5 s ahead while the receiver drained a backlog: every arrival late, the step looked like a pause (0.5 s off)
 @example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(5.0, 0.5)])], 15.0, 2,
               (4.0, 1.0, 0.01)))
+# ... 1 s ahead at 200 Hz, the backlog draining for longer than a new segment's messages were held (360 ms off)
+@example(Case([SensorPlan(rate=200.0), SensorPlan(rate=200.0), SensorPlan(rate=200.0, steps=[(2.0, 1.0)]),
+               SensorPlan(rate=200.0)], 12.0, 0, (2.0, 1.0, 0.000625)))
 # a step of 1.5 periods ahead as the receiver fell busy: taken for a lost sample (20 ms off, interpolation)
 @example(Case([SensorPlan(rate=100.0, jitter=0.0008) for _ in range(3)]
               + [SensorPlan(rate=100.0, jitter=0.0008, steps=[(2.0, 0.015066)])], 12.0, 0, (2.0, 1.0, 0.00125)))

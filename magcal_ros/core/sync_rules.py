@@ -92,6 +92,9 @@ jitter averages out)."""
 MAX_PLACE_MESSAGES: int = 256
 """... or, where the arrivals never catch up with the stamps (a recording replayed faster than it was made,
 arrivals too jittery), this many: then the stamps alone place the segment."""
+MAX_CONFIRM_MESSAGES: int = 4096
+"""... but a pause held to confirm (:attr:`SensorStream.pausing`) waits for a backlog to drain up to
+:data:`MAX_STALL` of its stamps or this many messages."""
 TAIL: int = 16
 JUMPS_KEPT: int = 32
 """Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
@@ -893,11 +896,18 @@ class AcceptanceRule:
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
         if timed and caught_up(held, period, True):
             self._place_held(index, out)
-        elif len(held) >= MAX_PLACE_MESSAGES:  # arrivals that never catch up with the stamps: the stamps place
-            self._place_held(index, out, by_arrival=s.pausing)  # (a pause seen early: the best bound of its step)
+        elif len(held) >= MAX_PLACE_MESSAGES and not (s.pausing and self._backlog_may_drain(held)):
+            self._place_held(index, out, by_arrival=s.pausing)  # arrivals that never catch up with the stamps:
+            # the stamps place (a pause seen early: the best bound of its step)
         elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.pausing and not self._backlog(index):
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time (a replay
         return True  # at another speed; not a backlog, whose arrivals will catch up)
+
+    @staticmethod
+    def _backlog_may_drain(held: list[Message]) -> bool:
+        """Whether a pause held to confirm may wait longer for a backlog to drain: its stamps span less than
+        :data:`MAX_STALL` and it holds fewer than :data:`MAX_CONFIRM_MESSAGES`."""
+        return held[-1][0] - held[0][0] < MAX_STALL and len(held) < MAX_CONFIRM_MESSAGES
 
     @staticmethod
     def _arrival_estimate(s: SensorStream) -> int:
