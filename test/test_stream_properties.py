@@ -268,6 +268,12 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # ... 1 s ahead at 200 Hz, the backlog draining for longer than a new segment's messages were held (360 ms off)
 @example(Case([SensorPlan(rate=200.0), SensorPlan(rate=200.0), SensorPlan(rate=200.0, steps=[(2.0, 1.0)]),
                SensorPlan(rate=200.0)], 12.0, 0, (2.0, 1.0, 0.000625)))
+# two steps back, 1 s apart, inside a busy spell: the first segment ended before the backlog had drained and
+# was placed by late arrivals (0.5 s off), the second by its stamps alone once its arrivals kept no time (1 s off)
+@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
+              12.0, 0, (2.0, 1.0, 0.00625)))
+@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
+              12.0, 0, (2.0, 1.0, 0.009375)))
 # a step of 1.5 periods ahead as the receiver fell busy: taken for a lost sample (20 ms off, interpolation)
 @example(Case([SensorPlan(rate=100.0, jitter=0.0008) for _ in range(3)]
               + [SensorPlan(rate=100.0, jitter=0.0008, steps=[(2.0, 0.015066)])], 12.0, 0, (2.0, 1.0, 0.00125)))

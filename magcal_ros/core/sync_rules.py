@@ -152,6 +152,10 @@ class SyncStats:
     delivered, whose stamps say nothing of when its samples were taken."""
     side_value: int = 0
     """Messages of CSV rows whose current or temperature is out of its range (no value)."""
+    unplaced: int = 0
+    """Messages of a new segment (a step of its sensor's stamps) that ended while the receiver drained a backlog,
+    before the segment's arrivals had caught up with its stamps: where it lay on the common time line is not
+    known."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
@@ -188,7 +192,8 @@ class SyncStats:
 DISORDER_MIN: int = 10
 """Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value")
+                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value",
+                                "unplaced")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -204,6 +209,7 @@ _PHRASES = {
     "out_of_range": "readings beyond any magnetometer's range dropped",
     "burst": "messages of a backlog stamped on delivery dropped",
     "side_value": "messages of rows whose current or temperature is out of range dropped",
+    "unplaced": "messages of a stamp step that ended before a backlog drained (placement unknown) dropped",
 }
 
 
@@ -274,7 +280,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "pausing")
+                 "burst_count", "seen_step", "jumps", "heard", "pausing", "backlogged")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -303,6 +309,9 @@ class SensorStream:
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
         self.pausing = False
+        self.backlogged = False
+        """Whether the receiver was seen draining a backlog while :attr:`placing` was held (its arrivals will
+        catch up: the stamps do not place it after :data:`PLACE_MESSAGES` twice)."""
         """Whether :attr:`placing` holds the messages after a gap the arrivals saw pass (a pause, by its
         first arrival), held until the later arrivals confirm it: a backlog delivered after a busy spell
         arrives late and shows a step forward of the stamps only in the messages after the first."""
@@ -787,13 +796,13 @@ class AcceptanceRule:
         return False
 
     def _backlog(self, index: int) -> bool:
-        """Whether another sensor's latest message came more than half its period late, where its arrivals keep
-        time (the receiver is draining
+        """Whether another sensor's latest message came more than half its period late, where its arrivals come no
+        slower than its stamps (not a replay slower than it was made; the receiver is draining
         a backlog: an arrival then says little of when its sample was taken)."""
         for j, o in enumerate(self.streams):
             period = o.suspect_period()
             if j != index and period is not None and o.arrivals and o.late(o.last, o.last_receipt, period) and \
-                    o.timed():
+                    (arrival_ratio(o.arrivals) or 2.0) <= 1.25:
                 return True
         return False
 
@@ -888,9 +897,14 @@ class AcceptanceRule:
         period = s.suspect_period()
         limit = self.restart_ns if period is None else min(self.restart_ns, SUSPECT_PERIODS[0] * period // 2)
         if message[3] is None or not (0 < step <= limit):
-            self._place_held(index, out)
+            if len(held) < 5 or caught_up(held, period) or not self._backlog(index):
+                self._place_held(index, out)
+            else:  # ended while a backlog drains: where it lies is not known
+                self.stats.unplaced += len(held)
+                s.placing, s.pausing, s.backlogged = None, False, False
             return False
         held.append(message)
+        s.backlogged = s.backlogged or self._backlog(index)
         if len(held) < PLACE_MESSAGES:
             return True
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
@@ -899,7 +913,7 @@ class AcceptanceRule:
         elif len(held) >= MAX_PLACE_MESSAGES and not (s.pausing and self._backlog_may_drain(held)):
             self._place_held(index, out, by_arrival=s.pausing)  # arrivals that never catch up with the stamps:
             # the stamps place (a pause seen early: the best bound of its step)
-        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.pausing and not self._backlog(index):
+        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.pausing and not s.backlogged:
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time (a replay
         return True  # at another speed; not a backlog, whose arrivals will catch up)
 
@@ -939,14 +953,14 @@ class AcceptanceRule:
             early = by_arrival and self._early(s)
             s.pausing = False
             if not early:  # a pause: its stamps as they are
-                s.placing = None
+                s.placing, s.backlogged = None, False
                 s.jumps.append((s.last, first[0], first[3], s.base))
                 for m in held:
                     self._take(index, m, False, out)
                 return
             s.seen_step = True  # arrivals before the stamps' time: the stamps stepped forward
         estimate = self._arrival_estimate(s)
-        s.placing = None
+        s.placing, s.backlogged = None, False
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
@@ -960,7 +974,7 @@ class AcceptanceRule:
         partner = self._partner(index, first[0], first[3])
         if partner is None or partner[1] is None:
             return False
-        s.placing, s.pausing = None, False
+        s.placing, s.pausing, s.backlogged = None, False, False
         if partner[1] == s.base:  # a pause
             s.jumps.append((s.last, first[0], first[3], s.base))
             self._take(index, first, False, out)
