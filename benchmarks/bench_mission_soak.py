@@ -8,7 +8,11 @@ interference), the calibration node with ``auto_recalibrate`` on; a 4-sensor cro
 dives through a thermocline, each sensor stamped on receipt (delay and jitter), one driver restarting
 (its stamps jump back), one sensor silent for minutes, a payload current switched on, the hull's hard
 iron jumping (see :mod:`magcal_ros.app.soak`); with ``--payload-unknown`` the payload's interference is not in
-the starting calibration (it was off during the manoeuvre) and must be named and learnt when it comes on. Prints progress while it runs, then per block of
+the starting calibration (it was off during the manoeuvre) and must be named and learnt when it comes on; with
+``--imu`` the vehicle's IMU (mounted a few degrees off the array, 50 Hz) is published to the calibration node too
+(a recalibration during the mission does not use it: it keeps the running output frame), the outputs are in the
+IMU frame (the starting calibration's ``output_rotation``) and the table gets the centre field's error in it (RMS
+per axis over noise / 2) and the output frame's error (mdeg). Prints progress while it runs, then per block of
 mission the sets offered and output, the tensor RMS error over the floor sqrt(2) noise / baseline,
 the TMI error over the noise and each process's RSS (min-max, MiB); every status change of the
 correction node on /diagnostics; every recalibration pushed and its latency from the hull change;
@@ -38,10 +42,14 @@ def main() -> None:
     parser.add_argument("--payload-unknown", action="store_true",
                         help="the payload was off during the manoeuvre: the running calibration does not know its "
                         "interference and the correction node watches its current (named and learnt when it comes on)")
+    parser.add_argument("--imu", action="store_true",
+                        help="publish the vehicle's IMU (sensor_msgs/Imu, 50 Hz, mounted a few degrees off the array) "
+                        "to the calibration node; the outputs are in the IMU frame and the table gets the centre "
+                        "field's error and the output frame's error in it")
     args = parser.parse_args()
     plan = SoakPlan(duration=args.hours * 3600.0, speed=args.speed, rate=args.rate, block=args.block_minutes * 60.0,
                     silent_for=args.silent_minutes * 60.0, seed=args.seed, tempco=args.tempco,
-                    payload_known=not args.payload_unknown)
+                    payload_known=not args.payload_unknown, imu=args.imu)
     t0 = time.monotonic()
     out = run_soak(plan, lambda s: print(s, flush=True))
     print(f"\nmission soak: {args.hours:g} h of mission at {args.speed:g}x, {args.rate:g} Hz per sensor, "

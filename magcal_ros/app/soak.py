@@ -17,6 +17,20 @@ tensor RMS error over the floor ``sqrt(2) noise / baseline`` (from the simulatio
 geometry), the TMI error of the centre field over the noise, the node processes' RSS; every change
 of the correction node's statuses on ``/diagnostics``, every recalibration pushed with its latency
 from the hull change, and whether a node hung (its outputs or statuses stopped).
+
+With an IMU (:attr:`SoakPlan.imu`, off by default) the vehicle's IMU, mounted a few degrees off the array
+(:attr:`SoakPlan.imu_mounting`), publishes ``sensor_msgs/Imu`` at ``IMU_RATE``: its true orientation (IMU frame
+to world ENU, as :mod:`magcal_ros.sim.imu` writes it) and angular velocity (rad/s, IMU frame), stamped on
+receipt as the sensors are. The calibration node subscribes it (``imu_topic``), but only the sets of a
+manoeuvre (``~/start``, ``~/calibrate``) carry it: ``auto_recalibrate``'s mission window keeps stamps, readings,
+currents and temperatures, so a push during the mission keeps the running ``output_rotation`` and does not
+fit it. The correction node has no IMU input: it starts with the true calibration, whose ``output_rotation``
+is the mounting, and publishes every output in the IMU's frame (``frame_id`` ``imu_link``). Measured besides: per block the RMS per axis of
+the centre field's error in the IMU frame against the truth (the mounting times the true platform-frame
+field at the set's sample instant: the first sensor's, whose receipt stamps the synchroniser's sample clock
+puts on its sampling grid plus the mean receipt delay) over the floor ``noise / 2`` of four sensors' mean, and
+the angle of the rotation that best takes the true field onto the published one (the output frame's error).
+The tensor is compared in the array frame (the published ``R G R^T`` turned back by the mounting).
 """
 
 from __future__ import annotations
@@ -36,9 +50,11 @@ from numpy.typing import NDArray
 
 from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
+from magcal_ros.core.imu import matrix_to_quat, quat_log
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.sim.attitudes import yaw_pitch_roll
+from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
 from magcal_ros.sim.simulator import (
     ArraySimulation,
     Thruster,
@@ -74,6 +90,21 @@ CORRECTION = "/magcal_correction"
 CALIBRATION = "/magcal_calibration"
 MAX_EVENTS = 80
 """Status changes printed at most (the first and last halves)."""
+IMU_RATE = 50.0
+"""Hz of the IMU's messages (with :attr:`SoakPlan.imu`)."""
+IMU_TOPIC = "imu"
+"""The IMU's topic (relative, as the nodes' default ``imu_topic``)."""
+IMU_PHASE = 0.37
+"""Of an IMU period: where its samples fall after the first sensor's (its own clock: none on a set)."""
+
+
+def field_floor() -> float:
+    """Noise floor (T) per axis of the centre field, the mean of the cross's four sensors: sigma / 2."""
+    return NOISE / 2.0
+
+
+INCLINATION = 60.0
+"""deg: the field's inclination (declination 5 deg)."""
 
 
 def floor() -> float:
@@ -123,6 +154,12 @@ class SoakPlan:
     """The sensors follow their temperature and the calibration carries temperature terms (the correction
     node then takes ``<name>/temperature``); without, the temperatures are published for the calibration
     node only (it takes them always)."""
+    imu: bool = False
+    """The vehicle's IMU on ``IMU_TOPIC`` at ``IMU_RATE`` (see the module docstring); the outputs are then in its
+    frame and the table gets the centre field's error in it."""
+    imu_mounting: tuple[float, float, float] = (2.0, -1.5, 3.0)
+    """deg roll, pitch, yaw of the rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` from the array (platform) frame to the
+    IMU frame (``v_imu = M v_array``, as ``magcal simulate --imu-mounting``)."""
 
     def at(self, fraction: float) -> float:
         """Mission time (s) of a fraction of the duration."""
@@ -144,6 +181,10 @@ class Block:
     outputs: int = 0
     tensor_ss: float = 0.0
     tmi_ss: float = 0.0
+    field_ss: float = 0.0
+    """T^2: sum over the outputs of the squared centre-field error vector, IMU frame (with an IMU only)."""
+    field_cross: Array = field(default_factory=lambda: np.zeros((3, 3)))
+    """T^2: sum over the outputs of ``published truth^T`` (3, 3), IMU frame (with an IMU only)."""
     rss: dict[str, list[float]] = field(default_factory=dict)
     """MiB per process: [min, max]."""
 
@@ -154,6 +195,19 @@ class Block:
     def tmi(self) -> float:
         """RMS of |B| - F of the centre field (T)."""
         return math.sqrt(self.tmi_ss / self.outputs) if self.outputs else float("nan")
+
+    def field_error(self) -> float:
+        """RMS per axis (T) of the centre field's error in the IMU frame."""
+        return math.sqrt(self.field_ss / (3 * self.outputs)) if self.outputs else float("nan")
+
+    def frame_error(self) -> float:
+        """deg: angle of the rotation ``R`` that best takes the true IMU-frame centre fields onto the published
+        ones (least squares, ``published ~ R truth``: Kabsch): how far the output frame is off the IMU's."""
+        if not self.outputs:
+            return float("nan")
+        u, _, vt = np.linalg.svd(self.field_cross)
+        r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+        return math.degrees(math.acos(min(max((np.trace(r) - 1.0) / 2.0, -1.0), 1.0)))
 
 
 @dataclass
@@ -224,9 +278,14 @@ class MissionSource:
         geo = ArrayGeometry.cross(BASELINE)
         offset_tc, gain_tc = draw_tempcos(rng, geo.size, 0.5 * NT, 20e-6) if plan.tempco else (None, None)
         payload = Thruster(CHANNEL, np.array([0.0, 0.0, 0.45]), np.array([0.03, -0.02, 0.05]))
+        roll, pitch, yaw = plan.imu_mounting
+        self.imu = ImuModel(mounting=yaw_pitch_roll(yaw, pitch, roll)[0]) if plan.imu else None
+        """The IMU (true orientation and gyro, no noise), or None."""
+        self.imu_rng = np.random.default_rng([plan.seed, 1])
+        """The IMU's receipt jitter: its own stream, so the sensors' readings are those of the mission without."""
         self.sim = ArraySimulation(geo, tuple(random_sensor_errors(rng) for _ in geo.names),
-                                   earth_field(INTENSITY, 60.0, 5.0), noise=NOISE, thrusters=(payload,),
-                                   offset_tempco=offset_tc, gain_tempco=gain_tc)
+                                   earth_field(INTENSITY, INCLINATION, 5.0), noise=NOISE, thrusters=(payload,),
+                                   offset_tempco=offset_tc, gain_tempco=gain_tc, imu=self.imu)
         self.moved = hard_iron_moved(self.sim, rng)
         self.gains = self.sim.interference()[:, :, 0]  # (S, 3) T/A
         seconds = int(plan.duration) + 2
@@ -260,6 +319,26 @@ class MissionSource:
         on = t >= self.plan.at(self.plan.current_at)
         return np.where(on, 2.0 + np.sin(2.0 * np.pi * t / CURRENT_PERIOD + self.current_phase), 0.0)
 
+    def platform_rates(self, t: Array, h: float = 1e-3) -> Array:
+        """(n, 3) rad/s: the platform's angular velocity in the platform frame (``dR/dt = R [w]x``) at mission
+        times ``t`` (s), from the attitudes ``h`` s either side (``R(t-h)^T R(t+h) = exp(2h [w]x)``, to second
+        order in ``h``)."""
+        before, after = self.attitudes(t - h), self.attitudes(t + h)
+        return quat_log(matrix_to_quat(np.einsum("nji,njk->nik", before, after))) / (2.0 * h)
+
+    def imu_instants(self, t0: float, t1: float) -> Array:
+        """Sample instants (s) of the IMU in [t0, t1): ``IMU_RATE``, on a clock of its own (``IMU_PHASE``)."""
+        phase = IMU_PHASE / IMU_RATE
+        k = np.arange(max(math.ceil((t0 - phase) * IMU_RATE), 0), math.ceil((t1 - phase) * IMU_RATE))
+        return phase + k / IMU_RATE
+
+    def imu_samples(self, t: Array) -> tuple[Array, Array]:
+        """The IMU at mission times ``t`` (s): orientation (n, 4) quaternions x, y, z, w IMU frame -> world ENU
+        and angular velocity (n, 3) rad/s IMU frame (true values: :class:`~magcal_ros.sim.imu.ImuModel`)."""
+        assert self.imu is not None
+        return (self.imu.true_orientation(self.attitudes(t)),
+                self.imu.true_angular_velocity(self.platform_rates(t)))
+
     def instants(self, i: int, t0: float, t1: float) -> Array:
         """Sample instants (s) of sensor ``i`` in [t0, t1), none while it is silent."""
         p = self.plan
@@ -287,7 +366,8 @@ class MissionSource:
     def stretch(self, t0: float, t1: float) -> tuple[Array, list[tuple[int, int, int, Any]]]:
         """The messages of [t0, t1) s in arrival order: (arrival s, [(kind, index, stamp ns, value)]) with kind
         0 a reading of sensor ``index``, 1 the current, 2 a temperature of sensor ``index``; and the
-        instants (s) of the first sensor's samples (the sets offered)."""
+        instants (s) of the first sensor's samples (the sets offered); with an IMU kind 3, its sample (value:
+        orientation and angular velocity, see :meth:`imu_samples`), stamped on receipt as the sensors are."""
         arrivals: list[Array] = []
         items: list[tuple[int, int, int, Any]] = []
         p = self.plan
@@ -309,6 +389,13 @@ class MissionSource:
             arrivals.append(tt + 0.0004)
             items += [(2, i, self.start_ns + round(s * NS_PER_S), float(c))
                       for s, c in zip(tt, self.temperature(tt))]
+        if self.imu is not None:
+            ti = self.imu_instants(t0, t1)
+            received = ti + RECEIPT_DELAY + self.imu_rng.normal(0.0, RECEIPT_JITTER, len(ti))
+            arrivals.append(np.maximum.accumulate(received + 0.0002) if len(ti) else received)
+            q, w = self.imu_samples(ti)
+            items += [(3, 0, self.start_ns + int(round(s * NS_PER_S)), (tuple(a), tuple(b)))
+                      for s, a, b in zip(received.tolist(), q.tolist(), w.tolist())]
         when = np.concatenate(arrivals)
         order = np.argsort(when, kind="stable")
         return when[order], [items[k] for k in order]
@@ -316,6 +403,18 @@ class MissionSource:
     def truth_gradient(self, t: Array) -> Array:
         """(n, 3, 3) T/m true tensor at the array centre at mission times ``t`` (s), platform frame."""
         return self.sim.platform_field(self.attitudes(t))[2]
+
+    def truth_field(self, t: Array) -> Array:
+        """(n, 3) T true field at the array centre at mission times ``t`` (s), platform frame."""
+        return self.sim.platform_field(self.attitudes(t))[1]
+
+    def sample_instants(self, stamps: NDArray[np.int64]) -> Array:
+        """Mission times (s) of the sets' samples (``stamps`` ns): a set is stamped at the first sensor's instant,
+        its receipt stamps put on its sample clock (the sample plus about ``RECEIPT_DELAY``, within the receipt
+        jitter), and that sensor samples on the grid ``k / rate`` exactly: the nearest grid instant."""
+        period = self.periods[0]
+        received = (stamps - self.start_ns) / NS_PER_S
+        return self.phases[0] + np.rint((received - RECEIPT_DELAY - self.phases[0]) / period) * period
 
 
 # -- watching the nodes ------------------------------------------------------------------------------
@@ -458,6 +557,8 @@ class Soak:
         calibration = {**LOSSLESS, "reference_field": INTENSITY, "calibration_file": str(cal),
                        "auto_recalibrate": True, "recalibrate_window": p.recalibrate_window,
                        "interference_channels": [CHANNEL]}
+        if p.imu:  # the correction node has no IMU input: its outputs are in the IMU frame by output_rotation
+            calibration["imu_topic"] = IMU_TOPIC
         for name, exe, params, files, ready in (
                 ("correction", "correction_node", correction, [cal], "correcting"),
                 ("calibration", "calibration_node", calibration, [], "listening to")):
@@ -466,7 +567,8 @@ class Soak:
             if not proc.wait_for_log(ready, 180.0):
                 raise RuntimeError(f"{exe} did not start:\n{proc.log()}")
         self.driver = ArrayDriver(source.names, self.domain, node_name="magcal_soak_driver", collect_corrected=False,
-                                  currents=[(CHANNEL, "sensor_msgs/msg/BatteryState")], temperatures=True)
+                                  currents=[(CHANNEL, "sensor_msgs/msg/BatteryState")], temperatures=True,
+                                  imu_topic=IMU_TOPIC if p.imu else None)
         d = self.driver
         if not (d.wait_for_subscribers(2, 180.0) and d.wait_for_output_publishers(180.0) and self.prime(source, 180.0)):
             raise RuntimeError("the nodes were not discovered")
@@ -538,9 +640,8 @@ class Soak:
         self.last_output = time.monotonic()
         stamps = np.array(both, dtype=np.int64)
         t = (stamps - self.start_ns) / NS_PER_S
-        g = np.stack([stamped[s] for s in both]) - source.truth_gradient(t)
-        tensor_ss = np.sum(g[:, :2, :].reshape(len(g), 6) ** 2, axis=1)
-        tmi = np.linalg.norm(np.stack([fields[s] for s in both]), axis=1) - INTENSITY
+        centre = np.stack([fields[s] for s in both])
+        tensor_ss, tmi, field_err = self._errors(source, stamps, np.stack([stamped[s] for s in both]), centre)
         keys = np.maximum((t // self.plan.block).astype(int), 0)
         for k in np.unique(keys):
             b = self.outcome.blocks.setdefault(int(k), Block())
@@ -548,8 +649,28 @@ class Soak:
             b.outputs += int(m.sum())
             b.tensor_ss += float(tensor_ss[m].sum())
             b.tmi_ss += float(np.sum(tmi[m] ** 2))
+            b.field_ss += float(np.sum(field_err[m] ** 2))
+            b.field_cross += np.einsum("ni,nj->ij", centre[m], centre[m] - field_err[m])
         self._segments(t, tensor_ss)
         return len(both)
+
+    @staticmethod
+    def _errors(source: MissionSource, stamps: NDArray[np.int64], gradients: Array,
+                fields: Array) -> tuple[Array, Array, Array]:
+        """Per output (sets stamped ``stamps`` ns, published ``gradients`` (n, 3, 3) T/m and centre ``fields``
+        (n, 3) T, in the output frame): the tensor's squared error summed over its six measured components
+        (T^2/m^2, array frame), ``|B| - F`` (T) and, with an IMU, the error (n, 3) T of the centre field in the
+        IMU frame, published less true (zeros without)."""
+        t = (stamps - source.start_ns) / NS_PER_S
+        if source.imu is not None:  # R G R^T published: back into the array frame with the true mounting
+            gradients = np.einsum("ji,njk,kl->nil", source.imu.mounting, gradients, source.imu.mounting)
+        g = gradients - source.truth_gradient(t)
+        tensor_ss = np.sum(g[:, :2, :].reshape(len(g), 6) ** 2, axis=1)
+        tmi = np.linalg.norm(fields, axis=1) - INTENSITY
+        if source.imu is None:
+            return tensor_ss, tmi, np.zeros((len(t), 3))
+        truth = source.truth_field(source.sample_instants(stamps)) @ source.imu.mounting.T
+        return tensor_ss, tmi, fields - truth
 
     def _segments(self, t: Array, tensor_ss: Array) -> None:
         """The tensor before the hull change, and a minute after the first push after it on."""
@@ -583,6 +704,8 @@ class Soak:
                     d.publish(_raw(source.names[index], stamp, value))
                 elif kind == 1:
                     d.publish_current(0, stamp, value)
+                elif kind == 3:
+                    d.publish_imu(stamp, value[0], value[1], DEFAULT_IMU_FRAME_ID)
                 else:
                     d.publish_temperature(index, stamp, value)
                 watch.mission = float(when[k])
@@ -673,7 +796,8 @@ def table(outcome: SoakOutcome) -> list[str]:
     p = outcome.plan
     fl = floor()
     procs = sorted({k for b in outcome.blocks.values() for k in b.rss})
-    head = f"{'block (min)':>12} {'sets':>7} {'out':>7} {'tensor/floor':>12} {'TMI/noise':>9}  " + \
+    imu = f" {'IMU field/floor':>15} {'IMU frame mdeg':>14}" if p.imu else ""
+    head = f"{'block (min)':>12} {'sets':>7} {'out':>7} {'tensor/floor':>12} {'TMI/noise':>9}{imu}  " + \
         "  ".join(f"{k + ' MiB':>17}" for k in procs)
     lines = [head]
     for k, b in sorted(outcome.blocks.items()):
@@ -681,12 +805,19 @@ def table(outcome: SoakOutcome) -> list[str]:
         if lo >= p.duration / 60:
             continue
         mem = "  ".join(f"{b.rss[n][0]:8.1f}-{b.rss[n][1]:<8.1f}" if n in b.rss else f"{'':>17}" for n in procs)
+        imu = f" {b.field_error() / field_floor():15.2f} {b.frame_error() * 1e3:14.2f}" if p.imu else ""
         lines.append(f"{lo:5.0f}-{hi:<6.0f} {b.sent:7d} {b.outputs:7d} {b.tensor() / fl:12.2f} "
-                     f"{b.tmi() / NOISE:9.2f}  {mem}")
+                     f"{b.tmi() / NOISE:9.2f}{imu}  {mem}")
     lines.append(f"events (mission min): restart of mag{p.restart_sensor + 1} {p.at(p.restart_at) / 60:.1f}, "
                  f"mag{p.silent_sensor + 1} silent {p.at(p.silent_at) / 60:.1f}-"
                  f"{(p.at(p.silent_at) + p.silent_for) / 60:.1f}, payload current on {p.at(p.current_at) / 60:.1f}, "
                  f"hull change {p.at(p.hull_at) / 60:.1f}")
+    if p.imu:
+        lines.append(f"IMU field/floor: RMS per axis of the centre field's error in the IMU frame (mounting roll, pitch, "
+                     f"yaw {', '.join(f'{a:g}' for a in p.imu_mounting)} deg) over noise / 2 = "
+                     f"{field_floor() / NT:.2f} nT; IMU frame mdeg: angle of the rotation that best takes the "
+                     f"true IMU-frame field onto the published one (the output frame's error; noise alone gives "
+                     f"about 0.02 mdeg)")
     lines.append("status changes of the correction node (mission min, wall s, level, message):")
     shown = outcome.events if len(outcome.events) <= MAX_EVENTS else \
         outcome.events[:MAX_EVENTS // 2] + outcome.events[-MAX_EVENTS // 2:]
