@@ -69,6 +69,18 @@ def test_orientation_outputs_in_the_imu_frame_on_fresh_attitudes(tumble):
     assert params["frame_id"] == "imu_link"
 
 
+def test_the_frame_note_says_whether_this_solve_fitted_the_rotation(tumble):
+    """With the IMU in the solve the note says output_rotation was fitted from its orientations; a rotation carried
+    over from a running or prior calibration (a recalibration without the IMU) is said to be kept, not fitted."""
+    import dataclasses
+
+    result = tumble[-1]
+    assert "was fitted from its orientations" in result.frame_note()
+    kept = dataclasses.replace(result, extras={k: v for k, v in result.extras.items() if k != "imu"})
+    assert "is kept from the running or prior calibration" in kept.frame_note()
+    assert "fitted" not in kept.frame_note()
+
+
 def test_without_a_lag_none_is_applied(tumble):
     """The tumble's IMU stamps its samples when the array does: the array lag block finds nothing significant
     and the calibration carries no time offsets (sets formed as the sensors stamp them)."""

@@ -196,8 +196,10 @@ class CalibrationResult:
         cal = self.calibration
         if cal.rotated:
             frame = cal.frame_id or "(the recording names none: magcal correct --frame-id, or frame_id in the file)"
-            return (f"outputs in the IMU's frame {frame}: output_rotation (array to IMU) was fitted from its "
-                    "orientations, so vectors, field and gradient are in the vehicle's navigation frame")
+            how = "was fitted from its orientations" if self.extras.get("imu") is not None else \
+                "is kept from the running or prior calibration (no IMU in this solve)"
+            return (f"outputs in the IMU's frame {frame}: output_rotation (array to IMU) {how}, so vectors, "
+                    "field and gradient are in the vehicle's navigation frame")
         if cal.geometry.size == 1:
             if self.extras.get("mounting"):
                 return "output in the platform frame: the given mounting turns the sensor's corrected axes into it"
