@@ -258,25 +258,12 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=20.0, jitter=0.004, loss=0.02, glitches=[(2.28271, -2.7585)],
                           stalls=[(3.78271, 3.0, True), (11.78271, 1.30117, True)])],
               22.112, 6033, (4.0, 1.46021, 0.0042153)))
-# a step of mag4's stamps 1 s ahead as the receiver fell busy for 1 s: its first message after the step arrived
-# with the backlog, as a pause's would; only the later ones, early for their stamps, showed the step (1 s off)
-@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(5.0, 1.0)])], 15.0, 1,
-              (5.0, 1.0, 0.01)))
-# ... 0.5 s ahead while the receiver drained a backlog: every arrival late, the step looked like a pause (0.5 s off)
-@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(5.0, 0.5)])], 15.0, 2,
-              (4.0, 1.0, 0.01)))
-# ... 1 s ahead at 200 Hz, the backlog draining for longer than a new segment's messages were held (360 ms off)
-@example(Case([SensorPlan(rate=200.0), SensorPlan(rate=200.0), SensorPlan(rate=200.0, steps=[(2.0, 1.0)]),
-               SensorPlan(rate=200.0)], 12.0, 0, (2.0, 1.0, 0.000625)))
 # two steps back, 1 s apart, inside a busy spell: the first segment ended before the backlog had drained and
 # was placed by late arrivals (0.5 s off), the second by its stamps alone once its arrivals kept no time (1 s off)
 @example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
               12.0, 0, (2.0, 1.0, 0.00625)))
 @example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
               12.0, 0, (2.0, 1.0, 0.009375)))
-# a step of 1.5 periods ahead as the receiver fell busy: taken for a lost sample (20 ms off, interpolation)
-@example(Case([SensorPlan(rate=100.0, jitter=0.0008) for _ in range(3)]
-              + [SensorPlan(rate=100.0, jitter=0.0008, steps=[(2.0, 0.015066)])], 12.0, 0, (2.0, 1.0, 0.00125)))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

@@ -92,9 +92,6 @@ jitter averages out)."""
 MAX_PLACE_MESSAGES: int = 256
 """... or, where the arrivals never catch up with the stamps (a recording replayed faster than it was made,
 arrivals too jittery), this many: then the stamps alone place the segment."""
-MAX_CONFIRM_MESSAGES: int = 4096
-"""... but a pause held to confirm (:attr:`SensorStream.pausing`) waits for a backlog to drain up to
-:data:`MAX_STALL` of its stamps or this many messages."""
 TAIL: int = 16
 JUMPS_KEPT: int = 32
 """Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
@@ -280,7 +277,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "pausing", "backlogged")
+                 "burst_count", "seen_step", "jumps", "heard", "backlogged")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -308,13 +305,9 @@ class SensorStream:
         largest ``common - receipt`` is how far the stamps run ahead of the least delayed arrivals."""
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
-        self.pausing = False
         self.backlogged = False
         """Whether the receiver was seen draining a backlog while :attr:`placing` was held (its arrivals will
         catch up: the stamps do not place it after :data:`PLACE_MESSAGES` twice)."""
-        """Whether :attr:`placing` holds the messages after a gap the arrivals saw pass (a pause, by its
-        first arrival), held until the later arrivals confirm it: a backlog delivered after a busy spell
-        arrives late and shows a step forward of the stamps only in the messages after the first."""
         self.since = 0
         """Messages taken since the latest step (for :attr:`before`)."""
         self.placed_at: int | None = None
@@ -397,18 +390,6 @@ class SensorStream:
         return 2 * (stamp - self.last - (receipt - last)) > period and \
             2 * (stamp + self.base - receipt - self.lead()) > period
 
-    def untold(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int, backlog: bool) -> bool:
-        """Whether the arrivals of a stamp ahead of its sequence (``held``) and the next (``message``; (stamp, ...,
-        receipt)) cannot tell a pause from a step forward: they keep time but one of them came more than half a
-        ``period`` (ns) late or another sensor's latest did (``backlog``: the later arrivals will tell, early
-        once it has drained if the stamps stepped); not where the next
-        arrived more than twice its stamp interval after the suspect (a replay slower than the stamps, not a
-        backlog, which drains faster)."""
-        if held[3] is None or message[3] is None or not self.timed() or \
-                message[3] - held[3] > 2 * (message[0] - held[0]):  # arrivals slower than the stamps: a replay
-            return False
-        return backlog or self.late(held[0], held[3], period) or self.late(message[0], message[3], period)
-
     def late(self, stamp: int, receipt: int | None, period: int) -> bool:
         """Whether ``stamp`` (ns, this segment) arrived (``receipt`` ns) more than half a ``period`` (ns) later
         than the least delayed recent arrivals: it cannot tell whether the time its stamp says passed did."""
@@ -485,10 +466,8 @@ class SensorStream:
             return CROWDED
         if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
             return AHEAD
-        if 2 * d > 3 * period:  # lost samples, unless the arrivals saw no gap or came too late to tell
-            unseen = self.unseen(stamp, receipt, period)
-            if unseen or unseen is False and self.late(stamp, receipt, period):
-                return AHEAD
+        if 2 * d > 3 * period and self.unseen(stamp, receipt, period):  # lost samples, unless the arrivals saw no gap
+            return AHEAD
         return OK
 
     def record(self, interval: int) -> int:
@@ -572,27 +551,15 @@ def _stale(receipt: int | None, since: int | None) -> bool:
     return receipt is not None and since is not None and receipt < since
 
 
-def caught_up(held: list[Message], period: int | None, settled: bool = False) -> bool:
+def caught_up(held: list[Message], period: int | None) -> bool:
     """Whether the arrivals of a new segment's held messages have caught up with their stamps: over the last
     four, the stamps' lead over the arrivals grew by less than a period (a backlog delivered at once
-    arrives late and catches up: its lead grows by a period a message); ``settled``: also, of the last
-    :data:`PLACE_MESSAGES` and as many before them, the least delayed of the newer ones arrived no earlier
-    (to a quarter period) than the least delayed of the older ones (a backlog drained a little faster than it
-    filled catches up by a little each message: its arrivals keep coming earlier until it is gone)."""
+    arrives late and catches up: its lead grows by a period a message)."""
     if len(held) < 5:
         return False
     a, b = held[-5], held[-1]
     grew = (b[0] - b[3]) - (a[0] - a[3])  # type: ignore[operator]
-    if grew >= (period or NS_PER_S):
-        return False
-    n = PLACE_MESSAGES
-    if not settled:
-        return True
-    if len(held) < 2 * n:
-        return False
-    older = min(r - t for t, _, _, r in held[-2 * n:-n])  # type: ignore[operator]
-    newer = min(r - t for t, _, _, r in held[-n:])  # type: ignore[operator]
-    return 4 * (older - newer) < (period or NS_PER_S)
+    return grew < (period or NS_PER_S)
 
 
 Accepted = list[tuple[int, int, Any, int, bool]]
@@ -786,9 +753,6 @@ class AcceptanceRule:
             if self._stepped_ahead(s, held):
                 self._step(index, [held[:4], message], out)
                 return True
-            if s.untold(held, message, period or self.restart_ns, self._backlog(index)):
-                s.placing, s.pausing = [held[:4], message], True  # a pause, unless later arrivals are early
-                return True
             s.jumps.append((s.last, held[0], held[3], s.base))
             self._take(index, held[:4], False, out)  # a pause or lost samples
             return False
@@ -901,27 +865,20 @@ class AcceptanceRule:
                 self._place_held(index, out)
             else:  # ended while a backlog drains: where it lies is not known
                 self.stats.unplaced += len(held)
-                s.placing, s.pausing, s.backlogged = None, False, False
+                s.placing, s.backlogged = None, False
             return False
         held.append(message)
         s.backlogged = s.backlogged or self._backlog(index)
         if len(held) < PLACE_MESSAGES:
             return True
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
-        if timed and caught_up(held, period, True):
+        if timed and caught_up(held, period):
             self._place_held(index, out)
-        elif len(held) >= MAX_PLACE_MESSAGES and not (s.pausing and self._backlog_may_drain(held)):
-            self._place_held(index, out, by_arrival=s.pausing)  # arrivals that never catch up with the stamps:
-            # the stamps place (a pause seen early: the best bound of its step)
-        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.pausing and not s.backlogged:
+        elif len(held) >= MAX_PLACE_MESSAGES:  # arrivals that never catch up with the stamps: the stamps place
+            self._place_held(index, out, by_arrival=False)
+        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.backlogged:
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time (a replay
         return True  # at another speed; not a backlog, whose arrivals will catch up)
-
-    @staticmethod
-    def _backlog_may_drain(held: list[Message]) -> bool:
-        """Whether a pause held to confirm may wait longer for a backlog to drain: its stamps span less than
-        :data:`MAX_STALL` and it holds fewer than :data:`MAX_CONFIRM_MESSAGES`."""
-        return held[-1][0] - held[0][0] < MAX_STALL and len(held) < MAX_CONFIRM_MESSAGES
 
     @staticmethod
     def _arrival_estimate(s: SensorStream) -> int:
@@ -932,14 +889,6 @@ class AcceptanceRule:
         first, lead = held[0][0], s.lead()
         return min(first + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
 
-    def _early(self, s: SensorStream) -> bool:
-        """Whether a message held after a gap (:attr:`SensorStream.pausing`) arrived more than half a period
-        before its stamp says it could (an arrival is never early): the stamps stepped forward."""
-        held = s.placing
-        assert held is not None
-        period = s.grid_period() or s.suspect_period() or self.restart_ns
-        return 2 * (held[0][0] + s.base - self._arrival_estimate(s)) > period
-
     def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
         """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
         False, by its stamps alone) and let it through."""
@@ -947,43 +896,12 @@ class AcceptanceRule:
         held = s.placing
         assert held is not None and s.arrivals
         first = held[0]
-        if s.pausing and self._paused_with(index, held, out):
-            return
-        if s.pausing:
-            early = by_arrival and self._early(s)
-            s.pausing = False
-            if not early:  # a pause: its stamps as they are
-                s.placing, s.backlogged = None, False
-                s.jumps.append((s.last, first[0], first[3], s.base))
-                for m in held:
-                    self._take(index, m, False, out)
-                return
-            s.seen_step = True  # arrivals before the stamps' time: the stamps stepped forward
         estimate = self._arrival_estimate(s)
         s.placing, s.backlogged = None, False
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
-
-    def _paused_with(self, index: int, held: list[Message], out: Accepted) -> bool:
-        """Let the ``held`` messages of sensor ``index`` (after a gap held as a pause to confirm) through as another
-        sensor that made the same jump decided it, where one has (one clock stamps both); whether one had."""
-        s = self.streams[index]
-        first = held[0]
-        partner = self._partner(index, first[0], first[3])
-        if partner is None or partner[1] is None:
-            return False
-        s.placing, s.pausing, s.backlogged = None, False, False
-        if partner[1] == s.base:  # a pause
-            s.jumps.append((s.last, first[0], first[3], s.base))
-            self._take(index, first, False, out)
-        else:
-            self._follow(index, partner, first[0], first[3])
-            self._take(index, first, True, out)
-        for m in held[1:]:
-            self._take(index, m, False, out)
-        return True
 
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
@@ -1148,10 +1066,7 @@ class AcceptanceRule:
         s = self.streams[index]
         first = messages[0]
         if partner[1] is None:
-            if self.streams[partner[0]].pausing:  # a pause unless the arrivals say otherwise: as that sensor's
-                s.placing, s.pausing = list(messages), True
-            else:
-                self._step(index, messages, out)
+            self._step(index, messages, out)
             return True
         if partner[1] == s.base:
             s.jumps.append((s.last, first[0], first[3], s.base))
