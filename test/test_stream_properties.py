@@ -144,16 +144,10 @@ def only_lossy(plan: SensorPlan) -> bool:
 
 
 def check_lost(case: Case, streams: list[Stream], sync) -> None:  # type: ignore[no-untyped-def]
-    """A sensor whose only fault is random loss counts exactly what it lost (live: a node's diagnostics) among
-    the messages the rule has taken: the last ones may still be held (after a gap whose arrival came too late
-    to tell a pause from a step, until the arrivals catch up with the stamps)."""
+    """A sensor whose only fault is random loss counts exactly what it lost (live: a node's diagnostics)."""
     for k, (plan, stream) in enumerate(zip(case.plans, streams)):
         if only_lossy(plan):
-            s = sync.engine.streams[k]
-            held = len(s.placing or ()) + (s.held is not None)
-            taken = Stream(stream.stamps[:len(stream.stamps) - held], stream.receipts, stream.vectors,
-                           stream.instants[:len(stream.instants) - held], stream.trusted)
-            assert sync.lost(k) == true_lost(taken, plan), (k, sync.lost(k), true_lost(taken, plan), held)
+            assert sync.lost(k) == true_lost(stream, plan), (k, sync.lost(k), true_lost(stream, plan))
 
 
 def offline(streams: list[Stream]):  # type: ignore[no-untyped-def]
@@ -258,12 +252,6 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=20.0, jitter=0.004, loss=0.02, glitches=[(2.28271, -2.7585)],
                           stalls=[(3.78271, 3.0, True), (11.78271, 1.30117, True)])],
               22.112, 6033, (4.0, 1.46021, 0.0042153)))
-# two steps back, 1 s apart, inside a busy spell: the first segment ended before the backlog had drained and
-# was placed by late arrivals (0.5 s off), the second by its stamps alone once its arrivals kept no time (1 s off)
-@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
-              12.0, 0, (2.0, 1.0, 0.00625)))
-@example(Case([SensorPlan(rate=20.0) for _ in range(3)] + [SensorPlan(rate=20.0, steps=[(2.0, -1.0), (3.0, -1.0)])],
-              12.0, 0, (2.0, 1.0, 0.009375)))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

@@ -149,10 +149,6 @@ class SyncStats:
     delivered, whose stamps say nothing of when its samples were taken."""
     side_value: int = 0
     """Messages of CSV rows whose current or temperature is out of its range (no value)."""
-    unplaced: int = 0
-    """Messages of a new segment (a step of its sensor's stamps) that ended while the receiver drained a backlog,
-    before the segment's arrivals had caught up with its stamps: where it lay on the common time line is not
-    known."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
@@ -189,8 +185,7 @@ class SyncStats:
 DISORDER_MIN: int = 10
 """Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value",
-                                "unplaced")
+                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -206,7 +201,6 @@ _PHRASES = {
     "out_of_range": "readings beyond any magnetometer's range dropped",
     "burst": "messages of a backlog stamped on delivery dropped",
     "side_value": "messages of rows whose current or temperature is out of range dropped",
-    "unplaced": "messages of a stamp step that ended before a backlog drained (placement unknown) dropped",
 }
 
 
@@ -277,7 +271,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "backlogged")
+                 "burst_count", "seen_step", "jumps", "heard")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -305,9 +299,6 @@ class SensorStream:
         largest ``common - receipt`` is how far the stamps run ahead of the least delayed arrivals."""
         self.placing: list[Message] | None = None
         """The first messages of a new segment, held until their arrivals place it."""
-        self.backlogged = False
-        """Whether the receiver was seen draining a backlog while :attr:`placing` was held (its arrivals will
-        catch up: the stamps do not place it after :data:`PLACE_MESSAGES` twice)."""
         self.since = 0
         """Messages taken since the latest step (for :attr:`before`)."""
         self.placed_at: int | None = None
@@ -389,23 +380,6 @@ class SensorStream:
             return False
         return 2 * (stamp - self.last - (receipt - last)) > period and \
             2 * (stamp + self.base - receipt - self.lead()) > period
-
-    def late(self, stamp: int, receipt: int | None, period: int) -> bool:
-        """Whether ``stamp`` (ns, this segment) arrived (``receipt`` ns) more than half a ``period`` (ns) later
-        than the least delayed recent arrivals: it cannot tell whether the time its stamp says passed did."""
-        return receipt is not None and 2 * (self.lead() - (stamp + self.base - receipt)) > period
-
-    def last_before(self, receipt: int | None) -> tuple[int, int | None]:
-        """This sensor's latest stamp (ns, its own clock) taken from a message received at or before ``receipt``
-        (ns; None, or older than the recent arrivals kept: its latest stamp), and that message's receipt: where
-        its stamps were when another sensor's message arrived, whose placement was held until later arrivals
-        came."""
-        if receipt is None or not self.arrivals or self.last_receipt is None or self.last_receipt <= receipt:
-            return self.last, self.last_receipt
-        for common, r in reversed(self.arrivals):
-            if r <= receipt:
-                return common - self.base, r
-        return self.last, self.last_receipt
 
     def lead(self) -> int:
         """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
@@ -759,17 +733,6 @@ class AcceptanceRule:
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
         return False
 
-    def _backlog(self, index: int) -> bool:
-        """Whether another sensor's latest message came more than half its period late, where its arrivals come no
-        slower than its stamps (not a replay slower than it was made; the receiver is draining
-        a backlog: an arrival then says little of when its sample was taken)."""
-        for j, o in enumerate(self.streams):
-            period = o.suspect_period()
-            if j != index and period is not None and o.arrivals and o.late(o.last, o.last_receipt, period) and \
-                    (arrival_ratio(o.arrivals) or 2.0) <= 1.25:
-                return True
-        return False
-
     def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals keep time, when they did not see the time pass; otherwise, unless
@@ -861,33 +824,17 @@ class AcceptanceRule:
         period = s.suspect_period()
         limit = self.restart_ns if period is None else min(self.restart_ns, SUSPECT_PERIODS[0] * period // 2)
         if message[3] is None or not (0 < step <= limit):
-            if len(held) < 5 or caught_up(held, period) or not self._backlog(index):
-                self._place_held(index, out)
-            else:  # ended while a backlog drains: where it lies is not known
-                self.stats.unplaced += len(held)
-                s.placing, s.backlogged = None, False
+            self._place_held(index, out)
             return False
         held.append(message)
-        s.backlogged = s.backlogged or self._backlog(index)
         if len(held) < PLACE_MESSAGES:
             return True
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
         if timed and caught_up(held, period):
             self._place_held(index, out)
-        elif len(held) >= MAX_PLACE_MESSAGES:  # arrivals that never catch up with the stamps: the stamps place
-            self._place_held(index, out, by_arrival=False)
-        elif not timed and len(held) >= 2 * PLACE_MESSAGES and not s.backlogged:
-            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time (a replay
-        return True  # at another speed; not a backlog, whose arrivals will catch up)
-
-    @staticmethod
-    def _arrival_estimate(s: SensorStream) -> int:
-        """Where (common ns) the arrivals of the held new segment of sensor stream ``s`` put its first message:
-        each message's arrival says where the segment lies, a late one says too late: the earliest wins."""
-        held = s.placing
-        assert held is not None and s.arrivals
-        first, lead = held[0][0], s.lead()
-        return min(first + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
+        elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
+            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
+        return True
 
     def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
         """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
@@ -895,9 +842,11 @@ class AcceptanceRule:
         s = self.streams[index]
         held = s.placing
         assert held is not None and s.arrivals
+        s.placing = None
         first = held[0]
-        estimate = self._arrival_estimate(s)
-        s.placing, s.backlogged = None, False
+        lead = s.lead()
+        # each message's arrival says where the segment lies; a late one says too late: the earliest wins
+        estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
@@ -971,7 +920,7 @@ class AcceptanceRule:
         old = s.base
         s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
-        shared = self._shared_base(index, stamp, receipt, estimate, margin, grid)
+        shared = self._shared_base(index, stamp, estimate, margin, grid)
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
@@ -1076,7 +1025,7 @@ class AcceptanceRule:
             self._take(index, first, True, out)
         return False
 
-    def _shared_base(self, index: int, stamp: int, receipt: int | None, estimate: int, margin: int,
+    def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
                      grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
@@ -1086,16 +1035,14 @@ class AcceptanceRule:
         whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
         :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
-        places both alike. First of all, where the new stamps (the first received at ``receipt`` ns, None: unknown)
-        are another sensor's latest at that arrival to half a period or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
+        places both alike. First of all, where the new stamps are another sensor's latest to half a period
+        or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
         sensor's placement."""
         s = self.streams[index]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
-            if j == index or other.last == NEVER or other.busy:
-                continue
-            latest, heard = other.last_before(receipt)
-            if _in_line(stamp - latest, grid) and not _stale(heard, s.last_receipt):
+            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid) and \
+                    not _stale(other.last_receipt, s.last_receipt):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
