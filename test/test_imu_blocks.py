@@ -399,3 +399,56 @@ def test_an_imu_that_does_not_turn_with_the_readings_is_refused_in_words(tumble)
     with pytest.raises(InputError, match=r"the IMU's orientation turns by 0\.0 deg at most while the readings turn by "
                                          r"\d+ deg: the IMU does not follow the array"):
         calibrate_array(rec.vectors, sim.geometry, spec.intensity, stamps=rec.stamps, imu=still)
+
+
+LEAVE_OUT_CASES = {
+    "tumble, orientation": SimulationSpec(count=2400, schedule="tumble", seed=5, noise=NOISE, rate=50.0, imu=True,
+                                          imu_mounting=MOUNTING, imu_orientation_noise=0.02),
+    "yaw circles, gyro": SimulationSpec(count=2400, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=2.0, seed=5,
+                                        noise=NOISE, rate=50.0, imu=True, imu_mounting=MOUNTING, imu_gyro_noise=1e-4),
+}
+
+
+def _jackknife_variance(estimates: np.ndarray) -> np.ndarray:
+    """Delete-one-block jackknife variance of each parameter from the K blocks' estimates (K, P)."""
+    k = len(estimates)
+    return (k - 1) / k * np.sum((estimates - estimates.mean(axis=0)) ** 2, axis=0)
+
+
+@pytest.mark.parametrize("case", list(LEAVE_OUT_CASES))
+def test_the_leave_out_step_with_the_imu_gives_the_jackknife_of_full_refits(case):
+    """The block jackknife's one-step refits with the IMU's global blocks (the sensors' and the global
+    parameters stepped together from the solution) against full refits without each of eight time blocks,
+    with slowly correlated noise (AR(1) 0.99, 3 nT) beside the white 1 nT. What the calibration uses is each
+    parameter's jackknife variance: per parameter the one-step's over the refits' is 0.99-1.0 in the median
+    and above 0.7 for nine in ten (stepping the sensors' parameters alone, the globals held: 0.80 and 0.10
+    on the yaw circles, whose vertical axis only the gyro determines)."""
+    from magcal_ros.core.array_fit import fit_array, fix_rotation_gauge, leave_out_estimates
+    from magcal_ros.core.uncertainty import centre_gauge_constraints
+
+    spec = LEAVE_OUT_CASES[case]
+    rec, truth, _ = run(spec)
+    rng = np.random.default_rng(5)
+    drift = np.zeros(rec.vectors.shape)
+    kicks = rng.normal(size=rec.vectors.shape) * 3 * NT * np.sqrt(1 - 0.99**2)
+    for k in range(1, len(drift)):
+        drift[k] = 0.99 * drift[k - 1] + kicks[k]
+    raw = rec.vectors + drift
+    q = rec.imu.orientation if spec.schedule == "tumble" else np.full((len(raw), 4), np.nan)
+    att = ab.attitude_inputs(q, rec.imu.angular_velocity, rec.stamps, None, False)
+    assert att is not None and att.world == (spec.schedule == "tumble")
+    sol = fix_rotation_gauge(fit_array(raw, truth.calibration.matrices, truth.calibration.offsets, spec.intensity,
+                                       attitude=att))
+    parts = np.array_split(np.arange(len(raw)), 8)
+    one_step = leave_out_estimates(sol, raw, parts, gauge=centre_gauge_constraints(sol.w, sol.model.size))
+    refits = []
+    for part in parts:
+        keep = np.setdiff1d(np.arange(len(raw)), part)
+        refits.append(fix_rotation_gauge(fit_array(
+            raw[keep], sol.matrices, sol.offsets, sol.intensity, None, None, None, sol.weights[keep], robust=False,
+            start=sol.theta, attitude=att.take(keep), attitude_start=sol.globals)).theta.reshape(-1))
+    full = _jackknife_variance(np.array(refits))
+    free = full > 0  # the lag gauge and the frame's gauge do not scatter
+    ratio = _jackknife_variance(one_step)[free] / full[free]
+    assert 0.85 < np.median(ratio) < 1.15 and np.percentile(ratio, 10) > 0.5, \
+        (np.median(ratio), np.percentile(ratio, [10, 90]))

@@ -293,6 +293,10 @@ class _Att:
     def moved(self, step: Array, model: ForwardModel) -> "_Att":
         return _Att(self.inputs, self.state.moved(step, model), self.precision)
 
+    def take(self, keep: NDArray[np.int64]) -> "_Att":
+        """The sets ``keep`` (indices) only."""
+        return _Att(self.inputs.take(keep), self.state, self.precision[keep])
+
 
 STRUCTURED: bool = True
 """:class:`_Eval` builds the products of the linear blocks from their features (False: from the dense
@@ -953,7 +957,7 @@ def fit_array(
             before = att.precision
             att = _attitude_weights(att, d)
             moved = float(np.max(np.abs(att.precision - before)) / max(float(np.max(before)), 1e-300))
-        if np.max(np.abs(new_weights - weights)) < 1e-3 and moved < 1e-2:
+        if _weights_settled(new_weights - weights, qq, sigma) and moved < 1e-2:
             break
         weights = new_weights
     else:
@@ -981,6 +985,22 @@ def fit_array(
              "attitude_sigma": att_blocks.robust_sigma(ea, used), "attitude_residuals": ea,
              "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0)}
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
+
+
+SETTLED_PULL: float = 0.1
+"""Robust rounds stop once the weights' change moves the readings' total pull on the fit by less than this
+many noise sd (a tenth of what one clean reading pulls by): a further round could not move a parameter by more
+than a small fraction of its 1-sigma."""
+
+
+def _weights_settled(change: Array, qq: Array, sigma: Array) -> bool:
+    """Whether a change (N, S) of the readings' weights leaves the fit where it is: no weight moved by 1e-3,
+    or their pulls (weight change times residual ``sqrt(qq)``, (N, S) squared norms, over the noise
+    ``sigma`` (S,)) add up to less than :data:`SETTLED_PULL`."""
+    change = np.abs(change)
+    if np.max(change, initial=0.0) < 1e-3:
+        return True
+    return float(np.sum(change * np.sqrt(qq) / sigma[None, :])) < SETTLED_PULL
 
 
 def _attitude_weights(att: _Att, d: Array, soft: bool = True) -> _Att:
@@ -1134,6 +1154,8 @@ def leave_out_estimates(solution: JointSolution, raw: Array, parts: list[NDArray
     the sets ``solution`` was fitted on), by one Gauss-Newton step from the solution: the fit
     of the other sets moves by ``(H - H_k)^-1 g_k`` with ``H_k``, ``g_k`` the part's information
     and gradient (the whole gradient is zero at the solution). ``gauge`` as in :func:`refine_on_all`.
+    With the IMU's global blocks the step is taken in the sensors' and the global parameters
+    together (their weak prior included, held ones kept) and the sensors' part returned.
     """
     model = solution.model
     f = solution.intensity
@@ -1141,16 +1163,38 @@ def leave_out_estimates(solution: JointSolution, raw: Array, parts: list[NDArray
     n, s, _ = r.shape
     u = np.zeros((n, model.channels)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
     _, prec = _fit_prior(solution, prior)
+    att = _solution_globals(solution)
     infos, grads = [], []
     for idx in parts:
         inputs = SetInputs(u[idx], None if temperatures is None else np.asarray(temperatures, dtype=float)[idx],
                            None if times is None else np.asarray(times, dtype=float)[idx])
         ev = _Eval(model, solution.theta, solution.directions[idx], r[idx] / f, inputs,
-                   None if solution.rates is None else solution.rates[idx], solution.weights[idx], solution.sigma / f)
+                   None if solution.rates is None else solution.rates[idx], solution.weights[idx], solution.sigma / f,
+                   None if att is None else att.take(idx))
         infos.append(ev.information())
         grads.append(ev.scores().sum(axis=0))
-    return _leave_out(solution.theta, solution.information + np.diag(prec), infos, grads,
-                      _step_basis(_free(solution), gauge))
+    if att is None:
+        return _leave_out(solution.theta, solution.information + np.diag(prec), infos, grads,
+                          _step_basis(_free(solution), gauge))
+    assert solution.full_information is not None
+    sp, ng = s * model.size, model.global_size
+    fixed = att.inputs.fixed(model)
+    total = solution.full_information + np.diag(np.concatenate([prec, np.full(ng, att_blocks.WEAK_GLOBAL_SIGMA ** -2.0)]))
+    wide = None if gauge is None else np.concatenate([gauge, np.zeros((len(gauge), ng))], axis=1)
+    start = np.concatenate([solution.theta.reshape(-1), np.zeros(ng)])
+    est = _leave_out(start, total, infos, grads, _step_basis(np.concatenate([_free(solution), ~fixed]), wide))
+    return est[:, :sp]
+
+
+def _solution_globals(solution: JointSolution) -> _Att | None:
+    """The global blocks of a solution as its fit left them (the attitude residuals' precision from their
+    weights and 1-sigma), None without an IMU."""
+    if solution.globals is None or solution.attitude is None:
+        return None
+    weights = (solution.attitude.known.astype(float) if solution.attitude_weights is None
+               else solution.attitude_weights)
+    sig = max(float(solution.attitude_sigma or 0.0), 1e-12)
+    return _Att(solution.attitude, solution.globals, weights / sig**2)
 
 
 @dataclass(frozen=True)

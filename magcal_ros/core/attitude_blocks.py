@@ -378,7 +378,8 @@ def _axis_rotations() -> list[Array]:
 
 def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count: int, field: Array | None,
                rounds: int) -> tuple[Array, Array, float]:
-    """Alternating Procrustes from ``a``: fields then mounting, ``rounds`` times; (A, fields, cost)."""
+    """Alternating Procrustes from ``a``: fields then mounting, at most ``rounds`` times (fewer once the
+    mounting stops moving, :data:`START_TOLERANCE`); (A, fields, cost)."""
     fields = np.zeros((count, 3))
     for _ in range(rounds):
         world = np.einsum("nab,bc,nc->na", rot, a, d, optimize=True)  # Q A d: should be f_g
@@ -389,20 +390,29 @@ def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count:
                 m = world[groups == g].sum(axis=0)
                 fields[g] = m / max(np.linalg.norm(m), 1e-300)
         target = np.einsum("nba,nb->na", rot, fields[groups])  # Q^T f: should be A d
-        a = procrustes(d, target)
+        a, before = procrustes(d, target), a
+        if np.max(np.abs(a - before)) < START_TOLERANCE:
+            break
     cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d, optimize=True) - fields[groups]) ** 2))
     return a, fields, cost
+
+
+START_TOLERANCE: float = 1e-12
+"""The closed-form start's alternation stops once no element of the mounting moves more than this."""
+START_SETS: int = 500
+"""Sets (evenly spread) on which the 24 axis rotations are tried; the best is then refined on every set."""
 
 
 def initial_state(att: AttitudeInputs, directions: Array) -> GlobalState:
     """A and the field directions in closed form from the calibrated directions (N, 3): alternating
     Procrustes (Wahba's problem for ``A``, the mean for each ``f_g``) from each of the 24 axis
-    rotations, the best kept; the gradient at zero."""
+    rotations (on :data:`START_SETS` of the sets), the best refined on every set; the gradient at zero."""
     known = att.known
     d, rot, groups = directions[known], att.rotations[known], att.groups[known]
+    few = slice(None, None, max(1, len(d) // START_SETS))
     best = None
     for a0 in _axis_rotations():
-        a, fields, cost = _alternate(a0, d, rot, groups, att.count, att.field, 8)
+        a, fields, cost = _alternate(a0, d[few], rot[few], groups[few], att.count, att.field, 8)
         if best is None or cost < best[2]:
             best = (a, fields, cost)
     assert best is not None
