@@ -417,6 +417,39 @@ class MissionSource:
         return self.phases[0] + np.rint((received - RECEIPT_DELAY - self.phases[0]) / period) * period
 
 
+def output_errors(source: MissionSource, stamps: NDArray[np.int64], gradients: Array,
+            fields: Array) -> tuple[Array, Array, Array]:
+    """Per output (sets stamped ``stamps`` ns, published ``gradients`` (n, 3, 3) T/m and centre ``fields``
+    (n, 3) T, in the output frame): the tensor's squared error summed over its six measured components
+    (T^2/m^2, array frame), ``|B| - F`` (T) and, with an IMU, the error (n, 3) T of the centre field in the
+    IMU frame, published less true (zeros without)."""
+    t = (stamps - source.start_ns) / NS_PER_S
+    if source.imu is not None:  # R G R^T published: back into the array frame with the true mounting
+        gradients = np.einsum("ji,njk,kl->nil", source.imu.mounting, gradients, source.imu.mounting)
+    g = gradients - source.truth_gradient(t)
+    tensor_ss = np.sum(g[:, :2, :].reshape(len(g), 6) ** 2, axis=1)
+    tmi = np.linalg.norm(fields, axis=1) - INTENSITY
+    if source.imu is None:
+        return tensor_ss, tmi, np.zeros((len(t), 3))
+    truth = source.truth_field(source.sample_instants(stamps)) @ source.imu.mounting.T
+    return tensor_ss, tmi, fields - truth
+
+
+def fold_outputs(blocks: dict[int, Block], block: float, t: Array, centre: Array, tensor_ss: Array, tmi: Array,
+                 field_err: Array) -> None:
+    """Add outputs at mission times ``t`` (s) to the ``block``-s rows of ``blocks``: their centre fields (n, 3) T
+    and the errors of :func:`output_errors`."""
+    keys = np.maximum((t // block).astype(int), 0)
+    for k in np.unique(keys):
+        b = blocks.setdefault(int(k), Block())
+        m = keys == k
+        b.outputs += int(m.sum())
+        b.tensor_ss += float(tensor_ss[m].sum())
+        b.tmi_ss += float(np.sum(tmi[m] ** 2))
+        b.field_ss += float(np.sum(field_err[m] ** 2))
+        b.field_cross += np.einsum("ni,nj->ij", centre[m], centre[m] - field_err[m])
+
+
 # -- watching the nodes ------------------------------------------------------------------------------
 
 
@@ -641,36 +674,10 @@ class Soak:
         stamps = np.array(both, dtype=np.int64)
         t = (stamps - self.start_ns) / NS_PER_S
         centre = np.stack([fields[s] for s in both])
-        tensor_ss, tmi, field_err = self._errors(source, stamps, np.stack([stamped[s] for s in both]), centre)
-        keys = np.maximum((t // self.plan.block).astype(int), 0)
-        for k in np.unique(keys):
-            b = self.outcome.blocks.setdefault(int(k), Block())
-            m = keys == k
-            b.outputs += int(m.sum())
-            b.tensor_ss += float(tensor_ss[m].sum())
-            b.tmi_ss += float(np.sum(tmi[m] ** 2))
-            b.field_ss += float(np.sum(field_err[m] ** 2))
-            b.field_cross += np.einsum("ni,nj->ij", centre[m], centre[m] - field_err[m])
+        tensor_ss, tmi, field_err = output_errors(source, stamps, np.stack([stamped[s] for s in both]), centre)
+        fold_outputs(self.outcome.blocks, self.plan.block, t, centre, tensor_ss, tmi, field_err)
         self._segments(t, tensor_ss)
         return len(both)
-
-    @staticmethod
-    def _errors(source: MissionSource, stamps: NDArray[np.int64], gradients: Array,
-                fields: Array) -> tuple[Array, Array, Array]:
-        """Per output (sets stamped ``stamps`` ns, published ``gradients`` (n, 3, 3) T/m and centre ``fields``
-        (n, 3) T, in the output frame): the tensor's squared error summed over its six measured components
-        (T^2/m^2, array frame), ``|B| - F`` (T) and, with an IMU, the error (n, 3) T of the centre field in the
-        IMU frame, published less true (zeros without)."""
-        t = (stamps - source.start_ns) / NS_PER_S
-        if source.imu is not None:  # R G R^T published: back into the array frame with the true mounting
-            gradients = np.einsum("ji,njk,kl->nil", source.imu.mounting, gradients, source.imu.mounting)
-        g = gradients - source.truth_gradient(t)
-        tensor_ss = np.sum(g[:, :2, :].reshape(len(g), 6) ** 2, axis=1)
-        tmi = np.linalg.norm(fields, axis=1) - INTENSITY
-        if source.imu is None:
-            return tensor_ss, tmi, np.zeros((len(t), 3))
-        truth = source.truth_field(source.sample_instants(stamps)) @ source.imu.mounting.T
-        return tensor_ss, tmi, fields - truth
 
     def _segments(self, t: Array, tensor_ss: Array) -> None:
         """The tensor before the hull change, and a minute after the first push after it on."""
