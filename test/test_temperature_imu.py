@@ -772,3 +772,21 @@ def test_a_still_run_keeps_the_held_temperature_terms_and_frame() -> None:
     np.testing.assert_array_equal(cal.output_rotation, held.output_rotation)
     with pytest.raises(InputError, match="give the temperatures"):
         calibrate_interference(rec.vectors, rec.currents, rec.channels, held)
+
+
+def test_side_topics_recorded_without_a_message_are_no_temperatures_not_a_traceback(tmp_path: Path) -> None:
+    """A recorder that subscribed to ``/<name>/temperature`` (and ``/imu``) but got no message: the default
+    temperature topics count as absent (the sets are kept, none dropped); naming an empty topic is refused
+    in one line, as any topic without a usable sample is (it raised a reshape ValueError from the matching)."""
+    n = 50
+    rng = np.random.default_rng(4)
+    rec = Recording(NAMES, (np.arange(n) + 1) * S, rng.normal(0, 3e-5, (n, 4, 3)))
+    bag = tmp_path / "empty_side_bag"
+    _write_bag(bag, rec, {name: np.zeros(0, np.int64) for name in NAMES}, imu=[])
+    opened, _ = open_recording(bag)
+    same, stats = with_bag_temperatures(bag, opened)
+    assert stats is None and same.temperatures is None and len(same) == n
+    with pytest.raises(InputError, match="no set left"):
+        with_bag_temperatures(bag, opened, ["/mag1/temperature"])
+    with pytest.raises(InputError):
+        with_bag_imu(bag, opened, "/imu")

@@ -59,6 +59,8 @@ def finite_sorted(stamps: ArrayLike, values: ArrayLike) -> tuple[NDArray[np.int6
     """The samples with finite values (every component), in stable stamp order."""
     st = np.asarray(stamps, dtype=np.int64).reshape(-1)
     v = np.asarray(values, dtype=float)
+    if not len(st):  # a topic with no message
+        return st, v.reshape((0,) + v.shape[1:]) if v.ndim else v.reshape(0)
     ok = np.all(np.isfinite(v.reshape(len(st), -1)), axis=1)
     order = np.argsort(st[ok], kind="stable")
     return st[ok][order], v[ok][order]

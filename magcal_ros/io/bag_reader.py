@@ -642,10 +642,11 @@ def typed_connections(reader: "Reader", path: str | os.PathLike[str], wanted: Se
 
 
 def temperature_topics(reader: "Reader", names: Sequence[str]) -> list[str] | None:
-    """``/<name>/temperature`` of every sensor when the bag has them all as ``sensor_msgs/msg/Temperature``;
-    None when it has none of them; :class:`InputError` naming the missing ones when it has some."""
+    """``/<name>/temperature`` of every sensor when the bag has them all as ``sensor_msgs/msg/Temperature``
+    with messages; None when it has none of them (a topic recorded without a message counts as none);
+    :class:`InputError` naming the missing ones when it has some."""
     wanted = [topic_names.absolute(topic_names.temperature(n)) for n in names]
-    have = {c.topic for c in reader.connections if c.msgtype == TEMPERATURE}
+    have = {c.topic for c in reader.connections if c.msgtype == TEMPERATURE and getattr(c, "msgcount", 1) > 0}
     found = [t for t in wanted if t in have]
     if not found:
         return None
