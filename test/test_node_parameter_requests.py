@@ -239,7 +239,7 @@ def test_the_sets_a_calibration_solves_are_the_sets_it_keeps_with_the_imu_pendin
                                  [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             waiting = t0 + 40 * 10_000_000 + 1_000_000  # after the last IMU sample: waits for the next one
             node._newest_set = waiting
-            node._pending.append((waiting, tuple(map(tuple, rng.normal(size=(4, 3)) * 1e-5)), 0))
+            node._pending.append((waiting, tuple(map(tuple, rng.normal(size=(4, 3)) * 1e-5)), 0, True))
         first = node._take_sets(None)
         assert len(first.collected) == 41 and waiting in first.collected.stamps
         with node._lock:

@@ -145,7 +145,8 @@ def test_the_mission_window_keeps_the_latest_seconds_evenly() -> None:
         t = 1000 * S + k * (S // 100)
         if window.due(t):
             window.add(t, ((1e-5, 0.0, 0.0), (0.0, 1e-5, 0.0)), (float(k),))
-    stamps, raw, currents, temperatures = window.snapshot()
+    stamps, raw, currents, temperatures, imu = window.snapshot()
+    assert imu is None  # no IMU
     assert temperatures is None  # none heard
     assert window.newest == 1000 * S + 2999 * (S // 100)
     assert len(stamps) == 201 and np.all(np.diff(stamps) == S // 20)  # 10 s at 20 Hz

@@ -143,33 +143,56 @@ def collected_recording(names: Sequence[str], channels: Sequence[str], stamps: N
     return rec, notes
 
 
+IMU_SHARE: float = 0.5
+"""A mission window's sets go to a recalibration with the IMU when at least this share of them has its attitude
+(those without are then left out); below it, all of them without the IMU."""
+
+
 class MissionSets(NamedTuple):
-    """Sets of a mission window: stamps (N,) ns, raw sets (N, S, 3) T, currents (N, m) A and each sensor's
-    temperature (N, S) deg C (None: not heard)."""
+    """Sets of a mission window: stamps (N,) ns, raw sets (N, S, 3) T, currents (N, m) A, each sensor's
+    temperature (N, S) deg C (None: not heard) and the IMU at each set (N, 7): orientation x, y, z, w IMU frame
+    to world ENU and angular velocity rad/s IMU frame, NaN where the IMU gave none (None: no IMU)."""
 
     stamps: NDArray[np.int64]
     raw: NDArray[np.float64]
     currents: NDArray[np.float64]
     temperatures: NDArray[np.float64] | None = None
+    imu: NDArray[np.float64] | None = None
 
     def take(self, keep: NDArray[np.bool_]) -> "MissionSets":
         """The sets selected by ``keep`` (boolean mask)."""
         t = None if self.temperatures is None else self.temperatures[keep]
-        return MissionSets(self.stamps[keep], self.raw[keep], self.currents[keep], t)
+        imu = None if self.imu is None else self.imu[keep]
+        return MissionSets(self.stamps[keep], self.raw[keep], self.currents[keep], t, imu)
+
+    def recording(self, names: Sequence[str], channels: Sequence[str], imu_frame_id: str = "") -> Recording:
+        """These sets as a :class:`Recording` (:func:`collected_recording`: with their temperatures and IMU when
+        they have them)."""
+        n, sensors = self.raw.shape[:2]
+        temperatures = np.full((n, sensors), np.nan) if self.temperatures is None else self.temperatures
+        imu = np.full((n, 7), np.nan) if self.imu is None else self.imu
+        rec, _ = collected_recording(names, channels, self.stamps, self.raw, self.currents, temperatures, imu,
+                                     imu_frame_id)
+        return rec
+
+
+_MissionSet = tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...], tuple[float, ...] | None,
+                    tuple[float, ...] | None]
+"""stamp ns, raw vectors T, currents A, temperatures deg C or None, IMU (7 numbers) or None."""
 
 
 class MissionWindow:
-    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents and temperatures), at
-    most one set every ``spacing_ns`` (a set closer than that to the last one kept is skipped), so that
-    a long window at a high rate stays small."""
+    """The latest ``seconds_ns`` of a mission's synchronized raw sets (with their currents, temperatures and the
+    IMU's attitude), at most one set every ``spacing_ns`` (a set closer than that to the last one kept is
+    skipped), so that a long window at a high rate stays small: per set S x 3 readings, m currents, S
+    temperatures and 7 numbers of attitude."""
 
     def __init__(self, seconds_ns: int, spacing_ns: int, sensors: int, channels: int = 0) -> None:
         self.seconds_ns = max(int(seconds_ns), 1)
         self.spacing_ns = max(int(spacing_ns), 0)
         self.sensors = sensors
         self.channels = channels
-        self._sets: deque[tuple[int, tuple[tuple[float, float, float], ...], tuple[float, ...],
-                               tuple[float, ...] | None]] = deque()
+        self._sets: deque[_MissionSet] = deque()
         self._next = -(2**62)
         self.newest = 0
         """Stamp (ns) of the newest set seen (kept or not): the mission's time."""
@@ -189,12 +212,15 @@ class MissionWindow:
         return stamp_ns >= self._next
 
     def add(self, stamp_ns: int, values: tuple[tuple[float, float, float], ...], currents: Sequence[float] = (),
-            temperatures: Sequence[float] | None = None) -> None:
-        """Keep one set (S raw vectors, T; the channels' currents, A; each sensor's temperature, deg C, or None)
-        if :meth:`due`; forget sets older than the window."""
+            temperatures: Sequence[float] | None = None, imu: Sequence[float] | None = None) -> None:
+        """Keep one set (S raw vectors, T; the channels' currents, A; each sensor's temperature, deg C, or None;
+        the IMU's orientation x, y, z, w to ENU and angular velocity rad/s, IMU frame, or None) if :meth:`due`;
+        forget sets older than the window."""
         if not self.due(stamp_ns):
             return
-        self._sets.append((stamp_ns, tuple(values), tuple(currents), None if temperatures is None else tuple(temperatures)))
+        self._sets.append((stamp_ns, tuple(values), tuple(currents),
+                           None if temperatures is None else tuple(temperatures),
+                           None if imu is None else tuple(float(x) for x in imu)))
         self._next = stamp_ns + self.spacing_ns
         self.newest = max(self.newest, stamp_ns)
         first = stamp_ns - self.seconds_ns
@@ -208,13 +234,23 @@ class MissionWindow:
 
     def snapshot(self, since_ns: int | None = None) -> MissionSets:
         """The sets stamped ``since_ns`` or later; temperatures where every one of them has its sensors'
-        (sets kept before the temperatures were first heard are left out then), None where none has."""
+        (sets kept before the temperatures were first heard are left out then), None where none has.
+
+        The IMU: when at least :data:`IMU_SHARE` of those sets have its attitude, the sets without one (kept
+        before the IMU was first heard, or while it was stale) are left out and every set left has it;
+        otherwise the IMU is None (too few attitudes to fit its blocks: a recalibration without it, which
+        keeps the running output frame)."""
         rows = [s for s in self._sets if since_ns is None or s[0] >= since_ns]
         if any(r[3] is not None for r in rows):
             rows = [r for r in rows if r[3] is not None]
+        with_imu = [r for r in rows if r[4] is not None]
+        attitudes = bool(with_imu) and len(with_imu) >= IMU_SHARE * len(rows)
+        if attitudes:
+            rows = with_imu
         stamps = np.array([r[0] for r in rows], dtype=np.int64)
         raw = np.array([r[1] for r in rows], dtype=float).reshape(len(rows), self.sensors, 3)
         currents = np.array([r[2] for r in rows], dtype=float).reshape(len(rows), self.channels)
         heard = bool(rows) and rows[0][3] is not None
         temperatures = np.array([r[3] for r in rows], dtype=float).reshape(len(rows), self.sensors) if heard else None
-        return MissionSets(stamps, raw, currents, temperatures)
+        imu = np.array([r[4] for r in rows], dtype=float).reshape(len(rows), 7) if attitudes else None
+        return MissionSets(stamps, raw, currents, temperatures, imu)

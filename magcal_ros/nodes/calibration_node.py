@@ -50,7 +50,8 @@ same ``hardware_id``. Reports and analyses run on the steady clock (with ``use_s
 Recalibration during the mission (:mod:`magcal_ros.methods.recalibration`): the node keeps a
 rolling window of the mission's sets and watches the correction node's calibration health on
 ``/diagnostics``. When it names a drift, with ``auto_recalibrate`` the sets flown since
-(``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside), checked
+(``recalibrate_window`` s) are solved as ``~/calibrate`` solves (held-out sets aside; with the IMU's
+attitude at each set when ``imu_topic`` is heard, so its blocks and ``output_rotation`` are fitted again), checked
 (what changed determined; on the held-out sets every sensor the health named better, none worse,
 the sensors that did not improve kept as they run) and pushed and saved, at most once per
 ``recalibrate_interval`` (the status counts ``attempts`` and ``recalibrations``); without it,

@@ -65,8 +65,9 @@ class Collection:
         imu_tol = tolerance_of(float(self.get_parameter("imu_tolerance").value), "IMU")
         self._imu = LatestImu(imu_tol)
         self._imu_health = ImuHealth(("imu",), (self.resolve_topic_name(topic),), imu_tol)
-        self._pending: deque[tuple[int, Any, int]] = deque()
-        """Sets waiting for side-stream samples due at them: (stamp, raw values, arrival ns)."""
+        self._pending: deque[tuple[int, Any, int, bool]] = deque()
+        """Sets waiting for side-stream samples due at them: (stamp, raw values, arrival ns, to be collected); each
+        goes into the mission window too when it is due there."""
         self._newest_set = 0
         unknown = -1.0
 
@@ -85,57 +86,55 @@ class Collection:
         self._subs.append(self.create_subscription(Imu, topic, on_imu, self._raw_qos))
 
     def _flush_pending(self, force: bool) -> None:
-        """Collect the sets nothing is due for any more (all of them with ``force``): the IMU's sample after
+        """Take the sets nothing is due for any more (all of them with ``force``): the IMU's sample after
         them arrived (or they waited its tolerance), and no current or temperature stamped at or before them
         is on its way (or they waited :data:`~magcal_ros.core.side_streams.MAX_WAIT`); each with its side
-        streams' values then. A set without a fresh value of every side stream heard is not collected. Lock
-        held."""
+        streams' values then, into the mission window and (while collecting) the buffer (:meth:`_collect`).
+        Lock held."""
         imu, pending = self._imu, self._pending
         now = self._receipt_clock()
         while pending:
-            stamp, values, arrival = pending[0]
+            stamp, values, arrival, collect = pending[0]
             waited = now - arrival
             if not force and imu.received and not imu.ready(stamp, self._newest_set, waited):
                 break
             if not force and waited <= side.MAX_WAIT and self._side_due(stamp):
                 break
             pending.popleft()
-            self._collect(stamp, values)
+            self._collect(stamp, values, collect)
 
     def _side_due(self, stamp: int) -> bool:
         """Whether a current or temperature stamped at or before ``stamp`` (ns) is due and has not come."""
         return bool((self._inputs.channels and self._currents.due(stamp))
                     or (any(self._temperatures.received) and self._temperatures.due(stamp)))
 
-    def _collect(self, stamp: int, values: Any) -> None:
-        """One set into the buffer with its currents, temperatures and IMU sample, when they are fresh."""
+    def _collect(self, stamp: int, values: Any, collect: bool = True) -> None:
+        """One set, with its currents, temperatures and IMU sample (orientation and angular velocity) at it, into
+        the mission window (when due there) and, with ``collect``, the buffer. A set without a fresh current of
+        every channel, or (once heard) a fresh temperature of every sensor, goes into neither (the buffer's
+        counts say so); one without a fresh IMU sample (once heard) goes into the mission window without
+        attitude and not into the buffer."""
         currents: list[float] = []
+        current_fresh: list[bool] = []
         if self._inputs.channels:
-            currents, fresh = self._currents.at(stamp)
-            if not self._current_health.count(fresh):
-                return  # a set without a fresh current of every channel is not collected
-        temperatures = None
+            currents, current_fresh = self._currents.at(stamp)
+        temperatures, warm = None, []
         if any(self._temperatures.received):  # once heard, every set needs them
-            temperatures, fresh = self._temperatures.at(stamp)
-            if not self._temperature_health.count(fresh):
-                return
-        if not self._imu.received:
-            self._buffer.add(stamp, values, currents, temperatures)
-            return
-        q, w, fresh = self._imu.at(stamp)
-        if self._imu_health.count([fresh]):
-            self._buffer.add(stamp, values, currents, temperatures, [*q.tolist(), *w.tolist()])
-
-    def _keep_for_mission(self, stamp: int, values: Any) -> None:
-        """One set into the mission window with its currents and, once heard, its sensors' temperatures, when
-        they are fresh (lock held)."""
-        currents, fresh = self._currents.at(stamp) if self._inputs.channels else ([], [])
-        temperatures = None
-        if any(self._temperatures.received):
             temperatures, warm = self._temperatures.at(stamp)
-            fresh = [*fresh, *warm]
-        if all(fresh):
-            self._mission.add(stamp, values, currents, temperatures)
+        attitude, imu_fresh = None, True
+        if self._imu.received:
+            q, w, imu_fresh = self._imu.at(stamp)
+            attitude = [*q.tolist(), *w.tolist()] if imu_fresh else None
+        if all(current_fresh) and all(warm):
+            self._mission.add(stamp, values, currents, temperatures, attitude)
+        if not collect:
+            return
+        if self._inputs.channels and not self._current_health.count(current_fresh):
+            return
+        if temperatures is not None and not self._temperature_health.count(warm):
+            return
+        if not self._imu.received or self._imu_health.count([imu_fresh]):
+            self._buffer.add(stamp, values, currents, temperatures, attitude)
 
     def _disconnect(self) -> None:
         for s in self._subs:
@@ -151,12 +150,11 @@ class Collection:
             with self._lock:
                 self._health.seen(index, stamp)
                 for synced in self._sync.add(index, stamp, f.x, f.y, f.z, arrival):
-                    if self._mission.due(synced.stamp):  # the mission's rolling window, for a recalibration at sea
-                        self._keep_for_mission(synced.stamp, synced.values)
-                    if not self._collecting:
+                    # the mission's rolling window (for a recalibration at sea) and, while collecting, the buffer
+                    if not self._mission.due(synced.stamp) and not self._collecting:
                         continue
                     self._newest_set = max(self._newest_set, synced.stamp)
-                    self._pending.append((synced.stamp, synced.values, self._receipt_clock()))
+                    self._pending.append((synced.stamp, synced.values, self._receipt_clock(), self._collecting))
                 self._flush_pending(force=False)
 
         return callback

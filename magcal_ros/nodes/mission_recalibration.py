@@ -72,14 +72,18 @@ class MissionRecalibration:
         self._drift_worker.start()
 
     def _auto_recalibrate(self, now: int, window: MissionSets) -> None:
-        """Fit the sets flown since the drift was named (held-out sets aside), check, push and save (worker thread)."""
+        """Fit the sets flown since the drift was named (held-out sets aside), check, push and save (worker thread).
+
+        As ``~/calibrate`` solves: with the running calibration as the prior and, when the window's sets carry the
+        IMU's attitudes (:meth:`~magcal_ros.nodes.buffer.MissionWindow.snapshot`), with the IMU, so that its blocks
+        (output rotation, site gradient, the array's lag behind it) are fitted again, not kept as running."""
         pushed = False
         with self._lock:
             health = self._watch.health  # what named the drift (a push makes the next report say otherwise)
             drifted = self._watch.sensors
             self._recalibration["attempts"] = str(int(self._recalibration["attempts"]) + 1)
         try:
-            stamps, raw, currents, temperatures = window
+            stamps, raw, currents, temperatures = window.stamps, window.raw, window.currents, window.temperatures
             fit, held = recalibration.split(stamps)
             seen: dict[str, Any] = {}
             warm = None if temperatures is None else (temperatures[fit], temperatures[held])
@@ -134,7 +138,7 @@ class MissionRecalibration:
     def _advise(self, now: int, window: MissionSets) -> None:
         """What to fly so that ~/calibrate fixes the drift: the progress analysis of the sets flown since it was
         named, with the running calibration as the prior (worker thread; the math in the analysis process)."""
-        stamps, raw, currents, _ = window
+        stamps, raw, currents = window.stamps, window.raw, window.currents
         try:
             prior, _ = self._resolve_prior(self._geometry)
             reference, site = self._reference()

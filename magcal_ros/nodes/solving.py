@@ -172,8 +172,7 @@ class Solving:
                 snapshot = self._buffer.collected()
             else:
                 snapshot = None
-                collected = Recording(self._geometry.names, window.stamps, window.raw, self._inputs.channels,
-                                      window.currents, window.temperatures)
+                collected = window.recording(self._geometry.names, self._inputs.channels, self._imu.frame_id)
                 notes = []
             return CalibrationJob(collected, notes, self._geometry, self._inputs, snapshot)
 
