@@ -343,7 +343,9 @@ def _judge_interference(result: CalibrationResult, running: ArrayCalibration,
 
 def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:
     """What a recalibration changed, in words: how far each sensor's corrected field moved at zero
-    raw reading (the offset change seen through the matrix), nT: ``offsets moved: mag1 612 nT, ...``."""
+    raw reading (the offset change seen through the matrix), nT: ``offsets moved: mag1 612 nT, ...``; the
+    largest change of a matrix, ppm; and, when it changed, the angle (deg) between the two output frames (the
+    output rotation fitted again from the IMU)."""
     moved = []
     for i, name in enumerate(new.geometry.names):
         j = old.geometry.names.index(name)
@@ -351,7 +353,12 @@ def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:
         moved.append(f"{name} {np.linalg.norm(shift) / NT:.0f} nT")
     gains = max(float(np.max(np.abs(new.matrices[i] @ np.linalg.inv(old.matrices[old.geometry.names.index(n)])
                                     - np.eye(3)))) for i, n in enumerate(new.geometry.names))
-    return f"offsets moved: {', '.join(moved)}; matrices changed by at most {gains * 1e6:.0f} ppm"
+    text = f"offsets moved: {', '.join(moved)}; matrices changed by at most {gains * 1e6:.0f} ppm"
+    turn = np.asarray(new.output_rotation) @ np.asarray(old.output_rotation).T
+    if not np.array_equal(new.output_rotation, old.output_rotation):
+        angle = np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0)))
+        text += f"; output frame turned by {angle:.3f} deg"
+    return text
 
 
 @dataclass
