@@ -21,11 +21,11 @@ from the hull change, and whether a node hung (its outputs or statuses stopped).
 With an IMU (:attr:`SoakPlan.imu`, off by default) the vehicle's IMU, mounted a few degrees off the array
 (:attr:`SoakPlan.imu_mounting`), publishes ``sensor_msgs/Imu`` at ``IMU_RATE``: its true orientation (IMU frame
 to world ENU, as :mod:`magcal_ros.sim.imu` writes it) and angular velocity (rad/s, IMU frame), stamped on
-receipt as the sensors are. The calibration node subscribes it (``imu_topic``), but only the sets of a
-manoeuvre (``~/start``, ``~/calibrate``) carry it: ``auto_recalibrate``'s mission window keeps stamps, readings,
-currents and temperatures, so a push during the mission keeps the running ``output_rotation`` and does not
-fit it. The correction node has no IMU input: it starts with the true calibration, whose ``output_rotation``
-is the mounting, and publishes every output in the IMU's frame (``frame_id`` ``imu_link``). Measured besides: per block the RMS per axis of
+receipt as the sensors are. The calibration node subscribes it (``imu_topic``): ``auto_recalibrate``'s mission
+window keeps the IMU's attitude at each set, so a push during the mission fits the IMU's blocks again (the
+``output_rotation`` among them) with the running calibration as the prior. The correction node has no IMU
+input: it starts with the true calibration, whose ``output_rotation`` is the mounting (or, with
+:attr:`SoakPlan.running_frame_error`, turned off it), and publishes every output in the IMU's frame (``frame_id`` ``imu_link``). Measured besides: per block the RMS per axis of
 the centre field's error in the IMU frame against the truth (the mounting times the true platform-frame
 field at the set's sample instant: the first sensor's, whose receipt stamps the synchroniser's sample clock
 puts on its sampling grid plus the mean receipt delay) over the floor ``noise / 2`` of four sensors' mean, and
@@ -160,6 +160,10 @@ class SoakPlan:
     imu_mounting: tuple[float, float, float] = (2.0, -1.5, 3.0)
     """deg roll, pitch, yaw of the rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` from the array (platform) frame to the
     IMU frame (``v_imu = M v_array``, as ``magcal simulate --imu-mounting``)."""
+    running_frame_error: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """deg roll, pitch, yaw of the rotation (as :attr:`imu_mounting`'s) by which the correction node's starting
+    calibration turns the outputs beyond the mounting (with :attr:`imu`): its ``output_rotation`` is this rotation
+    times the mounting, the rest true, so only a recalibration that fits the output rotation puts it right."""
 
     def at(self, fraction: float) -> float:
         """Mission time (s) of a fraction of the duration."""
@@ -581,6 +585,9 @@ class Soak:
         truth = source.sim.true_calibration()
         if not p.payload_known:
             truth = replace(truth, channels=(), interference=None)
+        if p.imu and any(p.running_frame_error):
+            roll, pitch, yaw = p.running_frame_error
+            truth = replace(truth, output_rotation=yaw_pitch_roll(yaw, pitch, roll)[0] @ truth.output_rotation)
         calfile.write(cal, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
         self.domain = pick_domain_id()
         env = ros_environment(self.domain)
