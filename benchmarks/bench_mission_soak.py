@@ -10,9 +10,10 @@ dives through a thermocline, each sensor stamped on receipt (delay and jitter), 
 iron jumping (see :mod:`magcal_ros.app.soak`); with ``--payload-unknown`` the payload's interference is not in
 the starting calibration (it was off during the manoeuvre) and must be named and learnt when it comes on; with
 ``--imu`` the vehicle's IMU (mounted a few degrees off the array, 50 Hz) is published to the calibration node too
-(a recalibration during the mission does not use it: it keeps the running output frame), the outputs are in the
-IMU frame (the starting calibration's ``output_rotation``) and the table gets the centre field's error in it (RMS
-per axis over noise / 2) and the output frame's error (mdeg). Prints progress while it runs, then per block of
+(a recalibration during the mission solves with it: the output rotation is fitted again), the outputs are in the
+IMU frame (the starting calibration's ``output_rotation``; ``--running-frame-error`` turns it off the mounting)
+and the table gets the centre field's error in it (RMS per axis over noise / 2) and the output frame's error
+(mdeg). Prints progress while it runs, then per block of
 mission the sets offered and output, the tensor RMS error over the floor sqrt(2) noise / baseline,
 the TMI error over the noise and each process's RSS (min-max, MiB); every status change of the
 correction node on /diagnostics; every recalibration pushed and its latency from the hull change;
@@ -46,10 +47,16 @@ def main() -> None:
                         help="publish the vehicle's IMU (sensor_msgs/Imu, 50 Hz, mounted a few degrees off the array) "
                         "to the calibration node; the outputs are in the IMU frame and the table gets the centre "
                         "field's error and the output frame's error in it")
+    parser.add_argument("--running-frame-error", type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                        metavar=("ROLL", "PITCH", "YAW"),
+                        help="with --imu: deg by which the starting calibration's output rotation is off the "
+                        "mounting (a recalibration during the mission puts it right)")
     args = parser.parse_args()
+    roll, pitch, yaw = (float(a) for a in args.running_frame_error)
     plan = SoakPlan(duration=args.hours * 3600.0, speed=args.speed, rate=args.rate, block=args.block_minutes * 60.0,
                     silent_for=args.silent_minutes * 60.0, seed=args.seed, tempco=args.tempco,
-                    payload_known=not args.payload_unknown, imu=args.imu)
+                    payload_known=not args.payload_unknown, imu=args.imu,
+                    running_frame_error=(roll, pitch, yaw))
     t0 = time.monotonic()
     out = run_soak(plan, lambda s: print(s, flush=True))
     print(f"\nmission soak: {args.hours:g} h of mission at {args.speed:g}x, {args.rate:g} Hz per sensor, "
