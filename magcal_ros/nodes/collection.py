@@ -111,9 +111,9 @@ class Collection:
     def _collect(self, stamp: int, values: Any, collect: bool = True) -> None:
         """One set, with its currents, temperatures and IMU sample (orientation and angular velocity) at it, into
         the mission window (when due there) and, with ``collect``, the buffer. A set without a fresh current of
-        every channel, or (once heard) a fresh temperature of every sensor, goes into neither (the buffer's
-        counts say so); one without a fresh IMU sample (once heard) goes into the mission window without
-        attitude and not into the buffer."""
+        every channel, or (once heard) a fresh temperature of every sensor, goes into neither (counted while
+        collecting); one without a fresh IMU sample (once heard) goes into the mission window without attitude
+        and not into the buffer. Lock held."""
         currents: list[float] = []
         current_fresh: list[bool] = []
         if self._inputs.channels:
