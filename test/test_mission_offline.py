@@ -1,8 +1,7 @@
 """The soak's mission processed offline with the ``magcal`` command (:mod:`magcal_ros.app.mission_offline`; the long
 run is ``benchmarks/bench_mission_offline.py``).
 
-Ten minutes of mission at 20 samples/s per sensor (at 10/s the interpolation's chord error of the 6 deg/s turn,
-about 0.7 nT, shows in the centre field) written to a rosbag2 as a recorder receives it: receipt stamps,
+Ten minutes of mission at 20 samples/s per sensor written to a rosbag2 as a recorder receives it: receipt stamps,
 mag3's driver restarting (its stamps 30 s back), mag4 silent for 30 s, the IMU mounted (2, -1.5, 3) deg off the
 array, the payload switched on with its interference not in the starting calibration, the hull's hard iron
 jumping. ``magcal correct`` with the starting calibration, then ``magcal calibrate --prior`` over 120 s after each
@@ -46,10 +45,9 @@ def test_before_any_change_the_starting_calibration_is_at_the_floor(outcome) -> 
 def test_each_change_is_recalibrated_offline_back_to_the_floors(outcome) -> None:
     """With the starting calibration the payload's span is tens of floors off and the hull's hundreds; recalibrated
     from 120 s after each change with the prior, the IMU and the payload's current, every block from the window
-    on is within 1.2x the tensor floor and the TMI's, the output frame within 1 mdeg of the IMU's (0.06-0.34) and
-    the centre field in the IMU frame within 2.5x its floor (1.5-2.0x: the four offsets' common error, which 120 s
-    of yaw turns leave at about 1 nT 1-sigma per axis, as the file's uncertainty says; the tensor and the TMI do
-    not see it)."""
+    on is within 1.2x the tensor floor and the TMI's, the output frame within 1 mdeg of the IMU's (0.04-0.30) and
+    the centre field in the IMU frame within 1.3x its floor (0.92-1.03x; 1.5-2.0x when the synchroniser drew a
+    line between two samples: the chord of the turning field, which the IMU-aided fit took for scale)."""
     assert [r.what for r in outcome.recalibrations] == ["payload switched on", "hull change"]
     for first, last, worse in ((240.0, 360.0, 20.0), (420.0, 600.0, 200.0)):
         before = _blocks(outcome.start_blocks, first, last)
@@ -59,7 +57,7 @@ def test_each_change_is_recalibrated_offline_back_to_the_floors(outcome) -> None
         for b in after:
             assert b.tensor() < 1.2 * floor(), (first, b.tensor() / floor())
             assert b.tmi() < 1.2 * NOISE / 2, (first, b.tmi() / NOISE)
-            assert b.field_error() < 2.5 * field_floor(), (first, b.field_error() / field_floor())
+            assert b.field_error() < 1.3 * field_floor(), (first, b.field_error() / field_floor())
             assert b.frame_error() < 0.001, (first, b.frame_error())  # deg
 
 

@@ -507,3 +507,28 @@ def test_a_tables_rows_form_the_sets_and_counts_each_sensors_messages_form(rejec
     assert fast_blocks >= 2  # the clean blocks were formed at once
     assert rows.stats.nonfinite == 1 and rows.stats.out_of_range == 1 and rows.stats.duplicate >= 1
     assert rows.stats.used + rows.stats.dropped() + rows.pending == sensors * sum(len(s) for s, _ in blocks)
+
+
+@pytest.mark.parametrize("rate", [10.0, 20.0])
+def test_interpolation_follows_a_turning_field_not_its_chord(rate: float) -> None:
+    """A vehicle yawing at 6 deg/s in a 51,500 nT field inclined 60 deg, four sensors sampled a quarter period
+    apart at 10 or 20 Hz, noise-free: each interpolated reading is within 0.02 nT of the field at the set's
+    instant (but the first set's: no sample before it, the line). A line between two samples cuts the chord of the turning horizontal field (up to
+    ``h^2 |B''| / 8``: 0.70 nT at 10 Hz, 0.18 nT at 20 Hz), an error that follows the motion: with the IMU
+    pinning each set's direction it made a recalibration's scales 25-55 ppm off."""
+    from magcal_ros.core.sync import synchronise_streams
+
+    omega, bh, bz = math.radians(6.0), 51_500e-9 * 0.5, 51_500e-9 * math.sqrt(3) / 2
+
+    def field(t: np.ndarray) -> np.ndarray:
+        return np.stack([bh * np.cos(omega * t), -bh * np.sin(omega * t), np.full_like(t, bz)], axis=1)
+
+    streams = []
+    for i in range(4):
+        t = np.arange(0, int(60 * rate)) / rate + i * 0.25 / rate
+        streams.append((np.rint(t * 1e9).astype(np.int64), field(t)))
+    batch, stats, mode = synchronise_streams(streams, mode="interpolate")
+    assert mode == "interpolate" and len(batch) > 0.95 * 60 * rate
+    truth = field(batch.stamps[:, 0] / 1e9)
+    err = np.abs(batch.vectors[1:, 1:] - truth[1:, None, :])
+    assert np.max(err) < 0.02e-9, np.max(err) * 1e9

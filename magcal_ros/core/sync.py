@@ -16,8 +16,8 @@ restarts, non-finite readings). Sets are then formed in one of two modes:
 - **interpolate** (sensors sampled at different instants, or stamped on receipt): each
   sensor's stamps give its sample clock (:mod:`magcal_ros.core.sample_clock`) and so each
   sample's instant; a set is formed at every sample instant of the reference sensor (the
-  first), the other sensors interpolated linearly between their samples on either side
-  of it, never across more than ``max_gap`` (such sets are dropped and counted, ``gap``);
+  first), the other sensors interpolated at it (the quadratic through their samples on either side and
+  the one before, see below), never across more than ``max_gap`` (such sets are dropped and counted, ``gap``);
   see :mod:`magcal_ros.core.sync_interpolate`. Every member of a set carries the set's
   instant.
 
