@@ -446,3 +446,19 @@ def test_a_calibration_with_temperature_terms_is_recalibrated_from_the_mission_w
     pushed = judged.result.calibration
     assert tensor_rms(pushed.field_and_gradient(fresh.vectors, temperatures=cold)[2]) < 1.2 * floor
     assert tensor_rms(running.field_and_gradient(fresh.vectors, temperatures=cold)[2]) > 100 * floor
+
+
+def test_a_recalibration_during_the_mission_keeps_the_running_time_offsets(drifted: tuple) -> None:
+    """A window whose fit found a lag for one sensor (here put in by hand, 0.2 ms: what a calibration node's own
+    placement of a restarted driver gave in a soak) pushes the running time offsets, and says so: each node places
+    a restarted driver by its own arrivals, and the correction node's placement was right."""
+    sim, moved, running, rng = drifted
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    result, fit, held = _solve(stamps, raw, running)
+    lagged = replace(result, calibration=replace(result.calibration, time_offsets=np.array([0.0, 0.0, 2e-4, 0.0])))
+    judged = recalibration.judge(lagged, running, raw[fit], raw[held], drifted=sim.geometry.names)
+    assert judged.problem is None, judged.problem
+    np.testing.assert_array_equal(judged.result.calibration.time_offsets, running.time_offsets)
+    assert recalibration.timing_note(lagged.calibration, judged.result.calibration) == \
+        " (time offsets kept as running; the window's: mag3 0.20 ms)"
+    assert recalibration.timing_note(running, judged.result.calibration) == ""

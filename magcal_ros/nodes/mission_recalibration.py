@@ -92,7 +92,7 @@ class MissionRecalibration:
                       prior: ArrayCalibration | None) -> tuple[str | None, CalibrationResult]:
                 judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted,
                                              seconds_fit=(stamps[fit] - stamps[0]) / 1e9, temperatures=warm)
-                seen.update(verdict=judged, prior=prior)
+                seen.update(verdict=judged, prior=prior, fitted=result.calibration)
                 return judged.problem, judged.result or result
 
             fallback = self._running_intensity() if self._reference()[0] is None else None
@@ -101,6 +101,7 @@ class MissionRecalibration:
                 judged = seen["verdict"]
                 kept = f" ({', '.join(judged.kept)} kept as running)" if judged.kept else ""
                 kept += f" ({judged.scope})" if judged.scope else ""
+                kept += recalibration.timing_note(seen["fitted"], judged.result.calibration)
                 message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
                            f"calibration health said: {health}): "
                            f"{recalibration.changes(seen['prior'], judged.result.calibration)}{kept}; "
