@@ -23,7 +23,7 @@ import io
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +41,21 @@ from magcal_ros.app.soak import (
     floor,
     fold_outputs,
     output_errors,
+    write_start_calibration,
 )
+from magcal_ros.core.stamps import format_seconds, parse_seconds_column
 from magcal_ros.core.units import NS_PER_S, NT
+from magcal_ros.io.cdr import (
+    BATTERY_STATE,
+    IMU,
+    MAGNETIC_FIELD,
+    TEMPERATURE,
+    battery_state_message,
+    imu_message,
+    magnetic_field_message,
+    temperature_message,
+    typestore,
+)
 from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID
 
 Array = NDArray[np.float64]
@@ -92,17 +105,6 @@ class OfflineOutcome:
 
 def _message(store: Any, kind: int, index: int, stamp: int, value: Any, names: tuple[str, ...]) -> tuple[int, bytes]:
     """(connection key, serialized message) of one mission item (kinds as :meth:`MissionSource.stretch`)."""
-    from magcal_ros.io.cdr import (
-        BATTERY_STATE,
-        IMU,
-        MAGNETIC_FIELD,
-        TEMPERATURE,
-        battery_state_message,
-        imu_message,
-        magnetic_field_message,
-        temperature_message,
-    )
-
     if kind == 0:
         sec, nsec = divmod(stamp, NS_PER_S)
         return index, bytes(store.serialize_cdr(magnetic_field_message(sec, nsec, names[index], value), MAGNETIC_FIELD))
@@ -119,7 +121,6 @@ def write_mission_bag(source: MissionSource, path: Path, say: Callable[[str], No
     from magcal_ros.io import topics
     from magcal_ros.io.atomic import atomic_path
     from magcal_ros.io.bag_writer import BagSink
-    from magcal_ros.io.cdr import BATTERY_STATE, IMU, MAGNETIC_FIELD, TEMPERATURE, typestore
 
     p, names, store = source.plan, source.names, typestore()
     count, shown = 0, time.monotonic()
@@ -161,7 +162,7 @@ def _magcal(args: list[str]) -> tuple[int, str]:
 
 def _seconds(source: MissionSource, mission: float) -> str:
     """The header stamp (s since the epoch) of mission time ``mission`` (s), for ``--start`` / ``--end``."""
-    return f"{(source.start_ns + mission * NS_PER_S) / NS_PER_S:.3f}"
+    return format_seconds(source.start_ns + round(mission * NS_PER_S))
 
 
 def read_outputs(path: Path) -> tuple[NDArray[np.int64], Array, Array]:
@@ -171,8 +172,7 @@ def read_outputs(path: Path) -> tuple[NDArray[np.int64], Array, Array]:
         rows = [line.strip().split(",") for line in fh if line.strip()]
     if not rows:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
-    whole, _, frac = zip(*(r[0].partition(".") for r in rows))
-    stamps = np.array([int(a) * NS_PER_S + int((b + "000000000")[:9]) for a, b in zip(whole, frac)], dtype=np.int64)
+    stamps = parse_seconds_column([r[0] for r in rows])
     values = np.array([r[1:] for r in rows], dtype=float)
     col = {name: k - 1 for k, name in enumerate(header)}
     fields = values[:, [col[f"field.{a}"] for a in "xyz"]]
@@ -222,16 +222,6 @@ def _changes(plan: SoakPlan) -> list[tuple[str, float]]:
     return sorted(out, key=lambda c: c[1])
 
 
-def _start_calibration(source: MissionSource, path: Path) -> None:
-    """The true calibration (as the soak's correction node starts with), without the payload when it is unknown."""
-    from magcal_ros.io import calibration_file as calfile
-
-    truth = source.sim.true_calibration()
-    if not source.plan.payload_known:
-        truth = replace(truth, channels=(), interference=None)
-    calfile.write(path, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
-
-
 def run_offline(plan: OfflinePlan, workdir: Path, say: Callable[[str], None] = print) -> OfflineOutcome:
     """The mission written, corrected with the starting calibration, recalibrated after each change and corrected
     span by span with the latest calibration (see the module docstring)."""
@@ -241,7 +231,7 @@ def run_offline(plan: OfflinePlan, workdir: Path, say: Callable[[str], None] = p
     w0 = time.monotonic()
     outcome.messages = write_mission_bag(source, bag, say)
     outcome.timings["write the bag"] = time.monotonic() - w0
-    _start_calibration(source, start_cal)
+    write_start_calibration(source, start_cal)
     p = plan.mission
     w0 = time.monotonic()
     say("correcting the whole mission with the starting calibration")

@@ -421,8 +421,24 @@ class MissionSource:
         return self.phases[0] + np.rint((received - RECEIPT_DELAY - self.phases[0]) / period) * period
 
 
+def write_start_calibration(source: MissionSource, path: Path) -> None:
+    """Write the calibration the mission starts with to ``path``: the true one (its noise and intensity in the
+    metadata), without the payload when :attr:`SoakPlan.payload_known` is off, its output rotation turned by
+    :attr:`SoakPlan.running_frame_error` with an IMU."""
+    from magcal_ros.io import calibration_file as calfile
+
+    p = source.plan
+    truth = source.sim.true_calibration()
+    if not p.payload_known:
+        truth = replace(truth, channels=(), interference=None)
+    if p.imu and any(p.running_frame_error):
+        roll, pitch, yaw = p.running_frame_error
+        truth = replace(truth, output_rotation=yaw_pitch_roll(yaw, pitch, roll)[0] @ truth.output_rotation)
+    calfile.write(path, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
+
+
 def output_errors(source: MissionSource, stamps: NDArray[np.int64], gradients: Array,
-            fields: Array) -> tuple[Array, Array, Array]:
+                  fields: Array) -> tuple[Array, Array, Array]:
     """Per output (sets stamped ``stamps`` ns, published ``gradients`` (n, 3, 3) T/m and centre ``fields``
     (n, 3) T, in the output frame): the tensor's squared error summed over its six measured components
     (T^2/m^2, array frame), ``|B| - F`` (T) and, with an IMU, the error (n, 3) T of the centre field in the
@@ -578,17 +594,9 @@ class Soak:
             ros_args,
             ros_environment,
         )
-        from magcal_ros.io import calibration_file as calfile
-
         p = self.plan
         cal = self.workdir / "calibration.yaml"
-        truth = source.sim.true_calibration()
-        if not p.payload_known:
-            truth = replace(truth, channels=(), interference=None)
-        if p.imu and any(p.running_frame_error):
-            roll, pitch, yaw = p.running_frame_error
-            truth = replace(truth, output_rotation=yaw_pitch_roll(yaw, pitch, roll)[0] @ truth.output_rotation)
-        calfile.write(cal, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
+        write_start_calibration(source, cal)
         self.domain = pick_domain_id()
         env = ros_environment(self.domain)
         correction = {**LOSSLESS, "health_window": p.health_window}

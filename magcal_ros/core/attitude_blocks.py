@@ -364,6 +364,12 @@ def lag_rates(angular_velocity: Array) -> Array | None:
 
 
 # -- the closed-form start ----------------------------------------------------------------------------
+START_TOLERANCE: float = 1e-12
+"""The closed-form start's alternation stops once no element of the mounting moves more than this."""
+START_SETS: int = 500
+"""Sets (evenly spread) on which the 24 axis rotations are tried; the best is then refined on every set."""
+
+
 def _axis_rotations() -> list[Array]:
     """The 24 rotations that permute the axes (with signs): starts for the alternating fit."""
     out = []
@@ -395,12 +401,6 @@ def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count:
             break
     cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d, optimize=True) - fields[groups]) ** 2))
     return a, fields, cost
-
-
-START_TOLERANCE: float = 1e-12
-"""The closed-form start's alternation stops once no element of the mounting moves more than this."""
-START_SETS: int = 500
-"""Sets (evenly spread) on which the 24 axis rotations are tried; the best is then refined on every set."""
 
 
 def initial_state(att: AttitudeInputs, directions: Array) -> GlobalState:

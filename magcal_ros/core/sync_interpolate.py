@@ -57,13 +57,13 @@ MAX_GAP_PERIODS: float = 3.5
 _NO_LIMIT = 2**62
 
 
-def _weights(taus: list[int], t: int, a: int, b: int, prior: int) -> tuple[float, ...]:
-    """Weights of the samples (``prior``, ``a``, ``b``), or (``a``, ``b``) when ``prior`` < 0, at instant ``t``
-    (ns): the quadratic through three (Lagrange), else the line through two."""
+def _weights(taus: list[int], t: int, a: int, b: int, prior: int) -> tuple[float, float, float]:
+    """Weights of the samples ``prior``, ``a``, ``b`` at instant ``t`` (ns): the quadratic through the three
+    (Lagrange); the line through ``a`` and ``b`` (``prior``'s weight 0) when ``prior`` < 0."""
     ta, tb = taus[a], taus[b]
     if prior < 0:
         f = (t - ta) / (tb - ta)
-        return (1.0 - f, f)
+        return (0.0, 1.0 - f, f)
     tp = taus[prior]
     return ((t - ta) * (t - tb) / ((tp - ta) * (tp - tb)), (t - tp) * (t - tb) / ((ta - tp) * (ta - tb)),
             (t - tp) * (t - ta) / ((tb - tp) * (tb - ta)))
@@ -294,9 +294,11 @@ class InterpolatingSynchronizer(AcceptanceRule):
                     values.append(vals[a])
                     used[a] = True
                     continue
-                weights = _weights(taus_all[k], t, a, b, prior)
-                rows = [vals[i] for i in ((prior, a, b) if prior >= 0 else (a, b))]
-                values.append(tuple(sum(w * r[c] for w, r in zip(weights, rows)) for c in range(3)))  # type: ignore[arg-type]
+                wp, wa, wb = _weights(taus_all[k], t, a, b, prior)
+                va, vb = vals[a], vals[b]
+                vp = vals[prior] if prior >= 0 else va  # weight 0 without it
+                values.append((wp * vp[0] + wa * va[0] + wb * vb[0], wp * vp[1] + wa * va[1] + wb * vb[1],
+                               wp * vp[2] + wa * va[2] + wb * vb[2]))
                 used[a] = used[b] = True
                 if prior >= 0:
                     used[prior] = True
