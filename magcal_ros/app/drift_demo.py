@@ -18,6 +18,7 @@ judge by stamps, so only the wall-clock waits shrink).
 from __future__ import annotations
 
 import time
+from functools import partial
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -123,21 +124,19 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     k = 0
     phase = "clean"
     auto_at: float | None = None
+    patient = True  # false once a node did not catch up within patience: the replay then goes on regardless
     drifted_stamps: list[int] = []
     chunk = int(CHUNK * RATE)
+    last_clean = int(np.searchsorted(rec.stamps, jump_ns))  # the replay stops there until the clean sets are judged
     while k < len(rec):
-        part = rec.take(np.arange(k, min(k + chunk, len(rec))))
+        part = rec.take(np.arange(k, min(k + chunk, last_clean if k < last_clean else len(rec))))
         _replay(driver, part, speed)
         k += len(part)
         t = (int(part.stamps[-1]) - jump_ns) / NS_PER_S  # mission time since the jump, as published
         health, hv, seen = judged()
         if phase == "clean":
-            if t >= 0:
-                deadline = time.monotonic() + patience
-                while seen < -CHUNK and time.monotonic() < deadline:  # let the node judge the clean phase
-                    time.sleep(0.2)
-                    health, hv, seen = judged()
-                out.clean_levels = _clean_judgements(driver, health_name, jump_ns, clean, say)
+            if k >= last_clean:  # let the node judge the clean phase before a drifted set reaches it
+                out.clean_levels = _judge_clean(driver, health_name, jump_ns, clean, patience, say)
                 phase = "drifting"
         elif phase == "drifting":
             drifted_stamps.extend(int(s) for s in part.stamps if int(s) > jump_ns)
@@ -159,14 +158,17 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                 auto_at = t
                 say("set auto_recalibrate true")
                 phase = "recalibrating"
-        elif phase == "recalibrating":
+        elif phase == "recalibrating":  # the calibration node may lag: at most a chunk of sets behind the replay
+            patient = patient and _wait(partial(_caught_up, driver, recal_name, int(part.stamps[0])), patience)
             rv = _values(driver.status(recal_name))
-            if int(rv.get("recalibrations", "0") or 0) >= 1:
+            if _pushes(rv) >= 1:
                 out.recalibrated_after = t - (auto_at or t)
                 out.recalibrated = rv.get("last_recalibration", "")
                 out.attempts = int(rv.get("attempts", "0") or 0)
                 say(f"{out.recalibrated_after:.0f} s later: {out.recalibrated}")
                 break
+    if phase == "recalibrating" and not out.recalibrated:  # the replay ended: the node may still be at it
+        _await_push(driver, recal_name, patience, out, say)
     if drifted_stamps:  # a node (or this driver) that lags delivers them late: wait for them
         driver.wait_for_outputs(drifted_stamps, timeout=60.0, settle=5.0)
         g = driver.gradients(drifted_stamps)
@@ -178,21 +180,64 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     return out
 
 
+def _pushes(values: dict[str, str]) -> int:
+    """The recalibration status's count of pushes."""
+    return int(values.get("recalibrations", "0") or 0)
+
+
+def _await_push(driver: Any, recal_name: str, patience: float, out: DriftOutcome, say: Callable[[str], None]) -> None:
+    """After the replay: wait up to ``patience`` s for the calibration node's push, into ``out``."""
+    _wait(lambda: _pushes(_values(driver.status(recal_name))) >= 1, patience)
+    rv = _values(driver.status(recal_name))
+    if _pushes(rv) >= 1:
+        out.recalibrated, out.attempts = rv.get("last_recalibration", ""), int(rv.get("attempts", "0") or 0)
+        say(f"after the replay: {out.recalibrated}")
+    else:
+        say(f"no recalibration by the end of the replay: {rv}")
+
+
 def _level(status: Any) -> int:
     """A diagnostic status's level as a number."""
     return int(status.level[0]) if isinstance(status.level, bytes) else int(status.level)
 
 
-def _clean_judgements(driver: Any, health_name: str, jump_ns: int, clean: float, say: Callable[[str], None]) -> list[int]:
-    """The levels of every judgement of clean sets only (stamped before ``jump_ns``), as received: polling
-    alone misses some when a node lags."""
+def _caught_up(driver: Any, name: str, stamp: int) -> bool:
+    """Whether a node's status ``name`` says it has seen the sets up to ``stamp`` (ns)."""
+    newest = _values(driver.status(name)).get("newest_stamp")
+    return bool(newest) and parse_seconds(newest) >= stamp
+
+
+def _judge_clean(driver: Any, health_name: str, jump_ns: int, clean: float, patience: float,
+                 say: Callable[[str], None]) -> list[int]:
+    """The replay held at the jump: wait up to ``patience`` s for a judgement of the clean phase's last
+    ``CHUNK`` s (so that a node that lags judges clean sets at all), then the levels of every clean judgement."""
+    recent = jump_ns - int(CHUNK * NS_PER_S)
+    _wait(lambda: bool(_clean_judgements(driver, health_name, jump_ns, clean, None, since=recent)), patience)
+    return _clean_judgements(driver, health_name, jump_ns, clean, say)
+
+
+def _wait(ready: Callable[[], bool], patience: float) -> bool:
+    """Poll ``ready`` until it holds (True) or ``patience`` s of wall time passed (False)."""
+    deadline = time.monotonic() + patience
+    while not ready():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.2)
+    return True
+
+
+def _clean_judgements(driver: Any, health_name: str, jump_ns: int, clean: float, say: Callable[[str], None] | None,
+                      since: int = 0) -> list[int]:
+    """The levels of every judgement of clean sets only (stamped before ``jump_ns``, the newest at or after
+    ``since`` ns), as received: polling alone misses some when a node lags."""
     judged_all = [(st, _values(st)) for st in driver.statuses_of(health_name)]
     clean_statuses = [st for st, v in judged_all if v.get("figure") and v.get("newest_stamp")
-                      and parse_seconds(v["newest_stamp"]) < jump_ns]
+                      and since <= parse_seconds(v["newest_stamp"]) < jump_ns]
     levels = [_level(st) for st in clean_statuses]
     shown = clean_statuses[-1].message if clean_statuses else "no judgement of clean sets"
-    say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "
-        f"levels {sorted(set(levels))}, the last: {shown}")
+    if say is not None:
+        say(f"clean phase over ({clean:g} s, target passed): {len(clean_statuses)} judgements of clean sets, "
+            f"levels {sorted(set(levels))}, the last: {shown}")
     return levels
 
 

@@ -47,6 +47,7 @@ from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.calibration_health import DRIFTED_SENSORS, MESSAGE_LIMIT, residual_projector, within
 from magcal_ros.core.interference import interference_from_steps
 from magcal_ros.core.metrics import rms
+from magcal_ros.core.stamps import format_seconds
 from magcal_ros.core.units import NT
 from magcal_ros.methods.pipeline import CalibrationResult
 from magcal_ros.methods.progress import Assessment
@@ -486,7 +487,8 @@ def status(target: str, auto: bool, watch: DriftWatch, now: int, health: str, ad
     values = {"auto_recalibrate": str(auto).lower(), "drifted": str(since is not None).lower(),
               DRIFTED_SENSORS: ",".join(watch.sensors),
               "health": watch.health or health, "advice": advice if since is not None else "",
-              "since_drift_s": f"{(now - since) / 1e9:.0f}" if since is not None else "", **record}
+              "since_drift_s": f"{(now - since) / 1e9:.0f}" if since is not None else "",
+              "newest_stamp": format_seconds(now) if now else "", **record}
     if since is None:
         judged = health and not health.startswith(("collecting", "not assessed"))
         if not judged:
