@@ -856,18 +856,18 @@ def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chu
     np.testing.assert_allclose(fast.vertical, slow.vertical, atol=1e-12)
 
 
-@pytest.mark.parametrize("lag", [False, True])
-def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, lag):
-    """Four sensors with a current channel (and a lag block): the normal matrix, the direction couplings,
-    each set's scores and the reduced normal equations built from the features equal those of the dense
-    Jacobian."""
+@pytest.mark.parametrize("lag,temperature", [(False, False), (True, False), (False, True), (True, True)])
+def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, lag, temperature):
+    """Four sensors with a current channel (and a lag block, a temperature block): the normal matrix, the
+    direction couplings, each set's scores and the reduced normal equations built from the features equal
+    those of the dense Jacobian."""
     from magcal_ros.core import array_fit
     from magcal_ros.core.array_fit import SetInputs, _Eval
     from magcal_ros.core.forward_model import ForwardModel
 
     rng = np.random.default_rng(6)
     s, n = 4, 300
-    model = ForwardModel(s, channels=1, lag=lag)
+    model = ForwardModel(s, channels=1, lag=lag, temperature=temperature)
     q = model.q
     theta = np.zeros((s, model.size))
     w = np.zeros((s, 3, q))
@@ -876,15 +876,18 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
     theta[:, : 3 * q] = w.reshape(s, -1)
     if lag:
         theta[:, model.lag_index] = rng.normal(0, 0.003, s)
+    if temperature:
+        theta[:, model.gain_slice] = rng.normal(0, 3e-4, (s, 3))
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rates = np.cross(d, rng.normal(size=(n, 3))) if lag else None
-    inputs = SetInputs(rng.normal(size=(n, 1)))
+    inputs = SetInputs(rng.normal(size=(n, 1)), rng.normal(0, 10.0, (n, s)) if temperature else None)
     x = rng.normal(0, 1.0, (n, s, 3))
     weights = rng.uniform(0.0, 1.0, (n, s))
     weights[:10] = 0.0  # sets no sensor constrains
     sigma = rng.uniform(0.005, 0.02, s)
     fast = _Eval(model, theta, d, x, inputs, rates, weights, sigma)
+    assert fast._features is not None  # built from the features
     reduced = fast.reduced()  # (before anything builds its B)
     step = rng.normal(size=s * model.size)
     pulled = fast.b_times(step)  # (from the features, no B built)

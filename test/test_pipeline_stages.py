@@ -54,3 +54,16 @@ def test_an_undetermined_channel_of_a_long_recording_is_left_out_of_every_set() 
     whole = calibrate_array(raw, geometry, f, **kwargs)
     assert np.allclose(result.calibration.offsets, whole.calibration.offsets, atol=2e-9)
     assert np.allclose(result.calibration.matrices, whole.calibration.matrices, atol=2e-4)
+
+
+@pytest.mark.parametrize("name", ["imu", "temperatures", "lag", "currents"])
+def test_the_structured_normal_equations_give_the_dense_jacobians_outcome(name: str, monkeypatch) -> None:
+    """The normal equations built from the features (with the IMU's global blocks, the temperature's gain
+    columns, the lag's) give the outcome the dense Jacobian gives, to the comparison's 1e-9."""
+    from magcal_ros.core import array_fit
+
+    structured = json.loads(json.dumps(ps.record(name)))
+    monkeypatch.setattr(array_fit, "STRUCTURED", False)
+    dense = json.loads(json.dumps(ps.record(name)))
+    found = ps.differences(structured, dense, name)
+    assert not found, "\n".join(found[:20])

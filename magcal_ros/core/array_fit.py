@@ -346,31 +346,22 @@ class _Eval:
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)
         self.globals = ng
-        lag_only = model.lag_index is not None and d_tau is not None and p == 3 * q + 1
-        if STRUCTURED and (p == 3 * q or lag_only) and gain.shape[0] == 1 and not ng:
-            # Every axis a has the same features phi = [seen, psi] in its own q columns and zeros
-            # elsewhere (then the lag's column, dense): the products below without the (N, S, 3, P)
-            # Jacobian, two thirds zeros.
-            phi = np.concatenate([seen, np.broadcast_to(psi, (n, s, q - 3))], axis=2)  # (N, S, q)
-            wphi = phi * ws[:, :, None]
-            lin = 3 * q
-            a_blocks = np.zeros((s, p, p))
-            for i in range(s):
-                a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i].T @ phi[:, i])
-            g_sum = np.empty((s, p))  # the gradient summed over the sets (each set's built when asked for)
-            g_sum[:, :lin] = np.einsum("nsa,nsj->saj", self.e, wphi).reshape(s, lin)
-            wcol = None
-            if lag_only:  # d pred / d tau (N, S, 3): its products with the linear columns and itself
-                col = per_sensor(k, d_tau)
-                wcol = col * ws[:, :, None]
-                for i in range(s):
-                    cross = np.einsum("na,nj->aj", wcol[:, i], phi[:, i]).reshape(lin)
-                    a_blocks[i, :lin, lin] = a_blocks[i, lin, :lin] = cross
-                    a_blocks[i, lin, lin] = float(np.sum(wcol[:, i] * col[:, i]))
-                g_sum[:, lin] = np.einsum("nsa,nsa->s", wcol, self.e)
-            self.a_blocks = a_blocks
-            self._set_scores: Array | None = None
-            self._features = (wphi, wcol)  # the direction couplings B and the scores, built when asked for
+        extras = p - 3 * q  # the gain tempcos' and the lag's columns, after every axis's linear ones
+        temperature = model.gain_slice is not None and inputs.temperatures is not None
+        lag = model.lag_index is not None and d_tau is not None
+        self._globals_rows: tuple[Array, Array] | None = None
+        if STRUCTURED and extras == 3 * int(temperature) + int(lag):
+            x_cols = None
+            if extras:
+                x_cols = np.zeros((n, s, 3, extras))
+                if temperature:
+                    for a in range(3):
+                        x_cols[:, :, a, a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
+                if lag:
+                    x_cols[:, :, :, -1] = gain * per_sensor(k, d_tau)
+            seen_a = seen[:, :, None, :] if gain.shape[0] == 1 else gain[..., None] * seen[:, :, None, :]
+            phi = np.concatenate([seen_a, np.broadcast_to(psi[:, :, None, :], seen_a.shape[:3] + (q - 3,))], axis=3)
+            g_sum = self._structured(phi, x_cols, ws)
             b = None
         else:
             self._features = None
@@ -392,52 +383,106 @@ class _Eval:
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
             gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
-            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.einsum("sab,nsbg->nsag", k, gj)
+            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.matmul(k[None], gj)
             wjg = jac_g * ws[:, :, None, None]
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
             pa = att.precision
-            self.a_sg = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])  # (S, P, G)
+            self.a_sg = self._summed_by_features(jac_g) if self._features is not None else \
+                np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])  # (S, P, G)
             self.a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
                 @ ja.reshape(-1, ng)
             per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea, optimize=True)
             g_global = per_set_g.sum(axis=0)
-            b_g = np.einsum("nsag,nsac->ngc", wjg, self.m) + np.einsum("n,nag,nac->ngc", pa, ja, self.basis, optimize=True)
-            b = np.concatenate([b, b_g], axis=1)
+            b_g = np.matmul(wjg.reshape(n, s * 3, ng).transpose(0, 2, 1), self.m.reshape(n, s * 3, 2)) + \
+                np.matmul((ja * pa[:, None, None]).transpose(0, 2, 1), self.basis)
             self.c = self.c + pa[:, None, None] * np.eye(2)[None]  # basis^T basis = I
             self.g_d = self.g_d + pa[:, None] * np.einsum("nac,na->nc", self.basis, ea)
             self.cost += float(np.sum(pa[:, None] * ea * ea))
-            self._set_scores = np.concatenate([self.set_scores, per_set_g], axis=1)
+            if self._features is None:
+                b = np.concatenate([b, b_g], axis=1)
+                self._set_scores = np.concatenate([self.set_scores, per_set_g], axis=1)
+            else:  # the globals' rows of B and of the scores, joined to the sensors' when these are built
+                self._globals_rows = (b_g, per_set_g)
             self.g_theta = np.concatenate([g_theta.reshape(-1), g_global])
         else:
             self.g_theta = g_theta.reshape(-1)
         self._b = b
 
+    def _structured(self, phi: Array, x_cols: Array | None, ws: Array) -> Array:
+        """The sensors' normal matrices from the features, without the (N, S, 3, P) Jacobian: axis a has
+        ``phi`` (N, S, 1 or 3, q; shared by the axes without temperature) in its own q columns and zeros
+        elsewhere, then the extra columns ``x_cols`` (N, S, 3, X: a gain tempco in its axis only, the lag
+        in every axis). The gradient summed over the sets, (S, P); each set's is built when asked for."""
+        n, s, axes, q = phi.shape
+        lin, p = 3 * q, self.shape[1]
+        wphi = phi * ws[:, :, None, None]
+        a_blocks = np.zeros((s, p, p))
+        for i in range(s):
+            if axes == 1:
+                a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i, 0].T @ phi[:, i, 0])
+                continue
+            for a in range(3):
+                a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = wphi[:, i, a].T @ phi[:, i, a]
+        g_sum = np.empty((s, p))
+        g_sum[:, :lin] = np.einsum("nsa,nsaj->saj", self.e, _axes(wphi)).reshape(s, lin)
+        wx = None
+        if x_cols is not None:
+            wx = x_cols * ws[:, :, None, None]
+            x = x_cols.shape[3]
+            for i in range(s):
+                cross = np.matmul(_axes(phi)[:, i].transpose(1, 2, 0), wx[:, i].transpose(1, 0, 2)).reshape(lin, x)
+                a_blocks[i, :lin, lin:] = cross
+                a_blocks[i, lin:, :lin] = cross.T
+                a_blocks[i, lin:, lin:] = wx[:, i].reshape(n * 3, x).T @ x_cols[:, i].reshape(n * 3, x)
+            g_sum[:, lin:] = np.einsum("nsax,nsa->sx", wx, self.e)
+        self.a_blocks = a_blocks
+        self._set_scores = None
+        self._features = (wphi, wx)  # the direction couplings B and the scores, built when asked for
+        return g_sum
+
     def _by_features(self, v: Array) -> Array:
         """(N, S P, ...) each set's structured Jacobian rows times ``v`` (N, S, 3, ...) (whitened, ``J^T W v``
-        per set): the features times ``v`` in each axis's linear columns, then the lag's column."""
-        wphi, wcol = self._features  # type: ignore[misc]
-        n, s, q = wphi.shape
+        per set): each axis's features times ``v`` in its linear columns, then the extra columns."""
+        wphi, wx = self._features  # type: ignore[misc]
+        n, s, _, q = wphi.shape
         tail = v.shape[3:]
         out = np.empty((n, s, self.shape[1]) + tail)
-        out[:, :, : 3 * q] = (v[:, :, :, None] * wphi.reshape((n, s, 1, q) + (1,) * len(tail))).reshape(
+        out[:, :, : 3 * q] = (v[:, :, :, None] * _axes(wphi).reshape((n, s, 3, q) + (1,) * len(tail))).reshape(
             (n, s, 3 * q) + tail)
-        if wcol is not None:
-            out[:, :, 3 * q] = np.einsum("nsa,nsa...->ns...", wcol, v)
+        if wx is not None:
+            out[:, :, 3 * q :] = np.einsum("nsax,nsa...->nsx...", wx, v)
         return out.reshape((n, s * self.shape[1]) + tail)
+
+    def _summed_by_features(self, v: Array) -> Array:
+        """(S, P, G) the structured Jacobian's whitened products with ``v`` (N, S, 3, G) summed over the sets
+        (``sum_k J_k^T W v_k`` for each sensor)."""
+        wphi, wx = self._features  # type: ignore[misc]
+        s, q = wphi.shape[1], wphi.shape[3]
+        out = np.empty((s, self.shape[1], v.shape[3]))
+        n, g = v.shape[0], v.shape[3]
+        vt = v.transpose(1, 2, 0, 3)  # (S, 3, N, G): the sets summed by matrix products
+        out[:, : 3 * q] = np.matmul(_axes(wphi).transpose(1, 2, 3, 0), vt).reshape(s, 3 * q, g)
+        if wx is not None:
+            x = wx.shape[3]
+            out[:, 3 * q :] = np.matmul(wx.transpose(1, 3, 2, 0).reshape(s, x, 3 * n), vt.reshape(s, 3 * n, g))
+        return out
 
     @property
     def set_scores(self) -> Array:
         """(N, S P + G) each set's contribution to the gradient, its direction held (whitened)."""
         if self._set_scores is None:
-            self._set_scores = self._by_features(self.e)
+            own = self._by_features(self.e)
+            self._set_scores = own if self._globals_rows is None else \
+                np.concatenate([own, self._globals_rows[1]], axis=1)
         return self._set_scores
 
     @property
     def b(self) -> Array:
         """(N, S P + G, 2) the couplings ``J^T W M`` of the parameters with each set's direction."""
         if self._b is None:
-            self._b = self._by_features(self.m)
+            own = self._by_features(self.m)
+            self._b = own if self._globals_rows is None else np.concatenate([own, self._globals_rows[0]], axis=1)
         return self._b
 
     def b_times(self, step: Array) -> Array:
@@ -445,14 +490,17 @@ class _Eval:
         features when the blocks are structured, without building ``B``)."""
         if self._b is not None or self._features is None:
             return np.einsum("npc,p->nc", self.b, step)
-        wphi, wcol = self._features
-        s, q = wphi.shape[1], wphi.shape[2]
+        wphi, wx = self._features
+        s, q = wphi.shape[1], wphi.shape[3]
         p, lin = self.shape[1], 3 * q
-        st = step.reshape(s, p)
-        pulled = np.einsum("nsj,saj->nsa", wphi, st[:, :lin].reshape(s, 3, q))  # (N, S, 3)
-        if wcol is not None:
-            pulled = pulled + wcol * st[None, :, lin, None]
-        return np.einsum("nsac,nsa->nc", self.m, pulled)
+        st = step[: s * p].reshape(s, p)
+        pulled = np.einsum("nsaj,saj->nsa", _axes(wphi), st[:, :lin].reshape(s, 3, q))  # (N, S, 3)
+        if wx is not None:
+            pulled = pulled + np.einsum("nsax,sx->nsa", wx, st[:, lin:])
+        out = np.einsum("nsac,nsa->nc", self.m, pulled)
+        if self._globals_rows is not None:
+            out += np.einsum("ngc,g->nc", self._globals_rows[0], step[s * p :])
+        return out
 
     def reduced(self) -> tuple[Array, Array, float]:
         """The normal equations with each set's direction at its optimum: (information ``A - sum_k B_k
@@ -467,22 +515,28 @@ class _Eval:
             flat_b = self.b.transpose(0, 2, 1).reshape(-1, self.b.shape[1])  # (2 N, S P + G)
             info = self.a_matrix() - np.matmul(self.b, c_inv).transpose(0, 2, 1).reshape(-1, self.b.shape[1]).T @ flat_b
             return info, self.g_theta - y.reshape(-1) @ flat_b, cost
-        wphi, wcol = self._features
-        n, s, q = wphi.shape
+        wphi, wx = self._features
+        n, s, _, q = wphi.shape
         p, lin = self.shape[1], 3 * q
         g = np.matmul(self.m, _chol2(c_inv)[:, None])  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
         # written in place: splitting the contiguous last axis of the view is a view too
-        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None, :, None, :],
+        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None],
                     out=rows[:, :, :, :lin].reshape(n, 2, s, 3, q))
         my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
         corr = np.empty((s, p))
-        corr[:, :lin] = np.einsum("nsa,nsj->saj", my, wphi).reshape(s, lin)
-        if wcol is not None:
-            rows[:, :, :, lin] = np.einsum("nsa,nsac->ncs", wcol, g)
-            corr[:, lin] = np.einsum("nsa,nsa->s", wcol, my)
-        flat = rows.reshape(2 * n, s * p)
-        return self.a_matrix() - flat.T @ flat, self.g_theta - corr.reshape(-1), cost
+        corr[:, :lin] = np.einsum("nsa,nsaj->saj", my, _axes(wphi)).reshape(s, lin)
+        if wx is not None:
+            rows[:, :, :, lin:] = np.einsum("nsax,nsac->ncsx", wx, g)
+            corr[:, lin:] = np.einsum("nsax,nsa->sx", wx, my)
+        flat = rows.reshape(n, 2, s * p)
+        corr_all = corr.reshape(-1)
+        if self._globals_rows is not None:  # the globals' columns: B_k L_k from their rows of B
+            b_g = self._globals_rows[0]
+            flat = np.concatenate([flat, np.matmul(b_g, _chol2(c_inv)).transpose(0, 2, 1)], axis=2)
+            corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", b_g, y)])
+        flat = flat.reshape(2 * n, -1)
+        return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
@@ -507,6 +561,12 @@ class _Eval:
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
         return self.reduced()[0]
+
+
+def _axes(features: Array) -> Array:
+    """(N, S, 3, q) each axis's features from (N, S, 1 or 3, q) (shared by the axes: a view)."""
+    n, s, _, q = features.shape
+    return np.broadcast_to(features, (n, s, 3, q))
 
 
 def _chol2(c: Array) -> Array:
@@ -796,18 +856,30 @@ def chi2_isf(p: float, dof: float) -> float:
     return 2.0 * float(gammainccinv(0.5 * dof, p))
 
 
-def _robust_sigma(e: Array, weights: Array, dof: float) -> Array:
-    """Per-sensor noise per axis from squared residual norms: median scaled for ``dof`` (robust)."""
+def residual_dof(sigma: Array | None, sensors: int) -> Array:
+    """(S,) each sensor's residual degrees of freedom per set: 3 less its share of the set's two direction
+    parameters, in proportion to the weight ``1 / sigma**2`` (S,) the fit gave it (equal shares without).
+    A sensor the fit trusted most leaves the smallest residuals: with a single ``3 - 2 / S`` its noise came out
+    low and the others' high, and the robust rounds took one round per halving of the error."""
+    if sigma is None:
+        return np.full(sensors, 3.0 - 2.0 / sensors)
+    trust = 1.0 / np.maximum(np.asarray(sigma, dtype=float), 1e-300) ** 2
+    return 3.0 - 2.0 * trust / np.sum(trust)
+
+
+def _robust_sigma(e: Array, weights: Array, dof: Array) -> Array:
+    """Per-sensor noise per axis from squared residual norms: median scaled for each sensor's ``dof`` (S,)
+    (robust)."""
     sq = np.sum(e * e, axis=2)  # (N, S)
-    med = chi2_isf(0.5, dof)
     out = np.empty(sq.shape[1])
     for i in range(sq.shape[1]):
+        med = chi2_isf(0.5, float(dof[i]))
         used = sq[weights[:, i] > 0, i]
         out[i] = np.sqrt(np.median(used) / med) if len(used) else np.sqrt(np.median(sq[:, i]) / med)
     return out
 
 
-def _efficient_sigma(e: Array, weights: Array, dof: float) -> Array:
+def _efficient_sigma(e: Array, weights: Array, dof: Array) -> Array:
     """Per-sensor noise per axis from the weighted mean square residual (efficient for clean data)."""
     sq = np.sum(e * e, axis=2)
     used = np.maximum(weights.sum(axis=0), 1.0)
@@ -919,7 +991,6 @@ def fit_array(
     fixed = fixed_parameters(model, held)
     if model.lag_index is not None:
         theta[0, model.lag_index] = 0.0
-    dof = 3.0 - 2.0 / s if s > 0 else 1.0
 
     def rates_of(th: Array) -> Array | None:
         return None if t is None else direction_rates(_directions(model, th, x, inputs, None, weights), t)
@@ -937,14 +1008,20 @@ def fit_array(
         return None if a is None else a.h()
 
     e = _start_residuals(model, theta, x, inputs, rates, weights, att is not None, h_of(att))
-    sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
+    sigma = np.maximum(_robust_sigma(e, weights, residual_dof(None, s)), 1e-12)
+    if robust:  # the first round weighs the sensors alike (their median noise): the start's residuals carry
+        # what it did not model (temperature, currents), unevenly; with even weights the first estimate of each
+        # sensor's noise is unbiased whatever they are, and the next round weighs by it (unless alike)
+        sigma = np.full(s, float(np.median(sigma)))
+    even = robust
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
         theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
                                      fixed, att, g_start)
+        fit_sigma = sigma  # the weights the directions were fitted with: each sensor's residual dof
         if t is not None:
             rates = direction_rates(d, t)
         e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
-        sigma = np.maximum(_robust_sigma(e, weights, dof), 1e-12)
+        sigma = np.maximum(_robust_sigma(e, weights, residual_dof(fit_sigma, s)), 1e-12)
         if not robust:
             break
         # Hard exclusion of outliers, and a soft down-weighting of large residuals so that a
@@ -952,17 +1029,15 @@ def fit_array(
         qq = np.sum(e * e, axis=2)
         soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(qq, 1e-300))
         new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5, h_of(att))
-        moved = 0.0
-        if att is not None:
-            before = att.precision
-            att = _attitude_weights(att, d)
-            moved = float(np.max(np.abs(att.precision - before)) / max(float(np.max(before)), 1e-300))
-        if _weights_settled(new_weights - weights, qq, sigma) and moved < 1e-2:
+        att, moved = (None, 0.0) if att is None else _attitude_reweighed(att, d)
+        if _weights_settled(new_weights - weights, qq, sigma) and moved < 1e-2 and \
+                (not even or float(np.max(np.abs(sigma / fit_sigma - 1.0))) < SETTLED_SIGMA):
             break
-        weights = new_weights
+        weights, even = new_weights, False
     else:
         theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
                                      fixed, att, g_start)
+        fit_sigma = sigma
     if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
     # A reading the soft weighting has all but removed (beyond sqrt(2 SOFT_BOUND) noise sd: a
@@ -970,7 +1045,7 @@ def fit_array(
     # outlier, and kept out of the residuals the quality gates judge.
     weights = np.where(weights < 0.5, 0.0, weights)
     e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
-    sigma = np.maximum(_efficient_sigma(e, weights, dof), 1e-15)
+    sigma = np.maximum(_efficient_sigma(e, weights, residual_dof(fit_sigma, s)), 1e-15)
     if att is None and _rank_one(model):
         info, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
     else:
@@ -993,6 +1068,11 @@ many noise sd (a tenth of what one clean reading pulls by): a further round coul
 than a small fraction of its 1-sigma."""
 
 
+SETTLED_SIGMA: float = 0.05
+"""After the first robust round (the sensors weighed alike) another follows when a sensor's noise estimate is
+more than this fraction (its weight twice that) from the common one."""
+
+
 def _weights_settled(change: Array, qq: Array, sigma: Array) -> bool:
     """Whether a change (N, S) of the readings' weights leaves the fit where it is: no weight moved by 1e-3,
     or their pulls (weight change times residual ``sqrt(qq)``, (N, S) squared norms, over the noise
@@ -1001,6 +1081,14 @@ def _weights_settled(change: Array, qq: Array, sigma: Array) -> bool:
     if np.max(change, initial=0.0) < 1e-3:
         return True
     return float(np.sum(change * np.sqrt(qq) / sigma[None, :])) < SETTLED_PULL
+
+
+def _attitude_reweighed(att: _Att, d: Array) -> tuple[_Att, float]:
+    """The global blocks reweighed at directions ``d`` (:func:`_attitude_weights`) and how far their largest
+    precision moved (a fraction of the largest)."""
+    before = att.precision
+    att = _attitude_weights(att, d)
+    return att, float(np.max(np.abs(att.precision - before)) / max(float(np.max(before)), 1e-300))
 
 
 def _attitude_weights(att: _Att, d: Array, soft: bool = True) -> _Att:

@@ -255,15 +255,19 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     jac = np.zeros((n, s, 3, model.global_size))
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
     rp = np.einsum("nab,sb->nsa", ra, att.positions)  # R p, world
-    for j, e in enumerate(GRADIENT_BASIS):
-        jac[:, :, :, model.gradient_slice.start + j] = np.einsum("nba,bc,nsc->nsa", ra, e, rp, optimize=True)
+    # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
+    j = len(GRADIENT_BASIS)
+    erp = (rp.reshape(n * s, 3) @ GRADIENT_BASIS.transpose(2, 0, 1).reshape(3, j * 3)).reshape(n, s * j, 3)
+    basis = np.matmul(erp, ra).reshape(n, s, j, 3)
+    jac[:, :, :, model.gradient_slice] = basis.transpose(0, 1, 3, 2)
     if model.mounting_slice is not None:
         # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
         wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations, optimize=True)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
         wap = np.einsum("nab,sb->nsa", wq, ap)
-        inner = skew(wap) - np.einsum("nab,sbc->nsac", wq, skew(ap))
-        jac[:, :, :, model.mounting_slice] = np.einsum("ba,nsbc->nsac", state.mounting, inner)
+        wq_ap = (wq.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
+        inner = skew(wap) - wq_ap.transpose(0, 2, 1, 3)  # W [A p]x per set and sensor
+        jac[:, :, :, model.mounting_slice] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
     known = att.known[:, None, None, None]
     return np.where(known, jac, 0.0)
 
