@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
-from magcal_ros.core.batched import per_sensor, per_sensor_columns, row_norms
+from magcal_ros.core.batched import gram2, per_sensor, per_sensor_columns, row_norms
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.parallel import map_in_threads
 from magcal_ros.core.rotation import rq_positive
@@ -324,24 +324,25 @@ class _Eval:
             dl = lagged / norm
             dnorm = (-np.sum(d * rates, axis=1)[:, None] + tau[None, :] * np.sum(rates * rates, axis=1)[:, None])
             d_tau = -rates[:, None, :] / norm - dl * (dnorm[:, :, None] / norm)  # d dl / d tau (N, S, 3)
-            # d dl / d d (tangent) ~ (I - dl dl^T) / |lagged|
-            proj = self.basis[:, None, :, :] - dl[:, :, :, None] * np.einsum("nsa,nac->nsc", dl, self.basis)[:, :, None, :]
-            dir_jac = proj / norm[:, :, :, None]  # (N, S, 3, 2)
+            along = np.einsum("nsa,nac->nsc", dl, self.basis)  # (N, S, 2) dl^T basis
         else:
             dl = np.broadcast_to(d[:, None, :], (n, s, 3))
-            d_tau = None
-            dir_jac = np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2))
+            d_tau = along = None
         seen = dl if h is None else dl + h  # the field each sensor saw, units of F
         kd = per_sensor(k, seen)
+        k_dir = per_sensor_columns(k, np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2)))  # K d dl / d d
+        if along is not None:  # with the lag d dl / d d (tangent) = (I - dl dl^T) basis / |lagged|
+            k_dl = kd if h is None else per_sensor(k, dl)
+            k_dir = (k_dir - k_dl[..., None] * along[:, :, None, :]) / norm[..., None]
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + per_sensor(w[:, :, 3:], psi)
         self.e = self.pred - x
-        self.m = gain[..., None] * per_sensor_columns(k, dir_jac)  # (N, S, 3, 2) d pred / d direction
+        self.m = gain[..., None] * k_dir  # (N, S, 3, 2) d pred / d direction
         ws = weights / sigma[None, :] ** 2
         self.ws = ws
         wm = ws[:, :, None, None] * self.m
-        self.c = np.matmul(wm.transpose(0, 1, 3, 2), self.m).sum(axis=1)  # (N, 2, 2)
+        self.c = gram2(wm, self.m)  # (N, 2, 2)
         self.g_d = np.einsum("nsa,nsac->nc", self.e, wm)  # (N, 2)
         self.cost = float(np.sum(ws[:, :, None] * self.e * self.e))
         self.shape = (s, p)

@@ -33,6 +33,18 @@ def per_sensor_columns(mats: Array, columns: Array) -> Array:
     return out
 
 
+def gram2(a: Array, b: Array) -> Array:
+    """(N, 2, 2) ``sum_r a_r^T b_r`` over the rows of ``a``, ``b`` (N, ..., 2): per set, by elementwise
+    products (no stack of tiny matrix products)."""
+    n = a.shape[0]
+    a2, b2 = a.reshape(n, -1, 2), b.reshape(n, -1, 2)
+    out = np.empty((n, 2, 2))
+    for i in range(2):
+        for j in range(2):
+            out[:, i, j] = np.einsum("nr,nr->n", a2[:, :, i], b2[:, :, j])
+    return out
+
+
 def row_norms(v: Array) -> Array:
     """(...,) Euclidean norms of the last axis of ``v``."""
     return np.sqrt(np.einsum("...a,...a->...", v, v))
