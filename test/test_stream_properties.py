@@ -252,6 +252,14 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=20.0, jitter=0.004, loss=0.02, glitches=[(2.28271, -2.7585)],
                           stalls=[(3.78271, 3.0, True), (11.78271, 1.30117, True)])],
               22.112, 6033, (4.0, 1.46021, 0.0042153)))
+# two sensors of one clock stepping back a second, twice, a second apart: the second jump of one matched the
+# other's first (the same stamps, a second earlier) while that other still placed its second: 1 s off thereafter
+@example(Case([SensorPlan(rate=200.0, phase=0.0008, jitter=0.0004, steps=[(3.000000001, -1.0), (4.000000001, -1.0)],
+                          duplicates=[2.0]),
+               SensorPlan(rate=200.0, phase=0.001, jitter=0.0004), SensorPlan(rate=200.0, ppm=-4.3, jitter=0.0004),
+               SensorPlan(rate=200.0, jitter=0.0004, steps=[(3.000000001, -1.0), (4.000000001, -1.0)],
+                          duplicates=[2.0])],
+              26.683, 0))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)
