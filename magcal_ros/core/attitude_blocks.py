@@ -237,13 +237,20 @@ def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     return jac
 
 
+def _times_positions(mats: Array, positions: Array) -> Array:
+    """(N, S, 3) each set's matrix of ``mats`` (N, 3, 3) times each sensor's position (S, 3): one matrix product
+    (a stack of tiny ones loops per set)."""
+    n, s = len(mats), len(positions)
+    return (mats.reshape(n * 3, 3) @ positions.T).reshape(n, 3, s).transpose(0, 2, 1)
+
+
 def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
     """(N, S, 3) ``R_k^T Gamma R_k p_i`` (units of F, array frame), or None without the block."""
     if att.positions is None:
         return None
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)  # array -> world
     w = np.einsum("nba,bc,ncd->nad", ra, state.gradient, ra, optimize=True)
-    h = np.einsum("nab,sb->nsa", w, att.positions)
+    h = _times_positions(w, att.positions)
     return np.where(att.known[:, None, None], h, 0.0)
 
 
@@ -254,7 +261,7 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     n, s = len(att.groups), len(att.positions)
     jac = np.zeros((n, s, 3, model.global_size))
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
-    rp = np.einsum("nab,sb->nsa", ra, att.positions)  # R p, world
+    rp = _times_positions(ra, att.positions)  # R p, world
     # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
     j = len(GRADIENT_BASIS)
     erp = (rp.reshape(n * s, 3) @ GRADIENT_BASIS.transpose(2, 0, 1).reshape(3, j * 3)).reshape(n, s * j, 3)
@@ -264,12 +271,12 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
         # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
         wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations, optimize=True)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
-        wap = np.einsum("nab,sb->nsa", wq, ap)
+        wap = _times_positions(wq, ap)
         wq_ap = (wq.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
         inner = skew(wap) - wq_ap.transpose(0, 2, 1, 3)  # W [A p]x per set and sensor
         jac[:, :, :, model.mounting_slice] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
-    known = att.known[:, None, None, None]
-    return np.where(known, jac, 0.0)
+    jac[~att.known] = 0.0  # (built here: zeroed in place)
+    return jac
 
 
 def robust_sigma(e: Array, weights: Array) -> float:
