@@ -170,6 +170,7 @@ def test_the_recalibration_status_says_what_is_done_within_128_characters() -> N
                                               record)
     assert warn and text == "calibration of /magcal_correction drifted (mag2); to fix it: call ~/start, ..."
     assert values["advice"] == "call ~/start, ..." and values["since_drift_s"] == "10" and values["health"] == health
+    assert values["newest_stamp"] == "30.000000000"  # the newest set seen: how far into the mission the node is
     advice = ("the sets flown since do not determine offset x, offset y: call ~/start, turn through a full circle of "
               "heading with some pitch and roll, then call ~/calibrate")
     warn, text, values = recalibration.status("/magcal_correction", False, watch, 30 * S, "", advice, record)
