@@ -18,9 +18,9 @@ judge by stamps, so only the wall-clock waits shrink).
 from __future__ import annotations
 
 import time
-from functools import partial
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -160,11 +160,8 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
                 phase = "recalibrating"
         elif phase == "recalibrating":  # the calibration node may lag: at most a chunk of sets behind the replay
             patient = patient and _wait(partial(_caught_up, driver, recal_name, int(part.stamps[0])), patience)
-            rv = _values(driver.status(recal_name))
-            if _pushes(rv) >= 1:
+            if _pushed(_values(driver.status(recal_name)), out):
                 out.recalibrated_after = t - (auto_at or t)
-                out.recalibrated = rv.get("last_recalibration", "")
-                out.attempts = int(rv.get("attempts", "0") or 0)
                 say(f"{out.recalibrated_after:.0f} s later: {out.recalibrated}")
                 break
     if phase == "recalibrating" and not out.recalibrated:  # the replay ended: the node may still be at it
@@ -180,20 +177,20 @@ def run_drift_mission(driver: Any, sim: ArraySimulation, rng: np.random.Generato
     return out
 
 
-def _pushes(values: dict[str, str]) -> int:
-    """The recalibration status's count of pushes."""
-    return int(values.get("recalibrations", "0") or 0)
+def _pushed(values: dict[str, str], out: DriftOutcome) -> bool:
+    """Whether the recalibration status's ``values`` count a push; if so, it and the attempts go into ``out``."""
+    if int(values.get("recalibrations", "0") or 0) < 1:
+        return False
+    out.recalibrated, out.attempts = values.get("last_recalibration", ""), int(values.get("attempts", "0") or 0)
+    return True
 
 
 def _await_push(driver: Any, recal_name: str, patience: float, out: DriftOutcome, say: Callable[[str], None]) -> None:
     """After the replay: wait up to ``patience`` s for the calibration node's push, into ``out``."""
-    _wait(lambda: _pushes(_values(driver.status(recal_name))) >= 1, patience)
-    rv = _values(driver.status(recal_name))
-    if _pushes(rv) >= 1:
-        out.recalibrated, out.attempts = rv.get("last_recalibration", ""), int(rv.get("attempts", "0") or 0)
+    if _wait(lambda: _pushed(_values(driver.status(recal_name)), out), patience):
         say(f"after the replay: {out.recalibrated}")
     else:
-        say(f"no recalibration by the end of the replay: {rv}")
+        say(f"no recalibration by the end of the replay: {_values(driver.status(recal_name))}")
 
 
 def _level(status: Any) -> int:

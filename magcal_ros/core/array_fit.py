@@ -519,7 +519,8 @@ class _Eval:
         wphi, wx = self._features
         n, s, _, q = wphi.shape
         p, lin = self.shape[1], 3 * q
-        g = np.matmul(self.m, _chol2(c_inv)[:, None])  # (N, S, 3, 2): M_k L_k
+        lower = _chol2(c_inv)  # L_k L_k^T = C_k^-1
+        g = np.matmul(self.m, lower[:, None])  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
         # written in place: splitting the contiguous last axis of the view is a view too
         np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None],
@@ -534,7 +535,7 @@ class _Eval:
         corr_all = corr.reshape(-1)
         if self._globals_rows is not None:  # the globals' columns: B_k L_k from their rows of B
             b_g = self._globals_rows[0]
-            flat = np.concatenate([flat, np.matmul(b_g, _chol2(c_inv)).transpose(0, 2, 1)], axis=2)
+            flat = np.concatenate([flat, np.matmul(b_g, lower).transpose(0, 2, 1)], axis=2)
             corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", b_g, y)])
         flat = flat.reshape(2 * n, -1)
         return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost

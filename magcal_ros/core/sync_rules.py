@@ -984,14 +984,17 @@ class AcceptanceRule:
             return (abs(b - a - size) <= tol and abs(a - s.last) <= near or abs(b - stamp) <= SAME_STAMP) and \
                 (receipt is None or r is None or abs(r - receipt) <= self.lag_ns)
 
+        def placing(other: SensorStream) -> bool:  # it places a new segment after this jump
+            return other.placing is not None and same(other.last, other.placing[0][0], other.placing[0][3])
+
         def deciding(other: SensorStream, r: int | None) -> bool:
             """Whether ``other``'s jump received at ``r`` is an older one of the same stamps (half of
             ``restart_ns`` before this one's receipt) and ``other`` holds this one undecided or places it."""
             if r is None or receipt is None or 2 * (receipt - r) <= self.restart_ns:
                 return False
-            held, placing = other.held, other.placing
+            held = other.held
             return held is not None and held[4] in (AHEAD, BEHIND) and same(other.last, held[0], held[3]) or \
-                placing is not None and same(other.last, placing[0][0], placing[0][3])
+                placing(other)
 
         others = [(j, other) for j, other in enumerate(self.streams) if j != index]
         for j, other in others:  # one that decided the jump (unless it is making it again: a step repeated from
@@ -999,7 +1002,7 @@ class AcceptanceRule:
                 if same(a, b, r):
                     return (j, None) if deciding(other, r) else (j, base)
         for j, other in others:  # ... else one still placing it
-            if other.placing is not None and same(other.last, other.placing[0][0], other.placing[0][3]):
+            if placing(other):
                 return j, None
         return None
 
