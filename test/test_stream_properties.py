@@ -252,6 +252,31 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=20.0, jitter=0.004, loss=0.02, glitches=[(2.28271, -2.7585)],
                           stalls=[(3.78271, 3.0, True), (11.78271, 1.30117, True)])],
               22.112, 6033, (4.0, 1.46021, 0.0042153)))
+# a step 0.72 s ahead (14.4 periods) held for its arrivals to place it while the others went on: by then its first
+# stamp was in line with another sensor's latest, taken for one clock again (0.72 s off for the rest)
+@example(Case([SensorPlan(rate=20.0, phase=0.03132, ppm=-60.17, jitter=0.004, duplicates=[2.042382318950155]),
+               SensorPlan(rate=20.0, ppm=16.707, jitter=0.004, loss=0.02, duplicates=[2.042382318950155]),
+               SensorPlan(rate=20.0, phase=0.019942134509738186, jitter=0.004, loss=0.02,
+                          steps=[(3.7770658385394555, 0.7196495028899342)])],
+              20.506147985158492, 1642, (6.45504282507214, 1.8513276482875791, 0.015609746014365234)))
+# a step a second ahead as the receiver fell busy: its receipt late by the queue hid the step (taken for a pause:
+# 1 s off for the rest); the other sensors' arrivals in the same queue show how late the receiver was
+@example(Case([SensorPlan(rate=100.0, ppm=4.07, jitter=0.0008, steps=[(3.7705800494949933, 1.0000001192092967)]),
+               SensorPlan(rate=100.0, phase=0.00716655990038838, jitter=0.0008, loss=0.02),
+               SensorPlan(rate=100.0, ppm=2.56, jitter=0.0008),
+               SensorPlan(rate=100.0, jitter=0.0008, loss=0.02, steps=[(4.695527418150858, 1.00001000005)])],
+              14.739054008586997, 13151, (4.68910038833442, 1.5851226835142644, 0.0019217778522445292)))
+# two lost samples taken from a busy receiver's queue: a bound from another sensor's message a period early made
+# them look like a step (placed 20 ms off); two sensors' backlog after a driver stall (true stamps) is no queue
+@example(Case([SensorPlan(rate=100.0), SensorPlan(rate=100.0, loss=0.02, steps=[(2.0, -1.0)])],
+              13.0, 236, (2.0, 1.0, 0.0025)))
+@example(Case([SensorPlan(rate=100.0, jitter=0.0002, stalls=[(3.3031270713693957, 1.6803863960582714, False)]),
+               SensorPlan(rate=100.0, jitter=0.0002, silences=[(2.5, 2.8685467942437937),
+                                                               (6.102317055889484, 6.827898458440179)]),
+               SensorPlan(rate=100.0, jitter=0.0002, loss=0.02,
+                          stalls=[(3.3031270713693957, 1.6803863960582714, False)]),
+               SensorPlan(rate=100.0, jitter=0.0002, silences=[(2.0, 3.1)])],
+              18.77228124323634, 4))
 # two sensors of one clock stepping back a second, twice, a second apart: the second jump of one matched the
 # other's first (the same stamps, a second earlier) while that other still placed its second: 1 s off thereafter
 @example(Case([SensorPlan(rate=200.0, phase=0.0008, jitter=0.0004, steps=[(3.000000001, -1.0), (4.000000001, -1.0)],

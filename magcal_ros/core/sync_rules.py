@@ -376,10 +376,15 @@ class SensorStream:
         last = self.last_receipt
         if receipt is None or last is None or not self.timed():
             return None
-        if 4 * (receipt - last) < period:
+        if self.bunched(receipt, period):
             return False
         return 2 * (stamp - self.last - (receipt - last)) > period and \
             2 * (stamp + self.base - receipt - self.lead()) > period
+
+    def bunched(self, receipt: int, period: int) -> bool:
+        """Whether a message received at ``receipt`` (ns) came within a quarter ``period`` (ns) of the previous
+        one: a backlog delivered at once, whose arrivals say nothing of time."""
+        return self.last_receipt is not None and 4 * (receipt - self.last_receipt) < period
 
     def lead(self) -> int:
         """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
@@ -517,6 +522,17 @@ def _in_line(offset: int, grid: tuple[float, float] | None) -> bool:
         return abs(offset) <= NS_PER_S // 1000
     k = round(offset / grid[1])
     return abs(k) <= 1 and abs(offset - k * grid[1]) <= 0.25 * grid[1]
+
+
+def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | None] | None:
+    """(stamp, receipt) ns of the latest message ``stream`` had taken by ``receipt`` (ns; None: its latest now);
+    None when none of the messages it remembers (:data:`LEAD_WINDOW`) came that early."""
+    if receipt is None or stream.last_receipt is None or stream.last_receipt <= receipt:
+        return stream.last, stream.last_receipt
+    for common, r in reversed(stream.arrivals):
+        if r <= receipt:
+            return common - stream.base, r
+    return None
 
 
 def _stale(receipt: int | None, since: int | None) -> bool:
@@ -724,7 +740,7 @@ class AcceptanceRule:
             partner = self._partner(index, held[0], held[3])
             if partner is not None:  # another sensor made this jump of one clock: as it did
                 return self._jump_with(index, partner, [held[:4], message], out)
-            if self._stepped_ahead(s, held):
+            if self._stepped_ahead(index, held):
                 self._step(index, [held[:4], message], out)
                 return True
             s.jumps.append((s.last, held[0], held[3], s.base))
@@ -733,16 +749,21 @@ class AcceptanceRule:
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
         return False
 
-    def _stepped_ahead(self, s: SensorStream, held: tuple[int, Any, str | None, int | None, int]) -> bool:
+    def _stepped_ahead(self, index: int, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
         or the sensor paused): where arrivals keep time, when they did not see the time pass; otherwise, unless
         it is a long gap its arrival saw pass at the arrivals' pace (:data:`PACED_PAUSE`: a sensor silent for a
         while in a replay at another speed or on a busy receiver), when it is more than ``restart_ns`` ahead or
-        off the sensor's sample grid."""
+        off the sensor's sample grid; where a busy receiver delivered it in a bunch, when it runs ahead of what
+        the other sensors' arrivals in the same queue say (:meth:`_ahead_of_queue`)."""
+        s = self.streams[index]
         s.seen_step = False
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
-        unseen = s.unseen(held[0], held[3], s.suspect_period() or self.restart_ns)
+        period = s.suspect_period() or self.restart_ns
+        came = None if held[3] is None else self._came(index, held[3], s.last_receipt, period)
+        unseen = s.unseen(held[0], held[3], period) if came == held[3] else self._ahead_of_queue(index, held[0],
+                                                                                                 came, period)
         s.seen_step = unseen is True
         if unseen is not None:
             return unseen
@@ -846,11 +867,51 @@ class AcceptanceRule:
         first = held[0]
         lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
-        estimate = min(first[0] + int(receipt) + int(lead) - stamp for stamp, _, _, receipt in held)  # type: ignore[operator]
+        period = s.suspect_period() or self.restart_ns
+        receipts = [s.last_receipt] + [m[3] for m in held]
+        estimate = min(first[0] + self._came(index, int(m[3]), receipts[k], period, True) + int(lead) - m[0]  # type: ignore[arg-type]
+                       for k, m in enumerate(held))
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
+
+    def _ahead_of_queue(self, index: int, stamp: int, arrival: int, period: int) -> bool:
+        """Whether ``stamp`` (ns), taken from a busy receiver's queue, runs more than half a ``period`` (ns) further
+        ahead of its ``arrival`` (ns; when it came to the queue at the latest, :meth:`_came`) than the sensor's stamps
+        do: the stamps stepped forward (the receipts alone, late by the queue, hid it)."""
+        s = self.streams[index]
+        return 2 * (stamp + s.base - arrival - s.lead()) > period
+
+    def _came(self, index: int, receipt: int, previous: int | None, period: int, middle: bool = False) -> int:
+        """When (ns) sensor ``index``'s message received at ``receipt`` (ns; its previous at ``previous``) came to
+        a receiver that then took it from its queue: a queue delivers in the order the messages came, so it came
+        after the latest of another sensor's delivered before it and no later than the first delivered after it,
+        each of which came when its stamps' lead says (their least delay). The latest that every other sensor
+        allows (``middle``: halfway between the bounds); ``receipt`` itself where the receiver was not late by half
+        the ``period`` (ns), or where the message or the others' came bunched (a backlog delivered at once, whose
+        order says nothing of when its messages came), or no other sensor's message was delivered within a
+        quarter of ``restart_ns`` after it."""
+        if previous is None or 4 * (receipt - previous) < period:
+            return receipt
+        lower, upper = None, None
+        for j, other in enumerate(self.streams):
+            if j == index or not other.arrivals:
+                continue
+            lead, after, before = other.lead(), None, None
+            for common, r in reversed(other.arrivals):
+                if r < receipt:
+                    before = (common, r)
+                    break
+                after = (common, r)
+            if after is None or before is None or after[1] - receipt > self.restart_ns // 4 or \
+                    4 * (after[1] - before[1]) < (other.suspect_period() or self.restart_ns):
+                continue
+            upper = after[0] - lead if upper is None else max(upper, after[0] - lead)
+            lower = before[0] - lead if lower is None else max(lower, before[0] - lead)
+        if upper is None or 2 * (receipt - upper) <= period:
+            return receipt
+        return (lower + upper) // 2 if middle and lower is not None and lower <= upper else upper
 
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
@@ -920,7 +981,7 @@ class AcceptanceRule:
         old = s.base
         s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
-        shared = self._shared_base(index, stamp, estimate, margin, grid)
+        shared = self._shared_base(index, stamp, estimate, margin, grid, receipt)
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
@@ -1038,7 +1099,7 @@ class AcceptanceRule:
         return False
 
     def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
-                     grid: tuple[float, float] | None) -> tuple[int, int | None] | None:
+                     grid: tuple[float, float] | None, receipt: int | None = None) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
         when it stands alone. ``margin``: how far apart (ns) a placement may be from where another sensor's
@@ -1049,12 +1110,15 @@ class AcceptanceRule:
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
         places both alike. First of all, where the new stamps are another sensor's latest to half a period
         or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
-        sensor's placement."""
+        sensor's placement: its latest when ``stamp`` was received (``receipt`` ns; a segment placed by its
+        arrivals was held while the others went on)."""
         s = self.streams[index]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
-            if j != index and other.last != NEVER and not other.busy and _in_line(stamp - other.last, grid) and \
-                    not _stale(other.last_receipt, s.last_receipt):
+            if j == index or other.last == NEVER or other.busy:
+                continue
+            latest = _latest_by(other, receipt)
+            if latest is not None and _in_line(stamp - latest[0], grid) and not _stale(latest[1], s.last_receipt):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
