@@ -858,15 +858,32 @@ def chi2_isf(p: float, dof: float) -> float:
     return 2.0 * float(gammainccinv(0.5 * dof, p))
 
 
-def residual_dof(sigma: Array | None, sensors: int) -> Array:
+def residual_dof(sigma: Array | None, sensors: int, attitude: float = 0.0) -> Array:
     """(S,) each sensor's residual degrees of freedom per set: 3 less its share of the set's two direction
-    parameters, in proportion to the weight ``1 / sigma**2`` (S,) the fit gave it (equal shares without).
-    A sensor the fit trusted most leaves the smallest residuals: with a single ``3 - 2 / S`` its noise came out
-    low and the others' high, and the robust rounds took one round per halving of the error."""
+    parameters, in proportion to the weight ``1 / sigma**2`` (S,) the fit gave it (equal shares without), the
+    IMU's attitude sharing with its precision ``attitude`` (1/rad^2, the same units: a direction is a unit
+    vector in units of F). A sensor the fit trusted most leaves the smallest residuals: with a single
+    ``3 - 2 / S`` its noise came out low and the others' high, and the robust rounds took one round per halving
+    of the error."""
     if sigma is None:
         return np.full(sensors, 3.0 - 2.0 / sensors)
     trust = 1.0 / np.maximum(np.asarray(sigma, dtype=float), 1e-300) ** 2
-    return 3.0 - 2.0 * trust / np.sum(trust)
+    return 3.0 - 2.0 * trust / (np.sum(trust) + attitude)
+
+
+def attitude_share(sigma: Array, att: "_Att | None") -> float:
+    """The share of each set's direction the IMU's attitude had in a fit that weighed the sensors by ``sigma``
+    (S,) units of F and the attitudes by ``att``'s precision (their typical one; 0 without)."""
+    p = _attitude_precision(att)
+    return p / (float(np.sum(1.0 / np.maximum(np.asarray(sigma, dtype=float), 1e-300) ** 2)) + p)
+
+
+def _attitude_precision(att: "_Att | None") -> float:
+    """The typical precision (1/rad^2) of the attitudes' residuals in ``att`` (0 without)."""
+    if att is None:
+        return 0.0
+    known = att.precision[att.precision > 0]
+    return float(np.median(known)) if len(known) else 0.0
 
 
 def _robust_sigma(e: Array, weights: Array, dof: Array) -> Array:
@@ -1023,7 +1040,7 @@ def fit_array(
         if t is not None:
             rates = direction_rates(d, t)
         e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
-        sigma = np.maximum(_robust_sigma(e, weights, residual_dof(fit_sigma, s)), 1e-12)
+        sigma = np.maximum(_robust_sigma(e, weights, residual_dof(fit_sigma, s, _attitude_precision(att))), 1e-12)
         if not robust:
             break
         # Hard exclusion of outliers, and a soft down-weighting of large residuals so that a
@@ -1031,7 +1048,7 @@ def fit_array(
         qq = np.sum(e * e, axis=2)
         soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(qq, 1e-300))
         new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5, h_of(att))
-        att, moved = (None, 0.0) if att is None else _attitude_reweighed(att, d)
+        att, moved = (None, 0.0) if att is None else _attitude_reweighed(att, d, attitude_share(fit_sigma, att))
         if _weights_settled(new_weights - weights, qq, sigma) and moved < 1e-2 and \
                 (not even or float(np.max(np.abs(sigma / fit_sigma - 1.0))) < SETTLED_SIGMA):
             break
@@ -1047,7 +1064,8 @@ def fit_array(
     # outlier, and kept out of the residuals the quality gates judge.
     weights = np.where(weights < 0.5, 0.0, weights)
     e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
-    sigma = np.maximum(_efficient_sigma(e, weights, residual_dof(fit_sigma, s)), 1e-15)
+    share = attitude_share(fit_sigma, att)
+    sigma = np.maximum(_efficient_sigma(e, weights, residual_dof(fit_sigma, s, _attitude_precision(att))), 1e-15)
     if att is None and _rank_one(model):
         info, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
     else:
@@ -1059,7 +1077,7 @@ def fit_array(
     ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
     used = att.precision > 0
     extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
-             "attitude_sigma": att_blocks.robust_sigma(ea, used), "attitude_residuals": ea,
+             "attitude_sigma": att_blocks.robust_sigma(ea, used, share), "attitude_residuals": ea,
              "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0)}
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
 
@@ -1085,20 +1103,21 @@ def _weights_settled(change: Array, qq: Array, sigma: Array) -> bool:
     return float(np.sum(change * np.sqrt(qq) / sigma[None, :])) < SETTLED_PULL
 
 
-def _attitude_reweighed(att: _Att, d: Array) -> tuple[_Att, float]:
-    """The global blocks reweighed at directions ``d`` (:func:`_attitude_weights`) and how far their largest
-    precision moved (a fraction of the largest)."""
+def _attitude_reweighed(att: _Att, d: Array, share: float) -> tuple[_Att, float]:
+    """The global blocks reweighed at directions ``d`` (:func:`_attitude_weights`; ``share`` of the directions
+    the attitudes had in their fit) and how far their largest precision moved (a fraction of the largest)."""
     before = att.precision
-    att = _attitude_weights(att, d)
+    att = _attitude_weights(att, d, share=share)
     return att, float(np.max(np.abs(att.precision - before)) / max(float(np.max(before)), 1e-300))
 
 
-def _attitude_weights(att: _Att, d: Array, soft: bool = True) -> _Att:
+def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0) -> _Att:
     """The global blocks with the attitude residuals' precision from their robust 1-sigma at directions
-    ``d`` (N, 3), large residuals (an IMU glitch) down-weighted in proportion beyond 4 sigma."""
+    ``d`` (N, 3) (``share``: of the directions the attitudes had in the fit that gave them), large residuals (an
+    IMU glitch) down-weighted in proportion beyond 4 sigma."""
     ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
     known = att.inputs.known
-    sig = att_blocks.robust_sigma(ea, known)
+    sig = att_blocks.robust_sigma(ea, known, share)
     weight = known.astype(float)
     if soft:
         qq = np.sum(ea * ea, axis=1) / 2.0

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import gammainccinv
 
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.imu import quat_exp, quat_to_matrix
@@ -279,13 +280,17 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     return jac
 
 
-def robust_sigma(e: Array, weights: Array) -> float:
+def robust_sigma(e: Array, weights: Array, share: float = 0.0) -> float:
     """1-sigma (rad) per tangent axis of attitude residuals (N, 3): the median of ``|e|^2`` over
-    the weighted sets, scaled for 2 degrees of freedom; floored at :data:`MIN_ATTITUDE_SIGMA`."""
+    the weighted sets, scaled for their degrees of freedom, ``2 (1 - share)`` with ``share`` the part of the
+    sets' directions the attitudes' weight fitted (the directions follow a trusted IMU and leave it small
+    residuals: read for 2 dof, its error came out small, it was trusted more, down to the floor); floored at
+    :data:`MIN_ATTITUDE_SIGMA`."""
     sq = np.sum(e * e, axis=1)[weights > 0]
     if not len(sq):
         return 1.0
-    return float(max(np.sqrt(np.median(sq) / np.log(4.0)), MIN_ATTITUDE_SIGMA))  # chi2(2) median = 2 ln 2
+    dof = 2.0 * (1.0 - min(max(share, 0.0), 0.99))
+    return float(max(np.sqrt(np.median(sq) / (2.0 * float(gammainccinv(0.5 * dof, 0.5)))), MIN_ATTITUDE_SIGMA))
 
 
 # -- from the IMU's samples ---------------------------------------------------------------------------
