@@ -53,6 +53,7 @@ from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import matrix_to_quat, quat_log
 from magcal_ros.core.stamps import parse_seconds
 from magcal_ros.core.units import NS_PER_S, NT
+from magcal_ros.methods.attitude import MOUNTING_KEYS
 from magcal_ros.sim.attitudes import yaw_pitch_roll
 from magcal_ros.sim.imu import DEFAULT_IMU_FRAME_ID, ImuModel
 from magcal_ros.sim.simulator import (
@@ -164,6 +165,11 @@ class SoakPlan:
     """deg roll, pitch, yaw of the rotation (as :attr:`imu_mounting`'s) by which the correction node's starting
     calibration turns the outputs beyond the mounting (with :attr:`imu`): its ``output_rotation`` is this rotation
     times the mounting, the rest true, so only a recalibration that fits the output rotation puts it right."""
+    start_mounting_sigma: float = 0.1
+    """mdeg: the 1-sigma of the array-to-IMU rotation the starting calibration stores (with :attr:`imu`, its
+    ``imu.sigma``), as a calibration with the IMU before the mission gives it (a tumble: about 0.06 mdeg); a
+    recalibration then keeps the mount (rigid) within it. 0, or a :attr:`running_frame_error`: none stored, a
+    recalibration fits the rotation from its window alone."""
 
     def at(self, fraction: float) -> float:
         """Mission time (s) of a fraction of the duration."""
@@ -434,7 +440,11 @@ def write_start_calibration(source: MissionSource, path: Path) -> None:
     if p.imu and any(p.running_frame_error):
         roll, pitch, yaw = p.running_frame_error
         truth = replace(truth, output_rotation=yaw_pitch_roll(yaw, pitch, roll)[0] @ truth.output_rotation)
-    calfile.write(path, replace(truth, metadata={"noise": [NOISE] * 4, "intensity": INTENSITY}))
+    metadata: dict[str, Any] = {"noise": [NOISE] * 4, "intensity": INTENSITY}
+    if p.imu and p.start_mounting_sigma > 0 and not any(p.running_frame_error):
+        sigma = p.start_mounting_sigma * 1e-3
+        metadata["imu"] = {"frame_id": truth.frame_id, "sigma": {k: sigma for k in MOUNTING_KEYS}}
+    calfile.write(path, replace(truth, metadata=metadata))
 
 
 def output_errors(source: MissionSource, stamps: NDArray[np.int64], gradients: Array,

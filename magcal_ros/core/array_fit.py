@@ -721,7 +721,8 @@ def _solve_lm(
     s, p = theta.shape
     ng = model.global_size if att is not None else 0
     free = np.concatenate([~fixed.reshape(-1), ~att.inputs.fixed(model) if att is not None else np.zeros(0, bool)])
-    prec = np.concatenate([prior.precision().reshape(-1), np.full(ng, att_blocks.WEAK_GLOBAL_SIGMA ** -2.0)])
+    prec = np.concatenate([prior.precision().reshape(-1), np.zeros(0) if att is None else
+                           att.inputs.global_precision(model)])
     mean = prior.flat_mean().reshape(-1)
     g_start = global_start if global_start is not None else (None if att is None else att.state)
     d = _directions(model, theta, x, inputs, rates, weights, None if att is None else att.h())
@@ -1021,7 +1022,7 @@ def fit_array(
                                                                                   weights))
         att = _attitude_weights(_Att(attitude, state, attitude.known.astype(float)),
                                 _directions(model, theta, x, inputs, rates, weights), soft=False)
-    g_start = None if att is None else att.state
+    g_start = None if att is None else att.inputs.prior_state(att.state)
 
     def h_of(a: _Att | None) -> Array | None:
         return None if a is None else a.h()
@@ -1073,7 +1074,8 @@ def fit_array(
         info, scores = final.information(), final.scores()
     if att is None:
         return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
-    red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model))
+    red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model),
+                                              att.inputs.global_precision(model))
     ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
     used = att.precision > 0
     extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
@@ -1125,11 +1127,13 @@ def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0
     return _Att(att.inputs, att.state, weight / sig**2)
 
 
-def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_]) -> tuple[Array, Array]:
+def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_],
+                       precision: Array) -> tuple[Array, Array]:
     """Information (S P, S P) and scores (N, S P) of the sensors' parameters with the global ones
-    eliminated (their weak prior included, fixed ones held): the marginal the sensors' analysis uses."""
+    eliminated (their prior's ``precision`` (G,) included, fixed ones held): the marginal the sensors' analysis
+    uses."""
     keep = np.flatnonzero(~fixed) + sp
-    h_gg = info[np.ix_(keep, keep)] + np.eye(len(keep)) * att_blocks.WEAK_GLOBAL_SIGMA ** -2.0
+    h_gg = info[np.ix_(keep, keep)] + np.diag(precision[~fixed])
     h_sg = info[:sp][:, keep]
     k = np.linalg.solve(h_gg, h_sg.T)  # H_gg^-1 H_gs
     red = info[:sp, :sp] - h_sg @ k
@@ -1288,7 +1292,7 @@ def leave_out_estimates(solution: JointSolution, raw: Array, parts: list[NDArray
     assert solution.full_information is not None
     sp, ng = s * model.size, model.global_size
     fixed = att.inputs.fixed(model)
-    total = solution.full_information + np.diag(np.concatenate([prec, np.full(ng, att_blocks.WEAK_GLOBAL_SIGMA ** -2.0)]))
+    total = solution.full_information + np.diag(np.concatenate([prec, att.inputs.global_precision(model)]))
     wide = None if gauge is None else np.concatenate([gauge, np.zeros((len(gauge), ng))], axis=1)
     start = np.concatenate([solution.theta.reshape(-1), np.zeros(ng)])
     est = _leave_out(start, total, infos, grads, _step_basis(np.concatenate([_free(solution), ~fixed]), wide))

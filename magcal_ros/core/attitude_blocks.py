@@ -109,6 +109,11 @@ class AttitudeInputs:
     rates: Array | None = None
     """(N, 3) rad/s, IMU frame: the IMU's angular velocity at each set (0 where it gives none), which turns
     its attitude back by the array's lag; None: no array lag block."""
+    mounting_prior: tuple[Array, float] | None = None
+    """(``A`` (3, 3), 1-sigma rad per axis): the array-to-IMU rotation a calibration before this one found (the
+    mount is rigid: a hull change or a payload moves no axis), a prior on the mounting in place of the weak one;
+    None: the weak one. A short stretch of yaw turns leaves the mounting's yaw nearly free (it trades with the
+    field's declination), the prior holds it."""
 
     def __post_init__(self) -> None:
         if self.positions is not None and not self.world:
@@ -130,6 +135,20 @@ class AttitudeInputs:
         """The sets selected by a mask or index array (every reference kept)."""
         return replace(self, rotations=self.rotations[keep], groups=self.groups[keep],
                        rates=None if self.rates is None else self.rates[keep])
+
+    def global_precision(self, model: ForwardModel) -> Array:
+        """(G,) precision of the global parameters' prior: the weak one (:data:`WEAK_GLOBAL_SIGMA`), the
+        mounting's from :attr:`mounting_prior` where there is one."""
+        out = np.full(model.global_size, WEAK_GLOBAL_SIGMA ** -2.0)
+        if self.mounting_prior is not None and model.mounting_slice is not None:
+            out[model.mounting_slice] = max(self.mounting_prior[1], MIN_ATTITUDE_SIGMA) ** -2.0
+        return out
+
+    def prior_state(self, start: "GlobalState") -> "GlobalState":
+        """The global prior's mean: ``start`` with the prior's mounting where there is one."""
+        if self.mounting_prior is None:
+            return start
+        return replace(start, mounting=np.asarray(self.mounting_prior[0], dtype=float))
 
     def fixed(self, model: ForwardModel) -> NDArray[np.bool_]:
         """(G,) global parameters kept at their start: a held field direction."""

@@ -9,7 +9,7 @@ the IMU's frame: ``output_rotation`` is the fitted array-to-IMU rotation, ``fram
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -164,6 +164,26 @@ class ImuReport:
                         "values": values, "sigma": sigmas}}
 
 
+MOUNTING_KEYS: tuple[str, ...] = ("array_to_imu_roll_deg", "array_to_imu_pitch_deg", "array_to_imu_yaw_deg")
+"""The calibration file's 1-sigma keys (``imu.sigma``) of the array-to-IMU rotation."""
+
+
+def with_mounting_prior(att: ab.AttitudeInputs | None, prior: ArrayCalibration | None) -> ab.AttitudeInputs | None:
+    """``att`` with the array-to-IMU rotation of a ``prior`` calibration fitted with this IMU (its output frame
+    the IMU's, the file's ``imu.sigma`` giving the rotation's 1-sigma: the largest of roll, pitch and yaw) as the
+    mounting's prior; ``att`` unchanged otherwise (the weak prior)."""
+    if att is None or prior is None or not prior.frame_id or prior.frame_id != att.frame_id:
+        return att
+    imu = prior.metadata.get("imu")
+    sigma = imu.get("sigma") if isinstance(imu, dict) else None
+    if not isinstance(sigma, dict) or not all(isinstance(sigma.get(k), (int, float)) for k in MOUNTING_KEYS):
+        return att
+    worst = max(float(sigma[k]) for k in MOUNTING_KEYS)
+    if not (np.isfinite(worst) and worst > 0):
+        return att
+    return replace(att, mounting_prior=(np.asarray(prior.output_rotation, dtype=float), float(np.radians(worst))))
+
+
 def quantity_key(name: str) -> str:
     """A quantity name as a parameter key: ``array to IMU roll`` -> ``array_to_imu_roll_deg``."""
     unit = "nT_per_m" if name.startswith("site gradient") else "ms" if name == ab.ARRAY_LAG else "deg"
@@ -177,7 +197,7 @@ def global_covariance(sol: JointSolution, order: NDArray[np.int64], prior_precis
     model = sol.model
     sp, ng = model.sensors * model.size, model.global_size
     prec = np.concatenate([np.zeros(sp) if prior_precision is None else prior_precision,
-                           np.full(ng, ab.WEAK_GLOBAL_SIGMA ** -2.0)])
+                           sol.attitude.global_precision(model)])
     rows = []
     if prior_precision is None:
         rows.append(np.concatenate([centre_gauge_constraints(sol.w, model.size), np.zeros((3, ng))], axis=1))

@@ -1038,6 +1038,7 @@ def _switch_on_blocks(run: _Run) -> None:
         every = run.full is not None  # the attitudes of every set (a gyro integrates from set to set), then the subset's
         att = imu_blocks.attitude_for(imu, run.full.stamps if every else run.stamps, run.geometry,
                                       run.full.count if every else n, run.opts.site_field)
+        att = imu_blocks.with_mounting_prior(att, run.call.prior)
         run.blocks = replace(run.blocks, attitude=att if att is None or run.keep is None else att.take(run.keep))
     run.param_prior = _prior_of(run.call.prior, run.geometry, run.intensity, run.channels, run.opts, run.blocks)
 
