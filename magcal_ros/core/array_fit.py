@@ -26,13 +26,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import gammainccinv
 from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
 from magcal_ros.core.batched import gram2, per_sensor, per_sensor_columns, row_norms
 from magcal_ros.core.forward_model import ForwardModel
+from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.parallel import map_in_threads
 from magcal_ros.core.rotation import rq_positive
 from magcal_ros.errors import CalibrationFailed, InputError
@@ -850,13 +850,6 @@ def _outliers(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, ra
             scale = np.median(good if len(good) else q[:, i]) / chi2_isf(0.5, dof)
             flags[:, i] |= q[:, i] > bound * max(scale, 1e-30)
     return flags
-
-
-def chi2_isf(p: float, dof: float) -> float:
-    """The chi-square quantile with upper tail ``p`` for ``dof`` (real) degrees of freedom: ``P(X > x) = p``
-    (the median at 0.5). Through the inverse regularised gamma function: no ``scipy.stats`` import (about a
-    second) and no per-call overhead of its distribution objects."""
-    return 2.0 * float(gammainccinv(0.5 * dof, p))
 
 
 def residual_dof(sigma: Array | None, sensors: int, attitude: float = 0.0) -> Array:

@@ -25,10 +25,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import gammainccinv
 
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.imu import quat_exp, quat_to_matrix
+from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.rotation import procrustes
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.errors import InputError
@@ -309,7 +309,7 @@ def robust_sigma(e: Array, weights: Array, share: float = 0.0) -> float:
     if not len(sq):
         return 1.0
     dof = 2.0 * (1.0 - min(max(share, 0.0), 0.99))
-    return float(max(np.sqrt(np.median(sq) / (2.0 * float(gammainccinv(0.5 * dof, 0.5)))), MIN_ATTITUDE_SIGMA))
+    return float(max(np.sqrt(np.median(sq) / chi2_isf(0.5, dof)), MIN_ATTITUDE_SIGMA))
 
 
 # -- from the IMU's samples ---------------------------------------------------------------------------

@@ -382,9 +382,8 @@ class SensorStream:
             2 * (stamp + self.base - receipt - self.lead()) > period
 
     def bunched(self, receipt: int, period: int) -> bool:
-        """Whether a message received at ``receipt`` (ns) came within a quarter ``period`` (ns) of the previous
-        one: a backlog delivered at once, whose arrivals say nothing of time."""
-        return self.last_receipt is not None and 4 * (receipt - self.last_receipt) < period
+        """Whether a message received at ``receipt`` (ns) came bunched with this sensor's previous (:func:`bunched`)."""
+        return self.last_receipt is not None and bunched(receipt, self.last_receipt, period)
 
     def lead(self) -> int:
         """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
@@ -522,6 +521,12 @@ def _in_line(offset: int, grid: tuple[float, float] | None) -> bool:
         return abs(offset) <= NS_PER_S // 1000
     k = round(offset / grid[1])
     return abs(k) <= 1 and abs(offset - k * grid[1]) <= 0.25 * grid[1]
+
+
+def bunched(receipt: int, previous: int, period: int) -> bool:
+    """Whether a message received at ``receipt`` (ns) came within a quarter ``period`` (ns) of the one received at
+    ``previous``: a backlog delivered at once, whose arrivals (and their order) say nothing of time."""
+    return 4 * (receipt - previous) < period
 
 
 def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | None] | None:
@@ -892,21 +897,22 @@ class AcceptanceRule:
         the ``period`` (ns), or where the message or the others' came bunched (a backlog delivered at once, whose
         order says nothing of when its messages came), or no other sensor's message was delivered within a
         quarter of ``restart_ns`` after it."""
-        if previous is None or 4 * (receipt - previous) < period:
+        if previous is None or bunched(receipt, previous, period):
             return receipt
         lower, upper = None, None
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
                 continue
-            lead, after, before = other.lead(), None, None
+            after, before = None, None
             for common, r in reversed(other.arrivals):
                 if r < receipt:
                     before = (common, r)
                     break
                 after = (common, r)
             if after is None or before is None or after[1] - receipt > self.restart_ns // 4 or \
-                    4 * (after[1] - before[1]) < (other.suspect_period() or self.restart_ns):
+                    bunched(after[1], before[1], other.suspect_period() or self.restart_ns):
                 continue
+            lead = other.lead()
             upper = after[0] - lead if upper is None else max(upper, after[0] - lead)
             lower = before[0] - lead if lower is None else max(lower, before[0] - lead)
         if upper is None or 2 * (receipt - upper) <= period:
