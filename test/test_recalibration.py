@@ -139,6 +139,66 @@ def test_the_watch_recalibrates_once_per_interval_and_ignores_stale_reports() ->
     assert watch.due(790 * S)[0]
 
 
+def test_a_push_is_refined_once_from_every_set_flown_since_its_drift_was_named() -> None:
+    """One window determines what changed only to within its noise: REFINE_WINDOWS windows after the drift was
+    named, the sets flown since are fitted once more (within the interval: it is the same drift), once; a drift
+    named anew before replaces the refinement; an attempt that did not push leaves nothing to refine."""
+    watch = recalibration.DriftWatch(window_ns=60 * S, interval_ns=600 * S)
+    assert recalibration.REFINE_WINDOWS == 4
+    watch.report(True, "payload/battery varies ...", 100 * S)
+    watch.attempted(160 * S, pushed=True)
+    assert watch.refining and watch.due(339 * S) == (False, "")
+    assert watch.due(340 * S) == (True, "") and watch.window_start(340 * S) == 100 * S
+    assert watch.window_start(400 * S) == 160 * S  # at most REFINE_WINDOWS windows back
+    watch.report(False, "calibration fits", 345 * S)  # the health judging the push: the refinement stays due
+    assert watch.refining and watch.due(350 * S)[0]
+    watch.attempted(350 * S, pushed=False)
+    assert not watch.refining and not watch.due(2000 * S)[0]  # tried once
+    watch.report(True, "mag1 calibration drifted: ...", 2000 * S)
+    watch.attempted(2060 * S, pushed=True)
+    watch.report(False, "calibration fits", 2070 * S)
+    watch.attempted(2240 * S, pushed=True)  # refined and pushed: nothing more to refine
+    assert not watch.refining and watch.settling and not watch.due(5000 * S)[0]
+    watch.report(False, "calibration fits", 5001 * S)
+    watch.report(True, "mag2 calibration drifted: ...", 5010 * S)
+    watch.attempted(5070 * S, pushed=True)
+    watch.report(False, "calibration fits", 5080 * S)
+    assert watch.report(True, "mag3 calibration drifted: ...", 5100 * S)  # anew before the refinement was due
+    assert not watch.refining and watch.window_start(5300 * S) == 5240 * S
+    watch.attempted(5130 * S, pushed=False)  # an attempt that did not push leaves nothing to refine
+    assert not watch.refining
+    watch.attempted(5400 * S, pushed=True)  # pushed 300 s after the drift was named: refined on a new window
+    assert watch.refining and not watch.due(5459 * S)[0] and watch.due(5460 * S)[0]
+
+
+def test_a_small_real_improvement_shows_on_the_same_sets_and_noise_does_not() -> None:
+    """A refinement's gain (a payload's interference 0.15 nT/A better known, a current of 1-3 A: a few tenths of nT
+    of TMI on 1 nT of noise) moves the held-out TMI RMS by less than 3 sigma / sqrt(sets), but the noise both
+    calibrations see on the same sets cancels in their difference: improved. A refit that moved by noise only
+    (and one identical to the running calibration) is not."""
+    rng = np.random.default_rng(5)
+    n, names = 960, ("mag1", "mag2")
+    t = np.arange(n) * 0.05
+    current = 2.0 + np.sin(2 * np.pi * t / 20.0)
+    noise = rng.normal(0.0, NOISE, (n, 2))
+    r_new = noise.copy()
+    r_old = noise + np.column_stack([0.15 * NT * current, np.zeros(n)])  # mag1's gain off by 0.15 nT/A, mag2 alike
+    refit = noise + rng.normal(0.0, 0.03 * NOISE, (n, 2))  # a refit by noise only
+
+    def judged(old: np.ndarray, new: np.ndarray) -> recalibration.HeldOut:
+        rms = lambda r: np.sqrt(np.mean(r**2, axis=0))  # noqa: E731
+        return recalibration.HeldOut(n, rms(new), rms(old), rms(new), float("nan"), float("nan"), float("nan"),
+                                     np.full(2, NOISE), names, recalibration.paired_error(old, new))
+
+    better = judged(r_old, r_new)
+    gain = better.tmi_old - better.tmi_new
+    assert gain[0] < better.slack[0]  # within what noise moves one RMS by
+    assert list(better.improved()) == [True, False]
+    assert better.change_problem(()) is None and better.change_problem(("mag1",)) is None
+    assert not judged(noise, refit).improved().any() and not judged(noise, noise).improved().any()
+    assert recalibration.paired_error(noise[:19], noise[:19]) is None  # too few sets: the RMS alone decides
+
+
 def test_the_mission_window_keeps_the_latest_seconds_evenly() -> None:
     window = MissionWindow(seconds_ns=10 * S, spacing_ns=S // 20, sensors=2, channels=1)
     for k in range(3000):  # 30 s at 100 Hz

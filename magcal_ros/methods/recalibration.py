@@ -118,6 +118,9 @@ class HeldOut:
     noise: Array
     """(S,) noise per axis the fit found."""
     names: tuple[str, ...]
+    paired: Array | None = None
+    """(S,) T: the standard error of ``tmi_old - tmi_new`` from the two calibrations' residuals on the same sets
+    (:func:`paired_error`); None: not known (:attr:`slack` stands in)."""
 
     @property
     def slack(self) -> Array:
@@ -125,8 +128,12 @@ class HeldOut:
         return HOLD_OUT_SIGMA * self.noise / np.sqrt(max(self.sets, 1))
 
     def improved(self) -> NDArray[np.bool_]:
-        """(S,) the sensors the new calibration fits better than the running one, beyond noise."""
-        return np.asarray(self.tmi_old - self.tmi_new > self.slack)
+        """(S,) the sensors the new calibration fits better than the running one, beyond noise: by more than
+        :data:`HOLD_OUT_SIGMA` standard errors of each RMS alone (:attr:`slack`), or of their difference on the
+        same sets (the noise both see cancels: a refinement's few tenths of nT show; a large change varies too
+        much from stretch to stretch for that, and shows alone)."""
+        slack = self.slack if self.paired is None else np.minimum(self.slack, HOLD_OUT_SIGMA * self.paired)
+        return np.asarray(self.tmi_old - self.tmi_new > slack)
 
     def _versus(self, i: int) -> str:
         return f"TMI residual {self.tmi_new[i] / NT:.3g} nT against {self.tmi_old[i] / NT:.3g} nT running"
@@ -202,10 +209,28 @@ def held_out(result: CalibrationResult, running: ArrayCalibration, raw_fit: Arra
     b_new = new.apply(raw_held, currents_held if use else None, warm(new, t_held))
     b_fit = new.apply(raw_fit, currents_fit if use else None, warm(new, t_fit))
     b_old = running.apply(raw_held, currents_held if running.channels else None, warm(running, t_held))
-    tmi = lambda b: rms(np.linalg.norm(b, axis=2) - f, axis=0)  # noqa: E731
+    r_new, r_old = np.linalg.norm(b_new, axis=2) - f, np.linalg.norm(b_old, axis=2) - f
     noise = np.asarray(result.noise, dtype=float)
-    return HeldOut(len(raw_held), tmi(b_new), tmi(b_old), tmi(b_fit), _disagreement(b_new, projector),
-                   _disagreement(b_fit, projector), _noise_disagreement(noise, projector), noise, new.geometry.names)
+    return HeldOut(len(raw_held), rms(r_new, axis=0), rms(r_old, axis=0),
+                   rms(np.linalg.norm(b_fit, axis=2) - f, axis=0), _disagreement(b_new, projector),
+                   _disagreement(b_fit, projector), _noise_disagreement(noise, projector), noise, new.geometry.names,
+                   paired_error(r_old, r_new))
+
+
+PAIRED_BLOCKS: int = 20
+"""Stretches in time of the held-out sets whose means give the paired standard error (:func:`paired_error`)."""
+
+
+def paired_error(r_old: Array, r_new: Array) -> Array | None:
+    """(S,) T: the standard error of ``rms(r_old) - rms(r_new)`` for two calibrations' TMI residuals (N, S) T on
+    the same sets in time order, from the spread of their squares' difference over :data:`PAIRED_BLOCKS`
+    stretches (what the residuals share in time stays within a stretch); None with fewer sets than stretches."""
+    if len(r_old) < 2 * PAIRED_BLOCKS:
+        return None
+    d = r_old**2 - r_new**2
+    means = np.array([part.mean(axis=0) for part in np.array_split(d, PAIRED_BLOCKS)])
+    se = means.std(axis=0, ddof=1) / np.sqrt(PAIRED_BLOCKS)
+    return se / np.maximum(rms(r_old, axis=0) + rms(r_new, axis=0), 1e-30)
 
 
 def _noise_disagreement(noise: Array, projector: Array | None) -> float:
@@ -393,6 +418,14 @@ def changes(old: ArrayCalibration, new: ArrayCalibration) -> str:
     return text
 
 
+REFINE_WINDOWS: int = 4
+"""After a push, the sets flown since the drift was named are fitted once more, as the push was, when they span
+this many windows: one window determines what changed only to within its noise (a payload's interference
+gains from one minute of its varying current: a few tenths of nT/A, 1.2x the IMU-frame field's floor), this
+many to half that. The refinement is pushed only where it fits held-out sets better than the push, and comes
+a window after the push at the earliest (a push after several attempts is refined on new sets)."""
+
+
 @dataclass
 class DriftWatch:
     """When the calibration node recalibrates (or advises), in mission time: the stamps (ns) of the sets.
@@ -400,7 +433,8 @@ class DriftWatch:
     A drift named by the calibration health starts the clock; the sets flown from then on make the
     window (``window_ns`` of them are needed); an attempt that does not push is retried when half a
     window of new sets came; a push is followed by no other within ``interval_ns``, and drift reports
-    are ignored until the health, judging the new calibration afresh, no longer says drifted.
+    are ignored until the health, judging the new calibration afresh, no longer says drifted. A push is
+    refined once (:data:`REFINE_WINDOWS`), whatever the interval, unless a drift is named anew before.
     """
 
     window_ns: int
@@ -415,6 +449,13 @@ class DriftWatch:
     last_attempt: int | None = None
     settling: bool = False
     """After a push: drift reports are stale until the health says the new calibration is not drifted."""
+    refine_from: int | None = None
+    """Mission time the drift behind the last push was named, while its refinement is to come (else None)."""
+
+    @property
+    def refining(self) -> bool:
+        """No drift named, and a push's refinement to come (:data:`REFINE_WINDOWS`)."""
+        return self.since is None and self.refine_from is not None
 
     def report(self, drifted: bool, message: str, now: int, sensors: Sequence[str] = ()) -> bool:
         """A health report at mission time ``now`` (``sensors``: those it names as drifted); True when it
@@ -427,14 +468,15 @@ class DriftWatch:
         self.health = message
         anew = self.since is None
         if anew:
-            self.since, self.last_attempt, self.sensors = now, None, ()
+            self.since, self.last_attempt, self.sensors, self.refine_from = now, None, (), None
         self.sensors += tuple(n for n in sensors if n not in self.sensors)
         return anew
 
     def due(self, now: int) -> tuple[bool, str]:
         """(attempt now, else what it waits for) at mission time ``now``."""
         if self.since is None:
-            return False, ""
+            return self.refining and now - self.refine_from >= REFINE_WINDOWS * self.window_ns and \
+                now - (self.last_push or now) >= self.window_ns, ""  # type: ignore[operator]
         have = (now - self.since) / 1e9
         need = self.window_ns / 1e9
         if self.last_push is not None and now - self.last_push < self.interval_ns:
@@ -448,12 +490,17 @@ class DriftWatch:
         return True, ""
 
     def window_start(self, now: int) -> int:
-        """The first stamp (ns) of the window to fit at ``now``: the drift's naming, or a window back."""
+        """The first stamp (ns) of the window to fit at ``now``: the drift's naming, or a window back; a
+        refinement's: the naming of the drift behind the push, or :data:`REFINE_WINDOWS` windows back."""
+        if self.refining:
+            return max(self.refine_from, now - REFINE_WINDOWS * self.window_ns)  # type: ignore[type-var]
         return max(self.since or now, now - self.window_ns)
 
     def attempted(self, now: int, pushed: bool) -> None:
-        """An attempt at mission time ``now`` ended; ``pushed``: a new calibration is in force."""
+        """An attempt at mission time ``now`` ended; ``pushed``: a new calibration is in force. A push after a
+        drift is to be refined; a refinement is tried once."""
         self.last_attempt = now
+        self.refine_from = self.since if pushed and self.since is not None else None
         if pushed:
             self.last_push = now
             self.since, self.settling, self.sensors = None, True, ()

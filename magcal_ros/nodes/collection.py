@@ -14,6 +14,7 @@ from magcal_ros.core.imu import LatestImu
 from magcal_ros.core.interference import LatestCurrents, tolerance_of
 from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.recording import Recording
+from magcal_ros.methods import recalibration
 from magcal_ros.io import topics
 from magcal_ros.nodes import common
 from magcal_ros.nodes.buffer import MissionWindow, SetBuffer, collected_recording
@@ -33,7 +34,8 @@ class Collection:
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
         window_ns = self._watch.window_ns
-        self._mission = MissionWindow(2 * window_ns, window_ns // int(self.get_parameter("max_samples").value),
+        self._mission = MissionWindow((recalibration.REFINE_WINDOWS + 1) * window_ns,
+                                      window_ns // int(self.get_parameter("max_samples").value),
                                       geo.size, len(inputs.channels))
         self._generation += 1
         self._subs = [

@@ -53,9 +53,10 @@ class MissionRecalibration:
         with self._lock:
             now = self._mission.newest
             due, _ = self._watch.due(now)
-            if self._watch.since is None:
+            if self._watch.since is None and not self._watch.refining:
                 return
             start = self._watch.window_start(now)
+            refining = self._watch.refining
         if bool(self.get_parameter("auto_recalibrate").value):
             if not due or not self._solve_lock.acquire(blocking=False):
                 return
@@ -63,7 +64,8 @@ class MissionRecalibration:
                 window = self._mission.snapshot(start)
             target, args = self._auto_recalibrate, (now, window)
         else:
-            if now - start < self._watch.window_ns // 3 or (self._advice is not None and self._advice[0] == now):
+            if refining or now - start < self._watch.window_ns // 3 or \
+                    (self._advice is not None and self._advice[0] == now):
                 return
             with self._lock:
                 window = self._mission.snapshot(start)
@@ -79,6 +81,7 @@ class MissionRecalibration:
         (output rotation, site gradient, the array's lag behind it) are fitted again, not kept as running."""
         pushed = False
         with self._lock:
+            refining = self._watch.refining  # (a push's refinement: no drift named, no sensor to fix)
             health = self._watch.health  # what named the drift (a push makes the next report say otherwise)
             drifted = self._watch.sensors
             self._recalibration["attempts"] = str(int(self._recalibration["attempts"]) + 1)
@@ -102,8 +105,9 @@ class MissionRecalibration:
                 kept = f" ({', '.join(judged.kept)} kept as running)" if judged.kept else ""
                 kept += f" ({judged.scope})" if judged.scope else ""
                 kept += recalibration.timing_note(seen["fitted"], judged.result.calibration)
-                message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets (its "
-                           f"calibration health said: {health}): "
+                why = (f"refining the last push with the {int(fit.sum())} sets flown since its drift was named"
+                       if refining else f"its calibration health said: {health}")
+                message = (f"recalibrated {self._target_name()} during the mission from {int(fit.sum())} sets ({why}): "
                            f"{recalibration.changes(seen['prior'], judged.result.calibration)}{kept}; "
                            f"{judged.figures.describe()}; {message}")
                 self.get_logger().info(message)
