@@ -9,6 +9,8 @@ true array-to-IMU rotation is the simulated mounting expressed in that frame.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -492,3 +494,80 @@ def test_a_recalibration_from_a_short_yaw_turn_keeps_the_running_calibrations_mo
     true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
     error = rms(recal.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
     assert error < 1.15 * NOISE / 2, error / (NOISE / 2)  # the mean of four sensors' 1 nT noise: 0.5 nT per axis
+
+
+def _smooth_attitude_error(count: int, mdeg: float, seed: int) -> np.ndarray:
+    """(count, 3, 3) rotations of a random walk smoothed over 200 sets (10 s at 20 Hz), ``mdeg`` RMS per axis: an
+    IMU's slowly wandering attitude error."""
+    rng = np.random.default_rng(seed)
+    walk = np.cumsum(rng.normal(size=(count, 3)), axis=0)
+    smooth = np.column_stack([np.convolve(walk[:, i] - walk[:, i].mean(), np.ones(200) / 200, mode="same")
+                              for i in range(3)])
+    smooth *= np.radians(mdeg * 1e-3) / smooth.std()
+    return np.stack([ab.rotation_of(v) for v in smooth])
+
+
+def test_an_imu_whose_error_is_smooth_in_time_does_not_outweigh_what_else_is_known():
+    """An IMU's attitude error is smooth in time (its slow wander; a sample interpolated between the IMU's): here
+    1 mdeg RMS, correlated over about 10 s. Weighed as independent, a minute of it outweighed the running
+    calibration's mounting and what the sensors say: recalibrated from one yaw turn, the centre field in the IMU
+    frame came out 2.8-5.4x its floor on fresh attitudes (the mount moved 0.02-0.07 mdeg, the rest of the error
+    went into the other blocks). Each attitude is weighed by the information the residuals' time correlation
+    leaves (their long-run variance over their variance): 1.05-1.11x."""
+    from magcal_ros.core.imu import quat_to_matrix
+
+    mounting = (2.0, -2.5, 3.0)
+    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=mounting,
+                          imu_orientation_noise=0.002, rate=50.0)
+    rec, _, sim = run(rich)
+    running = calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
+    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
+                          imu=True, imu_mounting=mounting, rate=20.0)
+    rec2, _, sim2 = run(turn)
+    wander = _smooth_attitude_error(len(rec2.imu.orientation), 1.0, 21)
+    imu = replace(rec2.imu, orientation=matrix_to_quat(quat_to_matrix(rec2.imu.orientation) @ wander))
+    recal = calibrate_array(rec2.vectors, sim2.geometry, turn.intensity, stamps=rec2.stamps, imu=imu, prior=running)
+    fresh, truth, sim3 = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
+                                            imu_mounting=mounting))
+    true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
+    error = rms(recal.calibration.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
+    assert error < 1.2 * NOISE / 2, error / (NOISE / 2)  # the mean of four sensors' 1 nT noise: 0.5 nT per axis
+
+
+def test_the_running_calibration_lends_its_files_mounting_sigma_to_the_recalibration(tmp_path):
+    """A correction node's parameters carry the array-to-IMU rotation but not how well it is known: the calibration
+    node's `prior: running` had the weak prior on the mounting (one yaw turn after a tumble's calibration: the
+    centre field in the IMU frame 1.5x its floor). The calibration file the node saved (or started from) holds the
+    running rotation's 1-sigma: taken when its rotation is the running one, the recalibration keeps the mount
+    (1.05x); a file of another rotation lends nothing."""
+    from magcal_ros.io import calibration_file as calfile
+    from magcal_ros.methods.attitude import MOUNTING_KEYS, with_saved_imu
+    from magcal_ros.nodes import common
+
+    mounting = (2.0, -2.5, 3.0)
+    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=mounting,
+                          imu_orientation_noise=0.002, rate=50.0)
+    rec, _, sim = run(rich)
+    tumble = calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
+    path = tmp_path / "calibration.yaml"
+    calfile.write(path, tumble)
+    values: dict = {}
+    for key, value in tumble.to_parameters().items():  # as the correction node holds them: dotted names
+        values.update({f"{key}.{k}": v for k, v in value.items()} if isinstance(value, dict) else {key: value})
+    running, why = common.running_calibration(values, sim.geometry)
+    assert why == "" and "imu" not in running.metadata
+    lent = with_saved_imu(running, calfile.read(path))
+    assert lent.metadata["imu"]["sigma"] == tumble.metadata["imu"]["sigma"]
+    assert max(lent.metadata["imu"]["sigma"][k] for k in MOUNTING_KEYS) < 1e-4  # deg: 0.06 mdeg
+    turned = replace(tumble, output_rotation=ab.rotation_of(np.array([0.0, 0.0, 1e-4])) @ tumble.output_rotation)
+    assert "imu" not in with_saved_imu(running, turned).metadata
+    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
+                          imu=True, imu_mounting=mounting, imu_orientation_noise=0.002, rate=20.0)
+    rec2, _, sim2 = run(turn)
+    recal = calibrate_array(rec2.vectors, sim2.geometry, turn.intensity, stamps=rec2.stamps, imu=rec2.imu,
+                            prior=lent).calibration
+    fresh, truth, sim3 = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
+                                            imu_mounting=mounting))
+    true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
+    error = rms(recal.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
+    assert error < 1.15 * NOISE / 2, error / (NOISE / 2)

@@ -163,6 +163,10 @@ class JointSolution:
     """(N, 3) rad: ``d_k - A^T Q_k^T f_g`` (zeros for sets without attitude)."""
     attitude_weights: Array | None = None
     """(N,) weight of each set's attitude residual (0: none, or excluded)."""
+    attitude_correlation: float = 1.0
+    """The attitude residuals' time correlation the fit weighed them by
+    (:meth:`~magcal_ros.core.attitude_blocks.AttitudeInputs.correlation`): each set's precision is its weight over
+    ``attitude_sigma**2`` times this."""
 
     def site_field(self) -> Array | None:
         """(N, S, 3) T, array frame: the site gradient's field at each sensor (None without the block)."""
@@ -1073,7 +1077,8 @@ def fit_array(
     used = att.precision > 0
     extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
              "attitude_sigma": att_blocks.robust_sigma(ea, used, share), "attitude_residuals": ea,
-             "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0)}
+             "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0),
+             "attitude_correlation": att.inputs.correlation(ea)}
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
 
 
@@ -1109,7 +1114,8 @@ def _attitude_reweighed(att: _Att, d: Array, share: float) -> tuple[_Att, float]
 def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0) -> _Att:
     """The global blocks with the attitude residuals' precision from their robust 1-sigma at directions
     ``d`` (N, 3) (``share``: of the directions the attitudes had in the fit that gave them), large residuals (an
-    IMU glitch) down-weighted in proportion beyond 4 sigma."""
+    IMU glitch) down-weighted in proportion beyond 4 sigma; each weighed by its share of the information their
+    time correlation leaves (:meth:`~magcal_ros.core.attitude_blocks.AttitudeInputs.correlation`)."""
     ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
     known = att.inputs.known
     sig = att_blocks.robust_sigma(ea, known, share)
@@ -1117,7 +1123,7 @@ def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0
     if soft:
         qq = np.sum(ea * ea, axis=1) / 2.0
         weight *= np.minimum(1.0, SOFT_BOUND * sig**2 / np.maximum(qq, 1e-300))
-    return _Att(att.inputs, att.state, weight / sig**2)
+    return _Att(att.inputs, att.state, weight / (sig**2 * att.inputs.correlation(ea)))
 
 
 def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_],
@@ -1180,7 +1186,7 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
                  "full_scores": solution.full_scores @ full, "attitude": solution.attitude,
                  "attitude_sigma": solution.attitude_sigma,
                  "attitude_residuals": None if solution.attitude_residuals is None else solution.attitude_residuals @ qmat.T,
-                 "attitude_weights": solution.attitude_weights}
+                 "attitude_weights": solution.attitude_weights, "attitude_correlation": solution.attitude_correlation}
     rotated = _solution(model, theta, solution.directions @ qmat.T, solution.weights, solution.sigma,
                         solution.residuals, tinv.T @ solution.information @ tinv, solution.scores @ tinv,
                         solution.intensity, None if solution.rates is None else solution.rates @ qmat.T,
@@ -1300,7 +1306,7 @@ def _solution_globals(solution: JointSolution) -> _Att | None:
     weights = (solution.attitude.known.astype(float) if solution.attitude_weights is None
                else solution.attitude_weights)
     sig = max(float(solution.attitude_sigma or 0.0), 1e-12)
-    return _Att(solution.attitude, solution.globals, weights / sig**2)
+    return _Att(solution.attitude, solution.globals, weights / (sig**2 * solution.attitude_correlation))
 
 
 @dataclass(frozen=True)

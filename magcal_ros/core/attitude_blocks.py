@@ -30,6 +30,7 @@ from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.imu import quat_exp, quat_to_matrix
 from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.rotation import procrustes
+from magcal_ros.core.uncertainty import autocorrelation, bandwidth
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.errors import InputError
 
@@ -114,6 +115,9 @@ class AttitudeInputs:
     mount is rigid: a hull change or a payload moves no axis), a prior on the mounting in place of the weak one;
     None: the weak one. A short stretch of yaw turns leaves the mounting's yaw nearly free (it trades with the
     field's declination), the prior holds it."""
+    times: Array | None = None
+    """(N,) s: each set's stamp, so that the attitude residuals can be read in time order (their time
+    correlation, :meth:`correlation`); None: taken as independent."""
 
     def __post_init__(self) -> None:
         if self.positions is not None and not self.world:
@@ -134,7 +138,25 @@ class AttitudeInputs:
     def take(self, keep: NDArray[np.bool_] | NDArray[np.int64]) -> "AttitudeInputs":
         """The sets selected by a mask or index array (every reference kept)."""
         return replace(self, rotations=self.rotations[keep], groups=self.groups[keep],
-                       rates=None if self.rates is None else self.rates[keep])
+                       rates=None if self.rates is None else self.rates[keep],
+                       times=None if self.times is None else self.times[keep])
+
+    def correlation(self, e: Array) -> float:
+        """How many sets' worth of attitude residuals (N, 3) rad tell as much as one independent residual
+        (>= 1): the ratio of their long-run variance to their variance, in time order (a Bartlett sum of the
+        autocorrelation over the Newey-West bandwidth); 1 without :attr:`times`. An IMU's attitude errors are
+        smooth in time (its slow wander; a sample interpolated between the IMU's): weighed as independent, a
+        minute of them outweighed a prior on the mounting by the correlation time over the set interval."""
+        if self.times is None:
+            return 1.0
+        known = self.known
+        series = np.asarray(e, dtype=float)[known][np.argsort(self.times[known], kind="stable")]
+        if len(series) < 3:
+            return 1.0
+        lags = bandwidth(series)
+        rho = autocorrelation(series, lags)[1:]
+        taper = 1.0 - np.arange(1, lags + 1) / (lags + 1.0)
+        return max(1.0, 1.0 + 2.0 * float(np.sum(taper * rho)))
 
     def global_precision(self, model: ForwardModel) -> Array:
         """(G,) precision of the global parameters' prior: the weak one (:data:`WEAK_GLOBAL_SIGMA`), the
@@ -374,7 +396,8 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
         if gradient and positions is not None and len(positions) > 1:
             p = np.asarray(positions, dtype=float)
             centred = p - p.mean(axis=0)
-        return AttitudeInputs(rot, np.where(known, 0, -1).astype(np.int64), 1, True, centred, field, frame_id, rates)
+        return AttitudeInputs(rot, np.where(known, 0, -1).astype(np.int64), 1, True, centred, field, frame_id, rates,
+                              times=_seconds(stamps))
     w = np.asarray(angular_velocity, dtype=float)
     if np.sum(np.all(np.isfinite(w), axis=1)) < MIN_SEGMENT_SETS:
         return None
@@ -385,7 +408,13 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
         return None
     rot, groups = np.empty_like(rot_o), np.empty_like(groups_o)
     rot[order], groups[order] = rot_o, groups_o
-    return AttitudeInputs(rot, groups, count, False, None, None, frame_id, rates)
+    return AttitudeInputs(rot, groups, count, False, None, None, frame_id, rates, times=_seconds(stamps))
+
+
+def _seconds(stamps: Array) -> Array:
+    """(N,) s of int ns ``stamps`` from the first."""
+    st = np.asarray(stamps).astype(np.int64)
+    return (st - st.min()).astype(float) / NS_PER_S if len(st) else np.zeros(0)
 
 
 def lag_rates(angular_velocity: Array) -> Array | None:

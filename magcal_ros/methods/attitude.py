@@ -168,6 +168,21 @@ MOUNTING_KEYS: tuple[str, ...] = ("array_to_imu_roll_deg", "array_to_imu_pitch_d
 """The calibration file's 1-sigma keys (``imu.sigma``) of the array-to-IMU rotation."""
 
 
+def with_saved_imu(running: ArrayCalibration, saved: ArrayCalibration | None) -> ArrayCalibration:
+    """``running`` (a calibration as a correction node runs it: its parameters carry the array-to-IMU rotation, not
+    how well it is known) with ``saved``'s IMU report (the file's ``imu``: the rotation's 1-sigma the mounting's
+    prior needs, :func:`with_mounting_prior`) when ``saved`` is that calibration's file: the same output frame
+    and rotation; ``running`` unchanged otherwise."""
+    if saved is None or not running.frame_id or saved.frame_id != running.frame_id:
+        return running
+    imu = saved.metadata.get("imu")
+    same = np.allclose(np.asarray(saved.output_rotation, dtype=float), np.asarray(running.output_rotation, dtype=float),
+                       rtol=0.0, atol=1e-12)
+    if not isinstance(imu, dict) or "imu" in running.metadata or not same:
+        return running
+    return replace(running, metadata={**running.metadata, "imu": imu})
+
+
 def with_mounting_prior(att: ab.AttitudeInputs | None, prior: ArrayCalibration | None) -> ab.AttitudeInputs | None:
     """``att`` with the array-to-IMU rotation of a ``prior`` calibration fitted with this IMU (its output frame
     the IMU's, the file's ``imu.sigma`` giving the rotation's 1-sigma: the largest of roll, pitch and yaw) as the

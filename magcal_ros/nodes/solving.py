@@ -24,6 +24,7 @@ from magcal_ros.core.recording import Recording
 from magcal_ros.core.tensor import baseline_gradient, gradient, method_for
 from magcal_ros.errors import InputError, MagcalError
 from magcal_ros.io import calibration_file as calfile
+from magcal_ros.methods.attitude import with_saved_imu
 from magcal_ros.methods.pipeline import (
     CalibrationResult,
     SolveOptions,
@@ -133,7 +134,7 @@ class Solving:
             prior, why = common.running_calibration(values, geo)
             if prior is None:
                 return None, f"none ({target} is not calibrated: {why})"
-            return prior, f"the running calibration of {target}"
+            return with_saved_imu(prior, self._saved_calibration()), f"the running calibration of {target}"
         path = os.path.expanduser(setting)
         prior = calfile.read(path, self._target_name().lstrip("/"))
         return prior, f"the calibration file {path}"
@@ -306,6 +307,17 @@ class Solving:
     def _fail(self, message: str) -> tuple[bool, str]:
         self.get_logger().warn(message)
         return False, message
+
+    def _saved_calibration(self) -> ArrayCalibration | None:
+        """The calibration in ``calibration_file`` (what this node saved last, or started from), None when there is
+        none or it cannot be read (it only lends the running calibration its IMU report)."""
+        path = self._calibration_path()
+        if not path or not os.path.isfile(path):
+            return None
+        try:
+            return calfile.read(path, self._target_name().lstrip("/"))
+        except (MagcalError, OSError):
+            return None
 
     def _calibration_path(self) -> str:
         text = str(self.get_parameter("calibration_file").value).strip()
