@@ -171,6 +171,25 @@ def test_a_push_is_refined_once_from_every_set_flown_since_its_drift_was_named()
     assert watch.refining and not watch.due(5459 * S)[0] and watch.due(5460 * S)[0]
 
 
+def test_a_refinement_is_pushed_whole_unless_a_sensor_is_worse(drifted: tuple) -> None:
+    """A push's refinement (every set since the drift, four windows) is better in expectation for every sensor but
+    need not show it on its held-out fifth: judged as a refinement, a fit no better than the running calibration
+    there is pushed whole (no sensor keeps the push's); one that fits a sensor worse is refused all the same."""
+    sim, moved, running, rng = drifted
+    stamps, raw = _window(moved, [Leg(60.0, 6.0)], rng)
+    result, fit, held = _solve(stamps, raw, running)
+    pushed = result.calibration  # the push: the running calibration the refinement is judged against
+    judged = recalibration.judge(result, pushed, raw[fit], raw[held])
+    assert judged.problem is not None and "no better for any sensor" in judged.problem
+    judged = recalibration.judge(result, pushed, raw[fit], raw[held], refine=True)
+    assert judged.problem is None and judged.kept == () and judged.result is not None
+    np.testing.assert_array_equal(judged.result.calibration.offsets, result.calibration.offsets)
+    worse = replace(result, calibration=replace(pushed, offsets=pushed.offsets + np.array([[5.0, 0, 0]] + [[0, 0, 0]] * 3)
+                                                * NT))
+    judged = recalibration.judge(worse, pushed, raw[fit], raw[held], refine=True)
+    assert judged.problem is not None and "worse for mag1" in judged.problem
+
+
 def test_a_small_real_improvement_shows_on_the_same_sets_and_noise_does_not() -> None:
     """A refinement's gain (a payload's interference 0.15 nT/A better known, a current of 1-3 A: a few tenths of nT
     of TMI on 1 nT of noise) moves the held-out TMI RMS by less than 3 sigma / sqrt(sets), but the noise both

@@ -94,7 +94,8 @@ class MissionRecalibration:
             def check(result: CalibrationResult,
                       prior: ArrayCalibration | None) -> tuple[str | None, CalibrationResult]:
                 judged = recalibration.judge(result, prior, raw[fit], raw[held], currents[fit], currents[held], drifted,
-                                             seconds_fit=(stamps[fit] - stamps[0]) / 1e9, temperatures=warm)
+                                             seconds_fit=(stamps[fit] - stamps[0]) / 1e9, temperatures=warm,
+                                             refine=refining)
                 seen.update(verdict=judged, prior=prior, fitted=result.calibration)
                 return judged.problem, judged.result or result
 
