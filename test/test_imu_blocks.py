@@ -473,26 +473,45 @@ def test_an_imu_about_as_good_as_the_sensors_leaves_every_noise_estimate_unbiase
     assert 0.7 * truth_deg < attitude < 1.5 * truth_deg, attitude
 
 
+YAW_MOUNTING = (2.0, -2.5, 3.0)
+"""deg: the array-to-IMU rotation of the one-yaw-turn recalibrations."""
+
+
+def _tumble_calibration():
+    """The calibration a tumble with the IMU gives (0.002 deg attitudes; the rotation to 0.06 mdeg)."""
+    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=YAW_MOUNTING,
+                          imu_orientation_noise=0.002, rate=50.0)
+    rec, _, sim = run(rich)
+    return calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
+
+
+def _one_yaw_turn(orientation_noise: float = 0.002):
+    """(spec, recording, simulation) of a minute of one yaw turn (+-5 deg of wobble) at 20 Hz with the IMU."""
+    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
+                          imu=True, imu_mounting=YAW_MOUNTING, imu_orientation_noise=orientation_noise, rate=20.0)
+    rec, _, sim = run(turn)
+    return turn, rec, sim
+
+
+def _imu_frame_error(calibration) -> float:
+    """RMS per axis (T) of the centre field's error in the IMU frame on fresh random attitudes against the truth."""
+    fresh, truth, sim = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
+                                           imu_mounting=YAW_MOUNTING))
+    true_centre = np.einsum("ab,nsb->nsa", sim.imu.mounting, truth.field).mean(axis=1)
+    return float(rms(calibration.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre))
+
+
 def test_a_recalibration_from_a_short_yaw_turn_keeps_the_running_calibrations_mounting():
     """A minute of one yaw turn (+-5 deg of wobble) leaves the array-to-IMU rotation's yaw nearly free (it trades
     with the field's declination): recalibrated from it with the weak prior on the mounting, the centre field in the
     IMU frame was 1.5x its floor on fresh attitudes. The mount is rigid: the running calibration's rotation (from a
     tumble with the IMU, 0.06 mdeg) is the mounting's prior, and the field stays at the floor."""
-    mounting = (2.0, -2.5, 3.0)
-    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=mounting,
-                          imu_orientation_noise=0.002, rate=50.0)
-    rec, _, sim = run(rich)
-    running = calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
+    running = _tumble_calibration()
     assert running.metadata["imu"]["sigma"]["array_to_imu_yaw_deg"] < 1e-4
-    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
-                          imu=True, imu_mounting=mounting, imu_orientation_noise=0.002, rate=20.0)
-    rec2, _, sim2 = run(turn)
-    recal = calibrate_array(rec2.vectors, sim2.geometry, turn.intensity, stamps=rec2.stamps, imu=rec2.imu,
+    turn, rec, sim = _one_yaw_turn()
+    recal = calibrate_array(rec.vectors, sim.geometry, turn.intensity, stamps=rec.stamps, imu=rec.imu,
                             prior=running).calibration
-    fresh, truth, sim3 = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
-                                            imu_mounting=mounting))
-    true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
-    error = rms(recal.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
+    error = _imu_frame_error(recal)
     assert error < 1.15 * NOISE / 2, error / (NOISE / 2)  # the mean of four sensors' 1 nT noise: 0.5 nT per axis
 
 
@@ -516,21 +535,12 @@ def test_an_imu_whose_error_is_smooth_in_time_does_not_outweigh_what_else_is_kno
     leaves (their long-run variance over their variance): 1.05-1.11x."""
     from magcal_ros.core.imu import quat_to_matrix
 
-    mounting = (2.0, -2.5, 3.0)
-    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=mounting,
-                          imu_orientation_noise=0.002, rate=50.0)
-    rec, _, sim = run(rich)
-    running = calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
-    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
-                          imu=True, imu_mounting=mounting, rate=20.0)
-    rec2, _, sim2 = run(turn)
-    wander = _smooth_attitude_error(len(rec2.imu.orientation), 1.0, 21)
-    imu = replace(rec2.imu, orientation=matrix_to_quat(quat_to_matrix(rec2.imu.orientation) @ wander))
-    recal = calibrate_array(rec2.vectors, sim2.geometry, turn.intensity, stamps=rec2.stamps, imu=imu, prior=running)
-    fresh, truth, sim3 = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
-                                            imu_mounting=mounting))
-    true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
-    error = rms(recal.calibration.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
+    running = _tumble_calibration()
+    turn, rec, sim = _one_yaw_turn(orientation_noise=0.0)
+    wander = _smooth_attitude_error(len(rec.imu.orientation), 1.0, 21)
+    imu = replace(rec.imu, orientation=matrix_to_quat(quat_to_matrix(rec.imu.orientation) @ wander))
+    recal = calibrate_array(rec.vectors, sim.geometry, turn.intensity, stamps=rec.stamps, imu=imu, prior=running)
+    error = _imu_frame_error(recal.calibration)
     assert error < 1.2 * NOISE / 2, error / (NOISE / 2)  # the mean of four sensors' 1 nT noise: 0.5 nT per axis
 
 
@@ -544,30 +554,21 @@ def test_the_running_calibration_lends_its_files_mounting_sigma_to_the_recalibra
     from magcal_ros.methods.attitude import MOUNTING_KEYS, with_saved_imu
     from magcal_ros.nodes import common
 
-    mounting = (2.0, -2.5, 3.0)
-    rich = SimulationSpec(count=2400, schedule="tumble", seed=21, noise=NOISE, imu=True, imu_mounting=mounting,
-                          imu_orientation_noise=0.002, rate=50.0)
-    rec, _, sim = run(rich)
-    tumble = calibrate_array(rec.vectors, sim.geometry, rich.intensity, stamps=rec.stamps, imu=rec.imu).calibration
+    tumble = _tumble_calibration()
     path = tmp_path / "calibration.yaml"
     calfile.write(path, tumble)
     values: dict = {}
     for key, value in tumble.to_parameters().items():  # as the correction node holds them: dotted names
         values.update({f"{key}.{k}": v for k, v in value.items()} if isinstance(value, dict) else {key: value})
-    running, why = common.running_calibration(values, sim.geometry)
+    running, why = common.running_calibration(values, tumble.geometry)
     assert why == "" and "imu" not in running.metadata
     lent = with_saved_imu(running, calfile.read(path))
     assert lent.metadata["imu"]["sigma"] == tumble.metadata["imu"]["sigma"]
     assert max(lent.metadata["imu"]["sigma"][k] for k in MOUNTING_KEYS) < 1e-4  # deg: 0.06 mdeg
     turned = replace(tumble, output_rotation=ab.rotation_of(np.array([0.0, 0.0, 1e-4])) @ tumble.output_rotation)
     assert "imu" not in with_saved_imu(running, turned).metadata
-    turn = SimulationSpec(count=1200, schedule="sea", pitch=0.0, roll=0.0, wobble=5.0, turns=1.0, seed=21, noise=NOISE,
-                          imu=True, imu_mounting=mounting, imu_orientation_noise=0.002, rate=20.0)
-    rec2, _, sim2 = run(turn)
-    recal = calibrate_array(rec2.vectors, sim2.geometry, turn.intensity, stamps=rec2.stamps, imu=rec2.imu,
+    turn, rec, sim = _one_yaw_turn()
+    recal = calibrate_array(rec.vectors, sim.geometry, turn.intensity, stamps=rec.stamps, imu=rec.imu,
                             prior=lent).calibration
-    fresh, truth, sim3 = run(SimulationSpec(count=600, schedule="random", seed=21, noise=NOISE, imu=True,
-                                            imu_mounting=mounting))
-    true_centre = np.einsum("ab,nsb->nsa", sim3.imu.mounting, truth.field).mean(axis=1)
-    error = rms(recal.outputs(fresh.vectors).vectors.mean(axis=1) - true_centre)
+    error = _imu_frame_error(recal)
     assert error < 1.15 * NOISE / 2, error / (NOISE / 2)
