@@ -285,6 +285,35 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=200.0, jitter=0.0004, steps=[(3.000000001, -1.0), (4.000000001, -1.0)],
                           duplicates=[2.0])],
               26.683, 0))
+# a busy receiver's queue still draining when a sensor paused 2.2 s: the arrivals before the pause late by the queue,
+# the one after it on time, so they saw less time pass than the stamps: the pause was taken for a step forward and
+# placed after the last sample (2.2 s off thereafter)
+@example(Case([SensorPlan(rate=100.0, silences=[(5.8149, 8.0263)]), SensorPlan(rate=100.0, steps=[(3.7235, -59.223)])],
+              22.6745, 2, (2.00001, 1.786377, 0.0028478)))
+# the same with a driver's stall whose backlog it stamped on delivery (2.55 s off thereafter)
+@example(Case([SensorPlan(rate=100.0, phase=0.00179, jitter=0.0008, stalls=[(4.6828, 2.5578, True)]),
+               SensorPlan(rate=100.0, phase=0.0095)], 12.106, 70989270, (2.5606, 1.961484, 0.0017814)))
+# stamps 31.7 s ahead while the receiver delivered its queue in a bunch: taken for a pause (no set thereafter)
+@example(Case([SensorPlan(rate=200.0), SensorPlan(rate=200.0, steps=[(2.2, 31.727)], silences=[(5.0555, 6.3055)])],
+              14.673, 275, (2.00001, 0.593783, 0.00083333)))
+# a step back of 1.84 periods put the new stamps within a quarter period of another sensor's, of its own phase:
+# taken for one clock again (in line with it) and left unplaced, 9.2 ms off thereafter
+@example(Case([SensorPlan(rate=200.0, phase=0.00169), SensorPlan(rate=200.0, steps=[(2.0, -0.009177)])], 12.0, 92))
+# two sensors' stamps stepping a second back and forward at once while a queue drains: the one forward was put
+# after the other's new data as if it had been silent through it (one clock), though its messages kept coming
+@example(Case([SensorPlan(rate=50.0, steps=[(7.0, -1.0)]), SensorPlan(rate=50.0), SensorPlan(rate=50.0),
+               SensorPlan(rate=50.0, steps=[(7.0, 1.0)])], 12.62, 189506115, (3.238, 1.3057, 0.0038967)))
+# a sample lost among the first few: the grid's period, counted from the median of fewer than eight intervals, took
+# a double interval for one, 0.8 % long, and a step forward placed by it lay 2.7 ms off (no exact set thereafter)
+@example(Case([SensorPlan(rate=50.0), SensorPlan(rate=50.0, loss=0.02, steps=[(2.4538, 1.0)])], 21.39, 74))
+# a step forward of 1.77 periods (on the grid to a quarter period) 0.8 s after a queue drained: the window of arrivals
+# still held the backlog, so they were taken to keep no time and the step for lost samples
+@example(Case([SensorPlan(rate=200.0, steps=[(10.8148, 0.0088337)]), SensorPlan(rate=200.0)], 14.0, 3224,
+              (8.3467, 1.65453, 0.0005)))
+# one sensor's stamps a second ahead: a lost sample of another, a second later, jumped over the same stamps and was
+# taken for one clock's jump with the first (received within 5 s), so placed a second off
+@example(Case([SensorPlan(rate=200.0, loss=0.02, steps=[(3.0, 1.0)]), SensorPlan(rate=200.0),
+               SensorPlan(rate=200.0, loss=0.02)], 19.069527288112393, 17035815))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

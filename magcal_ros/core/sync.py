@@ -58,6 +58,7 @@ from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
     DEFAULT_SYNC_TOLERANCE,
     DROP_FIELDS,
+    LEAD_DRIFT,
     LEAD_WINDOW,
     MAX_TIME_OFFSET,
     NEVER,
@@ -77,7 +78,6 @@ from magcal_ros.core.sync_rules import (
     Vector,
     arrival_order,
     empty_batch,
-    timed_arrivals,
     tolerance_ns,
 )
 from magcal_ros.core.units import NS_PER_S
@@ -342,17 +342,17 @@ class SetSynchronizer(AcceptanceRule):
         known = np.asarray(st.arrivals, dtype=np.int64).reshape(-1, 2)
         common = np.concatenate([known[:, 0], acc + st.base])
         receipt = np.concatenate([known[:, 1], racc])
-        previous = np.concatenate([[st.last_receipt if st.last_receipt is not None else racc[0]], racc[:-1]])
         first_new = len(known) + len(acc) - len(iv)  # the arrival of full[len(hist)] in ``common``
         for j in np.flatnonzero(gap).tolist():
             i = first_new + int(at[j]) - len(hist)  # in ``common``; in ``acc``: i - len(known)
-            dr = int(racc[i - len(known)] - previous[i - len(known)])
             w0 = max(0, i - LEAD_WINDOW)
-            if i - w0 < TIMED_MIN or 4 * dr < period[j] or 2 * (d[j] - dr) <= period[j]:
+            if i - w0 < TIMED_MIN:
                 continue
-            timed = timed_arrivals(list(zip(common[w0:i].tolist(), receipt[w0:i].tolist())))
-            if timed and 2 * (common[i] - receipt[i] - (common[w0:i] - receipt[w0:i]).max()) > period[j]:
-                return False
+            lead = int((common[w0:i] - receipt[w0:i]).max())
+            if st.floor is not None:  # the floor before this batch: lower than or as the one the rule uses
+                lead = max(lead, st.floor[0] - int(common[i]) // LEAD_DRIFT)
+            if 2 * (common[i] - receipt[i] - lead) > period[j]:
+                return False  # a stamp ahead of its arrival: a step the rule may see (one message at a time)
         return True
 
     def add_rows(self, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:
@@ -427,7 +427,7 @@ class SetSynchronizer(AcceptanceRule):
         st.last_receipt = None if r is None else int(r[-1])
         if r is not None:
             st.heard = st.last_receipt
-            st.arrivals.extend(zip((s[-LEAD_WINDOW:] + st.base).tolist(), r[-LEAD_WINDOW:].tolist()))
+            st.note_leads(s + st.base, r)
         st.since += len(s)
         if st.since > PERIOD_WINDOW:
             st.before = None

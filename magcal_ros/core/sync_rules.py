@@ -79,6 +79,11 @@ BACKLOG_INTERVAL: int = 200_000
 MAX_STALL: int = 10 * NS_PER_S
 """Longest stall (ns) a driver delivers a backlog after: stamps crowding after a longer silence are a
 faster rate, not a backlog."""
+LEAD_DRIFT: int = 5_000
+"""A receipt clock may drift from the stamps' by one part in this (200 ppm) in the least delay of a sensor's
+arrivals (:attr:`SensorStream.floor`)."""
+RECENT: int = 32
+"""... or over the last this many, where the window's older part was a backlog drained (:meth:`SensorStream.timed`)."""
 TIMED_MIN: int = 16
 """Arrivals needed before they are trusted to keep the stamps' time."""
 PACED_PAUSE: int = 4
@@ -271,7 +276,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard")
+                 "burst_count", "seen_step", "jumps", "heard", "floor")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -318,6 +323,12 @@ class SensorStream:
         """The latest jumps of the stamps this sensor took, a pause or a step: (stamp before, stamp after, its
         receipt or None, base after; ns). Sensors stamped by one clock make the same jump: the first to decide
         it decides for all (:meth:`AcceptanceRule._partner`)."""
+        self.floor: tuple[int, int] | None = None
+        """The least delay the sensor's arrivals ever had: ``max(common - receipt + common // LEAD_DRIFT)`` and
+        ``max(common - receipt - common // LEAD_DRIFT)`` (ns) over every message taken, so that the lead of its
+        least delayed arrivals at common stamp ``c`` is at least ``floor[0] - c // LEAD_DRIFT`` and, the least
+        delayed it saw being on time, at most ``floor[1] + c // LEAD_DRIFT`` (a receipt clock may drift from the
+        stamps': :meth:`resumed_on_time`)."""
         self.seen_step = False
         """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
         a few bad stamps that the old sequence's placement could take back."""
@@ -361,33 +372,44 @@ class SensorStream:
         period, short = self.grid_period(), self.period
         if period is None or not self.tail or short is None or 8 * abs(period - short) > short:
             return False  # no grid, or one the recent intervals do not keep
-        limit = max(short / 4, 6 * median_int([abs(i - short) for i in self.intervals]))
+        limit = max(short / 4, self.jitter())
         if 2 * limit >= short:
             return False
         k = (stamp + self.base - self.anchor(period)) / period
         return abs(k - round(k)) * period > limit
 
+    def jitter(self) -> float:
+        """How far (ns) a stamp may lie off the sensor's sample grid by its jitter alone: six median deviations of
+        its recent intervals from their median (about four standard deviations); 0 before an interval."""
+        short = self.period
+        return 0.0 if short is None else 6.0 * median_int([abs(i - short) for i in self.intervals])
+
     def unseen(self, stamp: int, receipt: int | None, period: int) -> bool | None:
         """Whether the arrivals did not see the time that ``stamp`` (ns, in this segment, ``receipt`` ns)
         says passed since the previous one: the stamps stepped forward. Both its lead over its arrival
         beyond the largest recent one (an arrival is never early; a late one makes it smaller) and its
-        interval beyond the arrivals' exceed half the ``period`` (ns); never while the arrivals come
-        bunched (a backlog delivered at once says nothing of time). None while unknown."""
+        interval beyond the arrivals' exceed half the ``period`` (ns); the lead alone where the arrivals come
+        bunched (a backlog delivered at once says nothing of time between its messages, but none of them came
+        before it was stamped). None while unknown."""
         last = self.last_receipt
         if receipt is None or last is None or not self.timed():
             return None
+        ahead = 2 * (stamp + self.base - receipt - self.lead()) > period
         if self.bunched(receipt, period):
-            return False
-        return 2 * (stamp - self.last - (receipt - last)) > period and \
-            2 * (stamp + self.base - receipt - self.lead()) > period
+            return ahead
+        return ahead and 2 * (stamp - self.last - (receipt - last)) > period
 
     def bunched(self, receipt: int, period: int) -> bool:
         """Whether a message received at ``receipt`` (ns) came bunched with this sensor's previous (:func:`bunched`)."""
         return self.last_receipt is not None and bunched(receipt, self.last_receipt, period)
 
     def lead(self) -> int:
-        """How far (ns) the stamps run ahead of the least delayed of the recent arrivals."""
-        return max(c - r for c, r in self.arrivals)
+        """How far (ns) the stamps run ahead of the least delayed of the recent arrivals, or of the least delayed
+        the sensor ever had (:attr:`floor`, drift allowed) where all the recent ones came late (a busy receiver
+        draining a queue longer than :data:`LEAD_WINDOW` messages)."""
+        recent = max(c - r for c, r in self.arrivals)
+        floor = self.floor
+        return recent if floor is None else max(recent, floor[0] - self.lastc // LEAD_DRIFT)
 
     def timed(self) -> bool:
         """Whether the arrivals keep the stamps' time: over the last :data:`LEAD_WINDOW` (at least
@@ -395,7 +417,8 @@ class SensorStream:
         of two in the median, and the stamps' lead over the least delayed arrivals holds to an interval.
         Not so for a recording replayed faster or slower than it was made, nor for a backlog drained by a
         busy receiver, whose arrivals then place and tell nothing."""
-        return timed_arrivals(self.arrivals)
+        arrivals = self.arrivals
+        return timed_arrivals(arrivals) or len(arrivals) > RECENT and timed_arrivals(list(arrivals)[-RECENT:])
 
     def behind_alike(self, held: tuple[Any, ...], message: tuple[Any, ...], period: int) -> bool:
         """Whether a stamp behind its sequence (``held``) and the next (``message``; (stamp, ..., receipt))
@@ -414,6 +437,33 @@ class SensorStream:
         if receipt is None:
             return
         self.arrivals.append((common, receipt))
+        lead, drift = common - receipt, common // LEAD_DRIFT
+        self._raise_floor(lead + drift, lead - drift)
+
+    def note_leads(self, commons: NDArray[np.int64], receipts: NDArray[np.int64]) -> None:
+        """:meth:`note_lead` for many taken messages (ns arrays, in order)."""
+        if not len(commons):
+            return
+        self.arrivals.extend(zip(commons[-LEAD_WINDOW:].tolist(), receipts[-LEAD_WINDOW:].tolist()))
+        lead, drift = commons - receipts, commons // LEAD_DRIFT
+        self._raise_floor(int(np.max(lead + drift)), int(np.max(lead - drift)))
+
+    def _raise_floor(self, low: int, high: int) -> None:
+        floor = self.floor
+        self.floor = (low, high) if floor is None else (max(floor[0], low), max(floor[1], high))
+
+    def resumed_on_time(self, stamp: int, receipt: int | None, period: int) -> bool:
+        """Whether a stamp ahead of the sequence (ns, this segment; ``receipt`` ns) ends a pause its arrival saw
+        where the recent arrivals keep no time (a busy receiver's queue delayed those before the gap): it leads its
+        arrival as the least delayed arrivals the sensor ever had do (:attr:`floor`), to half a ``period`` (ns).
+        A step forward of the stamps leads by its size more (unless the queue's delay before it was as large,
+        to half a period, and gone after it)."""
+        floor = self.floor
+        if receipt is None or floor is None:
+            return False
+        common = stamp + self.base
+        lead, drift = common - receipt, common // LEAD_DRIFT
+        return floor[0] - drift - period // 2 <= lead <= floor[1] + drift + period // 2
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
@@ -450,10 +500,11 @@ class SensorStream:
 
     def record(self, interval: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period)."""
-        before = self.period
+        before = self.suspect_period()
         if before:
             self.grid_periods += max(1, int(round(interval / before)))
-        else:  # the grid starts where a period is known to count its intervals in
+        else:  # the grid starts where a period is known to count its intervals in (the median of a full window:
+            # that of the first few may be a lost sample's double interval, which then counts two as one)
             self.grid_first += interval
         iv = self.intervals
         iv.append(interval)
@@ -513,14 +564,17 @@ def _on_grid(common: int, grid: tuple[float, float] | None) -> bool:
     return abs(steps - round(steps)) <= 0.25
 
 
-def _in_line(offset: int, grid: tuple[float, float] | None) -> bool:
+def _in_line(offset: int, grid: tuple[float, float] | None, phase: float = 0.0, tol: float | None = None) -> bool:
     """Whether a stamp ``offset`` (ns) from another sensor's latest is that sensor's sample or its neighbour's
-    (within a period and a quarter, a quarter period off the grid; within a millisecond while no period is
-    known): the two are stamped by one clock."""
+    (within a period and a quarter) as the two sensors' samples lay before (``phase`` ns after the other's
+    samples, to ``tol`` ns, at most a quarter period; within a millisecond while no period is known): the two
+    are stamped by one clock."""
     if grid is None:
         return abs(offset) <= NS_PER_S // 1000
-    k = round(offset / grid[1])
-    return abs(k) <= 1 and abs(offset - k * grid[1]) <= 0.25 * grid[1]
+    period = grid[1]
+    k = round((offset - phase) / period)
+    limit = 0.25 * period if tol is None else min(tol, 0.25 * period)
+    return abs(offset) <= 1.25 * period and abs(offset - phase - k * period) <= limit
 
 
 def bunched(receipt: int, previous: int, period: int) -> bool:
@@ -772,6 +826,8 @@ class AcceptanceRule:
         s.seen_step = unseen is True
         if unseen is not None:
             return unseen
+        if s.resumed_on_time(held[0], held[3], period):
+            return False  # a pause seen by arrivals late by a draining queue before it, on time after
         ratio = arrival_ratio(s.arrivals)
         jump = held[0] - s.last
         if held[3] is not None and s.last_receipt is not None and ratio is not None and \
@@ -979,7 +1035,8 @@ class AcceptanceRule:
             grid = (anchor, period)
             steps = 1 if estimate is None else max(1, round((estimate - anchor) / period))
             if estimate is None:  # nor after the data others placed there since (one clock, this one silent)
-                steps = max(steps, math.ceil((self._placed_since(index, stamp, period) - period / 2 - anchor) / period))
+                since = self._placed_since(index, stamp, period, receipt)
+                steps = max(steps, math.ceil((since - period / 2 - anchor) / period))
             first = anchor + steps * period  # the sensor kept sampling: whole periods after its last sample
             base = int(round(sum(first + round((t - stamp) / period) * period - t for t in stamps) / len(stamps)))
         base = max(base, s.lastc + 1 - stamp)
@@ -987,7 +1044,7 @@ class AcceptanceRule:
         old = s.base
         s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
-        shared = self._shared_base(index, stamp, estimate, margin, grid, receipt)
+        shared = self._shared_base(index, stamps, estimate, margin, grid, receipt)
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
@@ -998,13 +1055,14 @@ class AcceptanceRule:
             return
         self.stats.restarts += 1
 
-    def _placed_since(self, index: int, stamp: int, period: float) -> float:
+    def _placed_since(self, index: int, stamp: int, period: float, receipt: int | None = None) -> float:
         """The earliest common stamp (ns; :data:`NEVER`: no limit) for the new ``stamp`` (ns) of sensor ``index``
         (sample ``period`` ns) by the data other sensors placed after jumps of their stamps from at or after its
         last stamp and up to ``stamp`` (one clock stamps them all): a period (theirs or its own, the longer)
         after that data, or where ``stamp`` lies inside it, where it lies there. A sensor silent through a piece
         the others were placed in goes after that piece, not back over it (placed one period after its own last
-        sample, its stamps would pair with the piece's)."""
+        sample, its stamps would pair with the piece's). Not where its own message came (``receipt`` ns) too soon
+        after its previous one for the silence that one clock's jumps would mean (it was not silent)."""
         s = self.streams[index]
         floor: float = NEVER
         for j, other in enumerate(self.streams):
@@ -1012,10 +1070,18 @@ class AcceptanceRule:
                 continue
             records = list(other.jumps)
             for k, (a, b, _, base) in enumerate(records):
-                if a >= s.last - SAME_STAMP and b <= stamp + SAME_STAMP:
+                if a >= s.last - SAME_STAMP and b <= stamp + SAME_STAMP and \
+                        not self._kept_talking(index, receipt, (stamp - s.last) - (b - a)):
                     end = records[k + 1][0] if k + 1 < len(records) else other.last
                     floor = max(floor, stamp + base if stamp <= end else end + base + max(period, other.grid_period() or 0))
         return floor
+
+    def _kept_talking(self, index: int, receipt: int | None, silence: int) -> bool:
+        """Whether sensor ``index``'s message received at ``receipt`` (ns) came too soon after its previous one for
+        the sensor to have been silent for ``silence`` (ns): under a quarter of it (a busy receiver's queue, drained
+        at no more than three times the rate it filled, keeps a silent sensor's messages that far apart)."""
+        last = self.streams[index].last_receipt
+        return receipt is not None and last is not None and 4 * (receipt - last) < silence
 
     def _first_base(self, index: int, stamp: int, base: int) -> int:
         """The base (ns) of a sensor's first ``stamp`` (ns): that of another sensor whose stamps jumped to it, or
@@ -1063,10 +1129,19 @@ class AcceptanceRule:
             return held is not None and held[4] in (AHEAD, BEHIND) and same(other.last, held[0], held[3]) or \
                 placing(other)
 
+        def later_alike(r: int | None, base: int) -> bool:
+            """Whether the other's jump received at ``r`` came as much before or after this one as the two sensors'
+            bases (``base`` its after it) say the same stamps lie apart in time: the same stamps at another instant
+            (a lost sample each, say), not one clock's jump."""
+            if r is None or receipt is None:
+                return False
+            apart = r - receipt
+            return abs(apart - (base - s.base)) < abs(apart)
+
         others = [(j, other) for j, other in enumerate(self.streams) if j != index]
         for j, other in others:  # one that decided the jump (unless it is making it again: a step repeated from
             for a, b, r, base in reversed(other.jumps):  # the same stamp to the same stamp, not decided yet) ...
-                if same(a, b, r):
+                if same(a, b, r) and not later_alike(r, base):
                     return (j, None) if deciding(other, r) else (j, base)
         for j, other in others:  # ... else one still placing it
             if placing(other):
@@ -1104,7 +1179,7 @@ class AcceptanceRule:
             self._take(index, first, True, out)
         return False
 
-    def _shared_base(self, index: int, stamp: int, estimate: int, margin: int,
+    def _shared_base(self, index: int, stamps: list[int], estimate: int, margin: int,
                      grid: tuple[float, float] | None, receipt: int | None = None) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
@@ -1119,12 +1194,14 @@ class AcceptanceRule:
         sensor's placement: its latest when ``stamp`` was received (``receipt`` ns; a segment placed by its
         arrivals was held while the others went on)."""
         s = self.streams[index]
+        stamp = stamps[0]
         by_arrival = margin < self.restart_ns // 2
         for j, other in enumerate(self.streams):  # its stamps now those of another sensor: one clock again
             if j == index or other.last == NEVER or other.busy:
                 continue
             latest = _latest_by(other, receipt)
-            if latest is not None and _in_line(stamp - latest[0], grid) and not _stale(latest[1], s.last_receipt):
+            if latest is not None and self._in_line_with(index, j, stamps, latest[0], grid) and \
+                    not _stale(latest[1], s.last_receipt):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
@@ -1143,6 +1220,27 @@ class AcceptanceRule:
                  not s.seen_step and (grid is None or _on_grid(stamp + before[1], grid))):
             return before[1], None
         return None
+
+    def _in_line_with(self, index: int, j: int, stamps: list[int], latest: int, grid: tuple[float, float] | None) -> bool:
+        """Whether sensor ``index``'s new ``stamps`` (ns, its first ones after a step) are sensor ``j``'s stamps again
+        (its ``latest``, ns, taken by then): the first lies within a period and a quarter of it, on its grid as the two
+        sensors' samples lay before the step (:func:`_in_line`). With a period known, the first stamp's offset is
+        averaged over ``stamps`` (each brought back by whole periods) and held to the noise of that average: four
+        standard deviations of the stamps' jitter (:meth:`SensorStream.jitter`), at least a twentieth of a period
+        (while the relative phase is unknown, a quarter period and the first stamp alone)."""
+        s, other = self.streams[index], self.streams[j]
+        offset = stamps[0] - latest
+        if grid is None or s.lastc == NEVER:
+            return _in_line(offset, grid)
+        period = grid[1]
+        commons = [c for c, _ in other.arrivals] or other.tail
+        near = min(commons, key=lambda c: abs(c - s.lastc), default=None)
+        if near is None or abs(near - s.lastc) > 1.25 * period:
+            return _in_line(offset, grid)
+        mean = sum(t - stamps[0] - round((t - stamps[0]) / period) * period for t in stamps) / len(stamps)
+        sigma = max(s.jitter(), other.jitter()) / 4 / math.sqrt(2)  # one stamp's, from its intervals' spread
+        tol = max(4 * sigma * math.sqrt(1 / len(stamps) + 1), period / 20)
+        return _in_line(round(offset + mean), grid, float(s.lastc - near), tol)
 
     def _leader(self, index: int, j: int) -> int:
         """The sensor whose clock sensor ``index`` follows when placed by sensor ``j``'s shift."""
