@@ -314,6 +314,14 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # taken for one clock's jump with the first (received within 5 s), so placed a second off
 @example(Case([SensorPlan(rate=200.0, loss=0.02, steps=[(3.0, 1.0)]), SensorPlan(rate=200.0),
                SensorPlan(rate=200.0, loss=0.02)], 19.069527288112393, 17035815))
+# one clock restarting twice to the same origin: the second jump of one sensor, a second later, reached the stamp the
+# other's first had reached and was placed as that one (one sensor silent through it would do so): a second off
+@example(Case([SensorPlan(rate=200.0, steps=[(2.0, -8.1208), (3.0, -1.0)]), SensorPlan(rate=200.0, steps=[(2.0, -8.1208)])],
+              20.6, 1))
+# one clock's jump of two sensors whose placements differed by an earlier step of one of them: the second took the
+# first's placement rather than its shift (15 ms off thereafter)
+@example(Case([SensorPlan(rate=200.0, jitter=0.0001, steps=[(7.6737, 17.3764)]),
+               SensorPlan(rate=200.0, jitter=0.0001, steps=[(3.25, 0.0140668), (7.6737, 17.3764)])], 13.0, 3))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

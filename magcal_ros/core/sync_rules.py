@@ -583,6 +583,12 @@ def bunched(receipt: int, previous: int, period: int) -> bool:
     return 4 * (receipt - previous) < period
 
 
+def _shift(stream: SensorStream) -> int:
+    """How far (ns) the latest jump of a sensor's stamps moved its placement (its base after less before)."""
+    jumps = stream.jumps
+    return jumps[-1][3] - (jumps[-2][3] if len(jumps) > 1 else 0) if jumps else 0
+
+
 def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | None] | None:
     """(stamp, receipt) ns of the latest message ``stream`` had taken by ``receipt`` (ns; None: its latest now);
     None when none of the messages it remembers (:data:`LEAD_WINDOW`) came that early."""
@@ -1114,8 +1120,14 @@ class AcceptanceRule:
         size = stamp - s.last
 
         def same(a: int, b: int, r: int | None) -> bool:
-            return (abs(b - a - size) <= tol and abs(a - s.last) <= near or abs(b - stamp) <= SAME_STAMP) and \
-                (receipt is None or r is None or abs(r - receipt) <= self.lag_ns)
+            return (abs(b - a - size) <= tol and abs(a - s.last) <= near or abs(b - stamp) <= SAME_STAMP
+                    and silent_since(r)) and (receipt is None or r is None or abs(r - receipt) <= self.lag_ns)
+
+        def silent_since(r: int | None) -> bool:
+            """Whether this sensor may have been silent since the other's jump to its stamp (received at ``r``):
+            its previous message came before that jump (to half of ``restart_ns``), else it jumped there itself
+            later (a restart to the same origin)."""
+            return r is None or s.last_receipt is None or 2 * (s.last_receipt - r) <= self.restart_ns
 
         def placing(other: SensorStream) -> bool:  # it places a new segment after this jump
             return other.placing is not None and same(other.last, other.placing[0][0], other.placing[0][3])
@@ -1206,14 +1218,15 @@ class AcceptanceRule:
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
                 continue
-            off = abs(stamp + other.base - estimate)
             recent = other.placed_at is not None and abs(estimate - other.placed_at) <= SHARED_STEP
+            base = s.base + _shift(other) if recent else other.base  # one clock's jump moves both alike
+            off = abs(stamp + base - estimate)
             if recent:
-                near = off <= margin or (by_arrival and off <= SHARED_MARGIN and _on_grid(stamp + other.base, grid))
+                near = off <= margin or (by_arrival and off <= SHARED_MARGIN and _on_grid(stamp + base, grid))
             else:
                 near = off <= min(margin // 2, NS_PER_S // 1000)
             if near:
-                return other.base, self._leader(index, j)
+                return base, self._leader(index, j)
         before = s.before  # back just after the old sequence's last stamp (on its grid; where arrivals say so too)
         if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
                 (abs(stamp + before[1] - estimate) <= margin if by_arrival else
