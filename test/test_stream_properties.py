@@ -322,6 +322,10 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # first's placement rather than its shift (15 ms off thereafter)
 @example(Case([SensorPlan(rate=200.0, jitter=0.0001, steps=[(7.6737, 17.3764)]),
                SensorPlan(rate=200.0, jitter=0.0001, steps=[(3.25, 0.0140668), (7.6737, 17.3764)])], 13.0, 3))
+# two sensors stepping 1.84 periods at once, one back and one forward: the shift of the one placed first, added to
+# the other's placement after its own step rather than before it, put that one two periods off
+@example(Case([SensorPlan(rate=200.0, steps=[(2.0, 0.0091772)]), SensorPlan(rate=200.0, steps=[(2.0, -0.0091772)])],
+              12.0, 0))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

@@ -1050,7 +1050,7 @@ class AcceptanceRule:
         old = s.base
         s.before = (s.last, old, int(period or 0)) if s.before is None else s.before
         s.base = base
-        shared = self._shared_base(index, stamps, estimate, margin, grid, receipt)
+        shared = self._shared_base(index, stamps, estimate, margin, grid, receipt, old)
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
@@ -1192,7 +1192,7 @@ class AcceptanceRule:
         return False
 
     def _shared_base(self, index: int, stamps: list[int], estimate: int, margin: int,
-                     grid: tuple[float, float] | None, receipt: int | None = None) -> tuple[int, int | None] | None:
+                     grid: tuple[float, float] | None, receipt: int | None, old: int) -> tuple[int, int | None] | None:
         """(base, sensor followed) where the new segment of sensor ``index`` at ``estimate`` lines up with
         another sensor's placement or its own old segment's (a few bad stamps had looked like a step); None
         when it stands alone. ``margin``: how far apart (ns) a placement may be from where another sensor's
@@ -1201,7 +1201,7 @@ class AcceptanceRule:
         whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
         :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
-        places both alike. First of all, where the new stamps are another sensor's latest to half a period
+        moves both alike (this sensor's base before the step, ``old`` ns, by that sensor's shift). First of all, where the new stamps are another sensor's latest to half a period
         or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
         sensor's placement: its latest when ``stamp`` was received (``receipt`` ns; a segment placed by its
         arrivals was held while the others went on)."""
@@ -1219,7 +1219,7 @@ class AcceptanceRule:
             if j == index or other.last == NEVER:
                 continue
             recent = other.placed_at is not None and abs(estimate - other.placed_at) <= SHARED_STEP
-            base = s.base + _shift(other) if recent else other.base  # one clock's jump moves both alike
+            base = old + _shift(other) if recent else other.base  # one clock's jump moves both alike
             off = abs(stamp + base - estimate)
             if recent:
                 near = off <= margin or (by_arrival and off <= SHARED_MARGIN and _on_grid(stamp + base, grid))
