@@ -22,7 +22,7 @@ the excluded readings settle.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -288,18 +288,20 @@ class _Att:
     inputs: AttitudeInputs
     state: GlobalState
     precision: Array
-    """(N,) weight / sigma_att^2 of each set's attitude residual (0: none)."""
+    """(N,) weight / (sigma_att^2 correlation) of each set's attitude residual (0: none)."""
+    correlation: float = 1.0
+    """The attitude residuals' time correlation the precision divides by (:meth:`AttitudeInputs.correlation`)."""
 
     def h(self) -> Array | None:
         """(N, S, 3) the site gradient's field at each sensor (units of F), None without the block."""
         return att_blocks.gradient_field(self.inputs, self.state)
 
     def moved(self, step: Array, model: ForwardModel) -> "_Att":
-        return _Att(self.inputs, self.state.moved(step, model), self.precision)
+        return replace(self, state=self.state.moved(step, model))
 
     def take(self, keep: NDArray[np.int64]) -> "_Att":
         """The sets ``keep`` (indices) only."""
-        return _Att(self.inputs.take(keep), self.state, self.precision[keep])
+        return replace(self, inputs=self.inputs.take(keep), precision=self.precision[keep])
 
 
 STRUCTURED: bool = True
@@ -1078,7 +1080,7 @@ def fit_array(
     extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
              "attitude_sigma": att_blocks.robust_sigma(ea, used, share), "attitude_residuals": ea,
              "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0),
-             "attitude_correlation": att.inputs.correlation(ea)}
+             "attitude_correlation": att.correlation}
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
 
 
@@ -1123,7 +1125,8 @@ def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0
     if soft:
         qq = np.sum(ea * ea, axis=1) / 2.0
         weight *= np.minimum(1.0, SOFT_BOUND * sig**2 / np.maximum(qq, 1e-300))
-    return _Att(att.inputs, att.state, weight / (sig**2 * att.inputs.correlation(ea)))
+    correlation = att.inputs.correlation(ea)
+    return _Att(att.inputs, att.state, weight / (sig**2 * correlation), correlation)
 
 
 def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_],
@@ -1306,7 +1309,8 @@ def _solution_globals(solution: JointSolution) -> _Att | None:
     weights = (solution.attitude.known.astype(float) if solution.attitude_weights is None
                else solution.attitude_weights)
     sig = max(float(solution.attitude_sigma or 0.0), 1e-12)
-    return _Att(solution.attitude, solution.globals, weights / (sig**2 * solution.attitude_correlation))
+    correlation = solution.attitude_correlation
+    return _Att(solution.attitude, solution.globals, weights / (sig**2 * correlation), correlation)
 
 
 @dataclass(frozen=True)

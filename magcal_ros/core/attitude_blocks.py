@@ -401,14 +401,14 @@ def attitude_inputs(orientation: Array, angular_velocity: Array, stamps: Array, 
     w = np.asarray(angular_velocity, dtype=float)
     if np.sum(np.all(np.isfinite(w), axis=1)) < MIN_SEGMENT_SETS:
         return None
-    st = np.asarray(stamps).astype(np.int64)
-    order = np.argsort(st, kind="stable")
-    rot_o, groups_o, count = gyro_attitudes(w[order], (st[order] - st.min()) / NS_PER_S)
+    times = _seconds(stamps)
+    order = np.argsort(times, kind="stable")
+    rot_o, groups_o, count = gyro_attitudes(w[order], times[order])
     if count == 0:
         return None
     rot, groups = np.empty_like(rot_o), np.empty_like(groups_o)
     rot[order], groups[order] = rot_o, groups_o
-    return AttitudeInputs(rot, groups, count, False, None, None, frame_id, rates, times=_seconds(stamps))
+    return AttitudeInputs(rot, groups, count, False, None, None, frame_id, rates, times=times)
 
 
 def _seconds(stamps: Array) -> Array:

@@ -58,7 +58,6 @@ from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
     DEFAULT_SYNC_TOLERANCE,
     DROP_FIELDS,
-    LEAD_DRIFT,
     LEAD_WINDOW,
     MAX_TIME_OFFSET,
     NEVER,
@@ -349,8 +348,9 @@ class SetSynchronizer(AcceptanceRule):
             if i - w0 < TIMED_MIN:
                 continue
             lead = int((common[w0:i] - receipt[w0:i]).max())
-            if st.floor is not None:  # the floor before this batch: lower than or as the one the rule uses
-                lead = max(lead, st.floor[0] - int(common[i]) // LEAD_DRIFT)
+            bounds = st.floor_bounds(int(common[i]))  # the floor before this batch: lower than or as the rule's
+            if bounds is not None:
+                lead = max(lead, bounds[0])
             if 2 * (common[i] - receipt[i] - lead) > period[j]:
                 return False  # a stamp ahead of its arrival: a step the rule may see (one message at a time)
         return True

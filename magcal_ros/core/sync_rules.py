@@ -394,10 +394,14 @@ class SensorStream:
         last = self.last_receipt
         if receipt is None or last is None or not self.timed():
             return None
-        ahead = 2 * (stamp + self.base - receipt - self.lead()) > period
         if self.bunched(receipt, period):
-            return ahead
-        return ahead and 2 * (stamp - self.last - (receipt - last)) > period
+            return self.ahead_of(stamp, receipt, period)
+        return 2 * (stamp - self.last - (receipt - last)) > period and self.ahead_of(stamp, receipt, period)
+
+    def ahead_of(self, stamp: int, arrival: int, period: int) -> bool:
+        """Whether ``stamp`` (ns, this segment) runs more than half a ``period`` (ns) further ahead of its ``arrival``
+        (ns) than the sensor's stamps do (:meth:`lead`): an arrival is never early, so the stamps stepped forward."""
+        return 2 * (stamp + self.base - arrival - self.lead()) > period
 
     def bunched(self, receipt: int, period: int) -> bool:
         """Whether a message received at ``receipt`` (ns) came bunched with this sensor's previous (:func:`bunched`)."""
@@ -408,8 +412,8 @@ class SensorStream:
         the sensor ever had (:attr:`floor`, drift allowed) where all the recent ones came late (a busy receiver
         draining a queue longer than :data:`LEAD_WINDOW` messages)."""
         recent = max(c - r for c, r in self.arrivals)
-        floor = self.floor
-        return recent if floor is None else max(recent, floor[0] - self.lastc // LEAD_DRIFT)
+        bounds = self.floor_bounds(self.lastc)
+        return recent if bounds is None else max(recent, bounds[0])
 
     def timed(self) -> bool:
         """Whether the arrivals keep the stamps' time: over the last :data:`LEAD_WINDOW` (at least
@@ -452,18 +456,26 @@ class SensorStream:
         floor = self.floor
         self.floor = (low, high) if floor is None else (max(floor[0], low), max(floor[1], high))
 
+    def floor_bounds(self, common: int) -> tuple[int, int] | None:
+        """(least, most) lead (ns) of the least delayed arrivals at common stamp ``common`` (ns) by :attr:`floor`, the
+        receipt clock's drift allowed; None before an arrival."""
+        floor = self.floor
+        if floor is None:
+            return None
+        drift = common // LEAD_DRIFT
+        return floor[0] - drift, floor[1] + drift
+
     def resumed_on_time(self, stamp: int, receipt: int | None, period: int) -> bool:
         """Whether a stamp ahead of the sequence (ns, this segment; ``receipt`` ns) ends a pause its arrival saw
         where the recent arrivals keep no time (a busy receiver's queue delayed those before the gap): it leads its
         arrival as the least delayed arrivals the sensor ever had do (:attr:`floor`), to half a ``period`` (ns).
         A step forward of the stamps leads by its size more (unless the queue's delay before it was as large,
         to half a period, and gone after it)."""
-        floor = self.floor
-        if receipt is None or floor is None:
-            return False
         common = stamp + self.base
-        lead, drift = common - receipt, common // LEAD_DRIFT
-        return floor[0] - drift - period // 2 <= lead <= floor[1] + drift + period // 2
+        bounds = None if receipt is None else self.floor_bounds(common)
+        if bounds is None:
+            return False
+        return bounds[0] - period // 2 <= common - receipt <= bounds[1] + period // 2
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
@@ -947,8 +959,7 @@ class AcceptanceRule:
         """Whether ``stamp`` (ns), taken from a busy receiver's queue, runs more than half a ``period`` (ns) further
         ahead of its ``arrival`` (ns; when it came to the queue at the latest, :meth:`_came`) than the sensor's stamps
         do: the stamps stepped forward (the receipts alone, late by the queue, hid it)."""
-        s = self.streams[index]
-        return 2 * (stamp + s.base - arrival - s.lead()) > period
+        return self.streams[index].ahead_of(stamp, arrival, period)
 
     def _came(self, index: int, receipt: int, previous: int | None, period: int, middle: bool = False) -> int:
         """When (ns) sensor ``index``'s message received at ``receipt`` (ns; its previous at ``previous``) came to
@@ -1061,7 +1072,7 @@ class AcceptanceRule:
             return
         self.stats.restarts += 1
 
-    def _placed_since(self, index: int, stamp: int, period: float, receipt: int | None = None) -> float:
+    def _placed_since(self, index: int, stamp: int, period: float, receipt: int | None) -> float:
         """The earliest common stamp (ns; :data:`NEVER`: no limit) for the new ``stamp`` (ns) of sensor ``index``
         (sample ``period`` ns) by the data other sensors placed after jumps of their stamps from at or after its
         last stamp and up to ``stamp`` (one clock stamps them all): a period (theirs or its own, the longer)
