@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
-from magcal_ros.core.batched import gram2, per_sensor, per_sensor_columns, row_norms
+from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_columns, per_sensor_dot, per_sensor_gram, row_norms,
+                                     times_lower2)
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.parallel import map_in_threads
@@ -330,7 +331,7 @@ class _Eval:
             dl = lagged / norm
             dnorm = (-np.sum(d * rates, axis=1)[:, None] + tau[None, :] * np.sum(rates * rates, axis=1)[:, None])
             d_tau = -rates[:, None, :] / norm - dl * (dnorm[:, :, None] / norm)  # d dl / d tau (N, S, 3)
-            along = np.einsum("nsa,nac->nsc", dl, self.basis)  # (N, S, 2) dl^T basis
+            along = np.matmul(dl, self.basis)  # (N, S, 2) dl^T basis
         else:
             dl = np.broadcast_to(d[:, None, :], (n, s, 3))
             d_tau = along = None
@@ -432,7 +433,7 @@ class _Eval:
             for a in range(3):
                 a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = wphi[:, i, a].T @ phi[:, i, a]
         g_sum = np.empty((s, p))
-        g_sum[:, :lin] = np.einsum("nsa,nsaj->saj", self.e, _axes(wphi)).reshape(s, lin)
+        g_sum[:, :lin] = _axis_sums(self.e, wphi)
         wx = None
         if x_cols is not None:
             wx = x_cols * ws[:, :, None, None]
@@ -442,7 +443,7 @@ class _Eval:
                 a_blocks[i, :lin, lin:] = cross
                 a_blocks[i, lin:, :lin] = cross.T
                 a_blocks[i, lin:, lin:] = wx[:, i].reshape(n * 3, x).T @ x_cols[:, i].reshape(n * 3, x)
-            g_sum[:, lin:] = np.einsum("nsax,nsa->sx", wx, self.e)
+            g_sum[:, lin:] = per_sensor_dot(wx, self.e)
         self.a_blocks = a_blocks
         self._set_scores = None
         self._features = (wphi, wx)  # the direction couplings B and the scores, built when asked for
@@ -472,7 +473,7 @@ class _Eval:
         out[:, : 3 * q] = np.matmul(_axes(wphi).transpose(1, 2, 3, 0), vt).reshape(s, 3 * q, g)
         if wx is not None:
             x = wx.shape[3]
-            out[:, 3 * q :] = np.matmul(wx.transpose(1, 3, 2, 0).reshape(s, x, 3 * n), vt.reshape(s, 3 * n, g))
+            out[:, 3 * q :] = [wx[:, i].reshape(3 * n, x).T @ v[:, i].reshape(3 * n, g) for i in range(s)]
         return out
 
     @property
@@ -526,22 +527,23 @@ class _Eval:
         n, s, _, q = wphi.shape
         p, lin = self.shape[1], 3 * q
         lower = _chol2(c_inv)  # L_k L_k^T = C_k^-1
-        g = np.matmul(self.m, lower[:, None])  # (N, S, 3, 2): M_k L_k
+        g = times_lower2(self.m, lower)  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
         # written in place: splitting the contiguous last axis of the view is a view too
         np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None],
                     out=rows[:, :, :, :lin].reshape(n, 2, s, 3, q))
         my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
         corr = np.empty((s, p))
-        corr[:, :lin] = np.einsum("nsa,nsaj->saj", my, _axes(wphi)).reshape(s, lin)
+        corr[:, :lin] = _axis_sums(my, wphi)
         if wx is not None:
-            rows[:, :, :, lin:] = np.einsum("nsax,nsac->ncsx", wx, g)
-            corr[:, lin:] = np.einsum("nsax,nsa->sx", wx, my)
+            # sum_a g[n, s, a, c] wx[n, s, a, x] by elementwise products (an einsum over the short axis loops slowly)
+            rows[:, :, :, lin:] = sum(g[:, :, a, :, None] * wx[:, :, a, None, :] for a in range(3)).transpose(0, 2, 1, 3)
+            corr[:, lin:] = per_sensor_dot(wx, my)
         flat = rows.reshape(n, 2, s * p)
         corr_all = corr.reshape(-1)
         if self._globals_rows is not None:  # the globals' columns: B_k L_k from their rows of B
             b_g = self._globals_rows[0]
-            flat = np.concatenate([flat, np.matmul(b_g, lower).transpose(0, 2, 1)], axis=2)
+            flat = np.concatenate([flat, times_lower2(b_g, lower).transpose(0, 2, 1)], axis=2)
             corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", b_g, y)])
         flat = flat.reshape(2 * n, -1)
         return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost
@@ -563,8 +565,14 @@ class _Eval:
         For white noise ``sum_k s_k s_k^T`` estimates :meth:`information`; with time-correlated
         noise the lagged products add to it (see :mod:`magcal_ros.core.uncertainty`).
         """
-        corr = np.matmul(self.b, np.matmul(_inv2(self.c), self.g_d[:, :, None]))[:, :, 0]
-        return self.set_scores - corr
+        y = np.einsum("nab,nb->na", _inv2(self.c), self.g_d)  # C_k^-1 g_k: each set's score less B_k C_k^-1 g_k
+        if self._b is not None or self._features is None:
+            return self.set_scores - np.einsum("npc,nc->np", self.b, y)
+        own = self._by_features(self.e - np.einsum("nsac,nc->nsa", self.m, y))  # B_k is J_k^T W M_k: linear in M
+        if self._globals_rows is None:
+            return own
+        b_g, per_set_g = self._globals_rows
+        return np.concatenate([own, per_set_g - np.einsum("ngc,nc->ng", b_g, y)], axis=1)
 
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
@@ -575,6 +583,15 @@ def _axes(features: Array) -> Array:
     """(N, S, 3, q) each axis's features from (N, S, 1 or 3, q) (shared by the axes: a view)."""
     n, s, _, q = features.shape
     return np.broadcast_to(features, (n, s, 3, q))
+
+
+def _axis_sums(v: Array, features: Array) -> Array:
+    """(S, 3 q) ``sum_n v[n, s, a] features[n, s, a, j]`` for ``v`` (N, S, 3) and each axis's features (N, S, 1
+    or 3, q; one for every axis: a matrix product per sensor)."""
+    s, q = features.shape[1], features.shape[3]
+    if features.shape[2] == 1:
+        return per_sensor_gram(v, features[:, :, 0]).reshape(s, 3 * q)
+    return np.einsum("nsa,nsaj->saj", v, features).reshape(s, 3 * q)
 
 
 def _chol2(c: Array) -> Array:
@@ -705,6 +722,15 @@ def _damped_step(schur: Array, rhs: Array, free: NDArray[np.bool_], size: int, l
     return lam, False
 
 
+def _promised_decrease(schur: Array, rhs: Array) -> float:
+    """The decrease ``rhs^T S^-1 rhs`` of the cost's quadratic model ``c + 2 rhs.step + step.S.step`` at its
+    minimum (the undamped step); infinite where ``S`` cannot be solved."""
+    try:
+        return float(rhs @ np.linalg.solve(schur, rhs))
+    except (np.linalg.LinAlgError, ValueError):
+        return float("inf")
+
+
 def _solve_lm(
     model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
     sigma: Array, prior: ParameterPrior, iterations: int, tolerance: float, fixed: NDArray[np.bool_],
@@ -719,6 +745,9 @@ def _solve_lm(
     join the reduced system after the sensors'; a weak prior (:data:`~magcal_ros.core.attitude_blocks.
     WEAK_GLOBAL_SIGMA`) about ``global_start`` keeps the directions the data leave free finite.
     One sensor whose readings are linear in the model (:func:`_rank_one`): :func:`_solve_rank_one`.
+    A step whose decrease of the cost is the one the quadratic model promised for its minimum (to
+    :data:`SETTLED`) ends the fit without another evaluation: what a further step could gain is the
+    model's error, no more than that difference.
     """
     if att is None and _rank_one(model):
         theta, d, steps = _solve_rank_one(model, theta, x, inputs, weights, sigma, prior, iterations, tolerance,
@@ -751,13 +780,15 @@ def _solve_lm(
     for steps in range(1, iterations + 1):
         if cur is None:  # (evaluated here, not after the step: the last accepted step needs no evaluation)
             cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
-        info, grad, _ = cur.reduced()
+        info, grad, at_best = cur.reduced()
         schur = (info + np.diag(prec))[np.ix_(free, free)]
         rhs = (grad + prec * deviation(theta, att))[free]
         if not (np.all(np.isfinite(schur)) and np.all(np.isfinite(rhs))):
             break
         at = cur
         c_inv = _inv2(at.c)
+        negligible = max(tolerance * cost, SETTLED)
+        promised = cur.cost - at_best + _promised_decrease(schur, rhs)  # the directions' share, the parameters'
 
         def accept(step: Array) -> bool:
             nonlocal theta, d, cost, att, done, cur
@@ -771,11 +802,12 @@ def _solve_lm(
             new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)
             if new_cost > cost:
                 return False
-            done = cost - new_cost <= tolerance * max(cost, 1e-300)
+            done = cost - new_cost <= tolerance * max(cost, 1e-300) or \
+                abs(promised - (cost - new_cost)) <= negligible  # noqa: B023
             theta, d, cost, att, cur = t_new, d_new, new_cost, a_new, None
             return True
 
-        lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept, max(tolerance * cost, SETTLED))
+        lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept, negligible)
         if not improved or done:
             break
     return theta, d, steps, att

@@ -29,7 +29,6 @@ from numpy.typing import NDArray
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.imu import quat_exp, quat_to_matrix
 from magcal_ros.core.metrics import chi2_isf
-from magcal_ros.core.rotation import procrustes
 from magcal_ros.core.uncertainty import autocorrelation, bandwidth
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.errors import InputError
@@ -446,24 +445,38 @@ def _axis_rotations() -> list[Array]:
     return out
 
 
-def _alternate(a: Array, d: Array, rot: Array, groups: NDArray[np.int64], count: int, field: Array | None,
-               rounds: int) -> tuple[Array, Array, float]:
-    """Alternating Procrustes from ``a``: fields then mounting, at most ``rounds`` times (fewer once the
-    mounting stops moving, :data:`START_TOLERANCE`); (A, fields, cost)."""
-    fields = np.zeros((count, 3))
+def _rotations_onto(source: Array, target: Array) -> Array:
+    """(K, 3, 3) for each k the rotation ``R`` minimising ``sum_n |target[k, n] - R source[n]|^2`` (orthogonal
+    Procrustes, SVD; ``source`` (N, 3), ``target`` (K, N, 3))."""
+    u, _, vt = np.linalg.svd(np.einsum("kna,nb->kab", target, source))
+    sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    u[:, :, 2] *= sign[:, None]
+    return u @ vt
+
+
+def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], count: int, field: Array | None,
+               rounds: int) -> tuple[Array, Array, Array]:
+    """Alternating Procrustes from each mounting of ``starts`` (K, 3, 3) at once: fields then mounting, at most
+    ``rounds`` times (fewer once no mounting moves, :data:`START_TOLERANCE`); (A (K, 3, 3), fields (K, G, 3),
+    costs (K,))."""
+    a = np.array(starts, dtype=float)
+    member = (groups[None, :] == np.arange(count)[:, None]).astype(float)  # (G, N) each set's group
+    fields = np.zeros((len(a), count, 3))
+
+    def world(mounts: Array) -> Array:
+        return np.einsum("nab,kbc,nc->kna", rot, mounts, d, optimize=True)  # Q A d: should be f_g
+
     for _ in range(rounds):
-        world = np.einsum("nab,bc,nc->na", rot, a, d, optimize=True)  # Q A d: should be f_g
-        for g in range(count):
-            if field is not None:
-                fields[g] = field
-            else:
-                m = world[groups == g].sum(axis=0)
-                fields[g] = m / max(np.linalg.norm(m), 1e-300)
-        target = np.einsum("nba,nb->na", rot, fields[groups])  # Q^T f: should be A d
-        a, before = procrustes(d, target), a
+        if field is not None:
+            fields[:] = field
+        else:
+            m = np.einsum("gn,kna->kga", member, world(a))
+            fields = m / np.maximum(np.linalg.norm(m, axis=2, keepdims=True), 1e-300)
+        target = np.einsum("nba,knb->kna", rot, fields[:, groups])  # Q^T f: should be A d
+        a, before = _rotations_onto(d, target), a
         if np.max(np.abs(a - before)) < START_TOLERANCE:
             break
-    cost = float(np.sum((np.einsum("nab,bc,nc->na", rot, a, d, optimize=True) - fields[groups]) ** 2))
+    cost = np.sum((world(a) - fields[:, groups]) ** 2, axis=(1, 2))
     return a, fields, cost
 
 
@@ -474,14 +487,10 @@ def initial_state(att: AttitudeInputs, directions: Array) -> GlobalState:
     known = att.known
     d, rot, groups = directions[known], att.rotations[known], att.groups[known]
     few = slice(None, None, max(1, len(d) // START_SETS))
-    best = None
-    for a0 in _axis_rotations():
-        a, fields, cost = _alternate(a0, d[few], rot[few], groups[few], att.count, att.field, 8)
-        if best is None or cost < best[2]:
-            best = (a, fields, cost)
-    assert best is not None
-    a, fields, _ = _alternate(best[0], d, rot, groups, att.count, att.field, 200)
-    return GlobalState(a, fields, np.zeros((3, 3)))
+    a, _, cost = _alternate(np.stack(_axis_rotations()), d[few], rot[few], groups[few], att.count, att.field, 8)
+    best = int(np.argmin(cost))
+    a, fields, _ = _alternate(a[best : best + 1], d, rot, groups, att.count, att.field, 200)
+    return GlobalState(a[0], fields[0], np.zeros((3, 3)))
 
 
 # -- in physical words --------------------------------------------------------------------------------

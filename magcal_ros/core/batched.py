@@ -45,6 +45,31 @@ def gram2(a: Array, b: Array) -> Array:
     return out
 
 
+def times_lower2(a: Array, lower: Array) -> Array:
+    """(N, ..., R, 2) ``a @ L`` for each set's lower triangular 2 x 2 ``lower`` (N, 2, 2) and its matrices ``a``
+    (N, ..., R, 2), by elementwise products (a stack of 2 x 2 products loops in C over each)."""
+    shape = (len(lower),) + (1,) * (a.ndim - 2)
+    l00, l10, l11 = (lower[:, i, j].reshape(shape) for i, j in ((0, 0), (1, 0), (1, 1)))
+    out = np.empty_like(a)
+    np.multiply(a[..., 0], l00, out=out[..., 0])
+    out[..., 0] += a[..., 1] * l10
+    np.multiply(a[..., 1], l11, out=out[..., 1])
+    return out
+
+
+def per_sensor_gram(e: Array, f: Array) -> Array:
+    """(S, A, Q) ``sum_n e_n^T f_n`` per sensor for ``e`` (N, S, A) and ``f`` (N, S, Q): one matrix product
+    per sensor."""
+    return np.stack([e[:, i].T @ f[:, i] for i in range(e.shape[1])])
+
+
+def per_sensor_dot(cols: Array, v: Array) -> Array:
+    """(S, X) ``sum_n sum_a cols[n, s, a, x] v[n, s, a]`` for ``cols`` (N, S, A, X) and ``v`` (N, S, A): one
+    matrix-vector product per sensor."""
+    x = cols.shape[3]
+    return np.stack([cols[:, i].reshape(-1, x).T @ v[:, i].reshape(-1) for i in range(cols.shape[1])])
+
+
 def row_norms(v: Array) -> Array:
     """(...,) Euclidean norms of the last axis of ``v``."""
     return np.sqrt(np.einsum("...a,...a->...", v, v))
