@@ -456,6 +456,45 @@ def test_the_leave_out_step_with_the_imu_gives_the_jackknife_of_full_refits(case
         (np.median(ratio), np.percentile(ratio, [10, 90]))
 
 
+@pytest.mark.parametrize("with_imu", [True, False])
+def test_the_parts_shares_the_fit_keeps_are_each_parts_own_evaluation(with_imu):
+    """A fit given the jackknife's parts keeps each part's share of the normal equations from its last
+    evaluation (every set's); each is what an evaluation of the part's sets alone gives (the solution's
+    attitudes' weights included), the shares add up to the whole, the rotation gauge maps them, and the
+    leave-out estimates from them are those computed afresh (without the shares), to rounding."""
+    from dataclasses import replace
+
+    from magcal_ros.core import array_fit as af
+    from magcal_ros.core.uncertainty import centre_gauge_constraints
+
+    spec = LEAVE_OUT_CASES["tumble, orientation"]
+    rec, truth, _ = run(spec)
+    att = ab.attitude_inputs(rec.imu.orientation, rec.imu.angular_velocity, rec.stamps, None, False) \
+        if with_imu else None
+    parts = [np.sort(p) for p in np.array_split(np.random.default_rng(2).permutation(len(rec.vectors)), 8)]
+    sol = af.fit_array(rec.vectors, truth.calibration.matrices, truth.calibration.offsets, spec.intensity,
+                       attitude=att, parts=parts)
+    sums = sol.part_sums
+    assert sums is not None and sums.matches(parts) and not sums.matches(parts[::-1])
+    whole = sol.information if att is None else sol.full_information
+    scale = np.abs(whole).max()
+    assert np.abs(sums.information.sum(axis=0) - whole).max() < 1e-9 * scale
+    glob = af._solution_globals(sol)
+    f = sol.intensity
+    for idx in (parts[0], parts[5]):
+        ev = af._Eval(sol.model, sol.theta, sol.directions[idx], rec.vectors[idx] / f, af.SetInputs(np.zeros((len(idx), 0))),
+                      None, sol.weights[idx], sol.sigma / f, None if glob is None else glob.take(idx))
+        k = next(i for i, p in enumerate(parts) if p is idx)
+        assert np.abs(sums.information[k] - ev.information()).max() < 1e-9 * scale
+        assert np.allclose(sums.scores[k], ev.scores().sum(axis=0), rtol=1e-7, atol=1e-9 * np.abs(sums.scores).max())
+    turned = af.fix_rotation_gauge(sol)
+    gauge = centre_gauge_constraints(turned.w, turned.model.size)
+    kept = af.leave_out_estimates(turned, rec.vectors, parts, gauge=gauge)
+    fresh = af.leave_out_estimates(replace(turned, part_sums=None), rec.vectors, parts, gauge=gauge)
+    moved = np.abs(kept - turned.theta.reshape(-1)).max()  # what leaving a part out moves the parameters by
+    assert np.abs(kept - fresh).max() < 1e-4 * moved, (np.abs(kept - fresh).max(), moved)
+
+
 def test_an_imu_about_as_good_as_the_sensors_leaves_every_noise_estimate_unbiased():
     """An IMU whose attitude error (0.0005 deg per axis, 8.7e-6 rad) is of the order of the four sensors' direction
     noise (1 nT in 55,000 nT, 1.8e-5 rad each): each set's direction is then fitted partly from the attitude, and

@@ -115,6 +115,29 @@ class SetInputs:
 
 
 @dataclass(frozen=True)
+class PartSums:
+    """Each part's share of a solution's normal equations (the delete-one-block jackknife's parts): their
+    information (directions eliminated) and summed scores, every parameter (the sensors', then the global
+    ones), whitened, units of F."""
+
+    parts: tuple[NDArray[np.int64], ...]
+    """The parts: indices of the sets the solution was fitted on."""
+    information: Array
+    """(K, Q, Q) each part's information."""
+    scores: Array
+    """(K, Q) each part's scores summed over its sets."""
+
+    def matches(self, parts: list[NDArray[np.int64]]) -> bool:
+        """Whether ``parts`` are these."""
+        return len(parts) == len(self.parts) and all(np.array_equal(a, b) for a, b in zip(parts, self.parts))
+
+    def mapped(self, full: Array) -> "PartSums":
+        """The sums for the parameters ``new = full^-1 old`` (a change of the parameters' frame)."""
+        return replace(self, information=full.T @ self.information @ full,
+                       scores=self.scores @ full)
+
+
+@dataclass(frozen=True)
 class JointSolution:
     """Result of :func:`fit_array`, in physical units where it says so."""
 
@@ -168,6 +191,9 @@ class JointSolution:
     """The attitude residuals' time correlation the fit weighed them by
     (:meth:`~magcal_ros.core.attitude_blocks.AttitudeInputs.correlation`): each set's precision is its weight over
     ``attitude_sigma**2`` times this."""
+    part_sums: PartSums | None = None
+    """The parts' shares of the normal equations when :func:`fit_array` was given parts (for
+    :func:`leave_out_estimates`)."""
 
     def site_field(self) -> Array | None:
         """(N, S, 3) T, array frame: the site gradient's field at each sensor (None without the block)."""
@@ -383,7 +409,8 @@ class _Eval:
             if model.lag_index is not None and d_tau is not None:
                 jac[:, :, :, model.lag_index] = gain * per_sensor(k, d_tau)
             wj = jac * ws[:, :, None, None]
-            self.a_blocks = np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(s)])
+            self._dense = (jac, wj)
+            self.a_blocks = self._sensor_blocks(slice(None))
             b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
             self._set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
             g_sum = np.ones(n) @ self._set_scores
@@ -396,10 +423,8 @@ class _Eval:
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
             pa = att.precision
-            self.a_sg = self._summed_by_features(jac_g) if self._features is not None else \
-                np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])  # (S, P, G)
-            self.a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
-                @ ja.reshape(-1, ng)
+            self._global_jac = (jac_g, wjg, ja, pa)
+            self.a_sg, self.a_gg = self._global_blocks(slice(None))
             per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea, optimize=True)
             g_global = per_set_g.sum(axis=0)
             b_g = np.matmul(wjg.reshape(n, s * 3, ng).transpose(0, 2, 1), self.m.reshape(n, s * 3, 2)) + \
@@ -422,32 +447,46 @@ class _Eval:
         ``phi`` (N, S, 1 or 3, q; shared by the axes without temperature) in its own q columns and zeros
         elsewhere, then the extra columns ``x_cols`` (N, S, 3, X: a gain tempco in its axis only, the lag
         in every axis). The gradient summed over the sets, (S, P); each set's is built when asked for."""
-        n, s, axes, q = phi.shape
+        s, q = phi.shape[1], phi.shape[3]
         lin, p = 3 * q, self.shape[1]
         wphi = phi * ws[:, :, None, None]
-        a_blocks = np.zeros((s, p, p))
-        for i in range(s):
-            if axes == 1:
-                a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i, 0].T @ phi[:, i, 0])
-                continue
-            for a in range(3):
-                a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = wphi[:, i, a].T @ phi[:, i, a]
         g_sum = np.empty((s, p))
         g_sum[:, :lin] = _axis_sums(self.e, wphi)
         wx = None
         if x_cols is not None:
             wx = x_cols * ws[:, :, None, None]
-            x = x_cols.shape[3]
-            for i in range(s):
-                cross = np.matmul(_axes(phi)[:, i].transpose(1, 2, 0), wx[:, i].transpose(1, 0, 2)).reshape(lin, x)
-                a_blocks[i, :lin, lin:] = cross
-                a_blocks[i, lin:, :lin] = cross.T
-                a_blocks[i, lin:, lin:] = wx[:, i].reshape(n * 3, x).T @ x_cols[:, i].reshape(n * 3, x)
             g_sum[:, lin:] = per_sensor_dot(wx, self.e)
-        self.a_blocks = a_blocks
         self._set_scores = None
         self._features = (wphi, wx)  # the direction couplings B and the scores, built when asked for
+        self._unweighted = (phi, x_cols)
+        self.a_blocks = self._sensor_blocks(slice(None))
         return g_sum
+
+    def _sensor_blocks(self, rows: slice | NDArray[np.int64]) -> Array:
+        """(S, P, P) each sensor's normal matrix ``sum_k J_k^T W J_k`` over the sets ``rows``."""
+        p = self.shape[1]
+        if self._features is None:
+            jac, wj = (a[rows] for a in self._dense)
+            return np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(self.shape[0])])
+        (wphi, wx), (phi, x_cols) = self._features, self._unweighted
+        return _linear_blocks(phi[rows], wphi[rows], None if x_cols is None else x_cols[rows],
+                              None if wx is None else wx[rows], p)
+
+    def _global_blocks(self, rows: slice | NDArray[np.int64]) -> tuple[Array, Array]:
+        """The global parameters' normal matrices over the sets ``rows``: with the sensors' (S, P, G) and their
+        own (G, G), the attitude residuals' included."""
+        jac_g, wjg, ja, pa = (a[rows] for a in self._global_jac)
+        s, p = self.shape
+        ng = jac_g.shape[3]
+        if self._features is None:
+            wj = self._dense[1][rows]
+            a_sg = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])
+        else:
+            wphi, wx = self._features
+            a_sg = _summed_by_features(wphi[rows], None if wx is None else wx[rows], jac_g, p)
+        a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
+            @ ja.reshape(-1, ng)
+        return a_sg, a_gg
 
     def _by_features(self, v: Array) -> Array:
         """(N, S P, ...) each set's structured Jacobian rows times ``v`` (N, S, 3, ...) (whitened, ``J^T W v``
@@ -461,20 +500,6 @@ class _Eval:
         if wx is not None:
             out[:, :, 3 * q :] = np.einsum("nsax,nsa...->nsx...", wx, v)
         return out.reshape((n, s * self.shape[1]) + tail)
-
-    def _summed_by_features(self, v: Array) -> Array:
-        """(S, P, G) the structured Jacobian's whitened products with ``v`` (N, S, 3, G) summed over the sets
-        (``sum_k J_k^T W v_k`` for each sensor)."""
-        wphi, wx = self._features  # type: ignore[misc]
-        s, q = wphi.shape[1], wphi.shape[3]
-        out = np.empty((s, self.shape[1], v.shape[3]))
-        n, g = v.shape[0], v.shape[3]
-        vt = v.transpose(1, 2, 0, 3)  # (S, 3, N, G): the sets summed by matrix products
-        out[:, : 3 * q] = np.matmul(_axes(wphi).transpose(1, 2, 3, 0), vt).reshape(s, 3 * q, g)
-        if wx is not None:
-            x = wx.shape[3]
-            out[:, 3 * q :] = [wx[:, i].reshape(3 * n, x).T @ v[:, i].reshape(3 * n, g) for i in range(s)]
-        return out
 
     @property
     def set_scores(self) -> Array:
@@ -524,40 +549,69 @@ class _Eval:
             info = self.a_matrix() - np.matmul(self.b, c_inv).transpose(0, 2, 1).reshape(-1, self.b.shape[1]).T @ flat_b
             return info, self.g_theta - y.reshape(-1) @ flat_b, cost
         wphi, wx = self._features
+        s, q = wphi.shape[1], wphi.shape[3]
+        lin = 3 * q
+        my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
+        corr = np.empty((s, self.shape[1]))
+        corr[:, :lin] = _axis_sums(my, wphi)
+        if wx is not None:
+            corr[:, lin:] = per_sensor_dot(wx, my)
+        corr_all = corr.reshape(-1)
+        if self._globals_rows is not None:
+            corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", self._globals_rows[0], y)])
+        flat = self._direction_rows(c_inv)
+        flat = flat.reshape(-1, flat.shape[2])
+        return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost
+
+    def _direction_rows(self, c_inv: Array | None = None) -> Array:
+        """(N, 2, S P + G) ``(B_k L_k)^T``, ``L_k L_k^T = C_k^-1``, each set's rows of the information its
+        direction takes (``B_k C_k^-1 B_k^T`` is their product), built from the features (kept once built)."""
+        if getattr(self, "_rows", None) is not None:
+            return self._rows
+        lower = _chol2(_inv2(self.c) if c_inv is None else c_inv)
+        if self._features is None:
+            self._rows = times_lower2(self.b, lower).transpose(0, 2, 1)
+            return self._rows
+        wphi, wx = self._features
         n, s, _, q = wphi.shape
         p, lin = self.shape[1], 3 * q
-        lower = _chol2(c_inv)  # L_k L_k^T = C_k^-1
         g = times_lower2(self.m, lower)  # (N, S, 3, 2): M_k L_k
         rows = np.empty((n, 2, s, p))
         # written in place: splitting the contiguous last axis of the view is a view too
         np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None],
                     out=rows[:, :, :, :lin].reshape(n, 2, s, 3, q))
-        my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
-        corr = np.empty((s, p))
-        corr[:, :lin] = _axis_sums(my, wphi)
         if wx is not None:
             # sum_a g[n, s, a, c] wx[n, s, a, x] by elementwise products (an einsum over the short axis loops slowly)
             rows[:, :, :, lin:] = sum(g[:, :, a, :, None] * wx[:, :, a, None, :] for a in range(3)).transpose(0, 2, 1, 3)
-            corr[:, lin:] = per_sensor_dot(wx, my)
         flat = rows.reshape(n, 2, s * p)
-        corr_all = corr.reshape(-1)
         if self._globals_rows is not None:  # the globals' columns: B_k L_k from their rows of B
-            b_g = self._globals_rows[0]
-            flat = np.concatenate([flat, times_lower2(b_g, lower).transpose(0, 2, 1)], axis=2)
-            corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", b_g, y)])
-        flat = flat.reshape(2 * n, -1)
-        return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost
+            flat = np.concatenate([flat, times_lower2(self._globals_rows[0], lower).transpose(0, 2, 1)], axis=2)
+        self._rows = flat
+        return flat
+
+    def part_information(self, rows: NDArray[np.int64]) -> Array:
+        """The information (directions eliminated, as :meth:`information`) of the sets ``rows`` alone: the part
+        of the sums over the sets that they add."""
+        blocks = self._global_blocks(rows) if self.globals else (None, None)
+        flat = self._direction_rows()[rows]
+        flat = flat.reshape(-1, flat.shape[2])
+        return self._assembled(self._sensor_blocks(rows), *blocks) - flat.T @ flat
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
+        return self._assembled(self.a_blocks, getattr(self, "a_sg", None), getattr(self, "a_gg", None))
+
+    def _assembled(self, a_blocks: Array, a_sg: Array | None, a_gg: Array | None) -> Array:
+        """The normal matrix from the sensors' blocks (S, P, P) and, with global parameters, their cross (S, P, G)
+        and own (G, G) blocks."""
         s, p = self.shape
         a = np.zeros((s * p, s * p))
         for i in range(s):
-            a[i * p : (i + 1) * p, i * p : (i + 1) * p] = self.a_blocks[i]
-        if not self.globals:
+            a[i * p : (i + 1) * p, i * p : (i + 1) * p] = a_blocks[i]
+        if not self.globals or a_sg is None or a_gg is None:
             return a
-        cross = self.a_sg.reshape(s * p, self.globals)
-        return np.block([[a, cross], [cross.T, self.a_gg]])
+        cross = a_sg.reshape(s * p, self.globals)
+        return np.block([[a, cross], [cross.T, a_gg]])
 
     def scores(self) -> Array:
         """(N, S P + G) each set's contribution to the reduced gradient (directions eliminated, whitened).
@@ -583,6 +637,43 @@ def _axes(features: Array) -> Array:
     """(N, S, 3, q) each axis's features from (N, S, 1 or 3, q) (shared by the axes: a view)."""
     n, s, _, q = features.shape
     return np.broadcast_to(features, (n, s, 3, q))
+
+
+def _linear_blocks(phi: Array, wphi: Array, x_cols: Array | None, wx: Array | None, p: int) -> Array:
+    """(S, P, P) each sensor's normal matrix from its features (:meth:`_Eval._structured`: ``phi`` (N, S, 1 or 3,
+    q) in each axis's q columns, the extra columns ``x_cols`` (N, S, 3, X) after them; ``wphi``, ``wx`` the same
+    weighted), summed over the N sets."""
+    n, s, axes, q = phi.shape
+    lin = 3 * q
+    a_blocks = np.zeros((s, p, p))
+    for i in range(s):
+        if axes == 1:
+            a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i, 0].T @ phi[:, i, 0])
+            continue
+        for a in range(3):
+            a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = wphi[:, i, a].T @ phi[:, i, a]
+    if x_cols is not None and wx is not None:
+        x = x_cols.shape[3]
+        for i in range(s):
+            cross = np.matmul(_axes(phi)[:, i].transpose(1, 2, 0), wx[:, i].transpose(1, 0, 2)).reshape(lin, x)
+            a_blocks[i, :lin, lin:] = cross
+            a_blocks[i, lin:, :lin] = cross.T
+            a_blocks[i, lin:, lin:] = wx[:, i].reshape(n * 3, x).T @ x_cols[:, i].reshape(n * 3, x)
+    return a_blocks
+
+
+def _summed_by_features(wphi: Array, wx: Array | None, v: Array, p: int) -> Array:
+    """(S, P, G) the structured Jacobian's whitened products with ``v`` (N, S, 3, G) summed over the sets
+    (``sum_k J_k^T W v_k`` for each sensor; features as :func:`_linear_blocks`)."""
+    s, q = wphi.shape[1], wphi.shape[3]
+    n, g = v.shape[0], v.shape[3]
+    out = np.empty((s, p, g))
+    vt = v.transpose(1, 2, 0, 3)  # (S, 3, N, G): the sets summed by matrix products
+    out[:, : 3 * q] = np.matmul(_axes(wphi).transpose(1, 2, 3, 0), vt).reshape(s, 3 * q, g)
+    if wx is not None:
+        x = wx.shape[3]
+        out[:, 3 * q :] = [wx[:, i].reshape(3 * n, x).T @ v[:, i].reshape(3 * n, g) for i in range(s)]
+    return out
 
 
 def _axis_sums(v: Array, features: Array) -> Array:
@@ -1007,6 +1098,7 @@ def fit_array(
     held: NDArray[np.bool_] | None = None,
     attitude: AttitudeInputs | None = None,
     attitude_start: GlobalState | None = None,
+    parts: list[NDArray[np.int64]] | None = None,
 ) -> JointSolution:
     """Joint MAP fit of every sensor from raw sets ``raw`` (N, S, 3) T, starting at
     ``matrices`` (S, 3, 3) / ``offsets`` (S, 3) T / ``interference`` (S, 3, m) T/A.
@@ -1017,7 +1109,8 @@ def fit_array(
     matrices, offsets and interference); ``held`` (S, P): parameters kept at their start (see
     :func:`fixed_parameters`); ``attitude``: the IMU's attitudes at the sets, fit the global blocks
     (:mod:`magcal_ros.core.attitude_blocks`) from ``attitude_start`` (default: their closed-form
-    start from the sensors' directions); ``prior`` on the parameters in units of F (default: a weak prior
+    start from the sensors' directions); ``parts`` (indices of the sets): keep each one's share of the
+    normal equations (:class:`PartSums`, what :func:`leave_out_estimates` of these parts takes); ``prior`` on the parameters in units of F (default: a weak prior
     around the start that only keeps undetermined directions finite; parameters it does not
     cover get the weak prior); ``weights`` (N, S) 0/1 to exclude readings from the start;
     ``robust`` re-decides outliers until they settle.
@@ -1091,29 +1184,50 @@ def fit_array(
         fit_sigma = sigma
     if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
+    return _final_solution(model, theta, d, x, inputs, rates, weights, fit_sigma, att, f, fixed, parts)
+
+
+def _final_solution(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
+                    weights: Array, fit_sigma: Array, att: _Att | None, f: float, fixed: NDArray[np.bool_],
+                    parts: list[NDArray[np.int64]] | None) -> JointSolution:
+    """The solution at the fit's end (``fit_sigma`` the noise it weighed the sensors by): outliers out, each
+    sensor's noise, the information and scores (and the ``parts``' shares), the global blocks' report."""
+    s = model.sensors
     # A reading the soft weighting has all but removed (beyond sqrt(2 SOFT_BOUND) noise sd: a
     # spike, a frozen sensor) is excluded, as the outlier tests already treat it: counted as an
     # outlier, and kept out of the residuals the quality gates judge.
     weights = np.where(weights < 0.5, 0.0, weights)
-    e = _prediction(model, theta, d, inputs, rates, h_of(att)) - x
+    e = _prediction(model, theta, d, inputs, rates, None if att is None else att.h()) - x
     share = attitude_share(fit_sigma, att)
     sigma = np.maximum(_efficient_sigma(e, weights, residual_dof(fit_sigma, s, _attitude_precision(att))), 1e-15)
+    extra: dict[str, Any] = {}
+    if att is not None:  # the attitudes weighed as the solution reports them (:func:`_solution_globals`)
+        ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
+        used = att.precision > 0
+        extra = {"globals": att.state, "attitude": att.inputs, "attitude_sigma": att_blocks.robust_sigma(ea, used, share),
+                 "attitude_residuals": ea, "attitude_correlation": att.correlation,
+                 "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0)}
+        att = replace(att, precision=_attitude_precision_of(extra["attitude_weights"], extra["attitude_sigma"],
+                                                            att.correlation))
     if att is None and _rank_one(model):
         info, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
     else:
         final = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
         info, scores = final.information(), final.scores()
+        if parts:
+            extra["part_sums"] = _part_sums(final, scores, parts)
     if att is None:
-        return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed)
+        return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed, **extra)
     red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model),
                                               att.inputs.global_precision(model))
-    ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
-    used = att.precision > 0
-    extra = {"globals": att.state, "full_information": info, "full_scores": scores, "attitude": att.inputs,
-             "attitude_sigma": att_blocks.robust_sigma(ea, used, share), "attitude_residuals": ea,
-             "attitude_weights": np.where(used, att.precision / max(float(np.max(att.precision)), 1e-300), 0.0),
-             "attitude_correlation": att.correlation}
+    extra.update(full_information=info, full_scores=scores)
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
+
+
+def _part_sums(ev: "_Eval", scores: Array, parts: list[NDArray[np.int64]]) -> PartSums:
+    """Each part's share of the normal equations of ``ev`` (whose per-set ``scores`` are given)."""
+    return PartSums(tuple(np.asarray(idx) for idx in parts), np.stack([ev.part_information(idx) for idx in parts]),
+                    np.stack([scores[idx].sum(axis=0) for idx in parts]))
 
 
 SETTLED_PULL: float = 0.1
@@ -1222,6 +1336,10 @@ def fix_rotation_gauge(solution: JointSolution) -> JointSolution:
                  "attitude_sigma": solution.attitude_sigma,
                  "attitude_residuals": None if solution.attitude_residuals is None else solution.attitude_residuals @ qmat.T,
                  "attitude_weights": solution.attitude_weights, "attitude_correlation": solution.attitude_correlation}
+        if solution.part_sums is not None:
+            extra["part_sums"] = solution.part_sums.mapped(full)
+    elif solution.part_sums is not None and solution.globals is None:
+        extra["part_sums"] = solution.part_sums.mapped(tinv)
     rotated = _solution(model, theta, solution.directions @ qmat.T, solution.weights, solution.sigma,
                         solution.residuals, tinv.T @ solution.information @ tinv, solution.scores @ tinv,
                         solution.intensity, None if solution.rates is None else solution.rates @ qmat.T,
@@ -1303,23 +1421,24 @@ def leave_out_estimates(solution: JointSolution, raw: Array, parts: list[NDArray
     and gradient (the whole gradient is zero at the solution). ``gauge`` as in :func:`refine_on_all`.
     With the IMU's global blocks the step is taken in the sensors' and the global parameters
     together (their weak prior included, held ones kept) and the sensors' part returned.
+    The parts' shares of the normal equations are the solution's own when its fit was given these parts
+    (:class:`PartSums`: the same readings), else from one evaluation of every set.
     """
     model = solution.model
-    f = solution.intensity
-    r = np.asarray(raw, dtype=float)
-    n, s, _ = r.shape
-    u = np.zeros((n, model.channels)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+    s = model.sensors
     _, prec = _fit_prior(solution, prior)
     att = _solution_globals(solution)
-    infos, grads = [], []
-    for idx in parts:
-        inputs = SetInputs(u[idx], None if temperatures is None else np.asarray(temperatures, dtype=float)[idx],
-                           None if times is None else np.asarray(times, dtype=float)[idx])
-        ev = _Eval(model, solution.theta, solution.directions[idx], r[idx] / f, inputs,
-                   None if solution.rates is None else solution.rates[idx], solution.weights[idx], solution.sigma / f,
-                   None if att is None else att.take(idx))
-        infos.append(ev.information())
-        grads.append(ev.scores().sum(axis=0))
+    sums = solution.part_sums
+    if sums is None or not sums.matches(parts):
+        r = np.asarray(raw, dtype=float)
+        n = len(r)
+        u = np.zeros((n, model.channels)) if currents is None else np.asarray(currents, dtype=float).reshape(n, -1)
+        inputs = SetInputs(u, None if temperatures is None else np.asarray(temperatures, dtype=float),
+                           None if times is None else np.asarray(times, dtype=float))
+        ev = _Eval(model, solution.theta, solution.directions, r / solution.intensity, inputs, solution.rates,
+                   solution.weights, solution.sigma / solution.intensity, att)
+        sums = _part_sums(ev, ev.scores(), parts)
+    infos, grads = sums.information, sums.scores
     if att is None:
         return _leave_out(solution.theta, solution.information + np.diag(prec), infos, grads,
                           _step_basis(_free(solution), gauge))
@@ -1340,9 +1459,14 @@ def _solution_globals(solution: JointSolution) -> _Att | None:
         return None
     weights = (solution.attitude.known.astype(float) if solution.attitude_weights is None
                else solution.attitude_weights)
-    sig = max(float(solution.attitude_sigma or 0.0), 1e-12)
     correlation = solution.attitude_correlation
-    return _Att(solution.attitude, solution.globals, weights / (sig**2 * correlation), correlation)
+    return _Att(solution.attitude, solution.globals,
+                _attitude_precision_of(weights, float(solution.attitude_sigma or 0.0), correlation), correlation)
+
+
+def _attitude_precision_of(weights: Array, sigma: float, correlation: float) -> Array:
+    """(N,) 1/rad^2 each attitude residual's precision from its weight, their 1-sigma (rad) and time correlation."""
+    return weights / (max(sigma, 1e-12) ** 2 * correlation)
 
 
 @dataclass(frozen=True)

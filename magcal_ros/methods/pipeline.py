@@ -540,11 +540,16 @@ def _jackknife_inflation(raw: Array, sol: JointSolution, order: NDArray[np.int64
     correlated noise the factors of full refits were within 3 %, at an eighth of the cost).
     """
     options = blocks.fit_options()
-    est = leave_out_estimates(sol, raw, list(np.array_split(order, JACKKNIFE_BLOCKS)),
+    est = leave_out_estimates(sol, raw, jackknife_parts(order),
                               currents if sol.model.channels else None, prior,
                               temperatures=options["temperatures"], times=options["times"],
                               gauge=centre_gauge_constraints(sol.w, sol.model.size) if prior is None else None)
     return _jackknife_factor(est, cov, prior)
+
+
+def jackknife_parts(order: NDArray[np.int64]) -> list[NDArray[np.int64]]:
+    """The delete-one-block jackknife's parts of sets in time ``order``: :data:`JACKKNIFE_BLOCKS` blocks."""
+    return list(np.array_split(order, JACKKNIFE_BLOCKS))
 
 
 def _jackknife_factor(est: Array, cov: Array, prior: ParameterPrior | None) -> float:
@@ -588,7 +593,7 @@ def _refine(sol: JointSolution, full: _AllSets, prior: ParameterPrior | None, bl
     if blocks.times is not None and full.stamps is not None:
         st = full.stamps.astype(np.int64)
         times = (st - st.min()).astype(float) / NS_PER_S
-    parts = np.array_split(_order(full.stamps, n), JACKKNIFE_BLOCKS)
+    parts = jackknife_parts(_order(full.stamps, n))
     out = refine_on_all(sol, full.raw, full.currents if with_channels else None, prior, temperatures=temps,
                         times=times, gauge=centre_gauge_constraints(sol.w, sol.model.size) if gauge else None,
                         parts=parts)
@@ -1047,8 +1052,12 @@ def _solve(run: _Run, matrices: Array, offsets: Array, intensity: float, interfe
            start: Array | None = None) -> JointSolution:
     """The joint fit from a start (matrices (S, 3, 3), offsets (S, 3) T, F T, interference (S, 3, m) T/A or
     None; ``start`` the parameters (S, P) instead), with the run's blocks and prior; gauge fixed when free."""
+    # the jackknife's parts when it will run on these sets (without a pass over every set): their shares of the
+    # normal equations come with the fit's last evaluation
+    on_these = run.full is None or run.blocks.attitude is not None
+    parts = jackknife_parts(run.order) if on_these and len(run.order) >= JACKKNIFE_MIN_SETS else None
     fitted = fit_array(run.r, matrices, offsets, intensity, run.u, interference, run.param_prior, run.weights,
-                       robust=run.opts.robust, start=start, **run.blocks.fit_options())
+                       robust=run.opts.robust, start=start, parts=parts, **run.blocks.fit_options())
     return fix_rotation_gauge(fitted) if run.free else fitted
 
 
