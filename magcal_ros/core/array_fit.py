@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
-from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_columns, per_sensor_dot, per_sensor_gram, row_norms,
-                                     times_lower2)
+from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_columns, per_sensor_dot, per_sensor_gram,
+                                     per_sensor_times, row_norms, times_lower2)
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.parallel import map_in_threads
@@ -418,7 +418,7 @@ class _Eval:
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
             gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
-            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.matmul(k[None], gj)
+            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * per_sensor_times(k, gj)
             wjg = jac_g * ws[:, :, None, None]
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
