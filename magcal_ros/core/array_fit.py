@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
 from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_columns, per_sensor_dot, per_sensor_gram,
-                                     per_sensor_times, row_norms, times_lower2)
+                                     row_norms, times_lower2)
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.metrics import chi2_isf
 from magcal_ros.core.parallel import map_in_threads
@@ -384,6 +384,9 @@ class _Eval:
         temperature = model.gain_slice is not None and inputs.temperatures is not None
         lag = model.lag_index is not None and d_tau is not None
         self._globals_rows: tuple[Array, Array] | None = None
+        self._rows: Array | None = None  # the sets' direction rows, once built (:meth:`_direction_rows`)
+        self.a_sg: Array | None = None
+        self.a_gg: Array | None = None
         if STRUCTURED and extras == 3 * int(temperature) + int(lag):
             x_cols = None
             if extras:
@@ -418,7 +421,7 @@ class _Eval:
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
             gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
-            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * per_sensor_times(k, gj)
+            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.matmul(k[None], gj)
             wjg = jac_g * ws[:, :, None, None]
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
@@ -566,7 +569,7 @@ class _Eval:
     def _direction_rows(self, c_inv: Array | None = None) -> Array:
         """(N, 2, S P + G) ``(B_k L_k)^T``, ``L_k L_k^T = C_k^-1``, each set's rows of the information its
         direction takes (``B_k C_k^-1 B_k^T`` is their product), built from the features (kept once built)."""
-        if getattr(self, "_rows", None) is not None:
+        if self._rows is not None:
             return self._rows
         lower = _chol2(_inv2(self.c) if c_inv is None else c_inv)
         if self._features is None:
@@ -599,7 +602,7 @@ class _Eval:
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""
-        return self._assembled(self.a_blocks, getattr(self, "a_sg", None), getattr(self, "a_gg", None))
+        return self._assembled(self.a_blocks, self.a_sg, self.a_gg)
 
     def _assembled(self, a_blocks: Array, a_sg: Array | None, a_gg: Array | None) -> Array:
         """The normal matrix from the sensors' blocks (S, P, P) and, with global parameters, their cross (S, P, G)
@@ -1272,7 +1275,7 @@ def _attitude_weights(att: _Att, d: Array, soft: bool = True, share: float = 0.0
         qq = np.sum(ea * ea, axis=1) / 2.0
         weight *= np.minimum(1.0, SOFT_BOUND * sig**2 / np.maximum(qq, 1e-300))
     correlation = att.inputs.correlation(ea)
-    return _Att(att.inputs, att.state, weight / (sig**2 * correlation), correlation)
+    return _Att(att.inputs, att.state, _attitude_precision_of(weight, sig, correlation), correlation)
 
 
 def _eliminate_globals(info: Array, scores: Array, sp: int, fixed: NDArray[np.bool_],

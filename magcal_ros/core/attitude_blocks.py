@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.imu import quat_exp, quat_to_matrix
 from magcal_ros.core.metrics import chi2_isf
+from magcal_ros.core.rotation import procrustes
 from magcal_ros.core.uncertainty import autocorrelation, bandwidth
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.errors import InputError
@@ -445,15 +446,6 @@ def _axis_rotations() -> list[Array]:
     return out
 
 
-def _rotations_onto(source: Array, target: Array) -> Array:
-    """(K, 3, 3) for each k the rotation ``R`` minimising ``sum_n |target[k, n] - R source[n]|^2`` (orthogonal
-    Procrustes, SVD; ``source`` (N, 3), ``target`` (K, N, 3))."""
-    u, _, vt = np.linalg.svd(np.einsum("kna,nb->kab", target, source))
-    sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
-    u[:, :, 2] *= sign[:, None]
-    return u @ vt
-
-
 def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], count: int, field: Array | None,
                rounds: int) -> tuple[Array, Array, Array]:
     """Alternating Procrustes from each mounting of ``starts`` (K, 3, 3) at once: fields then mounting, at most
@@ -473,7 +465,7 @@ def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], c
             m = np.einsum("gn,kna->kga", member, world(a))
             fields = m / np.maximum(np.linalg.norm(m, axis=2, keepdims=True), 1e-300)
         target = np.einsum("nba,knb->kna", rot, fields[:, groups])  # Q^T f: should be A d
-        a, before = _rotations_onto(d, target), a
+        a, before = procrustes(d, target), a
         if np.max(np.abs(a - before)) < START_TOLERANCE:
             break
     cost = np.sum((world(a) - fields[:, groups]) ** 2, axis=(1, 2))

@@ -33,14 +33,6 @@ def per_sensor_columns(mats: Array, columns: Array) -> Array:
     return out
 
 
-def per_sensor_times(mats: Array, x: Array) -> Array:
-    """(N, S, R, K) each sensor's matrix of ``mats`` (S, R, C) times ``x`` (N, S, C, K) (a view): one product per
-    sensor over every set and column at once."""
-    n, s, c, k = x.shape
-    flat = np.matmul(mats, x.transpose(1, 2, 0, 3).reshape(s, c, n * k))  # (S, R, N K)
-    return flat.reshape(s, mats.shape[1], n, k).transpose(2, 0, 1, 3)
-
-
 def gram2(a: Array, b: Array) -> Array:
     """(N, 2, 2) ``sum_r a_r^T b_r`` over the rows of ``a``, ``b`` (N, ..., 2): per set, by elementwise
     products (no stack of tiny matrix products)."""

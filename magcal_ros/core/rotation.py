@@ -68,17 +68,17 @@ def procrustes(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None =
     """Rotation ``R`` in SO(3) minimising ``sum w_k |target_k - R source_k|^2``.
 
     ``source`` and ``target`` are (N, 3) arrays of the same vectors in two frames; the
-    result maps the source frame into the target frame (orthogonal Procrustes, SVD).
+    result maps the source frame into the target frame (orthogonal Procrustes, SVD). A stack of
+    targets (K, N, 3) gives the K rotations (K, 3, 3) at once.
     """
     x = np.asarray(source, dtype=float)
     y = np.asarray(target, dtype=float)
-    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
+    if x.ndim != 2 or x.shape[1] != 3 or y.shape[-2:] != x.shape or y.ndim > 3:
         raise InputError(f"procrustes needs two (N, 3) arrays, got {x.shape} and {y.shape}")
     w = np.ones(len(x)) if weights is None else np.asarray(weights, dtype=float)
-    h = (y * w[:, None]).T @ x
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    u, _, vt = np.linalg.svd(np.swapaxes(y * w[:, None], -1, -2) @ x)
+    u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)[..., None]
+    return u @ vt
 
 
 def rotation_angle(r: ArrayLike) -> float:

@@ -871,6 +871,12 @@ class _Run:
         return self.call.prior is None
 
     @property
+    def refines_on_every_set(self) -> bool:
+        """A subset's joint solution is refined by a pass over every set (with the IMU's blocks the subset's
+        solution stands: the pass has no global blocks)."""
+        return self.full is not None and self.fits_jointly and self.blocks.attitude is None
+
+    @property
     def fits_jointly(self) -> bool:
         """The joint fit runs: the method's last step, or in place of a method's start that failed."""
         return self.joint or self.start_failed is not None
@@ -1054,7 +1060,7 @@ def _solve(run: _Run, matrices: Array, offsets: Array, intensity: float, interfe
     None; ``start`` the parameters (S, P) instead), with the run's blocks and prior; gauge fixed when free."""
     # the jackknife's parts when it will run on these sets (without a pass over every set): their shares of the
     # normal equations come with the fit's last evaluation
-    on_these = run.full is None or run.blocks.attitude is not None
+    on_these = not run.refines_on_every_set
     parts = jackknife_parts(run.order) if on_these and len(run.order) >= JACKKNIFE_MIN_SETS else None
     fitted = fit_array(run.r, matrices, offsets, intensity, run.u, interference, run.param_prior, run.weights,
                        robust=run.opts.robust, start=start, parts=parts, **run.blocks.fit_options())
@@ -1124,8 +1130,8 @@ def _refine_on_every_set(run: _Run) -> tuple[Covariance | None, Array | None]:
     """Stage 8: a subset's joint solution refined by one pass over every set. The subset's covariance and
     the leave-one-block-out estimates (K, P) of every set for the analysis (None, None: not refined)."""
     run.vertical = run.sol.directions[:, 2]
-    if run.full is None or not run.fits_jointly or run.blocks.attitude is not None:
-        return None, None  # with the IMU's blocks the subset's solution stands (the pass has no global blocks)
+    if not run.refines_on_every_set:
+        return None, None
     run.stage(f"refine on all {run.full.count} sets")
     refined = _refine(run.sol, run.full, run.param_prior, run.blocks, bool(run.channels), run.free)
     run.sol, run.excluded, run.vertical = refined.solution, refined.excluded, refined.vertical
