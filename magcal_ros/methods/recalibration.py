@@ -22,8 +22,10 @@ with the running calibration as the prior, exactly as ``~/calibrate`` does
    health named as drifted must improve beyond it, the others must not get worse beyond it, and
    at least one sensor must improve. A sensor that did not improve keeps its running calibration
    (the fit moved it by noise only: pushing that would make every recalibration a random walk of
-   the sensors that never moved), where the two calibrations have the same form (no temperature
-   terms, the same channels, time offsets and output frame); the calibration pushed is the new one
+   the sensors that never moved); one the health did not name must also gain what matters, the
+   running calibration leaving an error of :data:`UNNAMED_EXCESS` noise sd that the new removes.
+   This holds where the two calibrations have the same form (no temperature terms, the same
+   channels, time offsets and output frame); the calibration pushed is the new one
    for the sensors it improved and the running one for the rest. On it, each sensor's TMI residual
    and the sensors' disagreement beyond the gradient must be within :data:`HOLD_OUT_RATIO` of what
    it left on the sets fitted (plus the same noise allowance), and the disagreement within
@@ -67,6 +69,12 @@ DISAGREEMENT_NOISE: float = 3.0
 """What the sensors may disagree beyond the gradient on the held-out sets, in units of what their noise
 alone leaves there: a calibration that fits every sensor's TMI but turns one sensor against the others
 (a rotation the window does not determine) is refused even when it disagrees as much on its own sets."""
+UNNAMED_EXCESS: float = 0.25
+"""A sensor the calibration health did not name takes the new calibration only where the running one leaves an
+error of at least this many noise sd on the held-out sets that the new one removes (:attr:`HeldOut.excess`):
+beyond the standard errors, what matters. A refit of a sensor that never moved removes a few hundredths of its
+noise at most (the fit's own estimation error, about ``sqrt(parameters / sets)`` noise sd, works against it);
+its paired test alone took such a sensor for improved now and then (one window in a few hundred)."""
 OFFSET_SIGMA: float = 3.0
 """An offset counts as determined when its 1-sigma is below this many noise sd of its sensor."""
 OFFSET_NAMES: tuple[str, ...] = ("offset x", "offset y", "offset z")
@@ -127,13 +135,24 @@ class HeldOut:
         """(S,) T: what noise alone may move each sensor's held-out TMI RMS by (:data:`HOLD_OUT_SIGMA`)."""
         return HOLD_OUT_SIGMA * self.noise / np.sqrt(max(self.sets, 1))
 
-    def improved(self) -> NDArray[np.bool_]:
+    def improved(self, named: Sequence[str] | None = None) -> NDArray[np.bool_]:
         """(S,) the sensors the new calibration fits better than the running one, beyond noise: by more than
         :data:`HOLD_OUT_SIGMA` standard errors of each RMS alone (:attr:`slack`), or of their difference on the
         same sets (the noise both see cancels: a refinement's few tenths of nT show; a large change varies too
-        much from stretch to stretch for that, and shows alone)."""
+        much from stretch to stretch for that, and shows alone). With ``named`` (the sensors the calibration
+        health named), the others must also gain what matters (:data:`UNNAMED_EXCESS`)."""
         slack = self.slack if self.paired is None else np.minimum(self.slack, HOLD_OUT_SIGMA * self.paired)
-        return np.asarray(self.tmi_old - self.tmi_new > slack)
+        better = np.asarray(self.tmi_old - self.tmi_new > slack)
+        if named is None:
+            return better
+        unnamed = np.array([n not in named for n in self.names])
+        return better & ~(unnamed & (self.excess < UNNAMED_EXCESS * self.noise))
+
+    @property
+    def excess(self) -> Array:
+        """(S,) T: the RMS of the error the running calibration leaves on the held-out sets that the new one
+        removes, ``sqrt(tmi_old^2 - tmi_new^2)`` (0 where the new leaves more)."""
+        return np.sqrt(np.maximum(self.tmi_old**2 - self.tmi_new**2, 0.0))
 
     def _versus(self, i: int) -> str:
         return f"TMI residual {self.tmi_new[i] / NT:.3g} nT against {self.tmi_old[i] / NT:.3g} nT running"
@@ -144,7 +163,7 @@ class HeldOut:
         worse beyond it, and at least one improve (not for a ``refine``-ment: see :data:`REFINE_WINDOWS`)."""
         if self.sets < 3:
             return f"only {self.sets} held-out sets to check it on"
-        better = self.improved()
+        better = self.improved(drifted)
         for i, name in enumerate(self.names):
             if name in drifted and not better[i]:
                 return f"on {self.sets} held-out sets drifted {name} is not better ({self._versus(i)})"
@@ -365,7 +384,7 @@ def judge(result: CalibrationResult, running: ArrayCalibration | None, raw_fit: 
     why = check.change_problem(drifted, refine)
     if why:
         return Verdict(why, check, None)
-    better = check.improved() | refine
+    better = check.improved(drifted) | refine
     kept = tuple(n for n, b in zip(check.names, better) if not b)
     merged = keep_running(result.calibration, running, kept)
     if merged is not result.calibration:
