@@ -1177,7 +1177,7 @@ def fit_array(
         soft = np.minimum(1.0, SOFT_BOUND * sigma[None, :] ** 2 / np.maximum(qq, 1e-300))
         new_weights = soft * ~_outliers(model, theta, x, inputs, rates, weights > 0.5, h_of(att))
         att, moved = (None, 0.0) if att is None else _attitude_reweighed(att, d, attitude_share(fit_sigma, att))
-        if _weights_settled(new_weights - weights, qq, sigma) and moved < 1e-2 and \
+        if _weights_settled(new_weights - weights, qq, sigma, model.size) and moved < 1e-2 and \
                 (not even or float(np.max(np.abs(sigma / fit_sigma - 1.0))) < SETTLED_SIGMA):
             break
         weights, even = new_weights, False
@@ -1233,10 +1233,9 @@ def _part_sums(ev: "_Eval", scores: Array, parts: list[NDArray[np.int64]]) -> Pa
                     np.stack([scores[idx].sum(axis=0) for idx in parts]))
 
 
-SETTLED_PULL: float = 0.1
-"""Robust rounds stop once the weights' change moves the readings' total pull on the fit by less than this
-many noise sd (a tenth of what one clean reading pulls by): a further round could not move a parameter by more
-than a small fraction of its 1-sigma."""
+SETTLED_MOVE: float = 0.03
+"""Robust rounds stop once the weights' change could move no parameter by more than this fraction of its
+1-sigma (:func:`_weights_settled`)."""
 
 
 SETTLED_SIGMA: float = 0.05
@@ -1244,14 +1243,18 @@ SETTLED_SIGMA: float = 0.05
 more than this fraction (its weight twice that) from the common one."""
 
 
-def _weights_settled(change: Array, qq: Array, sigma: Array) -> bool:
+def _weights_settled(change: Array, qq: Array, sigma: Array, parameters: int) -> bool:
     """Whether a change (N, S) of the readings' weights leaves the fit where it is: no weight moved by 1e-3,
-    or their pulls (weight change times residual ``sqrt(qq)``, (N, S) squared norms, over the noise
-    ``sigma`` (S,)) add up to less than :data:`SETTLED_PULL`."""
+    or the parameters' move it implies is below :data:`SETTLED_MOVE` of their 1-sigma. A reading pulls a
+    parameter by its weight change times its residual in noise sd (``sqrt(qq)`` of (N, S) squared norms over
+    ``sigma`` (S,)) times its leverage's square root, about ``sqrt(parameters / N)`` for ``parameters`` per
+    sensor: the pulls' sum times that bounds the move (a spike excluded pulls by tens of noise sd and is
+    followed by another round; 4,000 sets' last few tenths of a noise sd in all move nothing)."""
     change = np.abs(change)
     if np.max(change, initial=0.0) < 1e-3:
         return True
-    return float(np.sum(change * np.sqrt(qq) / sigma[None, :])) < SETTLED_PULL
+    pull = float(np.sum(change * np.sqrt(qq) / sigma[None, :]))
+    return pull * np.sqrt(parameters / max(len(change), 1)) < SETTLED_MOVE
 
 
 def _attitude_reweighed(att: _Att, d: Array, share: float) -> tuple[_Att, float]:
