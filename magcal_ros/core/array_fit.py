@@ -1160,6 +1160,7 @@ def fit_array(
         # what it did not model (temperature, currents), unevenly; with even weights the first estimate of each
         # sensor's noise is unbiased whatever they are, and the next round weighs by it (unless alike)
         sigma = np.full(s, float(np.median(sigma)))
+        att = _first_round_attitudes(att, sigma)
     even = robust
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
         theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
@@ -1188,6 +1189,27 @@ def fit_array(
     if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
     return _final_solution(model, theta, d, x, inputs, rates, weights, fit_sigma, att, f, fixed, parts)
+
+
+FIRST_SHARE: float = 0.01
+"""The largest share of each set's direction the IMU's attitudes may have in the first robust round."""
+
+
+def _first_round_attitudes(att: "_Att | None", sigma: Array) -> "_Att | None":
+    """``att`` for the first robust round, its attitudes' share of each set's direction (against the sensors
+    weighed at ``sigma`` (S,), the start's residuals' common noise) at most :data:`FIRST_SHARE`. The start's
+    residuals carry what it did not model (a temperature drift, currents: tens of nT where the noise is 1 nT),
+    so against them the IMU's attitudes, weighed by their own residuals, would take a share of the directions
+    (several per cent) they lose once the sensors' noise is known, pulling the first round's directions toward
+    the IMU by that share of its error: residuals half again the noise, and a round more."""
+    if att is None:
+        return None
+    share = attitude_share(sigma, att)
+    if share <= FIRST_SHARE:
+        return att
+    field = float(np.sum(1.0 / np.maximum(sigma, 1e-300) ** 2))
+    scale = FIRST_SHARE / (1.0 - FIRST_SHARE) * field / _attitude_precision(att)
+    return replace(att, precision=att.precision * scale)
 
 
 def _final_solution(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,
