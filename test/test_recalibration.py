@@ -97,7 +97,23 @@ def test_a_window_without_attitude_change_never_pushes(drifted: tuple) -> None:
     assert why is not None and figures is None and judged.result is None
     assert why.startswith("the sets do not determine what changed (mag1 offset x (+- ")
     assert "turn through a full circle of heading" in why
-    assert recalibration.undetermined_offsets(result)
+    missing = recalibration.undetermined_offsets(result)
+    assert missing and len(set(missing)) == len(missing)  # each sensor's own offsets, once
+    for entry in missing:
+        sensor, rest = entry.split(" ", 1)
+        q = next(q for q in result.identifiability.quantities if q.sensor == sensor and rest.startswith(q.name))
+        assert q.status == "kept" or q.sigma > 3.0 * NOISE / NT, entry
+    n = len(missing)
+    assert why.count(" offset ") == min(n, 4) and (n <= 4 or f" and {n - 4} more)" in why)
+
+
+def test_the_held_out_sets_are_the_fourth_and_eighth_of_ten_stretches_in_time() -> None:
+    stamps = np.arange(1000, dtype=np.int64) * 10_000_000 + 5 * NS_PER_S
+    fit, held = recalibration.split(stamps[::-1])  # in any order
+    assert list(np.flatnonzero(held[::-1])) == list(range(300, 400)) + list(range(700, 800))
+    assert np.array_equal(fit, ~held)
+    assert [len(m) for m in recalibration.split([])] == [0, 0]
+    assert [list(m) for m in recalibration.split([7])] == [[True], [False]]
 
 
 def test_a_calibration_that_does_not_hold_on_held_out_sets_is_refused(drifted: tuple) -> None:
@@ -759,6 +775,9 @@ def test_a_recalibration_during_the_mission_keeps_the_running_time_offsets(drift
     result, fit, held = _solve(stamps, raw, running)
     lagged = replace(result, calibration=replace(result.calibration, time_offsets=np.array([0.0, 0.0, 2e-4, 0.0])))
     judged = recalibration.judge(lagged, running, raw[fit], raw[held], drifted=sim.geometry.names)
+    placed = replace(running, time_offsets=np.array([0.0, 1e-4, 0.0, 3e-4]))  # a running calibration's own
+    np.testing.assert_array_equal(recalibration.with_running_timing(lagged, placed).calibration.time_offsets,
+                                  placed.time_offsets)
     assert judged.problem is None, judged.problem
     np.testing.assert_array_equal(judged.result.calibration.time_offsets, running.time_offsets)
     assert recalibration.timing_note(lagged.calibration, judged.result.calibration) == \
