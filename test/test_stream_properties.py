@@ -326,6 +326,20 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # the other's placement after its own step rather than before it, put that one two periods off
 @example(Case([SensorPlan(rate=200.0, steps=[(2.0, 0.0091772)]), SensorPlan(rate=200.0, steps=[(2.0, -0.0091772)])],
               12.0, 0))
+# a step of 2.01 periods back (with a second's restart) between synchronous sensors: the new stamps fell in line with
+# another sensor's, taken for one clock again, though the arrivals (0.1 ms jitter, the other sensor's on time) put
+# the segment two periods later (10 ms off thereafter)
+@example(Case([SensorPlan(rate=200.0, jitter=0.0001, steps=[(3.5053362, 1.0), (10.616656, -1.0100502)],
+                          silences=[(7.7416392, 9.1940538)]),
+               SensorPlan(rate=200.0, jitter=0.0001, stalls=[(6.0, 2.676551, True), (13.2733676, 1.3495036, True)]),
+               SensorPlan(rate=200.0, jitter=0.0001, glitches=[(12.088446, -1.0)], stalls=[(6.2727147, 2.0192872, False)],
+                          bad=[5.2727147]),
+               SensorPlan(rate=200.0, jitter=0.0001)], 29.7515, 0))
+# the same at 20 Hz with a millisecond of jitter: a step of 1.05 s back in line with another sensor a period off
+@example(Case([SensorPlan(rate=20.0, phase=0.0008302, ppm=32.564695, jitter=0.001, steps=[(3.5381136, -1.0)]),
+               SensorPlan(rate=20.0, jitter=0.001, steps=[(2.8666015, -1.0486462)]),
+               SensorPlan(rate=20.0, jitter=0.001, steps=[(4.2049266, -11.8577965), (7.492127, -6.2329073)]),
+               SensorPlan(rate=20.0, ppm=6.1e-05, jitter=0.001)], 12.8358, 0))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)

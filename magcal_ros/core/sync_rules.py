@@ -612,6 +612,18 @@ def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | No
     return None
 
 
+def _arrivals_disown(other: SensorStream, latest: tuple[int, int | None], off: int,
+                     grid: tuple[float, float] | None) -> bool:
+    """Whether a new segment's arrivals place it ``off`` (ns) later than lining its stamps up with ``other``'s
+    would, by more than half a period beyond how late ``other``'s own ``latest`` message (stamp, receipt ns) came
+    then (a receiver busy for both delays both alike): its stamps fell in line with that sensor's by whole
+    periods, not back onto one clock."""
+    if grid is None or latest[1] is None or not other.arrivals or not other.timed():
+        return False
+    late = max(0, other.lead() - (latest[0] + other.base - latest[1]))
+    return 2 * (abs(off) - late) > grid[1]
+
+
 def _stale(receipt: int | None, since: int | None) -> bool:
     """Whether another sensor's latest message (received at ``receipt`` ns) came before this one's previous
     (``since`` ns): its latest stamp is where its topic was held back, not where its stamps are now."""
@@ -1213,9 +1225,10 @@ class AcceptanceRule:
         :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
         a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
         moves both alike (this sensor's base before the step, ``old`` ns, by that sensor's shift). First of all, where the new stamps are another sensor's latest to half a period
-        or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say), that
-        sensor's placement: its latest when ``stamp`` was received (``receipt`` ns; a segment placed by its
-        arrivals was held while the others went on)."""
+        or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say, unless
+        they put it more than half a period further than that sensor's own arrivals were late then:
+        :func:`_arrivals_disown`), that sensor's placement: its latest when ``stamp`` was received (``receipt``
+        ns; a segment placed by its arrivals was held while the others went on)."""
         s = self.streams[index]
         stamp = stamps[0]
         by_arrival = margin < self.restart_ns // 2
@@ -1224,7 +1237,8 @@ class AcceptanceRule:
                 continue
             latest = _latest_by(other, receipt)
             if latest is not None and self._in_line_with(index, j, stamps, latest[0], grid) and \
-                    not _stale(latest[1], s.last_receipt):
+                    not _stale(latest[1], s.last_receipt) and \
+                    not (by_arrival and _arrivals_disown(other, latest, estimate - stamp - other.base, grid)):
                 return other.base, self._leader(index, j)
         for j, other in enumerate(self.streams):
             if j == index or other.last == NEVER:
