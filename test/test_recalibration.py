@@ -542,6 +542,33 @@ def test_one_sensors_jump_is_fixed_on_the_first_window_and_the_others_keep_their
     assert tensor_rms(pushed.field_and_gradient(fresh.vectors)[2]) < 1.2 * tensor_floor(NOISE, 0.4)
 
 
+@pytest.mark.parametrize("ppm, taken", [(3.0, False), (12.0, True)])
+def test_a_sensor_the_health_did_not_name_keeps_its_calibration_for_a_gain_below_a_quarter_of_its_noise(
+        ppm: float, taken: bool) -> None:
+    """mag1 jumped and is named; mag3's running matrix is ``ppm`` off in scale (3 ppm: 0.15 nT of TMI, 0.16 noise
+    sd removed by the new calibration; 12 ppm: 0.6 nT). On 4,000 held-out sets both are beyond three paired
+    standard errors, but only the second matters: mag3 keeps its running calibration for 3 ppm, takes the new
+    one for 12."""
+    _, moved, running, rng = _one_moved(63, 0)
+    stamps, raw = _window(moved, [Leg(200.0, 6.0)], rng, sets=20000)
+    result, fit, held = _solve(stamps, raw, running)
+    matrices = running.matrices.copy()
+    matrices[2] = matrices[2] * (1 + ppm * 1e-6)
+    stale = replace(running, matrices=matrices)
+    new = result.calibration
+    new_m, new_o = new.matrices.copy(), new.offsets.copy()
+    new_m[2], new_o[2] = running.matrices[2], running.offsets[2]  # the new calibration right for mag3
+    result = replace(result, calibration=replace(new, matrices=new_m, offsets=new_o))
+    check = recalibration.held_out(result, stale, raw[fit], raw[held])
+    assert check.sets == 4000 and check.tmi_old[2] - check.tmi_new[2] > 3 * check.paired[2]
+    assert (check.excess[2] > 0.25 * check.noise[2]) == taken
+    judged = recalibration.judge(result, stale, raw[fit], raw[held], drifted=("mag1",))
+    assert judged.problem is None and judged.result is not None, judged.problem
+    assert ("mag3" in judged.kept) != taken, judged.kept
+    expected = running if taken else stale
+    np.testing.assert_array_equal(judged.result.calibration.matrices[2], expected.matrices[2])
+
+
 def test_the_judgement_per_sensor_refuses_what_misses_the_named_sensor_or_spoils_another() -> None:
     """mag1 moved. Named mag2 instead: mag2 does not improve, refused. A result that also moves mag3 by 5 nT
     (an error 30 times what noise leaves on 400 held-out sets) is refused naming mag3; by 0.02 nT (within the
