@@ -289,10 +289,10 @@ def test_the_paired_standard_error_is_the_spread_of_the_rms_difference_per_senso
     scale = np.array([1.0, 4.0]) * NOISE
     systematic = np.sin(2 * np.pi * t / 0.5)[:, None] * np.array([0.5, 3.0]) * NOISE * np.sqrt(2.0)
     gains, errors = [], []
+    rms = lambda r: np.sqrt(np.mean(r**2, axis=0))  # noqa: E731
     for _ in range(reps):
         r_new = rng.normal(0.0, 1.0, (n, 2)) * scale
         r_old = r_new + systematic
-        rms = lambda r: np.sqrt(np.mean(r**2, axis=0))  # noqa: E731
         gains.append(rms(r_old) - rms(r_new))
         errors.append(recalibration.paired_error(r_old, r_new))
     spread, predicted = np.std(gains, axis=0, ddof=1), np.mean(errors, axis=0)

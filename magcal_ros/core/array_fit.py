@@ -1204,11 +1204,10 @@ def _first_round_attitudes(att: "_Att | None", sigma: Array) -> "_Att | None":
     the IMU by that share of its error: residuals half again the noise, and a round more."""
     if att is None:
         return None
-    share = attitude_share(sigma, att)
+    share = attitude_share(sigma, att)  # p / (field + p): scaling p by c gives c p / (field + c p)
     if share <= FIRST_SHARE:
         return att
-    field = float(np.sum(1.0 / np.maximum(sigma, 1e-300) ** 2))
-    scale = FIRST_SHARE / (1.0 - FIRST_SHARE) * field / _attitude_precision(att)
+    scale = FIRST_SHARE * (1.0 - share) / ((1.0 - FIRST_SHARE) * share)
     return replace(att, precision=att.precision * scale)
 
 

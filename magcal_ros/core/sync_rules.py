@@ -614,10 +614,10 @@ def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | No
 
 def _arrivals_disown(other: SensorStream, latest: tuple[int, int | None], off: int,
                      grid: tuple[float, float] | None) -> bool:
-    """Whether a new segment's arrivals place it ``off`` (ns) later than lining its stamps up with ``other``'s
-    would, by more than half a period beyond how late ``other``'s own ``latest`` message (stamp, receipt ns) came
-    then (a receiver busy for both delays both alike): its stamps fell in line with that sensor's by whole
-    periods, not back onto one clock."""
+    """Whether a new segment's arrivals place it ``off`` (ns, either way) from where lining its stamps up with
+    ``other``'s would, by more than half a period beyond how late ``other``'s own ``latest`` message (stamp, receipt
+    ns) came then (a receiver busy for both delays both alike): its stamps fell in line with that sensor's by
+    whole periods, not back onto one clock."""
     if grid is None or latest[1] is None or not other.arrivals or not other.timed():
         return False
     late = max(0, other.lead() - (latest[0] + other.base - latest[1]))
