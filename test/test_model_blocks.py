@@ -227,3 +227,9 @@ def test_direction_rates_match_the_motion_and_do_not_depend_on_the_block_size(mo
     assert np.allclose(np.sum(whole * d, axis=1), 0.0, atol=1e-12)
     monkeypatch.setattr(array_fit, "RATE_BLOCK", 7)
     np.testing.assert_array_equal(array_fit.direction_rates(d, t), whole)
+    shuffled = np.random.default_rng(3).permutation(len(t))  # sets in any order: each its own rate
+    np.testing.assert_array_equal(array_fit.direction_rates(d[shuffled], t[shuffled]), whole[shuffled])
+    lone = np.concatenate([t[:300], [8.0], t[300:]])  # a set with no neighbour in reach: no rate
+    d_lone = np.concatenate([d[:300], [[0.0, 0.0, 1.0]], d[300:]])
+    rates = array_fit.direction_rates(d_lone, lone)
+    assert np.all(rates[300] == 0.0) and np.allclose(np.linalg.norm(rates[5:290], axis=1), 0.5, rtol=1e-3)
