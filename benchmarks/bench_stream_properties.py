@@ -7,7 +7,9 @@ Each example is a recording of one to four sensors on their own clocks with faul
 (steps of any size, glitches, repeats, pauses, stalls with and without restamped backlogs, bad readings),
 synchronised offline and live; every published set's members must stand for one true instant, every
 message must be counted, the clean reference samples must make sets, and live must equal offline. The
-side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off.
+side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off; the
+last part, a fifth as many recordings whose one sensor steps forward while the receiver is blocked
+(``hidden_steps``).
 Unlike the suite (a fixed number of derandomised examples), this draws fresh examples from ``--seed``.
 """
 
@@ -69,11 +71,26 @@ def main() -> int:
         except AssertionError as exc:
             failures.append("side: " + str(exc).splitlines()[0][:200])
 
+    @seed(args.seed)
+    @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
+              suppress_health_check=list(HealthCheck))
+    @given(props.hidden_steps())
+    def hidden(case: props.Case) -> None:
+        tally["hidden"] += 1
+        try:
+            props.check_case(case)
+        except AssertionError as exc:
+            tally["hidden failures"] += 1
+            failures.append("hidden step: " + str(exc).splitlines()[0][:200])
+            cases.append(case)
+
     t0 = time.perf_counter()
     sets()
     t1 = time.perf_counter()
     side()
     t2 = time.perf_counter()
+    hidden()
+    t3 = time.perf_counter()
     print(f"recordings: {tally['examples']} examples, {tally['sensors']} sensors, {tally['messages']:,} messages, "
           f"{tally['sets checked']:,} sets checked (offline and live), {t1 - t0:.1f} s "
           f"({(t1 - t0) / max(tally['examples'], 1) * 1e3:.0f} ms each)")
@@ -81,6 +98,8 @@ def main() -> int:
     print("  faults drawn: " + ", ".join(f"{k[7:]} {v}" for k, v in sorted(tally.items()) if k.startswith("fault")))
     print(f"side streams: {tally['side streams']} examples, {tally['side samples']:,} samples, 200 sets each, "
           f"{t2 - t1:.1f} s")
+    print(f"steps a blocked receiver's queue hides: {tally['hidden']} examples, {tally['hidden failures']} failing, "
+          f"{t3 - t2:.1f} s")
     print(f"failures: {len(failures)}")
     for line in failures[:10]:
         print("  " + line)

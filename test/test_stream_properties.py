@@ -335,12 +335,21 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=200.0, jitter=0.0001, glitches=[(12.088446, -1.0)], stalls=[(6.2727147, 2.0192872, False)],
                           bad=[5.2727147]),
                SensorPlan(rate=200.0, jitter=0.0001)], 29.7515, 0))
+# a second's step forward while the receiver was blocked: the queue's delay (1.6 s) hid it from the receipts and it
+# was taken for a pause (a second off thereafter); now held until the other sensor's arrivals are on time again
+@example(Case([SensorPlan(rate=50.0), SensorPlan(rate=50.0, steps=[(6.7, 1.0)])], 12.27, 3, (6.3757, 1.8393, 0.0022222)))
 # the same at 20 Hz with a millisecond of jitter: a step of 1.05 s back in line with another sensor a period off
 @example(Case([SensorPlan(rate=20.0, phase=0.0008302, ppm=32.564695, jitter=0.001, steps=[(3.5381136, -1.0)]),
                SensorPlan(rate=20.0, jitter=0.001, steps=[(2.8666015, -1.0486462)]),
                SensorPlan(rate=20.0, jitter=0.001, steps=[(4.2049266, -11.8577965), (7.492127, -6.2329073)]),
                SensorPlan(rate=20.0, ppm=6.1e-05, jitter=0.001)], 12.8358, 0))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
+    check_case(case)
+
+
+def check_case(case: Case) -> None:
+    """Offline and live on one generated recording: every published set stands for one true instant (or is
+    interpolated to it), the clean samples are covered, the two paths give the same sets and count every message."""
     streams = streams_of(case)
     offered = sum(len(s.stamps) for s in streams)
     batch, stats, mode = offline(streams)
@@ -356,6 +365,26 @@ def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     assert np.array_equal(batch.vectors[:n], np.array([s.values for s in sets]).reshape(n, -1, 3))
     assert sync.mode == mode
     check_lost(case, streams, sync)
+
+
+@st.composite
+def hidden_steps(draw: st.DrawFn) -> Case:
+    """A receiver blocked for a while, then draining its queue, with one sensor's stamps stepping forward while it
+    was blocked by anything from a few periods to the block's length: the queue's delay hides the step from the
+    receipts until they are on time again (a pause of the same size looks the same until then). Drawn by the
+    benchmark (benchmarks/bench_stream_properties.py), not the suite: a share of them still fails (docs/synchronisation.md)."""
+    rate = draw(st.sampled_from([20.0, 50.0, 100.0, 200.0]))
+    sensors = draw(st.integers(2, 4))
+    jitter = draw(st.sampled_from([0.0, 0.0004]))
+    start, length = draw(st.floats(3.0, 5.0)), draw(st.floats(0.5, 2.0))
+    at = start + draw(st.floats(0.05, 0.95)) * length
+    size = draw(st.floats(2.6 / rate, 0.95 * length))
+    which = draw(st.integers(0, sensors - 1))
+    plans = [SensorPlan(rate=rate, jitter=jitter, loss=draw(st.sampled_from([0.0, 0.02])),
+                        steps=[(at, size)] if k == which else []) for k in range(sensors)]
+    service = draw(st.floats(0.3, 0.95)) / (sensors * rate)
+    return Case(plans, start + length + 6.0, draw(st.integers(0, 2**31 - 1)), (start, length, service))
+
 
 
 def test_the_oracle_sees_a_wrong_pairing() -> None:

@@ -276,7 +276,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "floor")
+                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -329,6 +329,9 @@ class SensorStream:
         least delayed arrivals at common stamp ``c`` is at least ``floor[0] - c // LEAD_DRIFT`` and, the least
         delayed it saw being on time, at most ``floor[1] + c // LEAD_DRIFT`` (a receipt clock may drift from the
         stamps': :meth:`resumed_on_time`)."""
+        self.hidden = False
+        """Whether the new segment being placed follows a jump forward a busy receiver's queue hid (a pause or a
+        step): placed by its arrivals once they catch up, else taken as a pause."""
         self.seen_step = False
         """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
         a few bad stamps that the old sequence's placement could take back."""
@@ -854,6 +857,9 @@ class AcceptanceRule:
         unseen = s.unseen(held[0], held[3], period) if came == held[3] else self._ahead_of_queue(index, held[0],
                                                                                                  came, period)
         s.seen_step = unseen is True
+        if unseen is False and s.timed() and self._hidden_by_queue(index, held, came, period):
+            s.hidden = True  # a queue's delay hides how far the stamps went: placed by the arrivals once they catch up
+            return True
         if unseen is not None:
             return unseen
         if s.resumed_on_time(held[0], held[3], period):
@@ -864,6 +870,35 @@ class AcceptanceRule:
                 jump > PACED_PAUSE * self.restart_ns and 2 * (held[3] - s.last_receipt) >= ratio * jump:
             return False  # arrivals that keep no time (a replay at another speed, a busy receiver) saw the gap pass
         return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
+
+    def _hidden_by_queue(self, index: int, held: tuple[int, Any, str | None, int | None, int], came: int | None,
+                         period: int) -> bool:
+        """Whether a stamp ahead of its sequence (``held``, taken from a busy receiver's queue: delivered bunched, or
+        later than it came, ``came`` ns) arrived later than its stamp says by more than half a ``period`` (ns): the
+        queue's delay hides a step forward of the stamps up to that size as well as it hides a pause."""
+        s = self.streams[index]
+        receipt = held[3]
+        if receipt is None or came is None or (came == receipt and not s.bunched(receipt, period)):
+            return False
+        return 2 * (receipt - (held[0] + s.base - s.lead())) > period and self._receiver_late(index, receipt, period)
+
+    def _receiver_late(self, index: int, receipt: int, period: int) -> bool:
+        """Whether the receiver was late with every sensor at ``receipt`` (ns): each other sensor's latest message
+        received by then, within a quarter of ``restart_ns``, came later than its stamps' lead says by more than
+        half a ``period`` (ns) (one sensor's driver late alone delays only its own messages)."""
+        late = False
+        for j, other in enumerate(self.streams):
+            if j == index or not other.arrivals:
+                continue
+            for common, r in reversed(other.arrivals):
+                if r <= receipt:
+                    if receipt - r > self.restart_ns // 4:
+                        break
+                    if 2 * (r - (common - other.lead())) <= period:
+                        return False
+                    late = True
+                    break
+        return late
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
         """The held suspect is behind its sequence: a step back when ``message`` goes on from it below the
@@ -944,6 +979,9 @@ class AcceptanceRule:
         timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
         if timed and caught_up(held, period):
             self._place_held(index, out)
+        elif s.hidden:  # a jump a queue hid waits for arrivals on time again as long as a message may wait
+            if held[-1][3] - held[0][3] > self.lag_ns:  # type: ignore[operator]
+                self._place_held(index, out, by_arrival=False)
         elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
         return True
@@ -959,13 +997,35 @@ class AcceptanceRule:
         lead = s.lead()
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         period = s.suspect_period() or self.restart_ns
-        receipts = [s.last_receipt] + [m[3] for m in held]
-        estimate = min(first[0] + self._came(index, int(m[3]), receipts[k], period, True) + int(lead) - m[0]  # type: ignore[arg-type]
-                       for k, m in enumerate(held))
+        hidden, s.hidden = s.hidden, False
+        if hidden:  # by the latest arrivals alone, on time again (a queue's order placed the drained ones)
+            estimate = min(first[0] + int(m[3]) + int(lead) - m[0] for m in held[-PLACE_MESSAGES:])  # type: ignore[arg-type]
+            if self._hidden_pause(index, held, estimate if by_arrival else None, period, out):
+                return
+        else:
+            receipts = [s.last_receipt] + [m[3] for m in held]
+            estimate = min(first[0] + self._came(index, int(m[3]), receipts[k], period, True) + int(lead) - m[0]  # type: ignore[arg-type]
+                           for k, m in enumerate(held))
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
+
+    def _hidden_pause(self, index: int, held: list[Message], estimate: int | None, period: int, out: Accepted) -> bool:
+        """A jump forward a queue hid (:meth:`_hidden_by_queue`), its segment ``held``: taken as a pause (the stamps go
+        on as before, every message let through; True) unless the arrivals on time again put it more than half a
+        ``period`` (ns) earlier (``estimate`` ns; None: they never came on time), or another sensor made the same jump
+        of one clock (placed as it was: False, :meth:`_place`)."""
+        s = self.streams[index]
+        first = held[0]
+        partner = self._partner(index, first[0], first[3])
+        if partner is not None and partner[1] is not None or \
+                estimate is not None and 2 * (first[0] + s.base - estimate) > period:
+            return False
+        s.jumps.append((s.last, first[0], first[3], s.base))
+        for m in held:
+            self._take(index, m, False, out)
+        return True
 
     def _ahead_of_queue(self, index: int, stamp: int, arrival: int, period: int) -> bool:
         """Whether ``stamp`` (ns), taken from a busy receiver's queue, runs more than half a ``period`` (ns) further
