@@ -615,6 +615,12 @@ def _latest_by(stream: SensorStream, receipt: int | None) -> tuple[int, int | No
     return None
 
 
+def _lateness(stream: SensorStream, latest: tuple[int, int]) -> int:
+    """How much later (ns) ``stream``'s message ``latest`` (stamp, receipt ns) came than its stamps' lead over the least
+    delayed arrivals says (:meth:`SensorStream.lead`)."""
+    return stream.lead() - (latest[0] + stream.base - latest[1])
+
+
 def _arrivals_disown(other: SensorStream, latest: tuple[int, int | None], off: int,
                      grid: tuple[float, float] | None) -> bool:
     """Whether a new segment's arrivals place it ``off`` (ns, either way) from where lining its stamps up with
@@ -623,7 +629,7 @@ def _arrivals_disown(other: SensorStream, latest: tuple[int, int | None], off: i
     whole periods, not back onto one clock."""
     if grid is None or latest[1] is None or not other.arrivals or not other.timed():
         return False
-    late = max(0, other.lead() - (latest[0] + other.base - latest[1]))
+    late = max(0, _lateness(other, (latest[0], latest[1])))
     return 2 * (abs(off) - late) > grid[1]
 
 
@@ -878,9 +884,9 @@ class AcceptanceRule:
         queue's delay hides a step forward of the stamps up to that size as well as it hides a pause."""
         s = self.streams[index]
         receipt = held[3]
-        if receipt is None or came is None or (came == receipt and not s.bunched(receipt, period)):
+        if receipt is None or came == receipt and not s.bunched(receipt, period):
             return False
-        return 2 * (receipt - (held[0] + s.base - s.lead())) > period and self._receiver_late(index, receipt, period)
+        return 2 * _lateness(s, (held[0], receipt)) > period and self._receiver_late(index, receipt, period)
 
     def _receiver_late(self, index: int, receipt: int, period: int) -> bool:
         """Whether the receiver was late with every sensor at ``receipt`` (ns): each other sensor's latest message
@@ -890,14 +896,12 @@ class AcceptanceRule:
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
                 continue
-            for common, r in reversed(other.arrivals):
-                if r <= receipt:
-                    if receipt - r > self.restart_ns // 4:
-                        break
-                    if 2 * (r - (common - other.lead())) <= period:
-                        return False
-                    late = True
-                    break
+            latest = _latest_by(other, receipt)
+            if latest is None or latest[1] is None or receipt - latest[1] > self.restart_ns // 4:
+                continue
+            if 2 * _lateness(other, (latest[0], latest[1])) <= period:
+                return False
+            late = True
         return late
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
