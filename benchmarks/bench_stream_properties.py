@@ -28,6 +28,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 import test_stream_properties as props  # noqa: E402
 
 
+def first_line(exc: BaseException) -> str:
+    """A failure's first line (an assertion without a message: its type)."""
+    lines = str(exc).splitlines()
+    return (lines[0] if lines else f"{type(exc).__name__} without a message")[:200]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=2000, help="recordings to draw (default 2000)")
@@ -56,7 +62,7 @@ def main() -> int:
         try:
             props.test_every_published_set_stands_for_one_true_instant.hypothesis.inner_test(case)
         except AssertionError as exc:
-            failures.append(str(exc).splitlines()[0][:200])
+            failures.append(first_line(exc))
             cases.append(case)
 
     @seed(args.seed)
@@ -69,7 +75,7 @@ def main() -> int:
         try:
             props.test_a_side_stream_gives_each_set_its_latest_true_value_live_and_offline.hypothesis.inner_test(stream)
         except AssertionError as exc:
-            failures.append("side: " + str(exc).splitlines()[0][:200])
+            failures.append("side: " + first_line(exc))
 
     @seed(args.seed)
     @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
@@ -81,7 +87,7 @@ def main() -> int:
             props.check_case(case)
         except AssertionError as exc:
             tally["hidden failures"] += 1
-            failures.append("hidden step: " + str(exc).splitlines()[0][:200])
+            failures.append("hidden step: " + first_line(exc))
             cases.append(case)
 
     t0 = time.perf_counter()

@@ -97,6 +97,10 @@ jitter averages out)."""
 MAX_PLACE_MESSAGES: int = 256
 """... or, where the arrivals never catch up with the stamps (a recording replayed faster than it was made,
 arrivals too jittery), this many: then the stamps alone place the segment."""
+HOLD_NS: int = int(DEFAULT_LAG * NS_PER_S)
+"""How long (ns of its receipts) a new segment after a jump a queue hid waits for its arrivals to come on time
+again: as long as a live node lets a message wait by default; the same offline (which waits for everything), so
+that both paths place it alike whatever the node's ``lag``."""
 TAIL: int = 16
 JUMPS_KEPT: int = 32
 """Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
@@ -984,7 +988,7 @@ class AcceptanceRule:
         if timed and caught_up(held, period):
             self._place_held(index, out)
         elif s.hidden:  # a jump a queue hid waits for arrivals on time again as long as a message may wait
-            if held[-1][3] - held[0][3] > self.lag_ns:  # type: ignore[operator]
+            if held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]
                 self._place_held(index, out, by_arrival=False)
         elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
@@ -1121,6 +1125,9 @@ class AcceptanceRule:
         grid = None
         if not period:
             base = (s.lastc if estimate is None else estimate) - stamp
+            earlier = s.before[2] if s.before is not None else 0  # the period before a step just placed
+            if estimate is not None and earlier:  # placed by arrivals to half of it
+                margin = min(margin, earlier // 2)
         else:
             if estimate is not None:
                 margin = min(margin, int(period) // 2)
