@@ -348,6 +348,12 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # its arrivals to half the period before the step
 @example(Case([SensorPlan(rate=200.0, loss=0.02, steps=[(16.0414282, 0.0293147)]), SensorPlan(rate=200.0, loss=0.02)],
               23.3889, 3))
+# one clock's two sensors stepping 142 ms forward while the receiver was blocked: one was held as a jump the queue
+# hid, the other, taking the same jump as its partner's, was not, and after 32 untimed messages its stamps put it
+# back on its old sequence (a pause, which the first then followed: no sets for the rest of the recording in exact
+# mode); now it waits as long as its partner
+@example(Case([SensorPlan(rate=50.0, steps=[(8.9405027, 0.14227)]), SensorPlan(rate=50.0),
+               SensorPlan(rate=50.0, steps=[(8.9405027, 0.14227)])], 16.3308, 2, (8.357195, 1.5531768, 0.0033333)))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     check_case(case)
 

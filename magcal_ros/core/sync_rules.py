@@ -1271,11 +1271,13 @@ class AcceptanceRule:
         """Take the first of ``messages`` (a held stamp and the next), whose stamp jumped as ``partner``'s (sensor,
         base after ns, None: still placing) did: a pause where it kept this sensor's base, the first of a new
         segment placed alike where it moved it; or both, a new segment to place like that sensor's while it
-        places its own. Whether the next message was taken too."""
+        places its own (held as long as that one is). Whether the next message was taken too."""
         s = self.streams[index]
         first = messages[0]
         if partner[1] is None:
             self._step(index, messages, out)
+            if s.placing is not None:  # it waits as long as the other does: a jump a queue hid (one clock's)
+                s.hidden = self.streams[partner[0]].hidden
             return True
         if partner[1] == s.base:
             s.jumps.append((s.last, first[0], first[3], s.base))
