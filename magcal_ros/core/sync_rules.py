@@ -1121,16 +1121,14 @@ class AcceptanceRule:
         if period and short and 8 * abs(period - short) > short:
             period = short  # the rate changed within the segment (after a pause): the recent one
         margin = self.restart_ns // 2
+        known = period or (s.before[2] if s.before is not None else 0)  # (no period yet: the one before a step)
+        if estimate is not None and known:  # placed by arrivals: to half a period
+            margin = min(margin, int(known) // 2)
         stamp = stamps[0]
         grid = None
         if not period:
             base = (s.lastc if estimate is None else estimate) - stamp
-            earlier = s.before[2] if s.before is not None else 0  # the period before a step just placed
-            if estimate is not None and earlier:  # placed by arrivals to half of it
-                margin = min(margin, earlier // 2)
         else:
-            if estimate is not None:
-                margin = min(margin, int(period) // 2)
             anchor = s.anchor(period)
             grid = (anchor, period)
             steps = 1 if estimate is None else max(1, round((estimate - anchor) / period))
