@@ -456,6 +456,25 @@ def test_ctrl_c_stops_the_batch_closes_its_workers_and_leaves_no_partial_output(
     assert left == [], f"worker processes left running: {left}"
 
 
+def test_dask_logs_nothing_after_the_local_cluster_closed() -> None:
+    """After a batch on a local cluster returns (or is stopped), a log line Dask's client thread emits
+    as its connection closes reaches nobody: the batch's stop line stays the last and only line
+    (``LocalCluster`` quiets Dask only until it closes; a traceback at INFO had followed the stop line)."""
+    code = ("import logging, sys\n"
+            "from magcal_ros.app.batch import run_on_dask\n"
+            "print(run_on_dask([], 1, None, lambda o: None), file=sys.stdout)\n"
+            "try:\n"
+            "    raise ConnectionError('closed')\n"
+            "except ConnectionError:\n"
+            "    logging.getLogger('distributed.batched').info('Batched Comm Closed', exc_info=True)\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "1 local worker process"
+    assert done.stderr == ""
+
+
 def _session(pid: int) -> int | None:
     try:
         return os.getsid(pid)

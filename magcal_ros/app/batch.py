@@ -597,6 +597,20 @@ def _local_cluster(n: int, stop: StopSignals) -> tuple[Any, Any]:
     return cluster, client
 
 
+def _quiet_dask_logs() -> None:
+    """Dask's own log lines off in this process for good, not only while the cluster lives.
+
+    ``LocalCluster(silence_logs=...)`` quiets Dask's stream handler only until the cluster closes;
+    after a stop signal the client's connection may then close in its background thread and log
+    a traceback at INFO after the one line that says what happened. The batch reports every
+    failed task by name, so nothing Dask logs here is needed."""
+    import logging
+
+    for handler in logging.getLogger("distributed").handlers:
+        if isinstance(handler, logging.StreamHandler):
+            handler.setLevel(logging.CRITICAL)
+
+
 def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
                 on_done: Callable[[Outcome], None], connect_timeout: float = CONNECT_TIMEOUT) -> str:
     """Run ``jobs`` as Dask tasks, calling ``on_done`` with each outcome as it finishes; returns
@@ -611,6 +625,7 @@ def run_on_dask(jobs: Sequence[Job], workers: int | None, scheduler: str | None,
     # A stop while workers start leaves Dask's start-up tasks failed and never awaited: asyncio would log
     # each with its traceback at exit, after the one line that says what happened.
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    _quiet_dask_logs()
     cluster: Any = None
     with StopSignals() as stop:
         try:
