@@ -413,8 +413,10 @@ def test_the_oracle_sees_a_wrong_pairing() -> None:
 def side_streams(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """A temperature stream as a topic delivers it (stamps ns in delivery order, values deg C, which samples
     are true values) and a tolerance (ns): a regular rhythm with neighbours swapped, pauses, values out
-    of range or not a number, and single stamps far off the sequence either way."""
+    of range or not a number, and single stamps far off the sequence either way (from half again as far as
+    the rule calls far, once the stream's rhythm is known, to three years)."""
     rate = draw(st.sampled_from([0.5, 2.0, 10.0, 50.0]))
+    far = max(2.0, 8.0 / rate)  # s: what the rule holds as far off, eight intervals and at least 2 s
     n = draw(st.integers(30, 300))
     t = (np.arange(n) / rate + draw(st.floats(0.0, 1.0))) * 1e9 + START
     pauses = draw(st.lists(st.integers(5, n - 5), max_size=3, unique=True))
@@ -437,8 +439,8 @@ def side_streams(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, i
         elif kind in ("range", "nan"):
             values[at] = draw(st.sampled_from([-300.0, 1e30, 151.0, -61.0])) if kind == "range" else np.nan
             true[at] = False
-        else:
-            t[at] += int(np.sign(0.5 - (kind == "behind")) * draw(st.floats(1e3, 1e8)) * 1e9)
+        elif at >= 6:  # (the first samples' rhythm is not yet known: only far beyond a minute is far there)
+            t[at] += int(np.sign(0.5 - (kind == "behind")) * far * 10 ** draw(st.floats(np.log10(1.5), 7.0)) * 1e9)
             true[at] = False
     return t, values, true, int(draw(st.sampled_from([2.0, 10.0, 30.0])) * 1e9)
 
@@ -463,6 +465,13 @@ def test_a_side_stream_gives_each_set_its_latest_true_value_live_and_offline(str
     accepted, counts = accept_streams([TemperatureSamples("mag1", stamps, values)], side.TEMPERATURE.check)
     c = store.counts[0]
     assert c.received == len(stamps) and c.accepted + c.dropped() + c.held == c.received
+    # each fault counted as what it is, live and offline, and every true sample taken (nothing else)
+    bad = np.isnan(values) | ~np.isfinite(values)
+    want = (int(np.sum(true)), int(np.sum(bad)), int(np.sum(~bad & ((values < -60) | (values > 150)))),
+            int(np.sum(~true)) - int(np.sum(bad)) - int(np.sum(~bad & ((values < -60) | (values > 150)))))
+    for got in (c, counts[0]):
+        assert (got.accepted + got.held, got.nonfinite, got.out_of_range, got.glitch) == want, (got, want)
+    assert sorted(accepted[0].stamps.tolist()) == sorted(stamps[true].tolist())
     sets = np.sort(np.random.default_rng(len(stamps)).integers(stamps[true].min(), stamps[true].max(), 200))
     offline, fresh = match_latest(sets, accepted, tol)
     ts, vs = stamps[true], values[true]

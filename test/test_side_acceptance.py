@@ -1,0 +1,254 @@
+"""The side-stream acceptance and the calibration file's bounds at their edges, one rule at a time.
+
+``test_stream_properties.py`` checks the side streams' acceptance as a whole against a truth oracle;
+these tests pin each rule's boundary (inclusive or not), what each fault is called and what the
+refusals name: the mutants of ``core/side_streams.py`` and ``core/calibration_bounds.py`` that a
+mutation run (docs/mutation_report.md) found alive before them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magcal_ros.core import calibration_bounds as cb
+from magcal_ros.core import side_streams as side
+from magcal_ros.core.units import EARTH_FIELD_RANGE, NS_PER_S
+from magcal_ros.errors import InputError
+
+MS = NS_PER_S // 1000
+
+
+# -- values ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("value", "fault"), [
+    (-60.0, None), (150.0, None), (20.0, None), (-60.0001, "out_of_range"), (150.0001, "out_of_range"),
+    (float("nan"), "nonfinite"), (float("inf"), "nonfinite"), (-float("inf"), "nonfinite"), ("25", None),
+])
+def test_a_scalar_streams_range_is_inclusive_and_a_non_number_is_not_out_of_range(value: object, fault: str) -> None:
+    assert side.scalar_check(-60.0, 150.0)(value) == fault
+    assert side.TEMPERATURE.check(value) == fault
+
+
+Q = (1.0, 0.0, 0.0, 0.0)
+W = (0.0, 0.0, 0.0)
+NAN3, NAN4 = (math.nan,) * 3, (math.nan,) * 4
+
+
+@pytest.mark.parametrize(("q", "w", "parts", "fault"), [
+    (Q, W, (True, True, True), None),
+    ((1.001, 0.0, 0.0, 0.0), (side.MAX_RATE, 0.0, 0.0), (True, True, True), None),  # both bounds inclusive
+    ((0.9991, 0.0, 0.0, 0.0), (0.0, 0.0, -side.MAX_RATE), (True, True, True), None),
+    ((1.0011, 0.0, 0.0, 0.0), W, (False, True, True), None),  # an orientation off the unit norm: gyro only
+    ((2.0, 0.0, 0.0, 0.0), NAN3, (False, False, True), "out_of_range"),
+    (Q, (0.0, side.MAX_RATE * 1.001, 0.0), (True, False, True), None),
+    (NAN4, (40.0, 0.0, 0.0), (False, False, True), "out_of_range"),
+    (NAN4, NAN3, (False, False, False), "nonfinite"),
+    ((math.nan, 0.0, 0.0, 1.0), (math.inf, 0.0, 0.0), (False, False, False), "nonfinite"),
+    ((1.0, 0.0, 0.0, math.inf), W, (False, True, True), None),
+])
+def test_an_imu_sample_is_a_value_while_either_part_is_usable(q: tuple, w: tuple, parts: tuple, fault: str) -> None:  # type: ignore[type-arg]
+    assert side.imu_parts((q, w)) == parts
+    assert side.imu_check((q, w)) == fault
+    assert side.IMU.check((q, w)) == fault
+
+
+def test_usable_imu_normalises_orientations_keeps_unit_ones_bit_for_bit_and_blanks_unusable_parts() -> None:
+    half = math.sqrt(0.5)
+    samples = [((1, 0, 0, 0), (0, 0, 1)),  # integers, as a CSV reader may give them
+               ((half, half, 0.0, 0.0), (0.1, 0.2, 0.3)),
+               ((0.0, 0.0, 1.0005, 0.0), (40, 0, 0)),  # a slightly long orientation; a gyro beyond its range
+               ((2, 0, 0, 0), (0, 0, 0))]  # no orientation
+    q, w = side.usable_imu(samples)
+    assert q.shape == (4, 4) and w.shape == (4, 3) and q.dtype == float and w.dtype == float
+    assert q[0].tolist() == [1.0, 0.0, 0.0, 0.0] and q[1].tolist() == [half, half, 0.0, 0.0]
+    assert np.allclose(q[2], [0.0, 0.0, 1.0, 0.0], rtol=0, atol=1e-15)
+    assert np.all(np.isnan(q[3])) and np.all(np.isnan(w[2]))
+    assert w[0].tolist() == [0.0, 0.0, 1.0] and w[3].tolist() == [0.0, 0.0, 0.0]
+    empty_q, empty_w = side.usable_imu([])
+    assert empty_q.shape == (0, 4) and empty_w.shape == (0, 3)
+
+
+def test_a_stream_is_a_units_error_only_when_more_than_half_of_its_numbers_are_out_of_range() -> None:
+    check = side.TEMPERATURE.check
+    nan, k = math.nan, 293.0  # kelvin
+    assert not side.bulk_out_of_range(check, [k, k, k, 20.0, 21.0, 22.0])  # exactly half
+    assert side.bulk_out_of_range(check, [k, k, k, k, 21.0, 22.0])
+    assert side.bulk_out_of_range(check, [nan, nan, nan, k, k, 20.0])  # NaN are no number, not in range
+    assert not side.bulk_out_of_range(check, [nan, nan, nan])
+    assert not side.bulk_out_of_range(check, [])
+    with pytest.raises(InputError) as err:
+        side.refuse_units(side.TEMPERATURE, [20.0, 293.15, 294.0, 295.0], "mag2 temperature")
+    assert str(err.value) == ("mag2 temperature: temperature 293.15 deg C and most others are out of range: "
+                              "temperatures must be in deg C")
+    with pytest.raises(InputError) as err:
+        side.refuse_units(side.IMU, [((2.0, 0, 0, 0), (50.0, 0, 0))] * 2, "imu")
+    assert "IMU sample ((2.0, 0, 0, 0), (50.0, 0, 0))" in str(err.value)
+    assert str(err.value).endswith("IMU samples must be in the ROS convention")
+
+
+# -- stamps ------------------------------------------------------------------------------------------
+def _rule(n: int = 20, period: int = 100 * MS) -> side.SideAcceptance:
+    """A rule that took ``n`` samples 0, period, ... (its rhythm known)."""
+    rule = side.SideAcceptance(side.TEMPERATURE.check)
+    for k in range(n):
+        assert rule.offer(k * period, 20.0) == [(k * period, 20.0)]
+    return rule
+
+
+def test_the_rhythm_is_the_median_of_the_last_sixteen_intervals_and_sets_how_far_is_far() -> None:
+    rule = side.SideAcceptance(side.TEMPERATURE.check)
+    assert rule.interval is None and rule.far() == side.FAR_EARLY
+    for t in (0, 4 * NS_PER_S, 8 * NS_PER_S):
+        rule.offer(t, 20.0)
+    assert rule.interval is None  # two intervals: not yet a rhythm
+    rule.offer(12 * NS_PER_S, 20.0)
+    assert rule.interval == 4 * NS_PER_S and rule.far() == side.FAR_PERIODS * 4 * NS_PER_S
+    rule = _rule(20, 100 * MS)
+    assert rule.interval == 100 * MS and rule.far() == side.FAR_MIN  # at least FAR_MIN
+    t = 19 * 100 * MS
+    for _ in range(side.INTERVALS // 2 + 1):  # more than half of the last 16 intervals at 300 ms
+        t += 300 * MS
+        rule.offer(t, 20.0)
+    assert rule.interval == 300 * MS
+    rule.offer(t, 20.0)  # a repeated stamp is no interval
+    assert rule.interval == 300 * MS and rule.last == t
+
+
+def test_the_rhythm_forgets_intervals_older_than_the_last_sixteen() -> None:
+    rule = side.SideAcceptance(side.TEMPERATURE.check)
+    t = 0
+    for dt in [NS_PER_S] * 9 + [100 * MS] * side.INTERVALS:
+        t += dt
+        rule.offer(t, 20.0)
+    assert rule.interval == 100 * MS
+
+
+def test_a_stamp_exactly_as_far_as_far_goes_is_taken_one_beyond_is_held() -> None:
+    rule = _rule()
+    last = rule.last
+    assert rule.offer(last + side.FAR_MIN, 21.0) == [(last + side.FAR_MIN, 21.0)]
+    rule = _rule()
+    assert rule.offer(last + side.FAR_MIN + 1, 21.0) == [] and rule.counts.held == 1
+    # the next one goes on from the old sequence: the held one was a glitch
+    assert rule.offer(last + 100 * MS, 22.0) == [(last + 100 * MS, 22.0)]
+    assert rule.counts.glitch == 1 and rule.counts.held == 0 and rule.counts.accepted == 21
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_a_held_stamp_is_kept_when_the_next_lies_nearer_to_it_or_as_near(sign: int) -> None:
+    rule = _rule()
+    last = rule.last
+    jump = sign * 3 * NS_PER_S  # beyond FAR_MIN (2 s), its half within
+    assert rule.offer(last + jump, 21.0) == []
+    tie = last + jump // 2  # as near to both: the stream goes on from the held one
+    assert rule.offer(tie, 22.0) == [(last + jump, 21.0), (tie, 22.0)]
+    assert rule.counts.glitch == 0 and rule.counts.accepted == 22
+
+
+def test_a_stream_that_ends_on_a_held_stamp_keeps_it() -> None:
+    rule = _rule()
+    far = rule.last + 3 * side.FAR_MIN
+    assert rule.offer(far, 21.0) == [] and rule.counts.held == 1
+    assert rule.finish() == [(far, 21.0)]
+    c = rule.counts
+    assert (c.held, c.accepted, c.glitch, c.received) == (0, 21, 0, 21) and rule.last == far
+    assert rule.finish() == [] and rule.counts.accepted == 21
+    stamps, values, counts = side.accepted_samples(side.TEMPERATURE.check, [0, 100 * MS, 50 * NS_PER_S + 1],
+                                                   [20.0, 21.0, 22.0])
+    assert stamps == [0, 100 * MS, 50 * NS_PER_S + 1] and values == [20.0, 21.0, 22.0] and counts.held == 0
+
+
+def test_a_sample_is_due_once_the_streams_rhythm_says_it_is_stamped_at_or_before_the_set() -> None:
+    rule = side.SideAcceptance(side.TEMPERATURE.check)
+    assert not rule.due(10 * NS_PER_S)  # nothing yet: no rhythm
+    rule = _rule(5, 100 * MS)
+    last = rule.last
+    assert not rule.due(last + 100 * MS - 1) and rule.due(last + 100 * MS)
+    rule.offer(last + 20 * NS_PER_S, 21.0)  # held
+    assert rule.due(last + 20 * NS_PER_S) and not rule.due(last + 100 * MS - 1)
+
+
+# -- waiting sets ------------------------------------------------------------------------------------
+def test_a_set_waits_while_a_sample_is_due_and_at_most_the_longest_wait_of_awake_time() -> None:
+    waiting = side.WaitingSets(max_wait_ns=500 * MS, awake_step_ns=100 * MS)
+    due = {1}
+    waiting.add(1, 0, "a")
+    waiting.add(2, 0, "b")
+    assert len(waiting) == 2
+    assert waiting.release(50 * MS, lambda s: s in due) == []  # "a" waits; "b" behind it too
+    due.clear()
+    assert waiting.release(60 * MS, lambda s: s in due) == ["a", "b"] and len(waiting) == 0
+    waiting.add(3, 100 * MS, "c")
+    t = 100 * MS
+    for _ in range(5):  # 500 ms awake: not more than the wait
+        t += 100 * MS
+        assert waiting.release(t, lambda s: True) == []
+    assert waiting.release(t + 1, lambda s: True) == ["c"]
+
+
+def test_a_stall_of_the_node_counts_as_one_awake_step_and_force_and_clear_release_everything() -> None:
+    waiting = side.WaitingSets(max_wait_ns=500 * MS, awake_step_ns=100 * MS)
+    waiting.add(1, 0, "a")
+    assert waiting.release(10 * NS_PER_S, lambda s: True) == []  # a 10 s stall: 100 ms of awake time
+    assert waiting.release(10 * NS_PER_S - NS_PER_S, lambda s: True) == []  # the clock going back counts nothing
+    assert waiting.release(10 * NS_PER_S + 401 * MS, lambda s: True) == []  # 501 ms: 100 + 100 (capped) + ...
+    waiting.add(2, 10 * NS_PER_S + 401 * MS, "b")
+    assert waiting.release(10 * NS_PER_S + 402 * MS, lambda s: True, force=True) == ["a", "b"]
+    waiting.add(3, 0, "c")
+    waiting.add(4, 0, "d")
+    assert waiting.clear() == 2 and len(waiting) == 0 and waiting.clear() == 0
+    assert side.WaitingSets().max_wait_ns == side.MAX_WAIT and side.WaitingSets().awake_step_ns == side.AWAKE_STEP
+
+
+# -- calibration bounds ------------------------------------------------------------------------------
+def test_a_bounded_value_may_reach_its_limit_and_a_refusal_names_the_worst_element() -> None:
+    v = cb.check_bounded("mag1.interference", np.array([[1e-6, -cb.MAX_INTERFERENCE]]), cb.MAX_INTERFERENCE, "T/A")
+    assert v.dtype == float and v.shape == (1, 2)
+    with pytest.raises(InputError) as err:
+        cb.check_bounded("mag1.interference", np.array([[1e-6, 2e-6], [3e-6, -5e-4]]), cb.MAX_INTERFERENCE, "T/A")
+    assert str(err.value) == "mag1.interference must be finite and within +-0.0001 T/A, got -0.0005"
+    with pytest.raises(InputError, match="got nan$"):
+        cb.check_bounded("mag1.interference", [[1e-6, math.nan], [2e-4, 0.0]], cb.MAX_INTERFERENCE, "T/A")
+    assert cb.check_bounded("x", [1, 2], 2.0, "m").dtype == float
+    cb.check_positions([[cb.MAX_POSITION, 0.0, -cb.MAX_POSITION]])
+    with pytest.raises(InputError, match="got 51$"):
+        cb.check_positions([[0.0, 0.0, 0.0], [1.0, 51.0, 0.0]])
+
+
+def test_noise_and_intensity_take_zero_for_unknown_and_their_bounds_inclusive() -> None:
+    assert cb.check_noise("mag1.noise", 0) == 0.0 and cb.check_noise("mag1.noise", cb.MAX_NOISE) == cb.MAX_NOISE
+    for bad in (-1e-9, cb.MAX_NOISE * 1.001):
+        with pytest.raises(InputError, match="^mag1.noise must be 0"):
+            cb.check_noise("mag1.noise", bad)
+    low, high = EARTH_FIELD_RANGE
+    for good in (0.0, low, high, 5e-5):
+        assert cb.check_intensity("calibration_intensity", good) == good
+    for bad in (1.0, -5e-5, low * 0.99, high * 1.01):
+        with pytest.raises(InputError, match="^calibration_intensity "):
+            cb.check_intensity("calibration_intensity", bad)
+    for bad in (math.nan, True, "5e-5", None):
+        with pytest.raises(InputError, match=r"^mag1.noise must be a finite number \(T\)"):
+            cb.check_noise("mag1.noise", bad)
+        with pytest.raises(InputError, match=r"^calibration_intensity must be a finite number"):
+            cb.check_intensity("calibration_intensity", bad)
+
+
+@pytest.mark.parametrize("span", [[5.0, 5.0], [-60.0, 150.0], np.array([[0.0], [10.0]])])
+def test_a_temperature_span_may_be_one_temperature_and_reach_both_ends_of_the_range(span: object) -> None:
+    assert cb.check_temperature_span("mag1.calibration_temperatures", span).shape == (2,)
+
+
+@pytest.mark.parametrize(("span", "says"), [
+    ([30.0, 20.0], "[30, 20] has its minimum above its maximum"),
+    ([-61.0, 20.0], "[-61, 20] is not a span of temperatures in deg C (-60 .. 150)"),
+    ([20.0, 151.0], "[20, 151] is not a span of temperatures in deg C"),
+    ([273.0, 300.0], "[273, 300] is not a span"),
+    ([1.0, 2.0, 3.0], "must be two finite numbers [min, max] in deg C, got [1.0, 2.0, 3.0]"),
+    ("warm", "must be [min, max] in deg C, got 'warm'"),
+])
+def test_a_temperature_span_that_is_not_one_is_refused_naming_its_numbers(span: object, says: str) -> None:
+    with pytest.raises(InputError) as err:
+        cb.check_temperature_span("mag1.calibration_temperatures", span)
+    assert str(err.value).startswith("mag1.calibration_temperatures ") and says in str(err.value)
