@@ -66,6 +66,8 @@ def test_usable_imu_normalises_orientations_keeps_unit_ones_bit_for_bit_and_blan
     assert np.allclose(q[2], [0.0, 0.0, 1.0, 0.0], rtol=0, atol=1e-15)
     assert np.all(np.isnan(q[3])) and np.all(np.isnan(w[2]))
     assert w[0].tolist() == [0.0, 0.0, 1.0] and w[3].tolist() == [0.0, 0.0, 0.0]
+    q, w = side.usable_imu([((2, 0, 0, 0), (0, 0, 1)), ((1, 0, 0, 0), (40, 0, 0))])  # integers only
+    assert np.all(np.isnan(q[0])) and q[1].tolist() == [1.0, 0.0, 0.0, 0.0] and np.all(np.isnan(w[1]))
     empty_q, empty_w = side.usable_imu([])
     assert empty_q.shape == (0, 4) and empty_w.shape == (0, 3)
 
@@ -79,13 +81,21 @@ def test_a_stream_is_a_units_error_only_when_more_than_half_of_its_numbers_are_o
     assert not side.bulk_out_of_range(check, [nan, nan, nan])
     assert not side.bulk_out_of_range(check, [])
     with pytest.raises(InputError) as err:
-        side.refuse_units(side.TEMPERATURE, [20.0, 293.15, 294.0, 295.0], "mag2 temperature")
-    assert str(err.value) == ("mag2 temperature: temperature 293.15 deg C and most others are out of range: "
+        side.refuse_units(side.TEMPERATURE, [20.0, 300.0, 294.0, 295.0], "mag2 temperature")
+    assert str(err.value) == ("mag2 temperature: temperature 300 deg C and most others are out of range: "
                               "temperatures must be in deg C")
     with pytest.raises(InputError) as err:
         side.refuse_units(side.IMU, [((2.0, 0, 0, 0), (50.0, 0, 0))] * 2, "imu")
     assert "IMU sample ((2.0, 0, 0, 0), (50.0, 0, 0))" in str(err.value)
     assert str(err.value).endswith("IMU samples must be in the ROS convention")
+
+
+def test_what_a_stream_lost_is_told_in_one_line_and_nothing_when_it_lost_nothing() -> None:
+    c = side.SideCounts(received=300, accepted=296, nonfinite=1, out_of_range=1, glitch=2)
+    assert c.dropped() == 4 and c.as_dict()["glitch"] == 2
+    assert c.describe("mag1 temperature") == ("mag1 temperature: 4 of 300 samples dropped (1 not a number, "
+                                              "1 out of range, 2 far off the stream's stamps)")
+    assert side.SideCounts(received=300, accepted=299, held=1).describe("mag1 temperature") == ""
 
 
 # -- stamps ------------------------------------------------------------------------------------------
@@ -114,6 +124,13 @@ def test_the_rhythm_is_the_median_of_the_last_sixteen_intervals_and_sets_how_far
     assert rule.interval == 300 * MS
     rule.offer(t, 20.0)  # a repeated stamp is no interval
     assert rule.interval == 300 * MS and rule.last == t
+
+
+def test_a_repeated_stamp_adds_no_interval_to_the_rhythm() -> None:
+    rule = side.SideAcceptance(side.TEMPERATURE.check)
+    for t in (0, 100, 200, 500, 800, 800):  # intervals 100, 100, 300, 300 (a zero would make it 100)
+        rule.offer(t * MS, 20.0)
+    assert rule.interval == 300 * MS and rule.counts.accepted == 6
 
 
 def test_the_rhythm_forgets_intervals_older_than_the_last_sixteen() -> None:
@@ -168,6 +185,10 @@ def test_a_sample_is_due_once_the_streams_rhythm_says_it_is_stamped_at_or_before
     assert not rule.due(last + 100 * MS - 1) and rule.due(last + 100 * MS)
     rule.offer(last + 20 * NS_PER_S, 21.0)  # held
     assert rule.due(last + 20 * NS_PER_S) and not rule.due(last + 100 * MS - 1)
+    rule = _rule(5, 100 * MS)
+    behind = rule.last - 20 * NS_PER_S
+    rule.offer(behind, 21.0)  # held, far behind: due at its own stamp, not before
+    assert rule.due(behind) and not rule.due(behind - 1)
 
 
 # -- waiting sets ------------------------------------------------------------------------------------
@@ -186,6 +207,27 @@ def test_a_set_waits_while_a_sample_is_due_and_at_most_the_longest_wait_of_awake
         t += 100 * MS
         assert waiting.release(t, lambda s: True) == []
     assert waiting.release(t + 1, lambda s: True) == ["c"]
+
+
+def test_awake_time_adds_the_clocks_small_steps_and_never_a_step_back() -> None:
+    waiting = side.WaitingSets(max_wait_ns=500 * MS, awake_step_ns=50 * MS)
+    waiting.add(1, 0, "a")
+    for t in range(10, 500, 10):  # 490 ms in steps of 10 ms
+        assert waiting.release(t * MS, lambda s: True) == []
+    assert waiting.release(501 * MS, lambda s: True) == ["a"]
+    waiting = side.WaitingSets(max_wait_ns=500 * MS, awake_step_ns=100 * MS)
+    waiting.add(1, 0, "a")
+    # awake: 100 (a stall, capped), back 50 ms (nothing), +40 from the latest clock, then +100 three times
+    for t in (10_000, 9_950, 10_040, 10_140, 10_240, 10_340, 10_395):
+        assert waiting.release(t * MS, lambda s: True) == [], t  # 495 ms awake at the last
+    assert waiting.release(10_401 * MS, lambda s: True) == ["a"]
+    waiting = side.WaitingSets(max_wait_ns=500 * MS, awake_step_ns=50 * MS)
+    waiting.add(1, 0, "a")
+    for t in range(80, 641, 80):  # steps of 80 ms count 50 each: 400 ms awake
+        assert waiting.release(t * MS, lambda s: True) == [], t
+    assert waiting.release(740 * MS, lambda s: True) == []  # 450
+    assert waiting.release(790 * MS, lambda s: True) == []  # 500: not more than the wait
+    assert waiting.release(791 * MS, lambda s: True) == ["a"]
 
 
 def test_a_stall_of_the_node_counts_as_one_awake_step_and_force_and_clear_release_everything() -> None:
@@ -215,6 +257,30 @@ def test_a_bounded_value_may_reach_its_limit_and_a_refusal_names_the_worst_eleme
     cb.check_positions([[cb.MAX_POSITION, 0.0, -cb.MAX_POSITION]])
     with pytest.raises(InputError, match="got 51$"):
         cb.check_positions([[0.0, 0.0, 0.0], [1.0, 51.0, 0.0]])
+    with pytest.raises(InputError, match="got nan$"):
+        cb.check_positions([[0.0, 60.0, 0.0], [1.0, math.nan, 0.0]])
+    cb.check_positions(np.zeros((0, 3)))
+
+
+def test_a_covariance_is_finite_symmetric_to_its_own_scale_with_a_non_negative_diagonal() -> None:
+    good = np.diag([4e-18, 1e-18, 0.0])  # T^2: nT-sized sigmas; a zero variance is a kept parameter's
+    good[0, 1] = good[1, 0] = 1e-18
+    cb.check_covariance("mag1", good)
+    cb.check_covariance("mag1", np.full((3, 3), math.nan))  # not given
+    cb.check_covariance("mag1", np.zeros((3, 3)))
+    rounded = good.copy()
+    rounded[0, 1] *= 1 + 1e-12  # symmetric to rounding
+    cb.check_covariance("mag1", rounded)
+    skew = good.copy()
+    skew[0, 1] *= 1.001  # 1e-21 T^2 apart: asymmetric at the covariance's own scale
+    negative = good.copy()
+    negative[2, 2] = -1e-20
+    partial = good.copy()
+    partial[1, 2] = math.nan
+    for bad in (skew, negative, partial, np.full((3, 3), math.inf)):
+        with pytest.raises(InputError) as err:
+            cb.check_covariance("mag1", bad)
+        assert str(err.value) == "mag1.covariance must be a finite symmetric 3x3 with a non-negative diagonal (T^2)"
 
 
 def test_noise_and_intensity_take_zero_for_unknown_and_their_bounds_inclusive() -> None:
