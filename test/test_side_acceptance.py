@@ -133,13 +133,19 @@ def test_a_repeated_stamp_adds_no_interval_to_the_rhythm() -> None:
     assert rule.interval == 300 * MS and rule.counts.accepted == 6
 
 
-def test_the_rhythm_forgets_intervals_older_than_the_last_sixteen() -> None:
+@pytest.mark.parametrize(("intervals", "rhythm"), [
+    ([1000] * 9 + [100] * 16, 100),
+    ([1000] * 8 + [100] * 8, 1000),  # the window is sixteen intervals, not fifteen: 8 of each, the upper middle
+    ([1000, 100] + [100] * 8 + [1000] * 7, 100),  # the oldest goes first: 9 short ones of the last sixteen
+])
+def test_the_rhythm_forgets_intervals_older_than_the_last_sixteen(intervals: list[int], rhythm: int) -> None:
     rule = side.SideAcceptance(side.TEMPERATURE.check)
     t = 0
-    for dt in [NS_PER_S] * 9 + [100 * MS] * side.INTERVALS:
-        t += dt
+    rule.offer(t, 20.0)
+    for dt in intervals:  # ms
+        t += dt * MS
         rule.offer(t, 20.0)
-    assert rule.interval == 100 * MS
+    assert rule.interval == rhythm * MS and rule.counts.accepted == len(intervals) + 1
 
 
 def test_a_stamp_exactly_as_far_as_far_goes_is_taken_one_beyond_is_held() -> None:
