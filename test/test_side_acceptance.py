@@ -324,3 +324,107 @@ def test_a_temperature_span_that_is_not_one_is_refused_naming_its_numbers(span: 
     with pytest.raises(InputError) as err:
         cb.check_temperature_span("mag1.calibration_temperatures", span)
     assert str(err.value).startswith("mag1.calibration_temperatures ") and says in str(err.value)
+
+
+# -- matching a stream's latest value to the sets ------------------------------------------------------
+def test_the_latest_sample_within_the_tolerance_inclusive_and_the_last_recorded_of_equal_stamps() -> None:
+    from magcal_ros.core.matching import finite_sorted, latest_before
+
+    st = np.array([100, 200, 200, 300]) * MS
+    idx, fresh = latest_before(st, np.array([50, 100, 199, 200, 250, 350, 351]) * MS, 50 * MS)
+    assert idx.tolist() == [0, 0, 0, 2, 2, 3, 3]  # of equal stamps, the one recorded last
+    assert fresh.tolist() == [False, True, False, True, True, True, False]
+    idx, fresh = latest_before([], [1, 2], 10)
+    assert idx.tolist() == [0, 0] and fresh.tolist() == [False, False]
+    assert idx.dtype == np.int64 and fresh.dtype == bool
+    stamps = np.random.default_rng(1).integers(0, 5, 500)  # many ties: a sort that is not stable reorders them
+    ties = finite_sorted(stamps, np.arange(500.0))
+    assert ties[1].tolist() == np.argsort(stamps, kind="stable").tolist()
+    stamps, values = finite_sorted([30, 10, 20, 10], [[1.0, 2.0], [3.0, 4.0], [5.0, math.nan], [7.0, 8.0]])
+    assert stamps.tolist() == [10, 10, 30] and values.tolist() == [[3.0, 4.0], [7.0, 8.0], [1.0, 2.0]]
+    stamps, values = finite_sorted(np.zeros(0, np.int64), np.zeros((0, 3)))
+    assert stamps.dtype == np.int64 and values.shape == (0, 3)
+
+
+def test_each_stream_gives_each_set_its_latest_value_offline_and_live_a_stale_one_zero() -> None:
+    from magcal_ros.core.matching import AcceptedSamples, LatestValues, match_latest
+
+    a = AcceptedSamples(np.array([0, 100, 100, 200]) * MS, np.array([1.0, 2.0, 3.0, 4.0]))
+    b = AcceptedSamples(np.array([150, 400]) * MS, np.array([-1.0, 1e30]))
+    sets = np.array([100, 160, 260, 400]) * MS
+    empty = AcceptedSamples(np.zeros(0, np.int64), np.zeros(0))
+    values, fresh = match_latest(sets, [empty, a, b], 100 * MS)  # a stream without a sample: stale throughout
+    assert values[:, 0].tolist() == [0.0] * 4 and fresh.dtype == bool and not np.any(fresh[:, 0])
+    assert values[:, 1:].tolist() == match_latest(sets, [a, b], 100 * MS)[0].tolist()
+    values, fresh = match_latest(sets, [a, b], 100 * MS)
+    assert values.tolist() == [[3.0, 0.0], [3.0, -1.0], [4.0, 0.0], [0.0, 1e30]]
+    assert fresh.tolist() == [[True, False], [True, True], [True, False], [False, True]]
+    values, fresh = match_latest(sets, [a, b], 100 * MS, check=side.CURRENT.check)  # 1e30 A: no value
+    assert values[3].tolist() == [0.0, 0.0] and fresh[3].tolist() == [False, False]
+    live = LatestValues(2, 100 * MS, check=side.CURRENT.check)
+    for j, s in ((0, a), (1, b)):
+        for t, v in zip(s.stamps.tolist(), s.values.tolist()):
+            live.add(j, t, v)
+    assert [live.at(int(t)) for t in sets] == [([3.0, 0.0], [True, False]), ([3.0, -1.0], [True, True]),
+                                               ([4.0, 0.0], [True, False]), ([0.0, 0.0], [False, False])]
+    assert live.channels == 2 and live.received == [4, 1] and live.latest(0) == 4.0 and live.latest(1) == -1.0
+    assert live.counts[1].out_of_range == 1 and LatestValues(1, 10).latest(0) is None
+
+
+def test_a_live_store_keeps_its_last_seconds_and_at_most_its_count_whatever_the_arrival_order() -> None:
+    from magcal_ros.core.matching import LatestValues
+
+    store = LatestValues(1, 100 * MS, keep_ns=NS_PER_S)
+    assert store.keep_ns == NS_PER_S and LatestValues(1, 600 * MS, keep_ns=NS_PER_S).keep_ns == 1200 * MS
+    for t in (1000, 1100, 1050, 2000):  # ms; one out of order
+        store.add(0, t * MS, float(t))
+    assert store.at(1000 * MS) == ([1000.0], [True])  # exactly keep_ns behind the newest: kept
+    store.add(0, 2001 * MS, 2001.0)
+    assert store.at(1000 * MS) == ([0.0], [False]) and store.at(1100 * MS) == ([1100.0], [True])
+    assert store.at(1060 * MS) == ([1050.0], [True])
+    store.add(0, 2001 * MS, 7.0)  # the same stamp again: the one received last wins
+    assert store.at(2001 * MS) == ([7.0], [True]) and store.received == [6]
+    few = LatestValues(1, NS_PER_S, keep_ns=10 * NS_PER_S, most=3)
+    for t in range(5):
+        few.add(0, t * 100 * MS, float(t))
+    assert few.at(100 * MS) == ([0.0], [False]) and few.at(200 * MS) == ([2.0], [True])
+    assert few.at(450 * MS) == ([4.0], [True])
+    finite = LatestValues(1, NS_PER_S)  # no range of its own: any number is a value
+    for t, v in ((0, 1e300), (100, math.nan), (200, -1e300)):
+        finite.add(0, t * MS, v)
+    assert finite.received == [2] and finite.counts[0].nonfinite == 1
+
+
+def test_a_live_store_says_a_sample_is_due_when_any_of_its_streams_does() -> None:
+    from magcal_ros.core.matching import LatestValues
+
+    store = LatestValues(2, 50 * MS)
+    assert not store.due(10 * NS_PER_S)
+    for k in range(5):
+        store.add(1, k * 100 * MS, 1.0)
+    assert not store.due(499 * MS) and store.due(500 * MS)
+
+
+def test_the_sets_without_a_value_are_counted_per_stream_and_told_in_one_line() -> None:
+    from magcal_ros.core.imu import ImuStats
+    from magcal_ros.core.interference import CurrentStats
+    from magcal_ros.core.matching import checked_samples
+
+    stats = CurrentStats(("a", "b"), NS_PER_S // 2)
+    keep = stats.keep(np.array([[True, True], [False, True], [False, False], [True, True]]))
+    assert keep.tolist() == [True, False, False, True]
+    stats.keep(np.array([[True, False]]))
+    assert (stats.sets, stats.dropped, stats.stale) == (5, 3, [2, 2])
+    assert stats.describe() == ("3 of 5 sets dropped without a current of every channel within 0.5 s before "
+                                "the set (a: 2, b: 2)")
+    stats.samples = [side.SideCounts(received=9, accepted=8, out_of_range=1), side.SideCounts(received=5, accepted=5)]
+    assert stats.note() == stats.describe() + "; a current: 1 of 9 samples dropped (1 out of range)"
+    imu = ImuStats(("imu",), NS_PER_S // 10)
+    imu.keep(np.array([True, False, True]))
+    assert imu.describe() == "1 of 3 sets dropped without an IMU sample within 0.1 s before the set (imu: 1)"
+    assert ImuStats(("imu",), 1).note() == ""
+    t, v = checked_samples("mag1 temperature", np.array([1, 2], np.uint32), [20, 21])
+    assert t.dtype == np.int64 and v.dtype == float
+    for stamps, values in (([1.0, 2.0], [20.0, 21.0]), ([1, 2], [20.0])):
+        with pytest.raises(InputError, match="^mag1: one temperature per stamp$"):
+            checked_samples("mag1: one temperature", stamps, values)
