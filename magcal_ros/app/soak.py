@@ -52,6 +52,7 @@ from magcal_ros.core.field import earth_field
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import matrix_to_quat, quat_log
 from magcal_ros.core.stamps import parse_seconds
+from magcal_ros.core.sync import DEFAULT_LAG
 from magcal_ros.core.units import NS_PER_S, NT
 from magcal_ros.methods.attitude import MOUNTING_KEYS
 from magcal_ros.sim.attitudes import yaw_pitch_roll
@@ -544,7 +545,9 @@ class Watch:
         self.state[status.name] = key
         if len(self.outcome.events) < 10_000:  # bounded, whatever the node says
             self.outcome.events.append(Event(t, now, status.name, key[0], status.message))
-        change = self.outcome.plan.at(self.outcome.plan.change_at)
+        # the mission clock (the newest published set's stamp) runs behind the streams by up to the synchroniser's
+        # lag: a status naming the change may read that much before it
+        change = self.outcome.plan.at(self.outcome.plan.change_at) - DEFAULT_LAG
         if key[1] == "true" and t >= change and self.outcome.named_at is None:
             self.outcome.named_at = t
 
