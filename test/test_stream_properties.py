@@ -34,6 +34,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from stream_oracle import SensorPlan, Stream, arrivals, busy_receiver, make_stream, set_instants, true_lost
 
+from magcal_ros.core import side_streams as side
 from magcal_ros.core.sync import stream_synchronizer, synchronise_streams
 from magcal_ros.core.units import NS_PER_S
 
@@ -416,7 +417,7 @@ def side_streams(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, i
     of range or not a number, and single stamps far off the sequence either way (from half again as far as
     the rule calls far, once the stream's rhythm is known, to three years)."""
     rate = draw(st.sampled_from([0.5, 2.0, 10.0, 50.0]))
-    far = max(2.0, 8.0 / rate)  # s: what the rule holds as far off, eight intervals and at least 2 s
+    far = max(side.FAR_MIN, side.FAR_PERIODS * NS_PER_S / rate) / NS_PER_S  # s: what the rule holds as far off
     n = draw(st.integers(30, 300))
     t = (np.arange(n) / rate + draw(st.floats(0.0, 1.0))) * 1e9 + START
     pauses = draw(st.lists(st.integers(5, n - 5), max_size=3, unique=True))
@@ -454,7 +455,6 @@ def test_a_side_stream_gives_each_set_its_latest_true_value_live_and_offline(str
     """Every set gets the latest true sample stamped within the tolerance before it (never a value out of
     range, not a number, or stamped far off the sequence), and the live store (one sample at a time, in
     delivery order) gives what the offline rule gives; every sample counted once."""
-    from magcal_ros.core import side_streams as side
     from magcal_ros.core.matching import LatestValues, accept_streams, match_latest
     from magcal_ros.core.temperature import TemperatureSamples
 
@@ -466,9 +466,10 @@ def test_a_side_stream_gives_each_set_its_latest_true_value_live_and_offline(str
     c = store.counts[0]
     assert c.received == len(stamps) and c.accepted + c.dropped() + c.held == c.received
     # each fault counted as what it is, live and offline, and every true sample taken (nothing else)
-    bad = np.isnan(values) | ~np.isfinite(values)
-    want = (int(np.sum(true)), int(np.sum(bad)), int(np.sum(~bad & ((values < -60) | (values > 150)))),
-            int(np.sum(~true)) - int(np.sum(bad)) - int(np.sum(~bad & ((values < -60) | (values > 150)))))
+    low, high = side.TEMPERATURE_RANGE
+    bad = int(np.sum(~np.isfinite(values)))
+    out = int(np.sum((values < low) | (values > high)))  # (NaN compares false)
+    want = (int(np.sum(true)), bad, out, int(np.sum(~true)) - bad - out)
     for got in (c, counts[0]):
         assert (got.accepted + got.held, got.nonfinite, got.out_of_range, got.glitch) == want, (got, want)
     assert sorted(accepted[0].stamps.tolist()) == sorted(stamps[true].tolist())

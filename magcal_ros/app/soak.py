@@ -73,6 +73,9 @@ BASELINE = 0.4
 """m: the cross's sensor spacing."""
 YAW_RATE = 6.0
 """deg/s of the yaw turns (the demo's mission)."""
+CLOCK_LAG = DEFAULT_LAG
+"""s: how far the watch's mission clock (the newest published set's stamp) may run behind the streams (sets wait for
+every sensor up to the synchroniser's lag): a status that names a change may read up to this much before it."""
 CHANNEL = "payload/battery"
 CURRENT_RATE = 10.0
 """Hz of the payload's current messages."""
@@ -545,9 +548,7 @@ class Watch:
         self.state[status.name] = key
         if len(self.outcome.events) < 10_000:  # bounded, whatever the node says
             self.outcome.events.append(Event(t, now, status.name, key[0], status.message))
-        # the mission clock (the newest published set's stamp) runs behind the streams by up to the synchroniser's
-        # lag: a status naming the change may read that much before it
-        change = self.outcome.plan.at(self.outcome.plan.change_at) - DEFAULT_LAG
+        change = self.outcome.plan.at(self.outcome.plan.change_at) - CLOCK_LAG  # (a status naming it may read early)
         if key[1] == "true" and t >= change and self.outcome.named_at is None:
             self.outcome.named_at = t
 
