@@ -434,18 +434,21 @@ class _Eval:
         g_theta = g_sum.reshape(-1)  # (S P,) summed over the sets
         if ng:  # the global blocks: the site gradient in the readings, the attitude residuals
             assert att is not None
-            gj = att_blocks.gradient_jacobian(att.inputs, att.state, model)
-            jac_g = np.zeros((n, s, 3, ng)) if gj is None else gain[..., None] * np.matmul(k[None], gj)
+            # the readings' Jacobian by the globals is the site gradient's, by its own columns only (the others zero)
+            gj = att_blocks.gradient_jacobian(att.inputs, att.state, model, compact=True)
+            cols = np.zeros(0, np.int64) if gj is None else att_blocks.gradient_columns(model)
+            jac_g = np.zeros((n, s, 3, 0)) if gj is None else gain[..., None] * np.matmul(k[None], gj)
             wjg = jac_g * ws[:, :, None, None]
             ea = att_blocks.attitude_residuals(att.inputs, att.state, d)
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
             pa = att.precision
-            self._global_jac = (jac_g, wjg, ja, pa)
+            self._global_jac, self._global_cols = (jac_g, wjg, ja, pa), cols
             self.a_sg, self.a_gg = self._global_blocks(slice(None))
-            per_set_g = np.einsum("nsag,nsa->ng", wjg, self.e) + np.einsum("n,nag,na->ng", pa, ja, ea, optimize=True)
+            per_set_g = pa[:, None] * np.matmul(ea[:, None, :], ja)[:, 0]
+            per_set_g[:, cols] += np.einsum("nsag,nsa->ng", wjg, self.e)
             g_global = per_set_g.sum(axis=0)
-            b_g = np.matmul(wjg.reshape(n, s * 3, ng).transpose(0, 2, 1), self.m.reshape(n, s * 3, 2)) + \
-                np.matmul((ja * pa[:, None, None]).transpose(0, 2, 1), self.basis)
+            b_g = np.matmul((ja * pa[:, None, None]).transpose(0, 2, 1), self.basis)
+            b_g[:, cols] += np.matmul(wjg.reshape(n, s * 3, len(cols)).transpose(0, 2, 1), self.m.reshape(n, s * 3, 2))
             self.c = self.c + pa[:, None, None] * np.eye(2)[None]  # basis^T basis = I
             self.g_d = self.g_d + pa[:, None] * np.einsum("nac,na->nc", self.basis, ea)
             self.cost += float(np.sum(pa[:, None] * ea * ea))
@@ -494,15 +497,18 @@ class _Eval:
         own (G, G), the attitude residuals' included."""
         jac_g, wjg, ja, pa = (a[rows] for a in self._global_jac)
         s, p = self.shape
-        ng = jac_g.shape[3]
+        cols, ng, nc = self._global_cols, self.globals, jac_g.shape[3]
+        a_sg = np.zeros((s, p, ng))
+        a_gg = (ja * pa[:, None, None]).reshape(-1, ng).T @ ja.reshape(-1, ng)
+        if not nc:
+            return a_sg, a_gg
         if self._features is None:
             wj = self._dense[1][rows]
-            a_sg = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, ng) for i in range(s)])
+            a_sg[:, :, cols] = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, nc) for i in range(s)])
         else:
             wphi, wx = self._features
-            a_sg = _summed_by_features(wphi[rows], None if wx is None else wx[rows], jac_g, p)
-        a_gg = wjg.reshape(-1, ng).T @ jac_g.reshape(-1, ng) + (ja * pa[:, None, None]).reshape(-1, ng).T \
-            @ ja.reshape(-1, ng)
+            a_sg[:, :, cols] = _summed_by_features(wphi[rows], None if wx is None else wx[rows], jac_g, p)
+        a_gg[np.ix_(cols, cols)] += wjg.reshape(-1, nc).T @ jac_g.reshape(-1, nc)
         return a_sg, a_gg
 
     def _by_features(self, v: Array) -> Array:
@@ -609,6 +615,7 @@ class _Eval:
     def part_information(self, rows: NDArray[np.int64]) -> Array:
         """The information (directions eliminated, as :meth:`information`) of the sets ``rows`` alone: the part
         of the sums over the sets that they add."""
+        rows = _as_slice(rows)
         blocks = self._global_blocks(rows) if self.globals else (None, None)
         flat = self._direction_rows()[rows]
         flat = flat.reshape(-1, flat.shape[2])
@@ -648,6 +655,15 @@ class _Eval:
     def information(self) -> Array:
         """Schur complement ``A - sum_k B_k C_k^-1 B_k^T`` (no damping)."""
         return self.reduced()[0]
+
+
+def _as_slice(rows: NDArray[np.int64]) -> slice | NDArray[np.int64]:
+    """``rows`` (indices) as a slice where they are a run of consecutive ones (its arrays' parts are then views,
+    not copies), else as they are."""
+    rows = np.asarray(rows)
+    if len(rows) and rows[-1] - rows[0] == len(rows) - 1 and np.all(np.diff(rows) == 1):
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 def _axes(features: Array) -> Array:
@@ -842,10 +858,13 @@ def _promised_decrease(schur: Array, rhs: Array) -> float:
 def _solve_lm(
     model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
     sigma: Array, prior: ParameterPrior, iterations: int, tolerance: float, fixed: NDArray[np.bool_],
-    att: _Att | None = None, global_start: GlobalState | None = None,
-) -> tuple[Array, Array, int, _Att | None]:
+    att: _Att | None = None, global_start: GlobalState | None = None, renoise: "Renoise | None" = None,
+) -> tuple[Array, Array, Array, _Att | None]:
     """Levenberg-Marquardt on the MAP cost with fixed weights, noise and rates; returns (theta, directions,
-    steps, global blocks).
+    the sensors' noise it ended with, global blocks).
+
+    ``renoise``, called once at the first accepted step's point, may give the sensors' noise and the global
+    blocks anew (the start's residuals carried what it did not model): the fit goes on with them.
 
     The directions are eliminated exactly (Schur complement, computed once per iteration) and
     the damping acts on the reduced system, so a rejected step costs one small solve. Parameters
@@ -858,9 +877,8 @@ def _solve_lm(
     model's error, no more than that difference.
     """
     if att is None and _rank_one(model):
-        theta, d, steps = _solve_rank_one(model, theta, x, inputs, weights, sigma, prior, iterations, tolerance,
-                                          fixed)
-        return theta, d, steps, None
+        theta, d, _ = _solve_rank_one(model, theta, x, inputs, weights, sigma, prior, iterations, tolerance, fixed)
+        return theta, d, sigma, None
     s, p = theta.shape
     ng = model.global_size if att is not None else 0
     free = np.concatenate([~fixed.reshape(-1), ~att.inputs.fixed(model) if att is not None else np.zeros(0, bool)])
@@ -870,7 +888,6 @@ def _solve_lm(
     g_start = global_start if global_start is not None else (None if att is None else att.state)
     d = _directions(model, theta, x, inputs, rates, weights, None if att is None else att.h())
     lam = 1e-4
-    steps = 0
 
     def deviation(tv: Array, a: _Att | None) -> Array:
         dev = tv.reshape(-1) - mean
@@ -885,7 +902,7 @@ def _solve_lm(
     cur: _Eval | None = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
     cost = cur.cost + prior_cost(theta, att)
     done = False
-    for steps in range(1, iterations + 1):
+    for _ in range(iterations):
         if cur is None:  # (evaluated here, not after the step: the last accepted step needs no evaluation)
             cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
         info, grad, at_best = cur.reduced()
@@ -907,7 +924,7 @@ def _solve_lm(
             a_new = None if att is None else att.moved(step[s * p :], model)
             d_new = d + np.einsum("nac,nc->na", at.basis, dd)  # noqa: B023
             d_new /= row_norms(d_new)[:, None]
-            new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)
+            new_cost = _cost(model, t_new, d_new, x, inputs, rates, weights, sigma, a_new) + prior_cost(t_new, a_new)  # noqa: B023
             if new_cost > cost:
                 return False
             done = cost - new_cost <= tolerance * max(cost, 1e-300) or \
@@ -916,9 +933,15 @@ def _solve_lm(
             return True
 
         lam, improved = _damped_step(schur, rhs, free, s * p + ng, lam, accept, negligible)
+        anew = renoise(theta, d, att) if improved and renoise is not None else None
+        renoise = None
+        if anew is not None:  # weighed anew: the cost is another function, its steps start again
+            sigma, att = anew
+            cur = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
+            cost, done = cur.cost + prior_cost(theta, att), False
         if not improved or done:
             break
-    return theta, d, steps, att
+    return theta, d, sigma, att
 
 
 def _solve_rank_one(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, weights: Array, sigma: Array,
@@ -1177,8 +1200,9 @@ def fit_array(
         att = _first_round_attitudes(att, sigma)
     even = robust
     for _ in range(MAX_ROBUST_ROUNDS if robust else 1):
-        theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
-                                     fixed, att, g_start)
+        renoise = _renoised(model, x, inputs, rates, weights, sigma) if even else None
+        theta, d, sigma, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations,
+                                         tolerance, fixed, att, g_start, renoise)
         fit_sigma = sigma  # the weights the directions were fitted with: each sensor's residual dof
         if t is not None:
             rates = direction_rates(d, t)
@@ -1197,8 +1221,8 @@ def fit_array(
             break
         weights, even = new_weights, False
     else:
-        theta, d, _, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations, tolerance,
-                                     fixed, att, g_start)
+        theta, d, sigma, att = _solve_lm(model, theta, x, inputs, rates, weights, sigma, prior, iterations,
+                                         tolerance, fixed, att, g_start)
         fit_sigma = sigma
     if not np.all(np.isfinite(theta)):
         raise CalibrationFailed("the joint array fit did not converge (non-finite parameters)")
@@ -1223,6 +1247,37 @@ def _first_round_attitudes(att: "_Att | None", sigma: Array) -> "_Att | None":
         return att
     scale = FIRST_SHARE * (1.0 - share) / ((1.0 - FIRST_SHARE) * share)
     return replace(att, precision=att.precision * scale)
+
+
+Renoise = Callable[[Array, Array, "_Att | None"], "tuple[Array, _Att | None] | None"]
+"""Given (theta, directions, global blocks) at a fit's first step, the sensors' noise (S,) and global blocks
+to go on with, or None to keep them (:func:`_solve_lm`)."""
+
+RENOISED: float = 0.5
+"""The first robust round weighs anew once its first step has brought the sensors' common noise below this
+fraction of the start's (:func:`_renoised`)."""
+
+
+def _renoised(model: ForwardModel, x: Array, inputs: SetInputs, rates: Array | None, weights: Array,
+              sigma: Array) -> Renoise:
+    """For the first robust round (the sensors weighed alike at ``sigma`` (S,), the start's residuals' common
+    noise; with the IMU the attitudes' share capped by :func:`_first_round_attitudes`): once the first step has
+    taken up what the start did not model (a temperature drift, currents: residuals tens of times the noise
+    fall to it), the sensors weighed alike at their common noise there and the attitudes by their residuals,
+    uncapped, for the rest of the round. Without it the round ended at the start's weights and a second did
+    the same fit again at the right ones (an evaluation and a step more: a third of the IMU's fit)."""
+
+    def renoise(theta: Array, d: Array, att: _Att | None) -> tuple[Array, _Att | None] | None:
+        h = None if att is None else att.h()
+        e = _prediction(model, theta, d, inputs, rates, h) - x
+        new = _robust_sigma(e, weights, residual_dof(sigma, model.sensors, _attitude_precision(att)))
+        common = float(np.median(new))
+        if not common < RENOISED * float(np.max(sigma)):
+            return None
+        share = attitude_share(sigma, att)
+        return np.full(model.sensors, max(common, 1e-12)), None if att is None else _attitude_weights(att, d,
+                                                                                                      share=share)
+    return renoise
 
 
 def _final_solution(model: ForwardModel, theta: Array, d: Array, x: Array, inputs: SetInputs, rates: Array | None,

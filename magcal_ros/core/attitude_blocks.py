@@ -270,7 +270,7 @@ def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     for g in range(model.field_groups):
         rows = att.groups == g
         t = tangent(state.fields[g])
-        cols = np.einsum("ncb,cd->nbd", att.rotations[rows], t, optimize=True)  # (n, 3, 2) Q^T t
+        cols = np.matmul(att.rotations[rows].transpose(0, 2, 1), t)  # (n, 3, 2) Q^T t
         part = replace(att, rates=None if att.rates is None else att.rates[rows])
         cols = np.stack([_back(part, state, cols[:, :, j]) for j in range(2)], axis=2)
         jac[rows, :, model.field_slice(g)] = -np.einsum("ab,nbd->nad", at, cols)
@@ -286,39 +286,59 @@ def _times_positions(mats: Array, positions: Array) -> Array:
     return (mats.reshape(n * 3, 3) @ positions.T).reshape(n, 3, s).transpose(0, 2, 1)
 
 
+def _congruent(mats: Array, g: Array) -> Array:
+    """(N, 3, 3) ``M_k^T G M_k`` for each of ``mats`` (N, 3, 3)."""
+    return np.matmul(mats.transpose(0, 2, 1), np.matmul(g, mats))
+
+
 def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
     """(N, S, 3) ``R_k^T Gamma R_k p_i`` (units of F, array frame), or None without the block."""
     if att.positions is None:
         return None
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)  # array -> world
-    w = np.einsum("nba,bc,ncd->nad", ra, state.gradient, ra, optimize=True)
+    w = _congruent(ra, state.gradient)
     h = _times_positions(w, att.positions)
     return np.where(att.known[:, None, None], h, 0.0)
 
 
-def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardModel) -> Array | None:
-    """(N, S, 3, G) derivative of :func:`gradient_field` by the global parameters (None without the block)."""
+def gradient_columns(model: ForwardModel) -> NDArray[np.int64]:
+    """The global parameters :func:`gradient_field` depends on (the mounting's, the gradient's), in order."""
+    cols = [] if model.mounting_slice is None else list(range(model.global_size))[model.mounting_slice]
+    return np.array(cols + list(range(model.global_size))[model.gradient_slice], dtype=np.int64)
+
+
+def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardModel,
+                      compact: bool = False) -> Array | None:
+    """(N, S, 3, G) derivative of :func:`gradient_field` by the global parameters (None without the block);
+    ``compact``: by those of :func:`gradient_columns` only (N, S, 3, C), the others' columns being zero."""
     if att.positions is None or model.gradient_slice is None:
         return None
     n, s = len(att.groups), len(att.positions)
-    jac = np.zeros((n, s, 3, model.global_size))
+    cols = gradient_columns(model)
+    jac = np.zeros((n, s, 3, len(cols)))
+    at = {c: i for i, c in enumerate(cols)}
+    gradient = slice(at[model.gradient_slice.start], at[model.gradient_slice.stop - 1] + 1)
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
     rp = _times_positions(ra, att.positions)  # R p, world
     # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
     j = len(GRADIENT_BASIS)
     erp = (rp.reshape(n * s, 3) @ GRADIENT_BASIS.transpose(2, 0, 1).reshape(3, j * 3)).reshape(n, s * j, 3)
     basis = np.matmul(erp, ra).reshape(n, s, j, 3)
-    jac[:, :, :, model.gradient_slice] = basis.transpose(0, 1, 3, 2)
-    if model.mounting_slice is not None:
+    jac[:, :, :, gradient] = basis.transpose(0, 1, 3, 2)
+    if model.mounting_slice is not None:  # the first columns
         # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
-        wq = np.einsum("nba,bc,ncd->nad", att.rotations, state.gradient, att.rotations, optimize=True)
+        wq = _congruent(att.rotations, state.gradient)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
         wap = _times_positions(wq, ap)
         wq_ap = (wq.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
         inner = skew(wap) - wq_ap.transpose(0, 2, 1, 3)  # W [A p]x per set and sensor
-        jac[:, :, :, model.mounting_slice] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
+        jac[:, :, :, :3] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
     jac[~att.known] = 0.0  # (built here: zeroed in place)
-    return jac
+    if compact:
+        return jac
+    full = np.zeros((n, s, 3, model.global_size))
+    full[..., cols] = jac
+    return full
 
 
 def robust_sigma(e: Array, weights: Array, share: float = 0.0) -> float:
@@ -456,15 +476,15 @@ def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], c
     fields = np.zeros((len(a), count, 3))
 
     def world(mounts: Array) -> Array:
-        return np.einsum("nab,kbc,nc->kna", rot, mounts, d, optimize=True)  # Q A d: should be f_g
+        return np.matmul(rot, np.matmul(d, mounts.transpose(0, 2, 1))[..., None])[..., 0]  # Q A d: should be f_g
 
     for _ in range(rounds):
         if field is not None:
             fields[:] = field
         else:
-            m = np.einsum("gn,kna->kga", member, world(a))
+            m = np.matmul(member, world(a))  # (K, G, 3) each group's sum
             fields = m / np.maximum(np.linalg.norm(m, axis=2, keepdims=True), 1e-300)
-        target = np.einsum("nba,knb->kna", rot, fields[:, groups])  # Q^T f: should be A d
+        target = np.matmul(rot.transpose(0, 2, 1), fields[:, groups][..., None])[..., 0]  # Q^T f: should be A d
         a, before = procrustes(d, target), a
         if np.max(np.abs(a - before)) < START_TOLERANCE:
             break

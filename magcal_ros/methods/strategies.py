@@ -51,8 +51,10 @@ def _no_std() -> Array:
 
 # -- scalar solvers -----------------------------------------------------------------
 def solve_ml(r: Array, f: float | None, o: "SolveOptions") -> ScalarFit:
-    """Closed-form start, then maximum likelihood (:func:`~magcal_ros.core.scalar_fit.ml_fit`)."""
-    return ml_fit(r, f, loss=o.loss, loss_scale=o.loss_scale)
+    """Closed-form start, then maximum likelihood (:func:`~magcal_ros.core.scalar_fit.ml_fit`); without the
+    noise's bias correction when the joint fit follows (``o.joint``: a start, the joint fit has no such bias; with
+    residuals the start does not model, a temperature drift or currents, the correction was a second fit)."""
+    return ml_fit(r, f, loss=o.loss, loss_scale=o.loss_scale, bias_correction=not o.joint)
 
 
 def solve_linear(r: Array, f: float | None, o: "SolveOptions") -> ScalarFit:
