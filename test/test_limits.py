@@ -292,6 +292,28 @@ def test_the_coverage_counts_the_cells_of_the_directions_visited() -> None:
     assert excitation(3e-5 * line + offset).coverage == pytest.approx(2 / SPHERE_CELLS)  # both ends of the line
 
 
+def test_a_long_recordings_coverage_and_quadric_ratio_count_every_set() -> None:
+    """Over more sets than one of the excitation's chunks, the coverage and the quadric ratio are those of every
+    set: a cap of directions whose last few sets (in the last chunk) visit cells no other set does, and a quadric
+    ratio against the singular values of the whole design matrix (planted: the last chunk left out)."""
+    from magcal_ros.core.observability import EXCITATION_CHUNK, SPHERE_CELLS, centred_quadric_design, sphere_cells
+
+    centres = sphere_cells()
+    rng = np.random.default_rng(5)
+    n = 2 * EXCITATION_CHUNK + 123
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.where((d @ centres[5] > 0.3)[:, None], d, centres[5])  # a cap about one centre ...
+    d[-3:] = -centres[5]  # ... and the far side in the last sets only
+    readings = 3e-5 * d * rng.uniform(0.95, 1.05, size=(n, 1)) + np.array([3e-6, -2e-6, 1e-6])
+    moved = readings - readings.mean(axis=0)
+    exc = excitation(readings)
+    assert exc.coverage == pytest.approx(len(np.unique(np.argmax(moved @ centres.T, axis=1))) / SPHERE_CELLS)
+    sv = np.linalg.svd(centred_quadric_design(moved.T, float(np.median(np.linalg.norm(moved, axis=1)))),
+                       compute_uv=False)
+    assert exc.quadric_ratio == pytest.approx(sv[8] / sv[0], rel=1e-6)
+
+
 def test_a_calibration_needs_12_sets() -> None:
     from magcal_ros.core.observability import sphere_cells
 

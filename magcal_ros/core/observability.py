@@ -102,11 +102,11 @@ class Excitation:
             raise ObservabilityError(why)
 
 
-def gram_singular_values(design: Array) -> Array:
-    """Singular values of a tall matrix (largest first) from its Gram matrix (faster than
-    a QR or SVD of the matrix itself), accurate for those above about 1e-7 of the largest (the quadric
-    ratio is judged at :data:`MIN_QUADRIC_RATIO`)."""
-    return np.sqrt(np.clip(np.linalg.eigvalsh(design.T @ design)[::-1], 0.0, None))
+def gram_singular_values(gram: Array) -> Array:
+    """Singular values of a tall matrix (largest first) from its Gram matrix ``gram`` (its ``D^T D``: faster
+    than a QR or SVD of the matrix itself, and summed by chunks of rows), accurate for those above about 1e-7
+    of the largest (the quadric ratio is judged at :data:`MIN_QUADRIC_RATIO`)."""
+    return np.sqrt(np.clip(np.linalg.eigvalsh(gram)[::-1], 0.0, None))
 
 
 def centred_quadric_design(xt: Array, scale: float) -> Array:
@@ -145,12 +145,29 @@ def excitation(readings: ArrayLike) -> Excitation:
     normal = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
     norms = np.sqrt(np.einsum("an,an->n", centred, centred))
     moved = centred if np.all(norms > 0) else centred[:, norms > 0]
-    visited = 0
-    if moved.shape[1]:  # the cell of a direction: the nearest centre, the largest dot product (any length)
-        dots = _CELLS32 @ moved.astype(np.float32)  # (cells, N); single precision: half the work, and a
-        visited = int(np.count_nonzero((dots == dots.max(axis=0)).any(axis=1)))  # tie at 1e-7 counts both
+    visited = _visited_cells(moved)
     ratio = 0.0
     if n >= 10:
-        sv = gram_singular_values(centred_quadric_design(centred, float(np.median(norms))))
+        scale = float(np.median(norms))
+        gram = np.zeros((10, 10))
+        for lo in range(0, n, EXCITATION_CHUNK):  # a chunk at a time: its design stays in the caches
+            design = centred_quadric_design(centred[:, lo : lo + EXCITATION_CHUNK], scale)
+            gram += design.T @ design
+        sv = gram_singular_values(gram)
         ratio = float(sv[8] / sv[0]) if sv[0] > 0 else 0.0
     return Excitation(n, spread, normal, visited / SPHERE_CELLS, ratio)
+
+
+EXCITATION_CHUNK: int = 16_384
+"""Sets per chunk of :func:`excitation`'s passes over the readings."""
+
+
+def _visited_cells(moved: Array) -> int:
+    """How many of the :data:`SPHERE_CELLS` cells the directions of ``moved`` (3, N, any length) visit: the cell of
+    a direction is the nearest centre, the largest dot product; in single precision (half the work; a direction
+    within about 1e-7 of a boundary counts for both cells), a chunk of directions at a time."""
+    seen = np.zeros(SPHERE_CELLS, dtype=bool)
+    for lo in range(0, moved.shape[1], EXCITATION_CHUNK):
+        dots = _CELLS32 @ moved[:, lo : lo + EXCITATION_CHUNK].astype(np.float32)  # (cells, chunk)
+        seen |= (dots == dots.max(axis=0)).any(axis=1)
+    return int(np.count_nonzero(seen))
