@@ -883,14 +883,23 @@ class AcceptanceRule:
 
     def _hidden_by_queue(self, index: int, held: tuple[int, Any, str | None, int | None, int], came: int | None,
                          period: int) -> bool:
-        """Whether a stamp ahead of its sequence (``held``, taken from a busy receiver's queue: delivered bunched, or
-        later than it came, ``came`` ns) arrived later than its stamp says by more than half a ``period`` (ns): the
-        queue's delay hides a step forward of the stamps up to that size as well as it hides a pause."""
+        """Whether a stamp ahead of its sequence (``held``, taken from a busy receiver's queue: delivered bunched,
+        later than it came, ``came`` ns, or off the sensor's sample grid after a message of its own that came late,
+        before any other sensor's told when it came) arrived later than its stamp says by more than half a
+        ``period`` (ns): the queue's delay hides a step forward of the stamps up to that size as well as it hides a
+        pause. (Lost samples keep the grid: a gap on it, every arrival late on a loaded receiver, is not held.)"""
         s = self.streams[index]
         receipt = held[3]
-        if receipt is None or came == receipt and not s.bunched(receipt, period):
+        if receipt is None or came == receipt and not s.bunched(receipt, period) and \
+                not (self._own_late(index, period) and s.off_grid(held[0])):
             return False
         return 2 * _lateness(s, (held[0], receipt)) > period and self._receiver_late(index, receipt, period)
+
+    def _own_late(self, index: int, period: int) -> bool:
+        """Whether sensor ``index``'s previous message came later than its stamps' lead says by more than half a
+        ``period`` (ns)."""
+        s = self.streams[index]
+        return s.last_receipt is not None and 2 * _lateness(s, (s.last, s.last_receipt)) > period
 
     def _receiver_late(self, index: int, receipt: int, period: int) -> bool:
         """Whether the receiver was late with every sensor at ``receipt`` (ns): each other sensor's latest message
