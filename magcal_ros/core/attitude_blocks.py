@@ -303,8 +303,9 @@ def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
 
 def gradient_columns(model: ForwardModel) -> NDArray[np.int64]:
     """The global parameters :func:`gradient_field` depends on (the mounting's, the gradient's), in order."""
-    cols = [] if model.mounting_slice is None else list(range(model.global_size))[model.mounting_slice]
-    return np.array(cols + list(range(model.global_size))[model.gradient_slice], dtype=np.int64)
+    every = np.arange(model.global_size)
+    mounting = every[:0] if model.mounting_slice is None else every[model.mounting_slice]
+    return np.concatenate([mounting, every[model.gradient_slice]])
 
 
 def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardModel,
@@ -316,23 +317,22 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     n, s = len(att.groups), len(att.positions)
     cols = gradient_columns(model)
     jac = np.zeros((n, s, 3, len(cols)))
-    at = {c: i for i, c in enumerate(cols)}
-    gradient = slice(at[model.gradient_slice.start], at[model.gradient_slice.stop - 1] + 1)
+    mounted = 0 if model.mounting_slice is None else 3  # the mounting's columns first, then the gradient's
     ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
     rp = _times_positions(ra, att.positions)  # R p, world
     # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
     j = len(GRADIENT_BASIS)
     erp = (rp.reshape(n * s, 3) @ GRADIENT_BASIS.transpose(2, 0, 1).reshape(3, j * 3)).reshape(n, s * j, 3)
     basis = np.matmul(erp, ra).reshape(n, s, j, 3)
-    jac[:, :, :, gradient] = basis.transpose(0, 1, 3, 2)
-    if model.mounting_slice is not None:  # the first columns
+    jac[:, :, :, mounted:] = basis.transpose(0, 1, 3, 2)
+    if mounted:
         # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
         wq = _congruent(att.rotations, state.gradient)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
         wap = _times_positions(wq, ap)
         wq_ap = (wq.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
         inner = skew(wap) - wq_ap.transpose(0, 2, 1, 3)  # W [A p]x per set and sensor
-        jac[:, :, :, :3] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
+        jac[:, :, :, :mounted] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
     jac[~att.known] = 0.0  # (built here: zeroed in place)
     if compact:
         return jac
