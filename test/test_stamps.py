@@ -7,15 +7,19 @@ float comes back off by up to ~120 ns; these stamps carry odd nanoseconds to cat
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rosbags.rosbag2 import Reader
 from test_offline import magcal, ok
 
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.stamps import format_seconds, parse_seconds, parse_seconds_column
+from magcal_ros.core.stamps import (MAX_SECONDS, _digit_seconds, _plain_seconds, format_seconds, parse_seconds,
+                                    parse_seconds_column)
 from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
@@ -68,6 +72,45 @@ def test_a_column_of_stamps_parses_as_each_stamp_alone() -> None:
     for bad in (["999999999999.5", "1.0"], ["9000000000.0", "1.0"]):
         with pytest.raises(InputError, match="out of range"):
             parse_seconds_column(bad)
+
+
+def _each(texts: list[str]) -> list[int] | None:
+    """The oracle: every text parsed alone (None: one of them is refused)."""
+    try:
+        return [parse_seconds(t) for t in texts]
+    except InputError:
+        return None
+
+
+_PLAIN = re.compile(r"[0-9]{1,12}\.[0-9]{1,9}")
+_DIGITS = re.compile(r"\d{1,12}(\.\d{1,9})?")  # numpy takes any decimal digit (Decimal too)
+_TEXTS = st.lists(st.one_of(
+    st.text(alphabet=st.sampled_from(list("0123456789.,-+e ") + ["\u00b2", "\u0661", "x"]), max_size=16),
+    st.builds(lambda w, f: f"{w}.{f}", st.integers(0, 10**13), st.text("0123456789", min_size=0, max_size=11)),
+    st.integers(0, 10**13).map(str)), min_size=1, max_size=6)
+
+
+@settings(max_examples=1500, derandomize=True, database=None, deadline=None)
+@given(_TEXTS)
+def test_a_generated_column_parses_as_each_text_alone_and_plain_ones_take_the_fast_paths(texts: list[str]) -> None:
+    """Any column: the same stamps as each text parsed alone, or the same refusal (a superscript digit, a
+    decimal comma: a traceback and a wrong time before). Columns of plain ``digits.digits`` (1-12 and 1-9
+    digits, below the range's end) take the joined-string path; ``digits[.digits]`` the numpy one; any other
+    text sends the column to the parse one by one."""
+    want = _each(texts)
+    if want is None:
+        with pytest.raises(InputError):
+            parse_seconds_column(texts)
+    else:
+        assert parse_seconds_column(texts).tolist() == want
+    in_range = want is not None and all(abs(v) < MAX_SECONDS * NS for v in want) and \
+        all(int(t.split(".")[0]) < MAX_SECONDS for t in texts if _DIGITS.fullmatch(t))
+    plain, digits = _plain_seconds(texts), _digit_seconds(texts)
+    assert (plain is not None) == (in_range and all(_PLAIN.fullmatch(t) for t in texts)), texts
+    assert (digits is not None) == (in_range and all(_DIGITS.fullmatch(t) for t in texts)), texts
+    for fast in (plain, digits):
+        if fast is not None:
+            assert fast.dtype == np.int64 and fast.tolist() == want
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])

@@ -70,19 +70,30 @@ def parse_seconds_column(texts: list[str]) -> NDArray[np.int64]:
     ``digits[.digits]`` with at most nine decimals (what :func:`format_seconds` writes);
     otherwise one by one (same results, same errors)."""
     plain = _plain_seconds(texts)
+    if plain is None:
+        plain = _digit_seconds(texts)
     if plain is not None:
         return plain
-    a = np.asarray(texts, dtype=str)
-    if a.ndim == 1 and len(a):
-        whole, dot, frac = np.char.partition(a, ".").T
-        plain = (np.char.str_len(whole) > 0) & (np.char.str_len(whole) <= 12) & np.char.isdigit(whole)
-        plain &= ((dot == "") & (frac == "")) | ((dot == ".") & (np.char.str_len(frac) <= 9) & np.char.isdigit(frac))
-        if np.all(plain):
-            seconds = whole.astype(np.int64)
-            if seconds.max() < MAX_SECONDS:  # (beyond: the one-by-one parse names it)
-                nsec = np.char.ljust(frac, 9, "0")
-                return seconds * NS_PER_S + np.where(frac == "", "0", nsec).astype(np.int64)
     return np.array([parse_seconds(t) for t in texts], dtype=np.int64)
+
+
+def _digit_seconds(texts: list[str]) -> NDArray[np.int64] | None:
+    """:func:`parse_seconds_column` of texts that are all ``digits`` or ``digits.digits`` (1-12 whole digits,
+    up to 9 decimals, ``str.isdecimal``: a superscript is a digit, not a decimal) below :data:`MAX_SECONDS`, by
+    numpy's string functions; None otherwise."""
+    a = np.asarray(texts, dtype=str)
+    if a.ndim != 1 or not len(a):
+        return None
+    whole, dot, frac = np.char.partition(a, ".").T
+    plain = (np.char.str_len(whole) > 0) & (np.char.str_len(whole) <= 12) & np.char.isdecimal(whole)
+    plain &= ((dot == "") & (frac == "")) | ((dot == ".") & (np.char.str_len(frac) <= 9) & np.char.isdecimal(frac))
+    if not np.all(plain):
+        return None
+    seconds = whole.astype(np.int64)
+    if seconds.max() >= MAX_SECONDS:  # (beyond: the one-by-one parse names it)
+        return None
+    nsec = np.char.ljust(frac, 9, "0")
+    return seconds * NS_PER_S + np.where(frac == "", "0", nsec).astype(np.int64)
 
 
 def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
@@ -91,11 +102,14 @@ def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
     if not isinstance(texts, list) or not texts or not isinstance(texts[0], str):
         return None
     try:
-        pieces = ",".join(texts).replace(".", ",").split(",")
+        joined = ",".join(texts)
     except TypeError:
         return None
+    if joined.count(",") != len(texts) - 1:
+        return None  # a text with a comma (a decimal comma is not a time)
+    pieces = joined.replace(".", ",").split(",")
     if len(pieces) != 2 * len(texts):
-        return None  # points and texts differ in number, or a comma
+        return None  # points and texts differ in number
     whole, frac = pieces[0::2], pieces[1::2]
     digits = "".join(whole) + "".join(frac)
     if not (digits.isascii() and digits.isdigit()):
