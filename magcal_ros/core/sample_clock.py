@@ -13,7 +13,8 @@ and unevenly. :class:`SampleClock` recovers ``n`` and ``a + b n`` from the stamp
    which the stamps sit best (the strongest line of their periodogram); for each, a
    straight line is fitted to (index, stamp) and the indices re-read from it, twice. The
    grid reading wins only with less than half the residual scale of the consecutive one (a
-   finer grid always fits a little better); the held samples are released with their
+   finer grid always fits a little better); stamps further from that line than the tracking's gate
+   (below) are left out of it (late deliveries), and the held samples are released with their
    fitted instants.
 2. **Tracking.** Each further stamp gets the index nearest to the line (``round((t - a) / b)``)
    and the fitted instant of that index. Stamps within :data:`GATE_SIGMAS` times the residual
@@ -91,6 +92,11 @@ def _coherence(y: list[float], period: float) -> tuple[float, float]:
         c += math.cos(w * v)
         sn += math.sin(w * v)
     return math.hypot(c, sn) / len(y), math.atan2(sn, c) / w
+
+
+def _inliers(index: list[int], y: list[float], a: float, b: float, gate: float) -> list[int]:
+    """Positions of the stamps ``y`` (ns) within ``gate`` (ns) of the line ``a + b index``."""
+    return [j for j, (i, v) in enumerate(zip(index, y)) if abs(v - (a + b * i)) <= gate]
 
 
 def _consecutive_indices(y: list[float], period: float) -> list[int]:
@@ -341,6 +347,11 @@ class SampleClock:
                 best = (sigma, index, a, b)
         assert best is not None
         sigma, index, a, b = best
+        clean = _inliers(index, y, a, b, max(GATE_SIGMAS * sigma, MIN_GATE * b))
+        if 2 * len(clean) > len(index) and len(clean) < len(index):  # late deliveries bend no line
+            a, b = fit_line([index[i] for i in clean], [y[i] for i in clean])
+        else:
+            clean = list(range(len(index)))
         released = self._learn
         self._learn = []
         if b <= 0 or sigma > IRREGULAR * b:
@@ -357,7 +368,7 @@ class SampleClock:
         self._t0, self._n0, self._n = t0, 0, index[-1]
         lam, last = self._lam, index[-1]
         s0 = s1 = s2 = y1 = y2 = 0.0
-        for i, v in zip(index, y):
+        for i, v in ((index[j], y[j]) for j in clean):
             w = lam ** (last - i)
             s0 += w
             s1 += w * i
@@ -402,12 +413,11 @@ class SampleClock:
         r = y - fitted
         var = self._var
         gate = max(GATE_SIGMAS * var ** 0.5, MIN_GATE * b)
-        if r > gate or r < -gate:  # an outlier moves the line by its clipped residual only (Huber)
-            self._bad += 1
-            r = gate if r > 0 else -gate
-            y = fitted + r
-        else:
-            self._bad = 0
+        if r > gate or r < -gate:  # an outlier (a late delivery) moves neither the line nor its scale: clipped,
+            self._bad += 1  # late ones (all on one side) pulled the line a gate's width each and widened the gate
+            self._tracked(k)
+            return instant
+        self._bad = 0
         lam = self._lam
         self._s0 = s0 = self._s0 * lam + 1.0
         self._s1 = s1 = self._s1 * lam + k
@@ -422,11 +432,16 @@ class SampleClock:
                 self._a = (y1 - b2 * s1) / s0
         rate = 1.0 / s0  # a running mean at first, then the fit's memory
         self._var = var + rate * (r * r - var)
+        self._tracked(k)
+        return instant
+
+    def _tracked(self, k: int) -> None:
+        """After sample ``k`` (relative): learn again after :data:`RELEARN_AFTER` outliers in a row, else keep the
+        origin near the newest samples."""
         if self._bad >= RELEARN_AFTER:
             self._relearn()
         elif k > self.memory:
             self._recentre(k)
-        return instant
 
     def _recentre(self, k: int) -> None:
         """Move the origin to index ``k`` (relative) so the sums stay well conditioned."""
