@@ -57,9 +57,25 @@ class ExactMonitor:
             self.offsets[k].extend(t - r for t, r in zip(stamps[k], ref))
             low = [min(a, b) for a, b in zip(low, stamps[k])]
             high = [max(a, b) for a, b in zip(high, stamps[k])]
-        self.wide += sum(b - a > WIDE * window for a, b in zip(low, high))
-        self.events += len(ref)
-        if self.events >= EVENTS:
+        self._judged(len(ref), sum(b - a > WIDE * window for a, b in zip(low, high)), window)
+
+    def missed(self, stamps: Sequence[int], window: int) -> None:
+        """A set the exact rule could not form although its sensors' next stamps (``stamps[k]`` of sensor ``k``,
+        ns) lie within half a sample period of each other: one instant beyond the ``window`` (ns), a set at its
+        edge (counted as one). Without it a clock that drifted past the window within a block formed no more
+        sets, and the block that would have ended exact matching was never whole. Judged at once when the block
+        already holds more sets at the edge than a whole block may (each miss is a set lost; the sets formed are
+        counted in runs, so only a miss, one at a time on both paths, ends a block early)."""
+        for k in range(1, len(stamps)):
+            self.offsets[k].append(stamps[k] - stamps[0])
+        self._judged(1, 1, window, early=self.wide + 1 > WIDE_FRACTION * EVENTS)
+
+    def _judged(self, events: int, wide: int, window: int, early: bool = False) -> None:
+        """Count ``events`` sets, ``wide`` of them at the window's edge; judge the block once it is whole (or
+        ``early``)."""
+        self.wide += wide
+        self.events += events
+        if self.events >= EVENTS or early:
             self.reason = self._judge(window)
             self.events = self.wide = 0
             self.offsets = [[] for _ in self.names]
