@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from magcal_ros.core.sample_clock import LEARN_INTERVALS, MEMORY, SampleClock
+from magcal_ros.core.sample_clock import LEARN_INTERVALS, MEMORY, SampleClock, _median
 
 MS = 1_000_000
 PERIOD = 10 * MS
@@ -203,3 +203,102 @@ def test_a_generated_sensor_clock_gives_each_sample_its_index_and_instant(
     assert clock.period_ns == pytest.approx(period, abs=5.0 * jitter * (12.0 / n_eff ** 3) ** 0.5 + 30e-6 * period)
     if not late:
         assert clock.lost == int(index[-1] - index[0] + 1 - len(index)) - clock.dropped
+
+
+@settings(max_examples=60, derandomize=True, database=None, deadline=None)
+@given(st.floats(0.32, 0.48), st.integers(40, 300), st.sampled_from([1.0, -1.0]), st.integers(0, 2**32 - 1))
+def test_a_phase_step_of_the_stamps_is_learnt_again_after_eight_outliers(size: float, at: int, sign: float,
+                                                                         seed: int) -> None:
+    """The driver's stamp delay steps by a third to a half of a period (either way) at sample ``at``: the stamps
+    after it lie off the line, beyond its gate; eight in a row and the clock learns again. Each sample still
+    gets its own index (no loss, no duplicate) and, once learnt again, the instants lie on the new stamps'
+    line. The instants before the step and their index place are those of the line."""
+    rng = np.random.default_rng(seed)
+    n = at + 200
+    truth = 10**12 + np.arange(n, dtype=np.int64) * PERIOD
+    line = truth + np.where(np.arange(n) >= at, int(sign * size * PERIOD), 0)  # what the stamps say
+    stamps = line + np.rint(rng.normal(0, 0.02 * MS, n)).astype(np.int64)
+    got, clock = clocked(stamps)
+    inst = np.array([got[i] for i in range(n)], dtype=float)
+    assert np.max(np.abs(inst[:at] - line[:at])) < 0.05 * MS
+    settled = at + 8 + LEARN_INTERVALS + 2
+    assert np.max(np.abs(inst[settled:] - line[settled:])) < 0.05 * MS
+    assert clock.lost == 0 and clock.dropped == 0 and np.all(np.diff(inst) > 0)
+
+
+def test_the_instant_of_a_sample_index_and_the_end_of_a_stream() -> None:
+    """``instant(n)``: where the line puts sample ``n`` of the run; a stamp ambiguous at the very end of the stream is
+    released by ``finish`` at its index; a run of four stamps before a pause is fitted (the middle two moved onto a
+    line through all), one of three is released as it is."""
+    truth = 10**12 + np.arange(300, dtype=np.int64) * PERIOD
+    clock = SampleClock()
+    got: dict[int, int | None] = {}
+    for i in range(299):
+        got.update(dict(clock.offer(int(truth[i]) + (1 if i % 2 else -1) * 100, i)))
+    for n in (0, 150, 298, 400):
+        assert abs(clock.instant(n) - (int(truth[0]) + n * PERIOD)) < 1_000
+    got.update(dict(clock.offer(int(truth[299]) + int(0.4 * PERIOD), 299)))  # ambiguous: held
+    assert 299 not in got and clock.pending == 1
+    got.update(dict(clock.finish()))
+    assert got[299] == pytest.approx(int(truth[299]), abs=1_000) and clock.pending == 0
+    for count, fitted in ((4, True), (3, False)):
+        short = SampleClock(pause_ns=500 * MS)
+        stamps = [10**12 + k * PERIOD + d for k, d in zip(range(count), (0, 300_000, -300_000, 0))]
+        out: dict[object, int | None] = {}
+        for k, t in enumerate(stamps):
+            out.update(dict(short.offer(t, k)))
+        out.update(dict(short.offer(stamps[-1] + 10**9, "after")))  # a pause ends the run
+        assert (out[1], out[2]) != (stamps[1], stamps[2]) if fitted else [out[k] for k in range(count)] == stamps
+
+
+def test_a_restart_while_the_clock_is_still_learning_keeps_the_new_runs_stamps() -> None:
+    """A restart before the old run's clock was learnt carries no grid over: the new run's instants follow its own
+    stamps (a grid taken from an unlearnt line put them anywhere)."""
+    clock = SampleClock()
+    for i in range(10):
+        clock.offer(10**12 + i * PERIOD, i)
+    clock.restart()
+    start = 10**12 + 5 * 10**9 + 3_300_000  # off any grid of the first run
+    got: dict[int, int | None] = {}
+    for i in range(200):
+        got.update(dict(clock.offer(start + i * PERIOD, i)))
+    got.update(dict(clock.finish()))
+    assert max(abs(got[i] - (start + i * PERIOD)) for i in range(200)) < 1_000 and clock.lost == 0
+
+
+@given(st.lists(st.floats(-1e9, 1e9), min_size=1, max_size=40))
+@settings(max_examples=200, derandomize=True, database=None, deadline=None)
+def test_the_median_of_the_learnt_intervals_is_the_median(values: list[float]) -> None:
+    assert _median(values) == pytest.approx(float(np.median(values)), rel=1e-12, abs=1e-6)
+
+
+def test_a_clock_taking_over_counts_each_lost_sample_once() -> None:
+    """A new clock takes over from an old one (exact matching ended: the queued messages go to interpolation) and
+    is offered again the last 60 stamps, which hold gaps of two and one lost samples the old one counted already:
+    it starts from the old counts less those, then counts them itself: every lost sample once, and the ambiguous
+    samples the old one dropped carried over; from a clock that lost nothing, nothing."""
+    index = np.delete(np.arange(400), [50, 51, 120, 350, 351, 370])  # 6 lost in 4 gaps, 3 in 2 within the 60
+    stamps = (10**12 + index * PERIOD).tolist()
+    old = SampleClock()
+    for k, t in enumerate(stamps):
+        old.offer(t, k)
+    old.dropped = 2
+    assert (old.lost, old.gaps) == (6, 4)
+    new = SampleClock()
+    new.carry_counts(old, stamps[-60:])
+    assert (new.lost, new.gaps, new.dropped) == (3, 2, 2)
+    for k, t in enumerate(stamps[-60:]):
+        new.offer(t, k)
+    new.finish()
+    assert (new.lost, new.gaps) == (6, 4)
+    clean = SampleClock()
+    for k in range(100):
+        clean.offer(10**12 + k * PERIOD, k)
+    new = SampleClock()
+    new.carry_counts(clean, (10**12 + np.arange(60, 100) * PERIOD).tolist())
+    assert (new.lost, new.gaps, new.dropped) == (0, 0, 0)
+    unlearnt = SampleClock()  # an old clock with no period yet passes its counts as they are
+    unlearnt.lost, unlearnt.gaps = 4, 1
+    new = SampleClock()
+    new.carry_counts(unlearnt, stamps[:10])
+    assert (new.lost, new.gaps) == (4, 1)

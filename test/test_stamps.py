@@ -18,8 +18,9 @@ from rosbags.rosbag2 import Reader
 from test_offline import magcal, ok
 
 from magcal_ros.core.recording import Recording
-from magcal_ros.core.stamps import (MAX_SECONDS, _digit_seconds, _plain_seconds, format_seconds, parse_seconds,
-                                    parse_seconds_column)
+from magcal_ros.core.stamps import (MAX_SECONDS, _digit_seconds, _plain_seconds, format_seconds,
+                                    format_seconds_column, join_stamp, parse_seconds, parse_seconds_column,
+                                    seconds_to_ns, split_stamp)
 from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
@@ -72,6 +73,27 @@ def test_a_column_of_stamps_parses_as_each_stamp_alone() -> None:
     for bad in (["999999999999.5", "1.0"], ["9000000000.0", "1.0"]):
         with pytest.raises(InputError, match="out of range"):
             parse_seconds_column(bad)
+
+
+def test_stamps_to_and_from_seconds_at_the_edges(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Zero is written without a sign; float seconds go to the nearest nanosecond either side of zero; an empty
+    column is an empty array; a column of plain texts never goes to the one-by-one parse (a CSV of a million
+    rows)."""
+    assert format_seconds(0) == "0.000000000" and format_seconds(-1) == "-0.000000001"
+    assert format_seconds_column(np.array([0, 1_500_000_000])) == ["0.000000000", "1.500000000"]
+    assert seconds_to_ns(np.array([1.5, -0.25, 2.0000000004, 1e-9])).tolist() == [1_500_000_000, -250_000_000,
+                                                                                 2_000_000_000, 1]
+    sec, nsec = split_stamp(np.array([-1, 1_700_000_000_999_999_999]))
+    assert sec.tolist() == [-1, 1_700_000_000] and nsec.tolist() == [999_999_999, 999_999_999]
+    assert sec.dtype == np.int64 and join_stamp(sec, nsec).tolist() == [-1, 1_700_000_000_999_999_999]
+    assert parse_seconds_column([]).dtype == np.int64 and not len(parse_seconds_column([]))
+    import magcal_ros.core.stamps as stamps_module
+
+    def refused(text: str) -> int:
+        raise AssertionError(f"{text!r} parsed one by one")
+    monkeypatch.setattr(stamps_module, "parse_seconds", refused)
+    assert parse_seconds_column(["1.5", "2.25"]).tolist() == [1_500_000_000, 2_250_000_000]
+    assert parse_seconds_column(["1", "2.25"]).tolist() == [1_000_000_000, 2_250_000_000]
 
 
 def _each(texts: list[str]) -> list[int] | None:

@@ -92,8 +92,7 @@ def _digit_seconds(texts: list[str]) -> NDArray[np.int64] | None:
     seconds = whole.astype(np.int64)
     if seconds.max() >= MAX_SECONDS:  # (beyond: the one-by-one parse names it)
         return None
-    nsec = np.char.ljust(frac, 9, "0")
-    return seconds * NS_PER_S + np.where(frac == "", "0", nsec).astype(np.int64)
+    return seconds * NS_PER_S + np.char.ljust(frac, 9, "0").astype(np.int64)  # no decimals: nine zeros
 
 
 def _plain_seconds(texts: list[str]) -> NDArray[np.int64] | None:
