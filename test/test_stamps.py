@@ -19,8 +19,8 @@ from test_offline import magcal, ok
 
 from magcal_ros.core.recording import Recording
 from magcal_ros.core.stamps import (MAX_SECONDS, _digit_seconds, _plain_seconds, format_seconds,
-                                    format_seconds_column, join_stamp, parse_seconds, parse_seconds_column,
-                                    seconds_to_ns, split_stamp)
+                                    format_seconds_column, join_stamp, ns_to_seconds, parse_seconds,
+                                    parse_seconds_column, seconds_to_ns, split_stamp)
 from magcal_ros.errors import InputError
 from magcal_ros.io import calibration_file as calfile
 from magcal_ros.io import cdr
@@ -87,6 +87,8 @@ def test_stamps_to_and_from_seconds_at_the_edges(monkeypatch: pytest.MonkeyPatch
     assert sec.tolist() == [-1, 1_700_000_000] and nsec.tolist() == [999_999_999, 999_999_999]
     assert sec.dtype == np.int64 and join_stamp(sec, nsec).tolist() == [-1, 1_700_000_000_999_999_999]
     assert parse_seconds_column([]).dtype == np.int64 and not len(parse_seconds_column([]))
+    assert ns_to_seconds(np.array([1_500_000_000, -1, 1_700_000_000_000_000_001])).tolist() == \
+        pytest.approx([1.5, -1e-9, 1.7e9], rel=1e-15, abs=1e-15)
     import magcal_ros.core.stamps as stamps_module
 
     def refused(text: str) -> int:
