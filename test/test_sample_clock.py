@@ -168,7 +168,7 @@ def clock_streams(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     lost = rng.random(n) < loss
     for at in rng.choice(n, int(loss * n / 8), replace=False):  # runs of two to four lost
         lost[at:at + int(rng.integers(2, 5))] = True
-    lost[:2] = False
+    lost[0] = False  # (the truth's origin; the sample after it may be lost)
     keep = np.flatnonzero(~lost)
     keep = keep[np.concatenate([[True], np.diff(stamps[keep]) > 0])]
     return instants[keep], stamps[keep], keep, period, jitter, late
@@ -228,8 +228,8 @@ def test_a_phase_step_of_the_stamps_is_learnt_again_after_eight_outliers(size: f
 
 def test_the_instant_of_a_sample_index_and_the_end_of_a_stream() -> None:
     """``instant(n)``: where the line puts sample ``n`` of the run; a stamp ambiguous at the very end of the stream is
-    released by ``finish`` at its index; a run of four stamps before a pause is fitted (the middle two moved onto a
-    line through all), one of three is released as it is."""
+    released by ``finish`` at its index; a run of four stamps before a pause is released on the least-squares
+    line through them, one of three as it is."""
     truth = 10**12 + np.arange(300, dtype=np.int64) * PERIOD
     clock = SampleClock()
     got: dict[int, int | None] = {}
@@ -248,7 +248,12 @@ def test_the_instant_of_a_sample_index_and_the_end_of_a_stream() -> None:
         for k, t in enumerate(stamps):
             out.update(dict(short.offer(t, k)))
         out.update(dict(short.offer(stamps[-1] + 10**9, "after")))  # a pause ends the run
-        assert (out[1], out[2]) != (stamps[1], stamps[2]) if fitted else [out[k] for k in range(count)] == stamps
+        if fitted:  # on the least-squares line through the run's stamps
+            b, a = np.polyfit(np.arange(count), np.array(stamps, dtype=float) - stamps[0], 1)
+            line = [stamps[0] + int(round(a + b * k)) for k in range(count)]
+            assert [out[k] for k in range(count)] == line and line[1:3] != stamps[1:3]
+        else:
+            assert [out[k] for k in range(count)] == stamps
 
 
 def test_a_restart_while_the_clock_is_still_learning_keeps_the_new_runs_stamps() -> None:
@@ -302,3 +307,46 @@ def test_a_clock_taking_over_counts_each_lost_sample_once() -> None:
     new = SampleClock()
     new.carry_counts(unlearnt, stamps[:10])
     assert (new.lost, new.gaps) == (4, 1)
+
+
+@pytest.mark.parametrize("off, snapped", [(0.2, True), (0.35, False)])
+def test_a_restart_is_put_back_on_the_old_grid_only_within_a_quarter_period(off: float, snapped: bool) -> None:
+    """A restart placed a fifth of a period off the old grid is put back on it; one placed 0.35 of a period off
+    is another phase (the sensor's own clock restarted): its stamps keep it."""
+    truth = 10**12 + np.arange(400, dtype=np.int64) * PERIOD
+    clock = SampleClock()
+    for i in range(200):
+        clock.offer(int(truth[i]), i)
+    clock.restart()
+    got: dict[int, int | None] = {}
+    moved = int(off * PERIOD)
+    for i in range(200, 400):
+        got.update(dict(clock.offer(int(truth[i]) + moved, i)))
+    got.update(dict(clock.finish()))
+    err = np.array([got[i] for i in range(200, 400)]) - truth[200:]
+    assert np.max(np.abs(err - (0 if snapped else moved))) < 1_000
+
+
+def test_stamps_that_keep_no_rate_are_used_as_they_are_and_tried_again_later() -> None:
+    """Stamps at random intervals (a sensor read on demand): not clocked, each sample keeps its stamp, no loss;
+    after 16 learning lengths of them the clock tries again, and the fixed rate (0.3 ms of jitter) that follows
+    is clocked from its first stamps on."""
+    rng = np.random.default_rng(6)
+    n = LEARN_INTERVALS + 1 + 16 * LEARN_INTERVALS  # learnt from once, then 16 learning lengths passed as they are
+    irregular = 10**12 + np.cumsum(rng.integers(2 * MS, 40 * MS, n))
+    truth = irregular[-1] + 20 * MS + np.arange(300, dtype=np.int64) * PERIOD
+    stamps = np.concatenate([irregular, truth + np.rint(rng.normal(0, 0.3 * MS, 300)).astype(np.int64)])
+    got, clock = clocked(stamps)
+    assert all(got[i] == int(stamps[i]) for i in range(len(irregular)))
+    assert clock.regular and clock.period_ns == pytest.approx(PERIOD, rel=1e-3)
+    first = range(len(irregular), len(irregular) + LEARN_INTERVALS)
+    assert all(got[i] != int(stamps[i]) for i in first)  # fitted, not passed as they are
+    err = np.array([got[i] for i in range(len(irregular) + 2 * LEARN_INTERVALS, len(stamps))]) - truth[64:]
+    assert np.sqrt(np.mean(err ** 2)) < 0.1 * MS  # the stamps alone: 0.3 ms
+
+
+def test_a_sample_lost_right_after_the_first_is_counted() -> None:
+    """Samples 1 and 40 lost: both counted, whether the gap lies in the stamps learnt from or after them."""
+    index = np.delete(np.arange(200), [1, 40])
+    _, clock = clocked(10**12 + index * PERIOD)
+    assert (clock.lost, clock.gaps) == (2, 2)
