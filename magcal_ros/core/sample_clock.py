@@ -413,8 +413,8 @@ class SampleClock:
         r = y - fitted
         var = self._var
         gate = max(GATE_SIGMAS * var ** 0.5, MIN_GATE * b)
-        if r > gate or r < -gate:  # an outlier (a late delivery) moves neither the line nor its scale: clipped,
-            self._bad += 1  # late ones (all on one side) pulled the line a gate's width each and widened the gate
+        if r > gate or r < -gate:  # an outlier (a late delivery) moves neither the line nor its scale (clipped,
+            self._bad += 1  # late ones, all on one side, pulled the line a gate's width each and widened the gate)
             self._tracked(k)
             return instant
         self._bad = 0
