@@ -350,3 +350,28 @@ def test_a_sample_lost_right_after_the_first_is_counted() -> None:
     index = np.delete(np.arange(200), [1, 40])
     _, clock = clocked(10**12 + index * PERIOD)
     assert (clock.lost, clock.gaps) == (2, 2)
+
+
+@settings(max_examples=60, derandomize=True, database=None, deadline=None)
+@given(st.lists(st.integers(0, 60), min_size=1, max_size=120), st.integers(1, 4))
+def test_stamps_in_any_order_release_every_sample_once_and_never_fail(slots: list[int], per: int) -> None:
+    """Stamps on a grid of ``PERIOD / per`` in any order, repeats and all (offered as they are: the rule in front
+    of the clock left out): every sample comes out exactly once, with an instant or None (dropped). (A run learnt
+    from stamps that went back or repeated divided by a zero period, or found no line.)"""
+    stamps = [10**12 + s * PERIOD // per for s in slots]
+    clock = SampleClock()
+    out = []
+    for i, t in enumerate(stamps):
+        out += clock.offer(t, i)
+    out += clock.finish()
+    assert sorted(p for p, _ in out) == list(range(len(stamps)))
+
+
+def test_a_stamp_back_while_learning_is_dropped() -> None:
+    """While the clock learns, a stamp not after the one before it is dropped (None); the rest learn the rate."""
+    stamps = [10**12 + k * PERIOD for k in range(50)]
+    stamps.insert(10, stamps[9] - 3 * MS)
+    stamps.insert(20, stamps[19])
+    got, clock = clocked(np.array(stamps, dtype=np.int64))
+    assert got[10] is None and got[20] is None
+    assert clock.period_ns == pytest.approx(PERIOD, rel=1e-6) and clock.lost == 0

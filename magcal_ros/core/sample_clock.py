@@ -33,7 +33,8 @@ and unevenly. :class:`SampleClock` recovers ``n`` and ``a + b n`` from the stamp
    as lost. Otherwise each skipped index is a sample lost before the stamps were seen
    (:attr:`lost`, in :attr:`gaps` runs).
 
-Stamps must be offered strictly increasing (the synchroniser's acceptance rule sees to it).
+Stamps should be offered strictly increasing (the synchroniser's acceptance rule sees to it); one
+that is not after the stamp before it while learning is dropped (``None``), as an ambiguous one is.
 A sensor whose stamps do not fit a fixed rate (residual scale above :data:`IRREGULAR` of a
 period) is not clocked: its samples keep their stamps (``instant == stamp``).
 Plain Python floats throughout: this runs once per message in a live node.
@@ -285,6 +286,9 @@ class SampleClock:
             out.append((payload, stamp))
             if self._raw_count >= 16 * LEARN_INTERVALS:  # try again now and then
                 self.regular, self._raw_count = True, 0
+            return out
+        if self._learn and stamp <= self._learn[-1][0]:
+            out.append((payload, None))  # not after the stamp before it: no index can be read from it
             return out
         self._learn.append((stamp, payload))
         if len(self._learn) > LEARN_INTERVALS:

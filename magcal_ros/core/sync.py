@@ -935,15 +935,17 @@ class StreamSynchronizer:
     # -- input ------------------------------------------------------------------------
     def _replay_held(self) -> None:
         """Feed the messages held while choosing into the chosen rule as batches (:meth:`add_streams`: in the
-        order they came where that matters, as :meth:`_replay` offers them one at a time)."""
+        order they came where that matters, as :meth:`_replay` offers them one at a time), each sensor's held
+        messages before its held batches."""
         assert self.engine is not None
         batches = []
-        for h in self._held:
-            stamps = np.array([m[0] for m in h], dtype=np.int64)
-            vectors = np.array([m[1:4] for m in h], dtype=float).reshape(-1, 3)
-            receipts = np.array([m[4] for m in h], dtype=np.int64)
-            batches.append((stamps, vectors, receipts))
+        for h, hb in zip(self._held, self._held_batches):
+            parts = [(np.array([m[0] for m in h], dtype=np.int64), np.array([m[1:4] for m in h], dtype=float).reshape(-1, 3),
+                      None if any(m[4] is None for m in h) else np.array([m[4] for m in h], dtype=np.int64))] + hb
+            receipts = None if any(r is None for _, _, r in parts) else np.concatenate([r for _, _, r in parts])
+            batches.append((np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), receipts))
         self._held = [[] for _ in range(self.size)]
+        self._held_batches = [[] for _ in range(self.size)]
         self.engine.add_streams(batches)
 
     def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
@@ -1004,18 +1006,15 @@ class StreamSynchronizer:
 
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets decided so far (everything, dropping what is left, when ``final``)."""
-        streamed: list[SyncedSet] = []
         if self.engine is None:
             if not self._ready(final):
                 return empty_batch(self.size)
             self._decide()
-            streamed += self._replay()
+            self._replay_held()  # as batches: the queue keeps one form of its readings
         assert self.engine is not None
         batch = self.engine.pop(final)
         if self._revised():
             batch = _join(batch, self.engine.pop(final))
-        if streamed:
-            batch = _join(_batch_of(streamed, self.size), batch)
         return batch
 
     def _formed_after_revision(self, final: bool) -> list[SyncedSet]:
@@ -1065,12 +1064,6 @@ def stream_synchronizer(
         raise InputError(f"time offsets ({lagging}) need sync mode interpolate or auto: exact matching pairs "
                          "stamps as they are")
     return StreamSynchronizer(len(names), tol, mode, gap, shifts, names=names, **bounds)
-
-
-def _batch_of(sets: list[SyncedSet], sensors: int) -> SetBatch:
-    if not sets:
-        return empty_batch(sensors)
-    return SetBatch(np.array([s.stamps for s in sets], dtype=np.int64), np.array([s.values for s in sets], dtype=float))
 
 
 def _join(a: SetBatch, b: SetBatch) -> SetBatch:
