@@ -532,3 +532,25 @@ def test_interpolation_follows_a_turning_field_not_its_chord(rate: float) -> Non
     truth = field(batch.stamps[:, 0] / 1e9)
     err = np.abs(batch.vectors[1:, 1:] - truth[1:, None, :])
     assert np.max(err) < 0.02e-9, np.max(err) * 1e9
+
+
+@pytest.mark.parametrize("cut", [41, 42, 44, 47, 60])
+def test_the_window_cap_after_a_pause_is_the_same_offered_one_by_one_or_in_batches(cut: int) -> None:
+    """50 Hz, a 0.7 s pause the receipts show, then 2 kHz: each stamp's window cap is half the median of the
+    intervals since the pause (0.25 ms from the first new one, not the old 10 ms for the next eight), whether the
+    stamps are offered one by one or in two batches cut ``cut`` stamps in (the second picks up the count since
+    the pause)."""
+    t0 = 1_700_000_000 * 10**9
+    slow = t0 + np.arange(40, dtype=np.int64) * 20_000_000
+    fast = slow[-1] + 700_000_000 + np.arange(30, dtype=np.int64) * 500_000
+    stamps = np.concatenate([slow, fast])
+    receipts = stamps + 2_000_000
+    one = SetSynchronizer(1, 1_000_000, pause_ns=500_000_000)
+    caps = []
+    for t, r in zip(stamps.tolist(), receipts.tolist()):
+        caps += [row[3] for row in one.accept(0, t, (0.0, 0.0, 0.0), None, r)]
+    assert caps[41:] == [250_000] * 29 and caps[40] == 10_000_000
+    two = SetSynchronizer(1, 1_000_000, pause_ns=500_000_000)
+    two.add_batch(0, stamps[:cut], np.zeros((cut, 3)), receipts[:cut])
+    two.add_batch(0, stamps[cut:], np.zeros((len(stamps) - cut, 3)), receipts[cut:])
+    assert two._caps[0] == caps

@@ -77,6 +77,7 @@ from magcal_ros.core.sync_rules import (
     Vector,
     arrival_order,
     empty_batch,
+    median_int,
     tolerance_ns,
 )
 from magcal_ros.core.units import NS_PER_S
@@ -475,7 +476,7 @@ class SetSynchronizer(AcceptanceRule):
         # The first few need the short history: compute them one by one, like accept().
         head = min(len(s_iv), max(0, PERIOD_WINDOW - len(st.intervals)))
         for j in range(head):
-            caps[first + j] = st.record(int(s_iv[j]))
+            caps[first + j] = st.record(int(s_iv[j]), self.pause_ns)
         if head < len(s_iv):
             iv = np.concatenate([np.asarray(st.intervals, dtype=np.int64), s_iv[head:]])
             w = np.sort(sliding_window_view(iv, PERIOD_WINDOW)[1:], axis=1)  # windows ending at new ones
@@ -487,9 +488,23 @@ class SetSynchronizer(AcceptanceRule):
             steps = np.round(new[known] / before[known])
             st.grid_periods += int(np.maximum(steps, 1.0).sum())
             st.grid_first += int(new[~known].sum())  # the grid starts where a period is known
+            self._fresh_caps(st, iv, len(iv) - len(new), caps[first + head:])
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])
         return caps
+
+    def _fresh_caps(self, st: Any, iv: NDArray[np.int64], start: int, caps: NDArray[np.int64]) -> None:
+        """The caps (in place) of the stamps whose intervals ``iv[start:]`` follow a pause by fewer than
+        :data:`PERIOD_WINDOW` (what :meth:`SensorStream.record` returns one by one: half the median of the
+        intervals since the pause); ``st.fresh`` brought up to date."""
+        new = iv[start:]
+        n = len(new)
+        marks = np.where(new > self.pause_ns, np.arange(n), -(2**40))
+        marks[0] = max(int(marks[0]), -1 - st.fresh if st.fresh < PERIOD_WINDOW else -(2**40))
+        since = np.arange(n) - np.maximum.accumulate(marks)  # intervals since the last pause, the pause's own 0
+        for j in np.flatnonzero((since > 0) & (since < PERIOD_WINDOW)).tolist():
+            caps[j] = median_int(iv[start + j + 1 - int(since[j]):start + j + 1].tolist()) // 2
+        st.fresh = int(min(since[-1], PERIOD_WINDOW))
 
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets the queued messages decide (and drop everything left when ``final``)."""
@@ -563,10 +578,17 @@ class SetSynchronizer(AcceptanceRule):
             return True
         self.stats.unmatched += 1
         period = self.min_period_ns
-        if self.monitor is not None and period is not None and 2 * (max(t) - t0) < period:
+        if self.monitor is not None and period is not None and 2 * (max(t) - t0) < min(period, self._shortest_step()):
             self.monitor.missed(t, window)  # one instant, beyond the window
         head[t.index(t0)] += 1
         return True
+
+    def _shortest_step(self) -> int:
+        """The shortest step (ns) of any sensor's stamps to its head from the stamp before it: heads further apart
+        than half of it are not one instant, whatever the period estimates (which lag a rate that changed in a
+        pause: at 2 kHz after 50 Hz, samples lost as a sensor came back looked like a clock 4 ms off)."""
+        stamps = self._stamps
+        return min(stamps[k][h] - (stamps[k][h - 1] if h else self._consumed[k]) for k, h in enumerate(self._head))
 
     def _decide_short(self, final: bool) -> bool:
         """A decision while some sensor has nothing queued: only what its next message cannot change."""

@@ -280,7 +280,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden")
+                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -294,6 +294,9 @@ class SensorStream:
         self.intervals: list[int] = []
         self.period: int | None = None
         """Median of the last :data:`PERIOD_WINDOW` intervals (ns), None before the first."""
+        self.fresh = PERIOD_WINDOW
+        """Intervals recorded since the last pause (at most :data:`PERIOD_WINDOW`): the window cap comes from
+        them alone until the window is full of them (the sensor may have come back at another rate)."""
         self.held: tuple[int, Any, str | None, int | None, int] | None = None
         """A suspect: (stamp, payload, reading fault or None, receipt, kind: BEHIND, AHEAD, CROWDED or BURST)."""
         self.clock = clock
@@ -517,8 +520,13 @@ class SensorStream:
             return AHEAD
         return OK
 
-    def record(self, interval: int) -> int:
-        """Record one accepted stamp interval; the exact rule's window cap (half the short period)."""
+    def record(self, interval: int, pause_ns: int) -> int:
+        """Record one accepted stamp interval; the exact rule's window cap (half the short period; after a pause
+        longer than ``pause_ns``, of the intervals since)."""
+        if interval > pause_ns:
+            self.fresh = 0
+        elif self.fresh < PERIOD_WINDOW:
+            self.fresh += 1
         before = self.suspect_period()
         if before:
             self.grid_periods += max(1, int(round(interval / before)))
@@ -530,6 +538,8 @@ class SensorStream:
         if len(iv) > PERIOD_WINDOW:
             del iv[0]
         self.period = median_int(iv)
+        if 0 < self.fresh < PERIOD_WINDOW:
+            return median_int(iv[-self.fresh:]) // 2
         return self.period // 2
 
 
@@ -1087,13 +1097,13 @@ class AcceptanceRule:
         if s.last == NEVER:  # its first stamp: where others of its clock that jump to it follow it
             s.jumps.append((NEVER, stamp, receipt, s.base))
         if restart or s.last == NEVER:
-            s.intervals, s.period = [], None
+            s.intervals, s.period, s.fresh = [], None, PERIOD_WINDOW
             s.since = 0
             s.grid_first, s.grid_periods = stamp, 0
             s.tail = []
             cap = NO_CAP
         else:
-            cap = NO_CAP if s.last == NEVER else s.record(stamp - s.last)
+            cap = NO_CAP if s.last == NEVER else s.record(stamp - s.last, self.pause_ns)
             s.since += 1
             if s.since > PERIOD_WINDOW:
                 s.before = None
