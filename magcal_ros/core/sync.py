@@ -577,9 +577,10 @@ class SetSynchronizer(AcceptanceRule):
                 self.monitor.formed([[x] for x in t], window)
             return True
         self.stats.unmatched += 1
-        period = self.min_period_ns
-        if self.monitor is not None and period is not None and 2 * (max(t) - t0) < min(period, self._shortest_step()):
-            self.monitor.missed(t, window)  # one instant, beyond the window
+        if self.monitor is not None:
+            period = self.min_period_ns
+            if period is not None and 2 * (max(t) - t0) < min(period, self._shortest_step()):
+                self.monitor.missed(t, window)  # one instant, beyond the window
         head[t.index(t0)] += 1
         return True
 
