@@ -554,3 +554,27 @@ def test_the_window_cap_after_a_pause_is_the_same_offered_one_by_one_or_in_batch
     two.add_batch(0, stamps[:cut], np.zeros((cut, 3)), receipts[:cut])
     two.add_batch(0, stamps[cut:], np.zeros((len(stamps) - cut, 3)), receipts[cut:])
     assert two._caps[0] == caps
+
+
+@pytest.mark.parametrize("mode", ["exact", "auto"])
+def test_a_stream_offered_one_by_one_can_be_popped_at_its_end(mode: str) -> None:
+    """Two sensors at 50 Hz offered message by message, then both stamps jump 0.5 s ahead (a pause): the first
+    sensor's jump is confirmed by its next message, the second's is still held when the stream ends. ``pop(final=
+    True)`` releases the held one into the set at the jump: the 41st set, with both sensors' readings. (The exact
+    rule read the first sensor's queued reading from the batch path's array, empty: IndexError.)"""
+    sync = StreamSynchronizer(2, 1e-3, mode)
+    t0 = 1_700_000_000 * 10**9
+    sets = []
+    for k in range(40):
+        for i in range(2):
+            t = t0 + k * 20_000_000
+            sets += sync.add(i, t, 1e-5, 2e-5, 3e-5 + i * 1e-9, t + 1_000_000)
+    jump = t0 + 39 * 20_000_000 + 500_000_000
+    sync.add(0, jump, 4e-5, 5e-5, 6e-5, jump + 1_000_000)
+    sync.add(0, jump + 20_000_000, 1e-5, 2e-5, 3e-5, jump + 21_000_000)
+    sync.add(1, jump, 4e-5, 5e-5, 6e-5 + 1e-9, jump + 1_000_000)
+    last = sync.pop(final=True)
+    assert len(sets) == 40 and len(last) == 1
+    assert last.stamps.tolist() == [[jump, jump]]
+    assert np.allclose(last.vectors, [[[4e-5, 5e-5, 6e-5], [4e-5, 5e-5, 6e-5 + 1e-9]]], rtol=0, atol=1e-15)
+    assert sync.stats.used + sync.stats.dropped() + sync.pending == 83

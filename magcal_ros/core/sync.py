@@ -259,7 +259,23 @@ class SetSynchronizer(AcceptanceRule):
         formed = self.add_all(index, stamp_ns, x, y, z, receipt_ns)
         return formed[-1] if formed else None
 
+    def _as_values(self, index: int) -> None:
+        """Sensor ``index``'s queued readings as the streaming path keeps them (a list of tuples): a queue holds
+        one form at a time, whichever path fed it last."""
+        if len(self._arrays[index]):
+            self._values[index] = [tuple(r) for r in self._arrays[index].tolist()]
+            self._arrays[index] = np.empty((0, 3))
+
+    def _as_arrays(self, index: int) -> None:
+        """Sensor ``index``'s queued readings as the batch path keeps them (an (n, 3) array)."""
+        if self._values[index]:
+            self._arrays[index] = np.asarray(self._values[index], dtype=float).reshape(-1, 3)
+            self._values[index] = []
+
     def _queue(self, index: int, accepted: list[tuple[int, int, Any, int, bool]]) -> None:
+        for k, a in enumerate(self._arrays):  # (queues a batch fed: their readings as the streaming path's from here)
+            if len(a):
+                self._as_values(k)
         clock = self.streams[index].clock
         for stamp, common, value, cap, restart in accepted:
             if restart:
@@ -390,6 +406,7 @@ class SetSynchronizer(AcceptanceRule):
             return
         kept, values, caps = accepted
         st = self.streams[index]
+        self._as_arrays(index)
         self._raws[index].extend(kept.tolist())
         self._stamps[index].extend((kept + st.base).tolist() if st.base else kept.tolist())
         self._caps[index].extend(caps.tolist())
@@ -459,6 +476,7 @@ class SetSynchronizer(AcceptanceRule):
         rows = [a for a in accepted if a[2] is not None]
         if not rows:
             return
+        self._as_arrays(index)
         self._raws[index].extend(a[0] for a in rows)
         self._stamps[index].extend(a[1] for a in rows)
         self._caps[index].extend(a[3] for a in rows)
@@ -508,6 +526,8 @@ class SetSynchronizer(AcceptanceRule):
 
     def pop(self, final: bool = False) -> SetBatch:
         """Release the sets the queued messages decide (and drop everything left when ``final``)."""
+        for k in range(self.size):  # (a queue the streaming path fed: its readings as arrays from here)
+            self._as_arrays(k)
         if final:
             for k in range(self.size):
                 self._queue_rows(k, self.release_held(k))
