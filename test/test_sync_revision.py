@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from stream_oracle import SensorPlan, set_instants
+from stream_oracle import SensorPlan, Stream, set_instants
 from test_stream_properties import _same_examples_in_any_run  # noqa: F401  (the same draws in any run)
 from test_stream_properties import Case, bound, check_lost, live, offline, streams_of
 
@@ -142,9 +142,6 @@ def test_samples_lost_after_a_pause_at_a_new_rate_keep_exact_matching(lossy: int
     sensor's messages arrive as many new periods before the others' as it lost (its next stamp comes with the
     others' first after the loss: every period estimate still the old one). Exact
     matching holds and every complete set is published, each at one stamp, live and offline."""
-    from magcal_ros.core.sync import stream_synchronizer, synchronise_streams
-
-    names = ["mag1", "mag2", "mag3", "mag4"]
     t0 = 1_700_000_000 * 10**9
     slow = t0 + np.arange(300, dtype=np.int64) * 20_000_000
     fast = slow[-1] + 1_500_000_000 + np.arange(120, dtype=np.int64) * 500_000
@@ -153,21 +150,16 @@ def test_samples_lost_after_a_pause_at_a_new_rate_keep_exact_matching(lossy: int
     gone[len(slow) + first:len(slow) + first + lost] = True
     streams = []
     for k in range(4):
-        keep = ~gone if k == lossy else np.ones(len(stamps), dtype=bool)
-        s = stamps[keep]
-        streams.append((s, np.tile([2e-5, 1e-6 * k, 4e-5], (len(s), 1)), s + 2_000_000 + (0 if k == lossy else lost * 500_000)))
+        s = stamps[~gone] if k == lossy else stamps
+        receipts = s + 2_000_000 + (0 if k == lossy else lost * 500_000)
+        streams.append(Stream(s, receipts, np.tile([2e-5, 1e-6 * k, 4e-5], (len(s), 1)), np.zeros(len(s)),
+                              np.ones(len(s), dtype=bool)))
     complete = set(stamps[~gone].tolist())
     if batch:
-        result = synchronise_streams([(s, v) for s, v, _ in streams], mode="auto", receipts=[r for _, _, r in streams],
-                                     names=names)
-        got, mode = result[0].stamps, result[2]
+        result, _, mode = offline(streams)
+        got = result.stamps
     else:
-        sync = stream_synchronizer(names)
-        order = sorted((int(r[i]), k, i) for k, (_, _, r) in enumerate(streams) for i in range(len(r)))
-        sets = []
-        for _, k, i in order:
-            x, y, z = streams[k][1][i].tolist()
-            sets += sync.add(k, int(streams[k][0][i]), x, y, z, int(streams[k][2][i]))
+        sets, sync = live(streams)
         got, mode = np.array([s.stamps for s in sets]), sync.mode
     assert mode == "exact"
     assert np.all(got == got[:, :1])  # every set at one stamp
