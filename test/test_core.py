@@ -1280,16 +1280,17 @@ def test_a_calibration_applied_at_the_sensors_temperatures_with_two_channels_by_
 
 
 def test_the_batched_helpers_equal_numpys_stacked_products():
-    """``per_sensor``, ``per_sensor_columns`` and ``gram2`` (the fit's per-set products without stacks of tiny
+    """``per_sensor``, ``per_sensor_shared`` and ``gram2`` (the fit's per-set products without stacks of tiny
     matrix products) against NumPy's ``matmul`` over the stacks."""
-    from magcal_ros.core.batched import gram2, per_sensor, per_sensor_columns
+    from magcal_ros.core.batched import gram2, per_sensor, per_sensor_shared
 
     rng = np.random.default_rng(8)
     n, s = 50, 4
     mats, vectors, columns = rng.normal(size=(s, 3, 3)), rng.normal(size=(n, s, 3)), rng.normal(size=(n, s, 3, 2))
     np.testing.assert_allclose(per_sensor(mats, vectors), np.matmul(mats[None], vectors[..., None])[..., 0],
                                rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(per_sensor_columns(mats, columns), np.matmul(mats[None], columns), rtol=1e-13,
+    shared = rng.normal(size=(n, 3, 2))  # (every sensor's the same: the tangent bases of the set's direction)
+    np.testing.assert_allclose(per_sensor_shared(mats, shared), np.matmul(mats[None], shared[:, None]), rtol=1e-13,
                                atol=1e-13)
     other = rng.normal(size=(n, s, 3, 2))
     np.testing.assert_allclose(gram2(other, columns), np.matmul(other.transpose(0, 1, 3, 2), columns).sum(axis=1),

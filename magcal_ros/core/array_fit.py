@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
-from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_columns, per_sensor_dot, per_sensor_gram,
+from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_dot, per_sensor_gram, per_sensor_shared,
                                      row_norms, times_lower2)
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.metrics import chi2_isf
@@ -377,10 +377,11 @@ class _Eval:
             d_tau = along = None
         seen = dl if h is None else dl + h  # the field each sensor saw, units of F
         kd = per_sensor(k, seen)
-        k_dir = per_sensor_columns(k, np.broadcast_to(self.basis[:, None, :, :], (n, s, 3, 2)))  # K d dl / d d
+        k_dir = per_sensor_shared(k, self.basis)  # K d dl / d d
         if along is not None:  # with the lag d dl / d d (tangent) = (I - dl dl^T) basis / |lagged|
             k_dl = kd if h is None else per_sensor(k, dl)
-            k_dir = (k_dir - k_dl[..., None] * along[:, :, None, :]) / norm[..., None]
+            k_dir -= k_dl[..., None] * along[:, :, None, :]
+            k_dir /= norm[..., None]
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + per_sensor(w[:, :, 3:], psi)
@@ -583,32 +584,37 @@ class _Eval:
         if self._globals_rows is not None:
             corr_all = np.concatenate([corr_all, np.einsum("ngc,nc->g", self._globals_rows[0], y)])
         flat = self._direction_rows(c_inv)
-        flat = flat.reshape(-1, flat.shape[2])
-        return self.a_matrix() - flat.T @ flat, self.g_theta - corr_all, cost
+        flat = flat.reshape(flat.shape[0], -1)
+        return self.a_matrix() - flat @ flat.T, self.g_theta - corr_all, cost
 
     def _direction_rows(self, c_inv: Array | None = None) -> Array:
-        """(N, 2, S P + G) ``(B_k L_k)^T``, ``L_k L_k^T = C_k^-1``, each set's rows of the information its
-        direction takes (``B_k C_k^-1 B_k^T`` is their product), built from the features (kept once built)."""
+        """(S P + G, 2, N) ``(B_k L_k)^T``, ``L_k L_k^T = C_k^-1``, each set's rows of the information its
+        direction takes (``B_k C_k^-1 B_k^T`` is their product), built from the features (kept once built).
+        The sets run along the last axis: the products below are long contiguous loops."""
         if self._rows is not None:
             return self._rows
         lower = _chol2(_inv2(self.c) if c_inv is None else c_inv)
         if self._features is None:
-            self._rows = times_lower2(self.b, lower).transpose(0, 2, 1)
+            self._rows = times_lower2(self.b, lower).transpose(1, 2, 0)
             return self._rows
         wphi, wx = self._features
-        n, s, _, q = wphi.shape
+        n, s, axes, q = wphi.shape
         p, lin = self.shape[1], 3 * q
-        g = times_lower2(self.m, lower)  # (N, S, 3, 2): M_k L_k
-        rows = np.empty((n, 2, s, p))
-        # written in place: splitting the contiguous last axis of the view is a view too
-        np.multiply(g.transpose(0, 3, 1, 2)[..., None], wphi[:, None],
-                    out=rows[:, :, :, :lin].reshape(n, 2, s, 3, q))
-        if wx is not None:
-            # sum_a g[n, s, a, c] wx[n, s, a, x] by elementwise products (an einsum over the short axis loops slowly)
-            rows[:, :, :, lin:] = sum(g[:, :, a, :, None] * wx[:, :, a, None, :] for a in range(3)).transpose(0, 2, 1, 3)
-        flat = rows.reshape(n, 2, s * p)
-        if self._globals_rows is not None:  # the globals' columns: B_k L_k from their rows of B
-            flat = np.concatenate([flat, times_lower2(self._globals_rows[0], lower).transpose(0, 2, 1)], axis=2)
+        g = np.ascontiguousarray(times_lower2(self.m, lower).transpose(1, 2, 3, 0))  # (S, 3, 2, N): M_k L_k
+        globals_b = None if self._globals_rows is None else self._globals_rows[0]  # (N, G, 2)
+        flat = np.empty((s * p + (0 if globals_b is None else globals_b.shape[1]), 2, n))
+        rows = flat[: s * p].reshape(s, p, 2, n)
+        # written in place: splitting an axis of the view is a view too
+        np.multiply(g[:, :, None], np.ascontiguousarray(wphi.transpose(1, 2, 3, 0))[:, :, :, None],
+                    out=rows[:, :lin].reshape(s, 3, q, 2, n))
+        if wx is not None:  # sum_a g[s, a, c, n] wx[n, s, a, x]
+            wxt = np.ascontiguousarray(wx.transpose(1, 2, 3, 0))  # (S, 3, X, N)
+            extra = rows[:, lin:]
+            np.multiply(g[:, 0, None], wxt[:, 0, :, None], out=extra)
+            for a in (1, 2):
+                extra += g[:, a, None] * wxt[:, a, :, None]
+        if globals_b is not None:  # the globals' columns: B_k L_k from their rows of B
+            flat[s * p :] = times_lower2(globals_b, lower).transpose(1, 2, 0)
         self._rows = flat
         return flat
 
@@ -617,9 +623,9 @@ class _Eval:
         of the sums over the sets that they add."""
         rows = _as_slice(rows)
         blocks = self._global_blocks(rows) if self.globals else (None, None)
-        flat = self._direction_rows()[rows]
-        flat = flat.reshape(-1, flat.shape[2])
-        return self._assembled(self._sensor_blocks(rows), *blocks) - flat.T @ flat
+        flat = self._direction_rows()[:, :, rows]
+        flat = flat.reshape(flat.shape[0], -1)
+        return self._assembled(self._sensor_blocks(rows), *blocks) - flat @ flat.T
 
     def a_matrix(self) -> Array:
         """The normal matrix of the sensors' (block diagonal) and the global parameters (directions kept)."""

@@ -60,9 +60,11 @@ ARRAY_LAG = "array lag behind the IMU"
 def skew(v: Array) -> Array:
     """(..., 3, 3) cross-product matrices ``[v]x`` of (..., 3) vectors."""
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    out = np.zeros(v.shape + (3,))
+    for (i, j), (k, sign) in zip(((0, 1), (0, 2), (1, 2)), ((2, -1.0), (1, 1.0), (0, -1.0))):
+        np.multiply(v[..., k], sign, out=out[..., i, j])
+        np.negative(out[..., i, j], out=out[..., j, i])
+    return out
 
 
 def rotation_of(rotvec: Array) -> Array:
@@ -323,16 +325,18 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
     j = len(GRADIENT_BASIS)
     erp = (rp.reshape(n * s, 3) @ GRADIENT_BASIS.transpose(2, 0, 1).reshape(3, j * 3)).reshape(n, s * j, 3)
-    basis = np.matmul(erp, ra).reshape(n, s, j, 3)
-    jac[:, :, :, mounted:] = basis.transpose(0, 1, 3, 2)
+    jac[:, :, :, mounted:] = np.matmul(erp, ra).reshape(n, s, j, 3).transpose(0, 1, 3, 2)
     if mounted:
-        # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da
+        # h = A^T W A p with W = Q^T Gamma Q; A -> exp([da]) A: dh = A^T ([W A p]x - W [A p]x) da, both terms
+        # linear in a vector: A^T [v]x = v . T (T (3, 3, 3) from A), A^T W [A p]x from A^T W (W symmetric)
         wq = _congruent(att.rotations, state.gradient)
         ap = att.positions @ state.mounting.T  # (S, 3) A p
         wap = _times_positions(wq, ap)
-        wq_ap = (wq.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
-        inner = skew(wap) - wq_ap.transpose(0, 2, 1, 3)  # W [A p]x per set and sensor
-        jac[:, :, :, :mounted] = np.tensordot(inner, state.mounting, axes=([2], [0])).transpose(0, 1, 3, 2)
+        by_vector = np.einsum("bk,bcm->mkc", state.mounting, skew(np.eye(3)))  # (3 m, 3 k, 3 c): A^T [e_m]x
+        at_w = (wq.reshape(n * 3, 3) @ state.mounting).reshape(n, 3, 3).transpose(0, 2, 1)  # A^T W
+        at_w_ap = (at_w.reshape(n * 3, 3) @ skew(ap).transpose(1, 0, 2).reshape(3, s * 3)).reshape(n, 3, s, 3)
+        jac[:, :, :, :mounted] = (wap.reshape(n * s, 3) @ by_vector.reshape(3, 9)).reshape(n, s, 3, 3) \
+            - at_w_ap.transpose(0, 2, 1, 3)
     jac[~att.known] = 0.0  # (built here: zeroed in place)
     if compact:
         return jac

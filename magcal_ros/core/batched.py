@@ -23,14 +23,13 @@ def per_sensor(mats: Array, vectors: Array) -> Array:
     return out
 
 
-def per_sensor_columns(mats: Array, columns: Array) -> Array:
-    """(N, S, R, K) each sensor's matrix of ``mats`` (S, R, C) times its matrices ``columns`` (N, S, C, K)."""
-    n, s, c, k = columns.shape
-    out = np.empty((n, s, mats.shape[1], k))
-    for i in range(s):
-        flat = columns[:, i].transpose(0, 2, 1).reshape(n * k, c) @ mats[i].T  # (N K, R)
-        out[:, i] = flat.reshape(n, k, -1).transpose(0, 2, 1)
-    return out
+def per_sensor_shared(mats: Array, columns: Array) -> Array:
+    """(N, S, R, K) each sensor's matrix of ``mats`` (S, R, C) times the matrices ``columns`` (N, C, K) that
+    every sensor shares: one matrix product for all of them."""
+    n, c, k = columns.shape
+    s, r, _ = mats.shape
+    flat = columns.transpose(0, 2, 1).reshape(n * k, c) @ mats.reshape(s * r, c).T  # (N K, S R)
+    return np.ascontiguousarray(flat.reshape(n, k, s, r).transpose(0, 2, 3, 1))
 
 
 def gram2(a: Array, b: Array) -> Array:
