@@ -277,6 +277,14 @@ class SampleClock:
             missing = [round((b - a) / period) - 1 for a, b in zip(stamps, stamps[1:]) if b - a <= self.pause_ns]
             missing = [m for m in missing if m > 0]
             lost, gaps = lost - sum(missing), gaps - len(missing)
+        elif len(old._learn) > 3:  # still learning: what it held before ``stamps`` is not offered again, count it here
+            held = [t for t, _ in old._learn]
+            step = _median([b - a for a, b in zip(held, held[1:])])
+            seen = [t for t in held if not stamps or t < stamps[0]] + stamps[:1]
+            missing = [round((b - a) / step) - 1 for a, b in zip(seen, seen[1:]) if b - a <= self.pause_ns] \
+                if step > 0 else []
+            missing = [m for m in missing if m > 0]
+            lost, gaps = lost + sum(missing), gaps + len(missing)
         self.lost, self.gaps, self.dropped = max(lost, 0), max(gaps, 0), old.dropped
 
     # -- learning ---------------------------------------------------------------------

@@ -598,8 +598,10 @@ class SetSynchronizer(AcceptanceRule):
             return True
         self.stats.unmatched += 1
         if self.monitor is not None:
-            period = self.min_period_ns
-            if period is not None and 2 * (max(t) - t0) < min(period, self._shortest_step()):
+            # the period each head's sensor had when that message came (its cap is half of it): the same on both
+            # paths (the streams' latest estimates are not: offline they have seen every message already)
+            cap = min([caps[k][head[k]] for k in sensors])
+            if cap != NO_CAP and 2 * (max(t) - t0) < min(2 * cap, self._shortest_step()):
                 self.monitor.missed(t, window)  # one instant, beyond the window
         head[t.index(t0)] += 1
         return True
