@@ -23,6 +23,7 @@ from pathlib import Path
 
 import _first  # noqa: F401  (this checkout's magcal_ros, not an installed copy)
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, Phase, given, seed, settings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
@@ -35,20 +36,9 @@ def first_line(exc: BaseException) -> str:
     return (lines[0] if lines else f"{type(exc).__name__} without a message")[:200]
 
 
-def same_draws_for_any_code() -> None:
-    """Hypothesis mixes into its draws the constants of this repository's modules it imported: a change of the
-    code would change which recordings a seed draws. Without them the draws depend on the strategies alone, so
-    that two versions of the code are compared on the same recordings (as the suite's examples are)."""
-    from hypothesis.internal.conjecture import providers
-
-    if hasattr(providers, "_get_local_constants"):
-        empty = type(providers._local_constants)()
-        providers._get_local_constants = lambda: empty
-        providers.CONSTANTS_CACHE.cache.clear()
-
-
 def main() -> int:
-    same_draws_for_any_code()
+    # the draws without the code's constants: two versions of the code are compared on the same recordings
+    props.leave_out_local_constants(pytest.MonkeyPatch())
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--examples", type=int, default=2000, help="recordings to draw (default 2000)")
     parser.add_argument("--seed", type=int, default=0, help="the draw (default 0)")

@@ -41,19 +41,24 @@ from magcal_ros.core.units import NS_PER_S
 EXAMPLES = int(os.environ.get("MAGCAL_PROPERTY_EXAMPLES", "25"))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _same_examples_in_any_run() -> Iterator[None]:
-    """Hypothesis mixes into its draws the constants of every module of this repository imported so far;
-    which modules those are depends on the test files that ran before in the same process, so the
-    derandomised examples of this file alone and of the whole suite would differ (a failure found in one
-    and not the other). With no such constants the examples depend on the strategies alone."""
+def leave_out_local_constants(patch: pytest.MonkeyPatch) -> None:
+    """Hypothesis mixes into its draws the constants of every module of this repository imported so far: which
+    modules those are (and what they hold) changes the examples a seed draws. Left out (undone with ``patch``),
+    the examples depend on the strategies alone."""
     from hypothesis.internal.conjecture import providers
 
+    if hasattr(providers, "_get_local_constants"):
+        empty = type(providers._local_constants)()
+        patch.setattr(providers, "_get_local_constants", lambda: empty)
+        providers.CONSTANTS_CACHE.cache.clear()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _same_examples_in_any_run() -> Iterator[None]:
+    """The derandomised examples of this file alone and of the whole suite the same (the modules imported
+    before depend on the test files that ran first: a failure found in one and not the other)."""
     with pytest.MonkeyPatch.context() as patch:
-        if hasattr(providers, "_get_local_constants"):
-            empty = type(providers._local_constants)()
-            patch.setattr(providers, "_get_local_constants", lambda: empty)
-            providers.CONSTANTS_CACHE.cache.clear()
+        leave_out_local_constants(patch)
         yield
 TOLERANCE = 1e-3
 """The default exact window (s)."""

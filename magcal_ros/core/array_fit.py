@@ -598,7 +598,7 @@ class _Eval:
             self._rows = times_lower2(self.b, lower).transpose(1, 2, 0)
             return self._rows
         wphi, wx = self._features
-        n, s, axes, q = wphi.shape
+        n, s, _, q = wphi.shape
         p, lin = self.shape[1], 3 * q
         g = np.ascontiguousarray(times_lower2(self.m, lower).transpose(1, 2, 3, 0))  # (S, 3, 2, N): M_k L_k
         globals_b = None if self._globals_rows is None else self._globals_rows[0]  # (N, G, 2)

@@ -274,18 +274,22 @@ class SampleClock:
         lost, gaps = old.lost, old.gaps
         period = old.period_ns
         if period:
-            missing = [round((b - a) / period) - 1 for a, b in zip(stamps, stamps[1:]) if b - a <= self.pause_ns]
-            missing = [m for m in missing if m > 0]
+            missing = self._missing(stamps, period)
             lost, gaps = lost - sum(missing), gaps - len(missing)
         elif len(old._learn) > 3:  # still learning: what it held before ``stamps`` is not offered again, count it here
             held = [t for t, _ in old._learn]
-            step = _median([b - a for a, b in zip(held, held[1:])])
-            seen = [t for t in held if not stamps or t < stamps[0]] + stamps[:1]
-            missing = [round((b - a) / step) - 1 for a, b in zip(seen, seen[1:]) if b - a <= self.pause_ns] \
-                if step > 0 else []
-            missing = [m for m in missing if m > 0]
+            missing = self._missing([t for t in held if not stamps or t < stamps[0]] + stamps[:1],
+                                    _median([b - a for a, b in zip(held, held[1:])]))
             lost, gaps = lost + sum(missing), gaps + len(missing)
         self.lost, self.gaps, self.dropped = max(lost, 0), max(gaps, 0), old.dropped
+
+    def _missing(self, stamps: list[int], period: float) -> list[int]:
+        """The samples lost in each gap of ``stamps`` (ns) at ``period`` (ns) that is not a pause (gaps with none left
+        out)."""
+        if period <= 0:
+            return []
+        missing = [round((b - a) / period) - 1 for a, b in zip(stamps, stamps[1:]) if b - a <= self.pause_ns]
+        return [m for m in missing if m > 0]
 
     # -- learning ---------------------------------------------------------------------
     def _learning(self, stamp: int, payload: Any, out: Released) -> Released:

@@ -588,7 +588,8 @@ class SetSynchronizer(AcceptanceRule):
         except IndexError:
             return self._decide_short(final)
         t0 = min(t)
-        window = min(self.tolerance_ns, min([caps[k][head[k]] for k in sensors]))
+        cap = min([caps[k][head[k]] for k in sensors])  # half the period each head's sensor had when it came
+        window = min(self.tolerance_ns, cap)
         if max(t) - t0 <= window:
             formed.append(tuple(head))
             for k in sensors:
@@ -598,9 +599,8 @@ class SetSynchronizer(AcceptanceRule):
             return True
         self.stats.unmatched += 1
         if self.monitor is not None:
-            # the period each head's sensor had when that message came (its cap is half of it): the same on both
-            # paths (the streams' latest estimates are not: offline they have seen every message already)
-            cap = min([caps[k][head[k]] for k in sensors])
+            # by the heads' own periods (twice their cap): the same on both paths (the streams' latest estimates
+            # are not: offline they have seen every message already)
             if cap != NO_CAP and 2 * (max(t) - t0) < min(2 * cap, self._shortest_step()):
                 self.monitor.missed(t, window)  # one instant, beyond the window
         head[t.index(t0)] += 1
