@@ -924,6 +924,43 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
     assert reduced[2] == pytest.approx(dense.reduced()[2], rel=1e-12)
 
 
+def test_the_lag_blocks_jacobians_match_finite_differences_at_a_large_lag(monkeypatch):
+    """With the lag block the prediction is ``K dl + rest``, ``dl = (d - tau r) / |d - tau r|``: its Jacobians
+    by each sensor's lag and by the set's direction (in its tangent plane) match central differences of the
+    prediction, at lags and rates (0.05 s, 3 rad/s) where ``|d - tau r|`` is far from 1."""
+    from magcal_ros.core import array_fit
+    from magcal_ros.core.array_fit import SetInputs, _Eval, _prediction
+    from magcal_ros.core.forward_model import ForwardModel
+
+    rng = np.random.default_rng(8)
+    s, n = 4, 50
+    model = ForwardModel(s, channels=1, lag=True)
+    q = model.q
+    theta = np.zeros((s, model.size))
+    w = np.zeros((s, 3, q))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
+    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
+    theta[:, : 3 * q] = w.reshape(s, -1)
+    theta[:, model.lag_index] = np.array([0.05, -0.04, 0.03, 0.0])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rates = np.cross(d, rng.normal(0.0, 2.0, (n, 3)))
+    inputs = SetInputs(rng.normal(size=(n, 1)), None)
+    monkeypatch.setattr(array_fit, "STRUCTURED", False)  # the dense Jacobian, by every parameter
+    ev = _Eval(model, theta, d, rng.normal(size=(n, s, 3)), inputs, rates, np.ones((n, s)), np.ones(s))
+    h = 1e-6
+    for i in range(s):
+        up, down = theta.copy(), theta.copy()
+        up[i, model.lag_index] += h
+        down[i, model.lag_index] -= h
+        num = (_prediction(model, up, d, inputs, rates) - _prediction(model, down, d, inputs, rates))[:, i] / (2 * h)
+        np.testing.assert_allclose(ev._dense[0][:, i, :, model.lag_index], num, atol=1e-8)
+    for c in range(2):
+        moved = [d + sign * h * ev.basis[:, :, c] for sign in (1.0, -1.0)]
+        pred = [_prediction(model, theta, m / np.linalg.norm(m, axis=1, keepdims=True), inputs, rates) for m in moved]
+        np.testing.assert_allclose(ev.m[..., c], (pred[0] - pred[1]) / (2 * h), atol=1e-8)
+
+
 @pytest.mark.parametrize("dof", [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 2.75, 7.0])
 def test_the_chi_square_quantiles_are_scipys(dof: float) -> None:
     """The outlier bound and the robust scale's median, without scipy.stats at run time."""

@@ -345,6 +345,31 @@ class _Att:
         return replace(self, inputs=self.inputs.take(keep), precision=self.precision[keep])
 
 
+def _lagged(d: Array, rates: Array, tau: Array) -> tuple[Array, Array]:
+    """The direction each sensor saw ``tau`` (S,) s before the set's instant, to first order in the
+    direction's ``rates`` (N, 3) 1/s: (``dl`` (N, S, 3) unit, ``1 / |d - tau r|`` (N, S)). Built one sensor
+    at a time from (N, 3) rows (a broadcast over the small axes loops in C over each of them)."""
+    n, s = len(d), len(tau)
+    dl = (np.stack([d, rates], axis=2).reshape(n * 3, 2) @ np.stack([np.ones(s), -tau])).reshape(n, 3, s)
+    dl = np.ascontiguousarray(dl.transpose(0, 2, 1))
+    inv = 1.0 / row_norms(dl)
+    dl *= inv[..., None]
+    return dl, inv
+
+
+def _lag_derivatives(d: Array, rates: Array, tau: Array, dl: Array, inv: Array) -> Array:
+    """(N, S, 3) ``d dl / d tau`` of :func:`_lagged`'s directions: ``-(r + dl (dl . (-r)) / |l|) / |l|`` for
+    ``l = d - tau r``."""
+    a = np.einsum("na,na->n", d, rates)
+    rr = np.einsum("na,na->n", rates, rates)
+    q = (tau[None, :] * rr[:, None] - a[:, None]) * inv  # (l . (-r)) / |l|
+    out = dl * q[..., None]
+    for i in range(len(tau)):
+        out[:, i] += rates
+    out *= -inv[..., None]
+    return out
+
+
 STRUCTURED: bool = True
 """:class:`_Eval` builds the products of the linear blocks from their features (False: from the dense
 Jacobian, the reference the structured products are tested against)."""
@@ -366,22 +391,21 @@ class _Eval:
         self.basis = tangent_bases(d)  # (N, 3, 2)
         # Direction each sensor saw (lag), and its derivatives.
         if tau is not None and rates is not None:
-            lagged = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
-            norm = row_norms(lagged)[..., None]
-            dl = lagged / norm
-            dnorm = (-np.sum(d * rates, axis=1)[:, None] + tau[None, :] * np.sum(rates * rates, axis=1)[:, None])
-            d_tau = -rates[:, None, :] / norm - dl * (dnorm[:, :, None] / norm)  # d dl / d tau (N, S, 3)
-            along = np.matmul(dl, self.basis)  # (N, S, 2) dl^T basis
+            dl, inv = _lagged(d, rates, tau)
+            d_tau = _lag_derivatives(d, rates, tau, dl, inv)  # d dl / d tau (N, S, 3)
         else:
             dl = np.broadcast_to(d[:, None, :], (n, s, 3))
-            d_tau = along = None
+            d_tau = inv = None
         seen = dl if h is None else dl + h  # the field each sensor saw, units of F
         kd = per_sensor(k, seen)
         k_dir = per_sensor_shared(k, self.basis)  # K d dl / d d
-        if along is not None:  # with the lag d dl / d d (tangent) = (I - dl dl^T) basis / |lagged|
-            k_dl = kd if h is None else per_sensor(k, dl)
-            k_dir -= k_dl[..., None] * along[:, :, None, :]
-            k_dir /= norm[..., None]
+        if inv is not None:  # with the lag d dl / d d (tangent) = (I - dl dl^T) basis / |l|, l = d - tau r, where
+            # dl^T basis = -tau (r^T basis) / |l| (the basis is perpendicular to d)
+            k_dir *= inv[:, :, None, None]
+            k_dl = (kd if h is None else per_sensor(k, dl)) * (tau[None, :] * inv * inv)[..., None]
+            rb = np.einsum("na,nac->nc", rates, self.basis)
+            for c in range(2):
+                k_dir[..., c] += k_dl * rb[:, None, None, c]
         gain = 1.0 / (1.0 - inputs.temperatures[:, :, None] * g[None, :, :]) \
             if g is not None and inputs.temperatures is not None else np.ones((1, 1, 1))
         self.pred = gain * kd + per_sensor(w[:, :, 3:], psi)
@@ -764,7 +788,9 @@ def corrected_directions(model: ForwardModel, theta: Array, x: Array, inputs: Se
     if h is not None:
         b = b - h
     if tau is not None and rates is not None:
-        b = b + tau[None, :, None] * rates[:, None, :] * row_norms(b)[..., None]
+        size = row_norms(b) * tau[None, :]
+        for i in range(s):
+            b[:, i] += size[:, i, None] * rates
     return b
 
 
@@ -793,8 +819,7 @@ def _prediction(model: ForwardModel, theta: Array, d: Array, inputs: SetInputs, 
     w, g, tau = model.split(theta)
     s = w.shape[0]
     if tau is not None and rates is not None:
-        dl = d[:, None, :] - tau[None, :, None] * rates[:, None, :]
-        dl /= row_norms(dl)[..., None]
+        dl = _lagged(d, rates, tau)[0]
     else:
         dl = np.broadcast_to(d[:, None, :], (len(d), s, 3))
     if h is not None:
