@@ -105,3 +105,45 @@ def test_an_imu_gap_in_mid_stream_drops_the_sets_it_leaves_bare_live_as_offline(
     for stamp, qq, ww in zip(t[keep].tolist(), q, w):
         live.add(stamp, qq, ww)
     assert [live.at(int(s))[2] for s in sets] == fresh.tolist()
+
+
+@pytest.mark.parametrize(("last", "kept"), [
+    (100_000, True),  # crowded (a backlog's stamp 0.1 ms after the previous): kept
+    (-5 * MS, False), (-2 * NS, False),  # behind its sequence: a glitch
+    (30 * MS, True), (NS, True),  # ahead, up to the restart jump (1 s): kept
+    (NS + 1, False), (3 * NS // 2, False),  # further ahead and never confirmed: a glitch
+])
+def test_a_suspect_stamp_held_when_its_stream_ends_is_kept_or_a_glitch_by_its_kind(last: int, kept: bool) -> None:
+    """A stream whose last stamp is held as a suspect when it ends: crowded or ahead within ``restart_ns`` it is
+    kept (and, its partner's sample missing, counted unmatched), behind or further ahead a glitch."""
+    a = T0 + np.arange(100, dtype=np.int64) * PERIOD
+    b = np.concatenate([a[:99], [a[98] + last]]).astype(np.int64)
+    sync = SetSynchronizer(2, MS)
+    for k, s in enumerate((a, b)):
+        sync.add_batch(k, s, np.tile([1e-5, 0.0, 0.0], (len(s), 1)))
+    batch = sync.pop(final=True)
+    assert len(batch) == 99 and sync.stats.used == 198
+    assert (sync.stats.glitch, sync.stats.unmatched) == ((0, 2) if kept else (1, 1))
+
+
+@pytest.mark.parametrize(("stall", "count", "burst", "faster"), [
+    (51, 20, 20, 0),  # a 0.52 s stall's backlog of 20 messages: every one dropped as stamped on delivery
+    (10, 15, 15, 0), (10, 16, 15, 1),  # after 0.11 s, no more than 1.25 times the gap and two periods held ...
+    (10, 40, 15, 25),  # ... then the rest is a faster rate, taken
+])
+def test_a_backlog_stamped_on_delivery_after_a_stall_is_dropped_up_to_what_the_gap_could_hold(
+        stall: int, count: int, burst: int, faster: int) -> None:
+    """A driver that stalled for ``stall`` + 1 periods and then stamped its backlog of ``count`` messages as it
+    delivered them (0.1 ms apart): those stamps are no sample instants; the backlog's are dropped (``burst``)
+    while their number fits the gap, more are a rate gone up (taken, unmatched). The regular stamps after it
+    form every set, the first one included."""
+    a = T0 + np.arange(300, dtype=np.int64) * PERIOD
+    backlog = a[100 + stall] + 100_000 * np.arange(count)
+    b = np.concatenate([a[:100], backlog, a[100 + stall + 2 :]]).astype(np.int64)
+    sync = SetSynchronizer(2, MS)
+    for k, s in enumerate((a, b)):
+        sync.add_batch(k, s, np.tile([1e-5, 0.0, 0.0], (len(s), 1)))
+    batch = sync.pop(final=True)
+    after = len(a) - (100 + stall + 2)
+    assert len(batch) == 100 + after and set(batch.stamps[100:, 1].tolist()) == set(a[100 + stall + 2 :].tolist())
+    assert (sync.stats.burst, sync.stats.unmatched) == (burst, stall + 2 + faster)
