@@ -8,8 +8,8 @@ Each example is a recording of one to four sensors on their own clocks with faul
 synchronised offline and live; every published set's members must stand for one true instant, every
 message must be counted, the clean reference samples must make sets, and live must equal offline. The
 side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off; the
-last part, a fifth as many recordings whose one sensor steps forward while the receiver is blocked
-(``hidden_steps``).
+last parts, a fifth as many recordings each: one sensor steps forward while the receiver is blocked
+(``hidden_steps``); one sensor's stamps step either way while it is silent (``silent_steps``).
 Unlike the suite (a fixed number of derandomised examples), this draws fresh examples from ``--seed``.
 """
 
@@ -94,6 +94,19 @@ def main() -> int:
             failures.append("hidden step: " + first_line(exc))
             cases.append(case)
 
+    @seed(args.seed)
+    @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
+              suppress_health_check=list(HealthCheck))
+    @given(props.silent_steps())
+    def silent(case: props.Case) -> None:
+        tally["silent"] += 1
+        try:
+            props.check_case(case)
+        except AssertionError as exc:
+            tally["silent failures"] += 1
+            failures.append("silent step: " + first_line(exc))
+            cases.append(case)
+
     t0 = time.perf_counter()
     sets()
     t1 = time.perf_counter()
@@ -101,6 +114,8 @@ def main() -> int:
     t2 = time.perf_counter()
     hidden()
     t3 = time.perf_counter()
+    silent()
+    t4 = time.perf_counter()
     print(f"recordings: {tally['examples']} examples, {tally['sensors']} sensors, {tally['messages']:,} messages, "
           f"{tally['sets checked']:,} sets checked (offline and live), {t1 - t0:.1f} s "
           f"({(t1 - t0) / max(tally['examples'], 1) * 1e3:.0f} ms each)")
@@ -110,6 +125,8 @@ def main() -> int:
           f"{t2 - t1:.1f} s")
     print(f"steps a blocked receiver's queue hides: {tally['hidden']} examples, {tally['hidden failures']} failing, "
           f"{t3 - t2:.1f} s")
+    print(f"steps inside a sensor's silence: {tally['silent']} examples, {tally['silent failures']} failing, "
+          f"{t4 - t3:.1f} s")
     print(f"failures: {len(failures)}")
     for line in failures[:10]:
         print("  " + line)

@@ -746,3 +746,18 @@ def test_an_empty_batch_has_the_shapes_and_types_of_one() -> None:
     b = sr.empty_batch(3)
     assert b.stamps.shape == (0, 3) and b.stamps.dtype == np.int64
     assert b.vectors.shape == (0, 3, 3) and b.vectors.dtype == np.float64 and len(b) == 0
+
+
+@pytest.mark.parametrize(("more", "result"), [(700 * MS, True), (5 * MS, False), (5 * MS + 1, True), (0, False),
+                                              (-700 * MS, False)])
+def test_trails_is_the_arrivals_seeing_more_of_a_gap_than_the_stamps_by_half_a_period(more: int, result: bool) -> None:
+    """After a 3.3 s gap of the stamps, the arrivals saw ``more`` time pass (its message as late as the stream's):
+    beyond half a period (10 ms) the stamps stepped back in the gap."""
+    s = _timed_stream(late=MS)
+    stamp = s.last + 3_300 * MS
+    receipt = s.last_receipt + 3_300 * MS + more
+    assert s.trails(stamp, receipt, 10 * MS) is result
+    assert s.trails(stamp, None, 10 * MS) is False
+    untimed = _stream_with([10 * MS] * 8)
+    untimed.last_receipt = untimed.last
+    assert untimed.trails(stamp, receipt, 10 * MS) is False

@@ -408,6 +408,17 @@ class SensorStream:
             return self.ahead_of(stamp, receipt, period)
         return 2 * (stamp - self.last - (receipt - last)) > period and self.ahead_of(stamp, receipt, period)
 
+    def trails(self, stamp: int, receipt: int | None, period: int) -> bool:
+        """Whether the arrivals saw more time pass since the previous message than ``stamp`` (ns, this segment;
+        ``receipt`` ns) says, by over half the ``period`` (ns), and the stamp trails its arrival by as much beyond
+        the stamps' lead (:meth:`lead`): the stamps stepped back during a gap (a sensor silent while its clock
+        went back resumes with stamps that cover less time than passed). False while the arrivals keep no time."""
+        last = self.last_receipt
+        if receipt is None or last is None or not self.timed():
+            return False
+        return 2 * ((receipt - last) - (stamp - self.last)) > period and \
+            2 * (self.lead() - (stamp + self.base - receipt)) > period
+
     def ahead_of(self, stamp: int, arrival: int, period: int) -> bool:
         """Whether ``stamp`` (ns, this segment) runs more than half a ``period`` (ns) further ahead of its ``arrival``
         (ns) than the sensor's stamps do (:meth:`lead`): an arrival is never early, so the stamps stepped forward."""
@@ -880,6 +891,10 @@ class AcceptanceRule:
         if unseen is False and s.timed() and self._hidden_by_queue(index, held, came, period):
             s.hidden = True  # a queue's delay hides how far the stamps went: placed by the arrivals once they catch up
             return True
+        if unseen is False and came == held[3] and s.trails(held[0], held[3], period) and \
+                not self._receiver_late(index, held[3], period):
+            s.seen_step = True  # the arrivals saw more of the gap pass than the stamps: they stepped back in it
+            return True  # (not where the receiver was late with every sensor: a queue delayed this arrival)
         if unseen is not None:
             return unseen
         if s.resumed_on_time(held[0], held[3], period):
