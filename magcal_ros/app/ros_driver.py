@@ -315,8 +315,11 @@ class NodeProcess:
             time.sleep(0.05)
         return False
 
-    def stop(self, timeout: float = 10.0) -> int:
-        """Ctrl-C the node, wait for a clean exit, kill it if it hangs; returns the exit code."""
+    def stop(self, timeout: float = 20.0) -> int:
+        """Ctrl-C the node, wait for a clean exit, kill it if it hangs; returns the exit code. The wait outlasts the
+        node's own limit on its clean-up (15 s, then it prints its stacks and exits with 1): on a loaded machine
+        destroying a node's endpoints took longer than the 10 s waited before, and the node was killed (-9) while
+        it was still closing."""
         if self.alive():
             self.process.send_signal(signal.SIGINT)
         return self.wait(timeout)
