@@ -19,6 +19,7 @@ import argparse
 import collections
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import _first  # noqa: F401  (this checkout's magcal_ros, not an installed copy)
@@ -81,31 +82,26 @@ def main() -> int:
         except AssertionError as exc:
             failures.append("side: " + first_line(exc))
 
-    @seed(args.seed)
-    @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
-              suppress_health_check=list(HealthCheck))
-    @given(props.hidden_steps())
-    def hidden(case: props.Case) -> None:
-        tally["hidden"] += 1
-        try:
-            props.check_case(case)
-        except AssertionError as exc:
-            tally["hidden failures"] += 1
-            failures.append("hidden step: " + first_line(exc))
-            cases.append(case)
+    def family(strategy: object, key: str, label: str) -> Callable[[], None]:
+        """A fifth as many recordings of one family (``strategy``), each checked whole; tallied under ``key``."""
 
-    @seed(args.seed)
-    @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
-              suppress_health_check=list(HealthCheck))
-    @given(props.silent_steps())
-    def silent(case: props.Case) -> None:
-        tally["silent"] += 1
-        try:
-            props.check_case(case)
-        except AssertionError as exc:
-            tally["silent failures"] += 1
-            failures.append("silent step: " + first_line(exc))
-            cases.append(case)
+        @seed(args.seed)
+        @settings(max_examples=max(1, args.examples // 5), database=None, deadline=None, phases=[Phase.generate],
+                  suppress_health_check=list(HealthCheck))
+        @given(strategy)
+        def run(case: props.Case) -> None:
+            tally[key] += 1
+            try:
+                props.check_case(case)
+            except AssertionError as exc:
+                tally[f"{key} failures"] += 1
+                failures.append(f"{label}: " + first_line(exc))
+                cases.append(case)
+
+        return run
+
+    hidden = family(props.hidden_steps(), "hidden", "hidden step")
+    silent = family(props.silent_steps(), "silent", "silent step")
 
     t0 = time.perf_counter()
     sets()

@@ -879,6 +879,18 @@ def test_the_single_sensor_pass_equals_the_general_one_over_uneven_parts_and_chu
     np.testing.assert_allclose(fast.vertical, slow.vertical, atol=1e-12)
 
 
+def _random_sensor_models(rng: np.random.Generator, model: "ForwardModel") -> np.ndarray:  # noqa: F821 (imported in the tests)
+    """(S, P) parameters of ``model``: each sensor's matrix near the identity, small offsets and current gains
+    (the lag and temperature columns zero)."""
+    s, q = model.sensors, model.q
+    theta = np.zeros((s, model.size))
+    w = np.zeros((s, 3, q))
+    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
+    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
+    theta[:, : 3 * q] = w.reshape(s, -1)
+    return theta
+
+
 @pytest.mark.parametrize("lag,temperature", [(False, False), (True, False), (False, True), (True, True)])
 def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, lag, temperature):
     """Four sensors with a current channel (and a lag block, a temperature block): the normal matrix, the
@@ -891,12 +903,7 @@ def test_the_structured_normal_equations_equal_the_dense_jacobians(monkeypatch, 
     rng = np.random.default_rng(6)
     s, n = 4, 300
     model = ForwardModel(s, channels=1, lag=lag, temperature=temperature)
-    q = model.q
-    theta = np.zeros((s, model.size))
-    w = np.zeros((s, 3, q))
-    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
-    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
-    theta[:, : 3 * q] = w.reshape(s, -1)
+    theta = _random_sensor_models(rng, model)
     if lag:
         theta[:, model.lag_index] = rng.normal(0, 0.003, s)
     if temperature:
@@ -935,12 +942,7 @@ def test_the_lag_blocks_jacobians_match_finite_differences_at_a_large_lag(monkey
     rng = np.random.default_rng(8)
     s, n = 4, 50
     model = ForwardModel(s, channels=1, lag=True)
-    q = model.q
-    theta = np.zeros((s, model.size))
-    w = np.zeros((s, 3, q))
-    w[:, :, :3] = np.eye(3) + rng.normal(0, 0.05, (s, 3, 3))
-    w[:, :, 3:] = rng.normal(0, 0.02, (s, 3, q - 3))
-    theta[:, : 3 * q] = w.reshape(s, -1)
+    theta = _random_sensor_models(rng, model)
     theta[:, model.lag_index] = np.array([0.05, -0.04, 0.03, 0.0])
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)

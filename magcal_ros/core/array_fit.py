@@ -347,8 +347,8 @@ class _Att:
 
 def _lagged(d: Array, rates: Array, tau: Array) -> tuple[Array, Array]:
     """The direction each sensor saw ``tau`` (S,) s before the set's instant, to first order in the
-    direction's ``rates`` (N, 3) 1/s: (``dl`` (N, S, 3) unit, ``1 / |d - tau r|`` (N, S)). Built one sensor
-    at a time from (N, 3) rows (a broadcast over the small axes loops in C over each of them)."""
+    direction's ``rates`` (N, 3) 1/s: (``dl`` (N, S, 3) unit, ``1 / |d - tau r|`` (N, S)). ``d - tau r`` for every
+    sensor is one matrix product of the rows ``[d, r]`` (a broadcast over the small axes loops in C over each)."""
     n, s = len(d), len(tau)
     dl = (np.stack([d, rates], axis=2).reshape(n * 3, 2) @ np.stack([np.ones(s), -tau])).reshape(n, 3, s)
     dl = np.ascontiguousarray(dl.transpose(0, 2, 1))
