@@ -466,6 +466,29 @@ def test_a_step_of_any_size_inside_a_silence_keeps_every_set_one_instant(case: C
     fell short of the coverage on short 20 Hz recordings, and a lossy sensor's count at the end can be one short.)"""
     check_pairing(case)
 
+HIDDEN_BY_A_QUEUE = {
+    # 100 Hz, two sensors: a step of 23 whole periods while the receiver is blocked 0.78 s (a gap on the grid)
+    "whole periods": Case([SensorPlan(rate=100.0, steps=[(5.4989, 0.23004)]), SensorPlan(rate=100.0)], 11.7,
+                          2147483647, (4.9207, 0.784, 0.003644)),
+    # 20 Hz, three sensors: a step of 0.75 s about as large as the queue's delay, so its first message looks on time
+    "as large as the delay": Case([SensorPlan(rate=20.0, loss=0.02), SensorPlan(rate=20.0),
+                                   SensorPlan(rate=20.0, steps=[(4.4472, 0.75175)])], 10.86, 10, (4.0365, 0.8214, 0.014162)),
+    # 50 Hz, two sensors: two samples lost before a 2.6-period step, the drained arrivals keeping no time
+    "after lost samples": Case([SensorPlan(rate=50.0, loss=0.02, steps=[(3.025, 0.052)]), SensorPlan(rate=50.0, loss=0.02)],
+                               9.5, 59, (3.0, 0.5, 0.0052616)),
+}
+
+
+@pytest.mark.parametrize("name", list(HIDDEN_BY_A_QUEUE))
+def test_a_step_a_blocked_receiver_hides_is_read_from_the_queues_order(name: str) -> None:
+    """A receiver blocked, then draining its queue, while one sensor's stamps step forward: every arrival is late, so
+    the step looks like a pause, and the sensor was paired the step's size off for the rest of the recording. The
+    queue delivers in the order the messages came, so another sensor's message delivered after the step's first one
+    tells when that one came at the latest (and one delivered before, at the earliest): its decision waits for one,
+    and the new segment is placed between those bounds. Offline and live, every set one instant, all counted."""
+    check_case(HIDDEN_BY_A_QUEUE[name])
+
+
 def test_the_oracle_sees_a_wrong_pairing() -> None:
     """The invariant is not vacuous: one sensor's stamps a period late make every set wrong."""
     case = Case([SensorPlan(rate=50.0) for _ in range(2)], 5.0, 1)

@@ -91,6 +91,9 @@ PACED_PAUSE: int = 4
 arrivals' own pace (a replay at another speed, a busy receiver) is a pause of the sensor, not a step. Shorter
 gaps are left to the stamps: sensors whose stamps all jump by a second or so (a replay started again) would
 otherwise be judged one by one, some paused and some stepped, and never pair again."""
+WAIT_MESSAGES: int = 4
+"""How many of its own messages a suspect ahead from a busy receiver's queue waits at most for another sensor's
+message delivered after it (:meth:`AcceptanceRule._queue_unread`)."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
@@ -280,7 +283,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh")
+                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -299,6 +302,11 @@ class SensorStream:
         them alone until the window is full of them (the sensor may have come back at another rate)."""
         self.held: tuple[int, Any, str | None, int | None, int] | None = None
         """A suspect: (stamp, payload, reading fault or None, receipt, kind: BEHIND, AHEAD, CROWDED or BURST)."""
+        self.waiting: list[Message] | None = None
+        """The messages after a suspect ahead that a busy receiver's queue delivered, held until another sensor's
+        message delivered after the suspect tells when it came to the queue (:meth:`AcceptanceRule._queue_unread`)."""
+        self.waited: int | None = None
+        """The receipt (ns) of the latest suspect that waited so: it is decided when the wait ends."""
         self.clock = clock
         self.before: tuple[int, int, int] | None = None
         """(last stamp, base) of the segment before the latest step, for its first :data:`PERIOD_WINDOW`
@@ -347,6 +355,10 @@ class SensorStream:
     def busy(self) -> bool:
         """Whether messages are held (a suspect, or a new segment being placed)."""
         return self.held is not None or self.placing is not None
+
+    def holds(self) -> int:
+        """How many messages are held: a suspect, those waiting after it, a new segment's first."""
+        return (self.held is not None) + len(self.waiting or ()) + len(self.placing or ())
 
     def suspect_period(self) -> int | None:
         """The period the suspect rule uses: the short median once the window is full."""
@@ -754,7 +766,7 @@ class AcceptanceRule:
     @property
     def held(self) -> int:
         """Messages held: suspects, and the first messages of new segments being placed."""
-        return sum((s.held is not None) + len(s.placing or ()) for s in self.streams)
+        return sum(s.holds() for s in self.streams)
 
     def fault(self, x: float, y: float, z: float) -> str | None:
         """The fault of a reading (T) under this rule's :attr:`max_reading`, None when usable."""
@@ -808,6 +820,8 @@ class AcceptanceRule:
             s.heard = receipt
         out: Accepted = []
         message = (stamp, payload, fault, receipt)
+        if s.waiting is not None:
+            return self._wait_for_queue(index, message)
         if s.placing is not None and self._placing(index, message, out):
             return out
         if s.held is not None and self._decide(index, message, out):
@@ -860,6 +874,9 @@ class AcceptanceRule:
             self._take(index, held[:4], False, out)
             return False
         if step > 0 and (step <= self.restart_ns or held[0] - s.last <= self.restart_ns):  # the held one goes on
+            if self._queue_unread(index, held):
+                s.held, s.waiting = held, [message]
+                return True
             partner = self._partner(index, held[0], held[3])
             if partner is not None:  # another sensor made this jump of one clock: as it did
                 return self._jump_with(index, partner, [held[:4], message], out)
@@ -871,6 +888,37 @@ class AcceptanceRule:
             return False
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
         return False
+
+    def _queue_unread(self, index: int, held: tuple[int, Any, str | None, int | None, int]) -> bool:
+        """Whether a suspect ahead (``held``) came from a busy receiver's queue (every other sensor's latest message
+        later than its stamps' lead says by over half a period) before any other sensor's message delivered after
+        it: the queue's order tells when it came only once one is (:meth:`_came`; a step forward as large as the
+        queue's delay makes the suspect look on time), so its decision waits for one, for up to
+        :data:`WAIT_MESSAGES` of its own."""
+        s = self.streams[index]
+        receipt, period = held[3], s.suspect_period()
+        if receipt is None or period is None or receipt == s.waited or len(s.waiting or ()) >= WAIT_MESSAGES or \
+                not s.arrivals:
+            return False
+        for j, other in enumerate(self.streams):
+            if j != index and other.arrivals and receipt < other.arrivals[-1][1] <= receipt + self.restart_ns // 4:
+                return False
+        return self._receiver_late(index, receipt, period)
+
+    def _wait_for_queue(self, index: int, message: Message) -> Accepted:
+        """A message of sensor ``index`` while its suspect waits (:attr:`SensorStream.waiting`): held too while the
+        queue's order is still unread, else the suspect decided with the first of them and each offered again."""
+        s = self.streams[index]
+        waiting = s.waiting
+        assert waiting is not None and s.held is not None
+        waiting.append(message)
+        if self._queue_unread(index, s.held):
+            return []
+        s.waiting, s.waited = None, s.held[3]
+        out: Accepted = []
+        for m in waiting:
+            out += self.accept(index, *m)
+        return out
 
     def _stepped_ahead(self, index: int, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a confirmed stamp ahead of its sequence is a step of the stamps (else samples were lost
@@ -974,6 +1022,10 @@ class AcceptanceRule:
         ahead is kept, one behind (or the last of a backlog) dropped."""
         s = self.streams[index]
         out: Accepted = []
+        while s.waiting is not None:  # the suspect decided with what came after it (which may hold another: fewer)
+            waiting, s.waiting, s.waited = s.waiting, None, s.held[3] if s.held is not None else None
+            for m in waiting:
+                out += self.accept(index, *m)
         if s.placing is not None:
             self._place_held(index, out)
         held, s.held = s.held, None
@@ -1045,13 +1097,38 @@ class AcceptanceRule:
             if self._hidden_pause(index, held, estimate if by_arrival else None, period, out):
                 return
         else:
-            receipts = [s.last_receipt] + [m[3] for m in held]
-            estimate = min(first[0] + self._came(index, int(m[3]), receipts[k], period, True) + int(lead) - m[0]  # type: ignore[arg-type]
-                           for k, m in enumerate(held))
+            estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
+            by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
         self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, True, out)
         for m in held[1:]:
             self._take(index, m, False, out)
+
+    def _placed_by_queue(self, index: int, held: list[Message], period: int, lead: int) -> tuple[int, bool]:
+        """Where (ns, common) the first of a new segment's ``held`` messages of sensor ``index`` lies by their arrivals
+        (``lead``: the stamps' over the least delayed, ns), and whether a queue's order bounds it both ways to half a
+        ``period`` (ns). Each message came no later than its receipt nor than the queue's order allows, and no earlier
+        than that order allows (:meth:`_came_between`). Where the tightest bounds all of them set lie within half a
+        period (to a quarter of a period crossed: their delays), their middle; else the earliest of each message's
+        own (the middle of its bounds, or its latest where it has no earliest): where the sensors sample together,
+        a message's bounds are a period apart, with the truth at one end and their middle between two samples."""
+        first = held[0][0]
+        receipts = [self.streams[index].last_receipt] + [m[3] for m in held]
+        lowest: int | None = None
+        latest: int | None = None
+        each: int | None = None
+        for k, m in enumerate(held):
+            low, high = self._came_between(index, int(m[3]), receipts[k], period)  # type: ignore[arg-type]
+            shift = first + lead - m[0]
+            own = high if low is None or low > high else (low + high) // 2
+            each = own + shift if each is None else min(each, own + shift)
+            latest = high + shift if latest is None else min(latest, high + shift)
+            if low is not None:
+                lowest = low + shift if lowest is None else max(lowest, low + shift)
+        assert each is not None and latest is not None
+        if lowest is not None and -period < 4 * (latest - lowest) < 2 * period:
+            return (lowest + latest) // 2, True
+        return each, False
 
     def _hidden_pause(self, index: int, held: list[Message], estimate: int | None, period: int, out: Accepted) -> bool:
         """A jump forward a queue hid (:meth:`_hidden_by_queue`), its segment ``held``: taken as a pause (the stamps go
@@ -1075,17 +1152,23 @@ class AcceptanceRule:
         do: the stamps stepped forward (the receipts alone, late by the queue, hid it)."""
         return self.streams[index].ahead_of(stamp, arrival, period)
 
-    def _came(self, index: int, receipt: int, previous: int | None, period: int, middle: bool = False) -> int:
+    def _came(self, index: int, receipt: int, previous: int | None, period: int) -> int:
         """When (ns) sensor ``index``'s message received at ``receipt`` (ns; its previous at ``previous``) came to
-        a receiver that then took it from its queue: a queue delivers in the order the messages came, so it came
-        after the latest of another sensor's delivered before it and no later than the first delivered after it,
-        each of which came when its stamps' lead says (their least delay). The latest that every other sensor
-        allows (``middle``: halfway between the bounds); ``receipt`` itself where the receiver was not late by half
-        the ``period`` (ns), or where the message or the others' came bunched (a backlog delivered at once, whose
-        order says nothing of when its messages came), or no other sensor's message was delivered within a
-        quarter of ``restart_ns`` after it."""
+        a receiver that then took it from its queue, at the latest (:meth:`_came_between`)."""
+        return self._came_between(index, receipt, previous, period)[1]
+
+    def _came_between(self, index: int, receipt: int, previous: int | None, period: int) -> tuple[int | None, int]:
+        """(earliest or None: unknown, latest) ns when sensor ``index``'s message received at ``receipt`` (ns; its
+        previous at ``previous``) came to a receiver that then took it from its queue: a queue delivers in the
+        order the messages came, so it came after the latest of another sensor's delivered before it and no later
+        than the first delivered after it, each of which came when its stamps' lead says (their least delay): the
+        earliest every other sensor allows and the latest any of them does (one whose lead is not yet known right
+        must not make it look early); (None, ``receipt``) where the receiver was not late by half the
+        ``period`` (ns), or where the message or the others' came bunched (a backlog delivered at once, whose order
+        says nothing of when its messages came), or no other sensor's message was delivered within a quarter of
+        ``restart_ns`` after it."""
         if previous is None or bunched(receipt, previous, period):
-            return receipt
+            return None, receipt
         lower, upper = None, None
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
@@ -1103,8 +1186,8 @@ class AcceptanceRule:
             upper = after[0] - lead if upper is None else max(upper, after[0] - lead)
             lower = before[0] - lead if lower is None else max(lower, before[0] - lead)
         if upper is None or 2 * (receipt - upper) <= period:
-            return receipt
-        return (lower + upper) // 2 if middle and lower is not None and lower <= upper else upper
+            return None, receipt
+        return lower, upper
 
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
