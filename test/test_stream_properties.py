@@ -410,7 +410,7 @@ def hidden_steps(draw: st.DrawFn) -> Case:
     """A receiver blocked for a while, then draining its queue, with one sensor's stamps stepping forward while it
     was blocked by anything from a few periods to the block's length: the queue's delay hides the step from the
     receipts until they are on time again (a pause of the same size looks the same until then). Drawn by the
-    benchmark (benchmarks/bench_stream_properties.py), not the suite: a share of them still fails (docs/synchronisation.md)."""
+    benchmark (benchmarks/bench_stream_properties.py) and, a few derandomised draws, by the suite."""
     rate = draw(st.sampled_from([20.0, 50.0, 100.0, 200.0]))
     sensors = draw(st.integers(2, 4))
     jitter = draw(st.sampled_from([0.0, 0.0004]))
@@ -465,6 +465,17 @@ def test_a_step_of_any_size_inside_a_silence_keeps_every_set_one_instant(case: C
     which :func:`check_case` checks too, are the general draw's: in the benchmark's 150 draws of this family 4
     fell short of the coverage on short 20 Hz recordings, and a lossy sensor's count at the end can be one short.)"""
     check_pairing(case)
+
+@settings(max_examples=EXAMPLES // 2, derandomize=True, database=None, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(hidden_steps())
+def test_a_step_a_blocked_receiver_hides_keeps_every_set_one_instant(case: Case) -> None:
+    """Every published set stands for one true instant, live as offline, where one sensor's stamps step forward
+    while the receiver is blocked. (A few of the family still fail, 1-2 of 200 in the benchmark's draws: see
+    docs/synchronisation.md. These draws fail on the code that decided a suspect before the queue's order was
+    read.)"""
+    check_pairing(case)
+
 
 HIDDEN_BY_A_QUEUE = {
     # 100 Hz, two sensors: a step of 23 whole periods while the receiver is blocked 0.78 s (a gap on the grid)
