@@ -487,6 +487,12 @@ HIDDEN_BY_A_QUEUE = {
     # 50 Hz, two sensors: two samples lost before a 2.6-period step, the drained arrivals keeping no time
     "after lost samples": Case([SensorPlan(rate=50.0, loss=0.02, steps=[(3.025, 0.052)]), SensorPlan(rate=50.0, loss=0.02)],
                                9.5, 59, (3.0, 0.5, 0.0052616)),
+    # the same, the step 0.24 s later on the other sensor: the first sensor's own gap in the drain, read from the
+    # queue's order, is no jump a queue hides (it had been held until its arrivals came on time, and nothing of it
+    # told the step's sensor the queue's order)
+    "while another's gap is placed": Case([SensorPlan(rate=50.0, loss=0.02),
+                                           SensorPlan(rate=50.0, loss=0.02, steps=[(3.2647, 0.052)])],
+                                          9.5, 59, (3.0, 0.5, 0.0052616)),
 }
 
 

@@ -932,11 +932,13 @@ class AcceptanceRule:
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         period = s.suspect_period() or self.restart_ns
-        came = None if held[3] is None else self._came(index, held[3], s.last_receipt, period)
+        low, came = (None, None) if held[3] is None else self._came_between(index, held[3], s.last_receipt, period)
         unseen = s.unseen(held[0], held[3], period) if came == held[3] else self._ahead_of_queue(index, held[0],
                                                                                                  came, period)
         s.seen_step = unseen is True
-        if unseen is False and s.timed() and self._hidden_by_queue(index, held, came, period):
+        placed = low is not None and 2 * (came - low) <= 3 * period  # the queue's order bounds when it came (to 1.5
+        # periods): a step would show against it, so a gap it leaves is no jump a queue hides (not held for arrivals)
+        if unseen is False and not placed and s.timed() and self._hidden_by_queue(index, held, came, period):
             s.hidden = True  # a queue's delay hides how far the stamps went: placed by the arrivals once they catch up
             return True
         if unseen is False and came == held[3] and s.trails(held[0], held[3], period) and \
