@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -150,10 +150,15 @@ def only_lossy(plan: SensorPlan) -> bool:
 
 
 def check_lost(case: Case, streams: list[Stream], sync) -> None:  # type: ignore[no-untyped-def]
-    """A sensor whose only fault is random loss counts exactly what it lost (live: a node's diagnostics)."""
+    """A sensor whose only fault is random loss counts exactly what it lost (live: a node's diagnostics), but for
+    losses among the messages still pending at the end (at most the synchroniser's ``pending``, any sensor's):
+    a live node counts a loss once the sample after it reaches its clock."""
     for k, (plan, stream) in enumerate(zip(case.plans, streams)):
         if only_lossy(plan):
-            assert sync.lost(k) == true_lost(stream, plan), (k, sync.lost(k), true_lost(stream, plan))
+            whole = true_lost(stream, plan)
+            seen = true_lost(replace(stream, instants=stream.instants[: max(0, len(stream.instants) - sync.pending)]),
+                             plan)
+            assert seen <= sync.lost(k) <= whole, (k, sync.lost(k), seen, whole)
 
 
 def offline(streams: list[Stream]):  # type: ignore[no-untyped-def]
@@ -463,7 +468,7 @@ def test_a_step_of_any_size_inside_a_silence_keeps_every_set_one_instant(case: C
     """Every published set stands for one true instant, live as offline, whichever way the stamps of a silent
     sensor (and of another sensor on its clock) stepped while it was silent. (The coverage and the loss counts,
     which :func:`check_case` checks too, are the general draw's: in the benchmark's 150 draws of this family 4
-    fell short of the coverage on short 20 Hz recordings, and a lossy sensor's count at the end can be one short.)"""
+    fell short of the coverage on short 20 Hz recordings.)"""
     check_pairing(case)
 
 @settings(max_examples=EXAMPLES // 2, derandomize=True, database=None, deadline=None,
