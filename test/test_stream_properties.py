@@ -471,6 +471,7 @@ def test_a_step_of_any_size_inside_a_silence_keeps_every_set_one_instant(case: C
     fell short of the coverage on short 20 Hz recordings.)"""
     check_pairing(case)
 
+
 @settings(max_examples=EXAMPLES // 2, derandomize=True, database=None, deadline=None,
           suppress_health_check=[HealthCheck.too_slow])
 @given(hidden_steps())

@@ -892,7 +892,7 @@ class AcceptanceRule:
     def _queue_unread(self, index: int, held: tuple[int, Any, str | None, int | None, int]) -> bool:
         """Whether a suspect ahead (``held``) came from a busy receiver's queue (every other sensor's latest message
         later than its stamps' lead says by over half a period) before any other sensor's message delivered after
-        it: the queue's order tells when it came only once one is (:meth:`_came`; a step forward as large as the
+        it: the queue's order tells when it came only once one is (:meth:`_came_between`; a step forward as large as the
         queue's delay makes the suspect look on time), so its decision waits for one, for up to
         :data:`WAIT_MESSAGES` of its own."""
         s = self.streams[index]
@@ -912,9 +912,15 @@ class AcceptanceRule:
         waiting = s.waiting
         assert waiting is not None and s.held is not None
         waiting.append(message)
-        if self._queue_unread(index, s.held):
-            return []
-        s.waiting, s.waited = None, s.held[3]
+        return [] if self._queue_unread(index, s.held) else self._end_wait(index)
+
+    def _end_wait(self, index: int) -> Accepted:
+        """End sensor ``index``'s wait: its suspect decided with the messages that waited after it, each offered again
+        (one of them may start another wait, with fewer)."""
+        s = self.streams[index]
+        waiting = s.waiting
+        assert waiting is not None
+        s.waiting, s.waited = None, None if s.held is None else s.held[3]
         out: Accepted = []
         for m in waiting:
             out += self.accept(index, *m)
@@ -1024,10 +1030,8 @@ class AcceptanceRule:
         ahead is kept, one behind (or the last of a backlog) dropped."""
         s = self.streams[index]
         out: Accepted = []
-        while s.waiting is not None:  # the suspect decided with what came after it (which may hold another: fewer)
-            waiting, s.waiting, s.waited = s.waiting, None, s.held[3] if s.held is not None else None
-            for m in waiting:
-                out += self.accept(index, *m)
+        while s.waiting is not None:
+            out += self._end_wait(index)
         if s.placing is not None:
             self._place_held(index, out)
         held, s.held = s.held, None
@@ -1150,14 +1154,9 @@ class AcceptanceRule:
 
     def _ahead_of_queue(self, index: int, stamp: int, arrival: int, period: int) -> bool:
         """Whether ``stamp`` (ns), taken from a busy receiver's queue, runs more than half a ``period`` (ns) further
-        ahead of its ``arrival`` (ns; when it came to the queue at the latest, :meth:`_came`) than the sensor's stamps
+        ahead of its ``arrival`` (ns; when it came to the queue at the latest, :meth:`_came_between`) than the sensor's stamps
         do: the stamps stepped forward (the receipts alone, late by the queue, hid it)."""
         return self.streams[index].ahead_of(stamp, arrival, period)
-
-    def _came(self, index: int, receipt: int, previous: int | None, period: int) -> int:
-        """When (ns) sensor ``index``'s message received at ``receipt`` (ns; its previous at ``previous``) came to
-        a receiver that then took it from its queue, at the latest (:meth:`_came_between`)."""
-        return self._came_between(index, receipt, previous, period)[1]
 
     def _came_between(self, index: int, receipt: int, previous: int | None, period: int) -> tuple[int | None, int]:
         """(earliest or None: unknown, latest) ns when sensor ``index``'s message received at ``receipt`` (ns; its
