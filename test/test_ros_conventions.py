@@ -241,7 +241,7 @@ def _collect(driver: ArrayDriver, data: h.Data, count: int) -> None:
     rec = data.manoeuvre
     sent = driver.replay(recording_messages(rec.names, rec.stamps[:count], rec.vectors[:count]), rate=h.REPLAY_RATE)
     progress = wait_for_samples(driver, CALIBRATION.strip("/"), len(sent), timeout=h.SAMPLES_TIMEOUT)
-    assert int(progress.get("samples", 0)) == count, progress
+    assert int(progress.get("samples", 0)) == count, str(progress)  # every value shown when it fails
 
 
 def test_calibrating_in_a_namespace_keeps_backup_generations_and_skips_unchanged_data(

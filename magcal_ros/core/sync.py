@@ -243,6 +243,18 @@ class SetSynchronizer(AcceptanceRule):
         if not accepted:
             return []
         self._queue(index, accepted)
+        return self._formed_sets()
+
+    def release_quiet_sets(self, now_ns: int) -> list[SyncedSet]:
+        """Live, on the receiver's clock (ns): the sets that the messages held for sensors quiet for
+        :data:`~magcal_ros.core.sync_rules.HOLD_NS` complete (:meth:`release_quiet_holds`)."""
+        released = self.release_quiet_holds(now_ns)
+        for index, accepted in released:
+            self._queue(index, accepted)
+        return self._formed_sets() if released else []
+
+    def _formed_sets(self) -> list[SyncedSet]:
+        """The sets the queued messages complete, in order."""
         formed = self._advance(final=False)
         if not formed:
             self._compact(keep_values=True)  # messages given up for a silent sensor are consumed too
@@ -1061,6 +1073,15 @@ class StreamSynchronizer:
         if self._revised():
             batch = _join(batch, self.engine.pop(final))
         return batch
+
+    def release_quiet(self, now_ns: int) -> list[SyncedSet]:
+        """Live, called now and then with the receiver's clock (ns, the clock of the arrivals given to :meth:`add`):
+        the sets completed by the messages held for a sensor whose latest came more than
+        :data:`~magcal_ros.core.sync_rules.HOLD_NS` before, decided as at the end of its stream (they wait for
+        its later messages; at the end of a collection none come)."""
+        if self.engine is None:
+            return []
+        return self.engine.release_quiet_sets(now_ns) + self._formed_after_revision(False)
 
     def _formed_after_revision(self, final: bool) -> list[SyncedSet]:
         """Live: where exact matching just ended, the sets interpolation forms from what it queued."""

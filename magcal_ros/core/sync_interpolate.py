@@ -161,6 +161,14 @@ class InterpolatingSynchronizer(AcceptanceRule):
         self._clock_in(index, accepted)
         return self._form(False)
 
+    def release_quiet_sets(self, now_ns: int) -> list[SyncedSet]:
+        """Live, on the receiver's clock (ns): the sets that the messages held for sensors quiet for
+        :data:`~magcal_ros.core.sync_rules.HOLD_NS` complete (:meth:`release_quiet_holds`)."""
+        released = self.release_quiet_holds(now_ns)
+        for index, accepted in released:
+            self._clock_in(index, accepted)
+        return self._form(False) if released else []
+
     def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
             receipt_ns: int | None = None) -> SyncedSet | None:
         """Offer one message; the last set it completes, if any (see :meth:`add_all`)."""

@@ -1025,6 +1025,20 @@ class AcceptanceRule:
         self.stats.count("out_of_order" if s.last - h <= self.restart_ns else "glitch")
         return False
 
+    def release_quiet_holds(self, now_ns: int) -> list[tuple[int, Accepted]]:
+        """Live, on the receiver's clock at ``now_ns``: every sensor that holds messages and whose latest came more
+        than :data:`HOLD_NS` before has them decided as at the end of its stream (:meth:`release_held`), with
+        ``(sensor, the messages let through)`` for each. A hold waits for the sensor's later messages; where none
+        come (the end of a collection, a driver stopped), it would otherwise wait until the next one. The
+        decision is the one that next message would have made, or the end of a recording does offline."""
+        out: list[tuple[int, Accepted]] = []
+        for k, s in enumerate(self.streams):
+            if s.holds() and s.heard is not None and now_ns - s.heard > HOLD_NS:
+                accepted = self.release_held(k)
+                if accepted:
+                    out.append((k, accepted))
+        return out
+
     def release_held(self, index: int) -> Accepted:
         """End of stream for sensor ``index``: a new segment is placed with what there is; a suspect
         ahead is kept, one behind (or the last of a backlog) dropped."""

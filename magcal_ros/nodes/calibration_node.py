@@ -167,6 +167,7 @@ class CalibrationNode(CalibrationParameters, Collection, ProgressReports, Missio
         self._sim_time = common.SimTimeWatch(self.get_logger())
         # on the steady clock: progress, /diagnostics and the analyses go on without /clock under use_sim_time
         common.steady_timer(self, max(float(self.get_parameter("progress_period").value), 0.05), self._publish_progress)
+        common.steady_timer(self, common.QUIET_CHECK, self._release_quiet)
         common.steady_timer(self, max(float(self.get_parameter("assess_period").value), 0.05), self._assess_tick)
         common.steady_timer(self, max(float(self.get_parameter("assess_period").value), 0.05), self._drift_tick)
         self.create_subscription(DiagnosticArray, common.DIAGNOSTICS_TOPIC, self._on_diagnostics, 10)

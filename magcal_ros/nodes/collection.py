@@ -151,15 +151,26 @@ class Collection:
             arrival = self._arrival(info)
             with self._lock:
                 self._health.seen(index, stamp)
-                for synced in self._sync.add(index, stamp, f.x, f.y, f.z, arrival):
-                    # the mission's rolling window (for a recalibration at sea) and, while collecting, the buffer
-                    if not self._mission.due(synced.stamp) and not self._collecting:
-                        continue
-                    self._newest_set = max(self._newest_set, synced.stamp)
-                    self._pending.append((synced.stamp, synced.values, self._receipt_clock(), self._collecting))
-                self._flush_pending(force=False)
+                self._offer(self._sync.add(index, stamp, f.x, f.y, f.z, arrival))
 
         return callback
+
+    def _offer(self, sets: list[Any]) -> None:
+        """Synchronised sets into the mission's rolling window (for a recalibration at sea) and, while
+        collecting, the buffer, once the side streams due at them came (:meth:`_flush_pending`). Lock held."""
+        for synced in sets:
+            if not self._mission.due(synced.stamp) and not self._collecting:
+                continue
+            self._newest_set = max(self._newest_set, synced.stamp)
+            self._pending.append((synced.stamp, synced.values, self._receipt_clock(), self._collecting))
+        self._flush_pending(force=False)
+
+    def _release_quiet(self) -> None:
+        """The sets completed by messages held for a sensor that fell quiet (the synchroniser decides them as at
+        the end of its stream once it has been quiet for its hold, on the arrivals' clock: at the end of a
+        collection no later message comes to decide them)."""
+        with self._lock:
+            self._offer(self._sync.release_quiet(self._receipt_clock()))
 
     def _collected(self) -> tuple[Recording, list[str]]:
         """The collected sets with their currents, temperatures and IMU (lock held)."""

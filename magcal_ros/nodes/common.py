@@ -125,6 +125,11 @@ def hardware_id(node: Any, names: Sequence[str]) -> str:
     return ",".join(node.resolve_topic_name(n) for n in names)
 
 
+QUIET_CHECK: float = 0.5
+"""How often (s) a node asks its synchroniser for the sets that messages held for a quiet sensor complete
+(:meth:`~magcal_ros.core.sync.StreamSynchronizer.release_quiet`)."""
+
+
 def steady_timer(node: Any, period: float, callback: Callable[[], None]) -> Any:
     """A timer on the steady clock: reports and supervision go on whatever the node clock does (with
     ``use_sim_time`` and no ``/clock`` the node clock stands still, and a timer on it never fires)."""

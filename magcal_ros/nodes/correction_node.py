@@ -364,6 +364,7 @@ class CorrectionNode(Node):
         self._sim_time = common.SimTimeWatch(self.get_logger())
         common.steady_timer(self, max(period, 0.05), self._report)  # reports go on without /clock (use_sim_time)
         self.create_timer(WAIT_CHECK, self._release_waiting)
+        common.steady_timer(self, common.QUIET_CHECK, self._release_quiet)
         self.get_logger().info(
             f"correcting {', '.join(self._state.names)} -> {self._outputs_text(self._state)} in "
             f"{self.get_namespace()}, frame {self._state.frame_id}, sync_mode {self._state.sync_mode}, sync "
@@ -797,6 +798,12 @@ class CorrectionNode(Node):
             return
         self._waiting.add(synced.stamp, self._now(), synced)
         self._release_waiting()
+
+    def _release_quiet(self) -> None:
+        """Publish the sets completed by messages held for a sensor that fell quiet (the synchroniser decides
+        them as at the end of its stream once it has been quiet for its hold, on the arrivals' clock)."""
+        for synced in self._sync.release_quiet(self._now()):
+            self._publish(synced)
 
     def _release_waiting(self) -> None:
         """Correct the held sets nothing is due for any more (or that waited long enough)."""

@@ -1,0 +1,204 @@
+"""Messages held for a sensor that then falls quiet: decided on the receiver's clock, not left waiting.
+
+A live synchroniser holds some messages until the sensor's later ones decide them: a new segment's first
+messages, a suspect stamp, a jump a busy receiver's queue may have hidden. At the end of a collection (the
+crew's replay, a driver stopped) no later message comes, and before the fix every set of a collection whose
+messages a queue delivered late stayed unformed until the next collection started: a calibration node
+formed none of 400 sets for three minutes on a loaded test machine. Now a node asks
+``StreamSynchronizer.release_quiet(now)`` every half second, and a sensor quiet for ``HOLD_NS`` has its held
+messages decided as at the end of its stream: what the next message would have decided, or a recording's
+end does offline.
+
+The recordings: sensors on one wall clock (as a driver restamping at the instants due), collections of a
+few hundred sets apart by pauses of seconds, a receiver busy through part or all of a collection that then
+drains its queue. The truth is each reading's instant (:mod:`stream_oracle`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+from stream_oracle import SensorPlan, Stream, arrivals, busy_receiver, make_stream, spread
+
+from magcal_ros.core.sync import StreamSynchronizer, stream_synchronizer
+from magcal_ros.core.sync_rules import HOLD_NS
+
+NAMES = ("mag1", "mag2", "mag3", "mag4")
+EXAMPLES = 12
+STILL_NS = HOLD_NS + 1
+"""How long after the latest arrival the receiver's clock is read: just past the hold."""
+
+
+def collections(rate: float, sizes: list[int], pauses: list[float], phases: list[float],
+                rng: np.random.Generator) -> tuple[list[Stream], list[tuple[float, float]]]:
+    """Four sensors at ``rate`` Hz (each at its ``phases`` s into the period) recording ``sizes`` samples at a
+    time, ``pauses`` s apart; (streams, the collections' spans in s)."""
+    spans, t = [], 1.0
+    for n, pause in zip(sizes, pauses):
+        spans.append((t, t + n / rate))
+        t += n / rate + pause
+    silences = [(0.0, spans[0][0])] + [(a[1], b[0]) for a, b in zip(spans, spans[1:])]
+    streams = [make_stream(SensorPlan(rate=rate, phase=p, delay=0.0005, transport=0.0003,
+                                      silences=silences), spans[-1][1], rng) for p in phases]
+    return streams, spans
+
+
+def fed(sync: StreamSynchronizer, streams: list[Stream], ticks: Sequence[int] = (), start: int = 0,
+        stop: int | None = None) -> list[Any]:
+    """The messages that arrived from ``start`` to before ``stop`` (ns; None: the end) in arrival order, and
+    ``release_quiet`` at each of ``ticks`` (ns) in that time once it comes; the sets formed."""
+    sets: list[Any] = []
+    pending = sorted(t for t in ticks if start <= t and (stop is None or t < stop))
+    for receipt, k, i in arrivals(streams):
+        if receipt < start or stop is not None and receipt >= stop:
+            continue
+        while pending and pending[0] <= receipt:
+            sets += sync.release_quiet(pending.pop(0))
+        s = streams[k]
+        sets += sync.add(k, int(s.stamps[i]), *s.vectors[i].tolist(), receipt)
+    for t in pending:
+        sets += sync.release_quiet(t)
+    return sets
+
+
+def in_span(sets: list[Any], span: tuple[float, float]) -> int:
+    """Sets whose members' instants lie in ``span`` (s after the start)."""
+    from stream_oracle import set_instants
+
+    return sum(1 for x in sets if span[0] - 1e-3 <= set_instants(x.values).min() <= span[1] + 1e-3)
+
+
+def synchronizer(rate: float) -> StreamSynchronizer:
+    return stream_synchronizer(list(NAMES), max_reading=2e-3)
+
+
+def busy_through(streams: list[Stream], span: tuple[float, float], before: float, after: float,
+                 service: float) -> None:
+    """The receiver takes nothing from ``before`` s ahead of ``span`` to ``after`` s past its end, then drains
+    its queue at ``service`` s a message."""
+    start = span[0] - before
+    busy_receiver(streams, start, span[1] + after - start, service)
+
+
+def stalled() -> tuple[list[Stream], list[tuple[float, float]]]:
+    """Three collections at 400 Hz, all four sensors stamped alike, the receiver busy from the end of the second
+    until after the third (0.7 s later), then draining its queue at 66 us a message."""
+    streams, spans = collections(400.0, [800, 500, 400], [2.5, 0.7, 0.0], [0.0] * 4, np.random.default_rng(11))
+    busy_through(streams, spans[-1], 0.95, 0.22, 6.6e-5)
+    return streams, spans
+
+
+def true_sets(streams: list[Stream], span: tuple[float, float]) -> int:
+    """Instants in ``span`` (s) every sensor sampled (the sensors sample together here)."""
+    return min(int(np.sum((s.instants >= span[0] - 1e-3) & (s.instants <= span[1] + 1e-3))) for s in streams)
+
+
+def latest(streams: list[Stream]) -> int:
+    return max(int(s.receipts[-1]) for s in streams)
+
+
+def test_a_collection_a_busy_receiver_delivered_late_forms_once_its_sensors_are_quiet() -> None:
+    """The case seen on a loaded machine: 400 sets at 400 Hz, all four sensors stamped alike, the receiver busy
+    from before the collection until after it. Every sensor's segment is held as a jump the queue may hide;
+    nothing forms from the messages alone, and every set forms, each of one instant, once the receiver's clock
+    passes the hold. Before the hold has passed, nothing is released."""
+    streams, spans = stalled()
+    sync = synchronizer(400.0)
+    sets = fed(sync, streams)
+    assert in_span(sets, spans[0]) == true_sets(streams, spans[0]) and \
+        in_span(sets, spans[1]) == true_sets(streams, spans[1])
+    assert in_span(sets, spans[-1]) == 0 and sync.pending > 1590  # the stall: everything held
+    assert sync.release_quiet(latest(streams) + HOLD_NS - 1) == []
+    released = sync.release_quiet(latest(streams) + STILL_NS)
+    assert in_span(released, spans[-1]) == len(released) == true_sets(streams, spans[-1])
+    assert max(spread(x.values) for x in released) < 1e-6
+    assert sync.pending == 0
+
+
+@settings(max_examples=EXAMPLES, derandomize=True, database=None, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(rate=st.sampled_from([100.0, 200.0, 400.0]),
+       sizes=st.lists(st.integers(150, 500), min_size=2, max_size=3),
+       pause=st.floats(0.5, 3.0), apart=st.booleans(),
+       lead=st.floats(0.0, 1.0), after=st.floats(-0.5, 0.5), service=st.floats(5e-5, 6e-4),
+       seed=st.integers(0, 2**16))
+@example(rate=400.0, sizes=[500, 400], pause=0.7, apart=False, lead=0.79, after=0.22, service=6.6e-5, seed=11)
+def test_a_quiet_release_decides_as_the_next_collection_would(rate: float, sizes: list[int], pause: float,
+                                                               apart: bool, lead: float, after: float,
+                                                               service: float, seed: int) -> None:
+    """For generated collections with the receiver busy through part or all of the last but one (from ``lead`` of
+    the pause and half a second before it, into the collection before when that is longer than the pause): the sets
+    formed when the receiver's clock passes the hold after that collection (live, a node's timer) are the
+    sets the next collection's messages would have released, the same in number, members and order; the
+    collection is whole by then (its sets all formed, each of one instant), whatever its messages' arrivals."""
+    rng = np.random.default_rng(seed)
+    phases = list(rng.uniform(0.0, 1.0 / rate, 4)) if apart else [0.0] * 4
+    quiet = HOLD_NS / 1e9 + 2.0  # the last collection comes once the receiver's clock has passed the hold
+    streams, spans = collections(rate, [*sizes, 120], [pause] * (len(sizes) - 1) + [quiet, 0.0], phases, rng)
+    span = spans[-2]
+    busy_through(streams, span, lead * (pause + 0.5), max(after, -0.5 * (span[1] - span[0])), service)
+    end = max(int(s.receipts[np.searchsorted(s.instants, span[1] + 1e-9) - 1]) for s in streams)
+    ticks = list(range(end + 1, end + STILL_NS + 10**9, 500_000_000))  # every half second, as a node does
+    next_one = min(int(s.receipts[np.searchsorted(s.instants, spans[-1][0] - 1e-9)]) for s in streams)
+    without = fed(synchronizer(rate), streams)
+    sync = synchronizer(rate)
+    by_then = fed(sync, streams, ticks, stop=next_one)
+    with_ticks = by_then + fed(sync, streams, start=next_one)
+    assert [x.stamps for x in with_ticks] == [x.stamps for x in without]
+    assert in_span(by_then, span) >= true_sets(streams, span) - 2, (in_span(by_then, span), true_sets(streams, span))
+    assert max(spread(x.values) for x in with_ticks) < 0.25 / rate
+
+
+@pytest.mark.parametrize("kind", ["correction", "calibration"])
+def test_both_nodes_form_a_late_delivered_collection_on_their_timer(kind: str) -> None:
+    """The nodes' raw callbacks (in this process, arrivals given) with the stalled collection above, then the
+    node's quiet-release timer with its clock past the hold: every set of the collection is formed (the
+    correction node's set count, the calibration node's collected sets)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import MagneticField
+
+    from magcal_ros.app.ros_driver import isolate_this_process, pick_domain_id
+    from magcal_ros.nodes.calibration_node import CalibrationNode
+    from magcal_ros.nodes.correction_node import CorrectionNode
+
+    streams, spans = stalled()
+    domain = pick_domain_id()
+    isolate_this_process(domain)
+    context = Context()
+    params = ["-p", f"uncorrected_sensors:={list(NAMES)}"] if kind == "correction" else []
+    rclpy.init(context=context, domain_id=domain, args=["test", "--ros-args", *params])
+    node: Any = CorrectionNode(context=context) if kind == "correction" else CalibrationNode(context=context)
+    try:
+        if kind == "calibration":
+            node._collecting = True
+        msg = MagneticField()
+        for receipt, k, i in arrivals(streams):
+            s = streams[k]
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(s.stamps[i]), 10**9)
+            msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = s.vectors[i].tolist()
+            if kind == "correction":
+                node._raw_callback(k)(serialize_message(msg), {"received_timestamp": receipt})
+            else:
+                node._raw_callback(k)(msg, {"received_timestamp": receipt})
+
+        def formed() -> int:
+            return node._sync.stats.sets if kind == "correction" else node._buffer.offered + len(node._pending)
+
+        assert formed() == true_sets(streams, spans[0]) + true_sets(streams, spans[1])
+        now = latest(streams) + STILL_NS
+        if kind == "correction":
+            node._now = lambda: now
+        else:
+            node._receipt_clock = lambda: now
+        node._release_quiet()
+        assert formed() == sum(true_sets(streams, span) for span in spans)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
