@@ -499,6 +499,14 @@ HIDDEN_BY_A_QUEUE = {
     "while another's gap is placed": Case([SensorPlan(rate=50.0, loss=0.02),
                                            SensorPlan(rate=50.0, loss=0.02, steps=[(3.2647, 0.052)])],
                                           9.5, 59, (3.0, 0.5, 0.0052616)),
+    # 50 Hz, three sensors sampled apart with 1.6 ms jitter, a receiver blocked 1.6 s that then drains slower than the
+    # sensors fill its queue (never catching up): one sensor's stamps 1.5 periods ahead as it blocks. The gap looked
+    # like a lost sample seen late and was taken (30 ms off for the rest); it lies half a period off the sensor's
+    # grid, so it is held and decided by the queue's order
+    "half a period off the grid": Case([SensorPlan(rate=50.0, ppm=99.0, jitter=0.0016),
+                                        SensorPlan(rate=50.0, phase=0.012136, ppm=63.3, jitter=0.0016),
+                                        SensorPlan(rate=50.0, phase=0.018162, ppm=92.2, jitter=0.0016, steps=[(2.0, 0.03)])],
+                                       8.0, 5166, (2.00001, 1.5941, 0.0061986)),
 }
 
 

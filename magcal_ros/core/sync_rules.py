@@ -539,8 +539,9 @@ class SensorStream:
             return CROWDED
         if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
             return AHEAD
-        if 2 * d > 3 * period and self.unseen(stamp, receipt, period):  # lost samples, unless the arrivals saw no gap
-            return AHEAD
+        if 2 * d > 3 * period and (self.unseen(stamp, receipt, period)
+                                   or receipt is not None and self.timed() and self.off_grid(stamp)):
+            return AHEAD  # lost samples, unless the arrivals saw no gap, or (arrivals to decide it) off the grid
         return OK
 
     def record(self, interval: int, pause_ns: int) -> int:
