@@ -507,6 +507,13 @@ HIDDEN_BY_A_QUEUE = {
                                         SensorPlan(rate=50.0, phase=0.012136, ppm=63.3, jitter=0.0016),
                                         SensorPlan(rate=50.0, phase=0.018162, ppm=92.2, jitter=0.0016, steps=[(2.0, 0.03)])],
                                        8.0, 5166, (2.00001, 1.5941, 0.0061986)),
+    # 200 Hz, three sensors sampled together, a receiver blocked 0.9 s that then drains at 0.5 ms a message: a 0.47 s
+    # step of the one losing samples. Another sensor's two messages around the step's first, 1 ms apart, came bunched
+    # and were not read for the queue's order (a driver's backlog); the third sensor late too shows the receiver's
+    # drain, whose order is that of the messages' coming
+    "a fast drain": Case([SensorPlan(rate=200.0, jitter=0.0004),
+                          SensorPlan(rate=200.0, jitter=0.0004, loss=0.02, steps=[(3.0868042689, 0.4664846382)]),
+                          SensorPlan(rate=200.0, jitter=0.0004)], 9.9098933464, 1681141, (3.0, 0.9098933464, 0.0005)),
 }
 
 

@@ -987,7 +987,12 @@ class AcceptanceRule:
         """Whether the receiver was late with every sensor at ``receipt`` (ns): each other sensor's latest message
         received by then, within a quarter of ``restart_ns``, came later than its stamps' lead says by more than
         half a ``period`` (ns) (one sensor's driver late alone delays only its own messages)."""
-        late = False
+        return bool(self._late_others(index, receipt, period))
+
+    def _late_others(self, index: int, receipt: int, period: int) -> list[int]:
+        """The other sensors late at ``receipt`` (ns) as :meth:`_receiver_late` judges them; none where any of them was
+        on time."""
+        late = []
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
                 continue
@@ -995,8 +1000,8 @@ class AcceptanceRule:
             if latest is None or latest[1] is None or receipt - latest[1] > self.restart_ns // 4:
                 continue
             if 2 * _lateness(other, (latest[0], latest[1])) <= period:
-                return False
-            late = True
+                return []
+            late.append(j)
         return late
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
@@ -1180,12 +1185,14 @@ class AcceptanceRule:
         than the first delivered after it, each of which came when its stamps' lead says (their least delay): the
         earliest every other sensor allows and the latest any of them does (one whose lead is not yet known right
         must not make it look early); (None, ``receipt``) where the receiver was not late by half the
-        ``period`` (ns), or where the message or the others' came bunched (a backlog delivered at once, whose order
-        says nothing of when its messages came), or no other sensor's message was delivered within a quarter of
-        ``restart_ns`` after it."""
+        ``period`` (ns), or where the message came bunched with its own previous, or no other sensor's message was
+        delivered within a quarter of ``restart_ns`` after it. Another sensor's messages that came bunched (a driver's
+        backlog delivered at once, whose order says nothing of when its messages came) bound it only where a third
+        sensor was late too: then the receiver was draining its queue, which every sensor's messages came to on time."""
         if previous is None or bunched(receipt, previous, period):
             return None, receipt
         lower, upper = None, None
+        late = self._late_others(index, receipt, period)
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
                 continue
@@ -1196,7 +1203,8 @@ class AcceptanceRule:
                     break
                 after = (common, r)
             if after is None or before is None or after[1] - receipt > self.restart_ns // 4 or \
-                    bunched(after[1], before[1], other.suspect_period() or self.restart_ns):
+                    bunched(after[1], before[1], other.suspect_period() or self.restart_ns) and \
+                    not any(k != j for k in late):  # a third sensor late too: the receiver's drain, not j's backlog
                 continue
             lead = other.lead()
             upper = after[0] - lead if upper is None else max(upper, after[0] - lead)
