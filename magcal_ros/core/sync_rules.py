@@ -107,6 +107,10 @@ that both paths place it alike whatever the node's ``lag``."""
 TAIL: int = 16
 JUMPS_KEPT: int = 32
 """Jumps of its stamps a sensor remembers for the sensors stamped by the same clock (:attr:`SensorStream.jumps`)."""
+LOST_PERIODS: int = 4
+"""A gap of its stamps up to this many sample periods that a sensor took as no step is its own lost samples, not a
+pause of the clock that stamps it: not remembered among its jumps for the sensors of the same clock (another
+sensor's jump from the same stamp, a clock's step while it was silent, is not this one)."""
 SAME_STAMP: int = 10_000
 """Two sensors whose stamps jumped to the same stamp, to this (ns), jumped by one clock."""
 SAME_JUMP: int = NS_PER_S // 1000
@@ -884,7 +888,9 @@ class AcceptanceRule:
             if self._stepped_ahead(index, held):
                 self._step(index, [held[:4], message], out)
                 return True
-            s.jumps.append((s.last, held[0], held[3], s.base))
+            period = s.suspect_period()
+            if period is None or held[0] - s.last > LOST_PERIODS * period:  # lost samples are no jump of the clock
+                s.jumps.append((s.last, held[0], held[3], s.base))
             self._take(index, held[:4], False, out)  # a pause or lost samples
             return False
         self.stats.glitch += 1  # the sequence went on below it: a single bad stamp
