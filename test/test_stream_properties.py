@@ -378,6 +378,12 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 # the queue may hide (lost samples keep the grid: not held)
 @example(Case([SensorPlan(rate=50.0, jitter=0.0004, loss=0.02, steps=[(3.1015722784911555, 0.052)]),
                SensorPlan(rate=50.0, jitter=0.0004, loss=0.02)], 10.953313047906832, 2, (3.0, 1.9533130479068315, 0.003)))
+# two sensors at 200 Hz stepping back about a second 0.44 s apart, by 1.0 and 1.00223 s: the second, placed by its
+# arrivals, took the first's shift as one clock's jump (2.2 ms apart, within half a period) and was paired 2.2 ms off
+# for the rest; that shift puts its samples 0.45 of a period off its own grid, which one clock's jump keeps
+@example(Case([SensorPlan(rate=200.0, jitter=0.0001, steps=[(4.23705, -1.0)]),
+               SensorPlan(rate=200.0, phase=0.0041055, ppm=2.0, jitter=0.0001, loss=0.02, steps=[(3.79744, -1.00223)]),
+               SensorPlan(rate=200.0, jitter=0.0001), SensorPlan(rate=200.0, jitter=0.0001)], 12.0, 0))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     check_case(case)
 
@@ -518,6 +524,12 @@ HIDDEN_BY_A_QUEUE = {
                                         SensorPlan(rate=50.0, phase=0.012136, ppm=63.3, jitter=0.0016),
                                         SensorPlan(rate=50.0, phase=0.018162, ppm=92.2, jitter=0.0016, steps=[(2.0, 0.03)])],
                                        8.0, 5166, (2.00001, 1.5941, 0.0061986)),
+    # 200 Hz, two sensors sampled together losing samples, drained at 1 ms a message: a 13 ms step (2.6 periods) whose
+    # first message came right after its own previous (the other sensor's sample between them lost), a bunch; the other
+    # sensor late too shows the receiver's drain, whose order is read
+    "its own previous in the bunch": Case([SensorPlan(rate=200.0, loss=0.02),
+                                           SensorPlan(rate=200.0, loss=0.02, steps=[(3.53796, 0.013)])],
+                                          9.7583, 13159458, (3.20602, 0.55224, 0.0010119)),
     # 200 Hz, three sensors sampled together, a receiver blocked 0.9 s that then drains at 0.5 ms a message: a 0.47 s
     # step of the one losing samples. Another sensor's two messages around the step's first, 1 ms apart, came bunched
     # and were not read for the queue's order (a driver's backlog); the third sensor late too shows the receiver's

@@ -1191,14 +1191,15 @@ class AcceptanceRule:
         than the first delivered after it, each of which came when its stamps' lead says (their least delay): the
         earliest every other sensor allows and the latest any of them does (one whose lead is not yet known right
         must not make it look early); (None, ``receipt``) where the receiver was not late by half the
-        ``period`` (ns), or where the message came bunched with its own previous, or no other sensor's message was
-        delivered within a quarter of ``restart_ns`` after it. Another sensor's messages that came bunched (a driver's
-        backlog delivered at once, whose order says nothing of when its messages came) bound it only where a third
-        sensor was late too: then the receiver was draining its queue, which every sensor's messages came to on time."""
-        if previous is None or bunched(receipt, previous, period):
+        ``period`` (ns), or where the message came bunched with its own previous while no other sensor was late, or no
+        other sensor's message was delivered within a quarter of ``restart_ns`` after it. Another sensor's messages that
+        came bunched (a driver's backlog delivered at once, whose order says nothing of when its messages came) bound it
+        only where a third sensor was late too: then the receiver was draining its queue, which every sensor's messages
+        came to on time."""
+        late = self._late_others(index, receipt, period)
+        if previous is None or bunched(receipt, previous, period) and not late:
             return None, receipt
         lower, upper = None, None
-        late = self._late_others(index, receipt, period)
         for j, other in enumerate(self.streams):
             if j == index or not other.arrivals:
                 continue
@@ -1439,10 +1440,10 @@ class AcceptanceRule:
         when it stands alone. ``margin``: how far apart (ns) a placement may be from where another sensor's
         recent step put it (by arrivals half a period; without them, half of ``restart_ns``); with one that did
         not step, half of that and at most a millisecond (the stamps are back in line with its own). With a sensor
-        whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within
-        :data:`SHARED_MARGIN` if that puts the new stamps on the old sample ``grid`` (anchor, period ns) to
-        a quarter period: arrivals a loaded computer delays can place either a period off, the shared jump
-        moves both alike (this sensor's base before the step, ``old`` ns, by that sensor's shift). First of all, where the new stamps are another sensor's latest to half a period
+        whose stamps stepped within :data:`SHARED_STEP` (the same jump of one stamping clock), within that margin or
+        :data:`SHARED_MARGIN`, where that puts the new stamps on the old sample ``grid`` (anchor, period ns) to a
+        quarter period (one clock's jump keeps each sensor's grid; another clock's jump of a size close by does
+        not): arrivals a loaded computer delays can place either a period off, the shared jump moves both alike (this sensor's base before the step, ``old`` ns, by that sensor's shift). First of all, where the new stamps are another sensor's latest to half a period
         or its neighbour's (the sensors are stamped by one clock again, whatever each one's arrivals say, unless
         they put it more than half a period further than that sensor's own arrivals were late then:
         :func:`_arrivals_disown`), that sensor's placement: its latest when ``stamp`` was received (``receipt``
@@ -1464,8 +1465,9 @@ class AcceptanceRule:
             recent = other.placed_at is not None and abs(estimate - other.placed_at) <= SHARED_STEP
             base = old + _shift(other) if recent else other.base  # one clock's jump moves both alike
             off = abs(stamp + base - estimate)
-            if recent:
-                near = off <= margin or (by_arrival and off <= SHARED_MARGIN and _on_grid(stamp + base, grid))
+            if recent:  # (the shared jump keeps this sensor's sample grid: not another clock's jump of a size close by)
+                near = (off <= margin or by_arrival and off <= SHARED_MARGIN) and \
+                    (grid is None or _on_grid(stamp + base, grid))
             else:
                 near = off <= min(margin // 2, NS_PER_S // 1000)
             if near:
