@@ -543,9 +543,9 @@ class SensorStream:
             return CROWDED
         if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
             return AHEAD
-        if 2 * d > 3 * period and (self.unseen(stamp, receipt, period)
+        if 2 * d > 3 * period and (self.unseen(stamp, receipt, period) or self.trails(stamp, receipt, period)
                                    or receipt is not None and self.timed() and self.off_grid(stamp)):
-            return AHEAD  # lost samples, unless the arrivals saw no gap, or (arrivals to decide it) off the grid
+            return AHEAD  # lost samples, unless the arrivals saw no gap or much more, or (arrivals to decide) off grid
         return OK
 
     def record(self, interval: int, pause_ns: int) -> int:
