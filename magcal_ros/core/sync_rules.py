@@ -543,10 +543,23 @@ class SensorStream:
             return CROWDED
         if SUSPECT_PERIODS[1] * d > SUSPECT_PERIODS[0] * period:
             return AHEAD
-        if 2 * d > 3 * period and (self.unseen(stamp, receipt, period) or self.trails(stamp, receipt, period)
-                                   or receipt is not None and self.timed() and self.off_grid(stamp)):
-            return AHEAD  # lost samples, unless the arrivals saw no gap or much more, or (arrivals to decide) off grid
+        if 2 * d > 3 * period and self.odd_gap(stamp, receipt, period):
+            return AHEAD
         return OK
+
+    def odd_gap(self, stamp: int, receipt: int | None, period: int) -> bool:
+        """Whether a gap of whole periods (``stamp`` ns, received at ``receipt`` ns) may be more than lost samples:
+        the arrivals saw no gap (:meth:`unseen`) or more than the stamps (:meth:`trails`), or, arrivals keeping time
+        to decide it, it lies off the sensor's grid (:meth:`off_grid`). The cheap tests first: most gaps are lost
+        samples that the arrivals saw as such."""
+        last = self.last_receipt
+        if receipt is None or last is None:
+            return False
+        seen = (receipt - last) - (stamp - self.last)
+        if not self.bunched(receipt, period) and -period <= 2 * seen <= period and not self.off_grid(stamp):
+            return False
+        return bool(self.unseen(stamp, receipt, period) or self.trails(stamp, receipt, period)
+                    or self.timed() and self.off_grid(stamp))
 
     def record(self, interval: int, pause_ns: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period; after a pause
