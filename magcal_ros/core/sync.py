@@ -382,10 +382,9 @@ class SetSynchronizer(AcceptanceRule):
                 lead = max(lead, bounds[0])
             if 2 * (common[i] - receipt[i] - lead) > period[j]:
                 return False  # a stamp ahead of its arrival: a step the rule may see (one message at a time)
-            seen = int(receipt[i] - receipt[i - 1]) - int(common[i] - common[i - 1])
             whole = d[j] / period[j]
-            if 4 * abs(seen) > period[j] or 10 * abs(whole - round(whole)) > 1:
-                return False  # arrivals that saw another gap, or one off whole periods: the rule may hold it
+            if 10 * abs(whole - round(whole)) > 1:
+                return False  # a gap off whole periods: the rule may hold it (off the sensor's grid)
         return True
 
     def add_rows(self, stamps: NDArray[np.int64], vectors: NDArray[np.float64]) -> None:

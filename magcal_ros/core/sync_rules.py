@@ -549,17 +549,17 @@ class SensorStream:
 
     def odd_gap(self, stamp: int, receipt: int | None, period: int) -> bool:
         """Whether a gap of whole periods (``stamp`` ns, received at ``receipt`` ns) may be more than lost samples:
-        the arrivals saw no gap (:meth:`unseen`) or more than the stamps (:meth:`trails`), or, arrivals keeping time
-        to decide it, it lies off the sensor's grid (:meth:`off_grid`). The cheap tests first: most gaps are lost
-        samples that the arrivals saw as such."""
+        the arrivals saw no gap (:meth:`unseen`) or, arrivals keeping time to decide it, it lies off the sensor's
+        grid (:meth:`off_grid`). (Not where the arrivals saw more time pass than the stamps: one late message does
+        that too, and holding it took lost samples delivered late for steps back.) The cheap tests first: most gaps
+        are lost samples that the arrivals saw as such."""
         last = self.last_receipt
         if receipt is None or last is None:
             return False
         seen = (receipt - last) - (stamp - self.last)
-        if not self.bunched(receipt, period) and -period <= 2 * seen <= period and not self.off_grid(stamp):
+        if not self.bunched(receipt, period) and -period <= 2 * seen and not self.off_grid(stamp):
             return False
-        return bool(self.unseen(stamp, receipt, period) or self.trails(stamp, receipt, period)
-                    or self.timed() and self.off_grid(stamp))
+        return bool(self.unseen(stamp, receipt, period) or self.timed() and self.off_grid(stamp))
 
     def record(self, interval: int, pause_ns: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period; after a pause
