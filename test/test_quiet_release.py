@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-from stream_oracle import SensorPlan, Stream, arrivals, busy_receiver, make_stream, spread
+from stream_oracle import SensorPlan, Stream, arrivals, busy_receiver, make_stream, set_instants, spread
 
 from magcal_ros.core.sync import StreamSynchronizer, stream_synchronizer
 from magcal_ros.core.sync_rules import HOLD_NS
@@ -68,12 +68,10 @@ def fed(sync: StreamSynchronizer, streams: list[Stream], ticks: Sequence[int] = 
 
 def in_span(sets: list[Any], span: tuple[float, float]) -> int:
     """Sets whose members' instants lie in ``span`` (s after the start)."""
-    from stream_oracle import set_instants
-
     return sum(1 for x in sets if span[0] - 1e-3 <= set_instants(x.values).min() <= span[1] + 1e-3)
 
 
-def synchronizer(rate: float) -> StreamSynchronizer:
+def synchronizer() -> StreamSynchronizer:
     return stream_synchronizer(list(NAMES), max_reading=2e-3)
 
 
@@ -108,7 +106,7 @@ def test_a_collection_a_busy_receiver_delivered_late_forms_once_its_sensors_are_
     nothing forms from the messages alone, and every set forms, each of one instant, once the receiver's clock
     passes the hold. Before the hold has passed, nothing is released."""
     streams, spans = stalled()
-    sync = synchronizer(400.0)
+    sync = synchronizer()
     sets = fed(sync, streams)
     assert in_span(sets, spans[0]) == true_sets(streams, spans[0]) and \
         in_span(sets, spans[1]) == true_sets(streams, spans[1])
@@ -145,8 +143,8 @@ def test_a_quiet_release_decides_as_the_next_collection_would(rate: float, sizes
     end = max(int(s.receipts[np.searchsorted(s.instants, span[1] + 1e-9) - 1]) for s in streams)
     ticks = list(range(end + 1, end + STILL_NS + 10**9, 500_000_000))  # every half second, as a node does
     next_one = min(int(s.receipts[np.searchsorted(s.instants, spans[-1][0] - 1e-9)]) for s in streams)
-    without = fed(synchronizer(rate), streams)
-    sync = synchronizer(rate)
+    without = fed(synchronizer(), streams)
+    sync = synchronizer()
     by_then = fed(sync, streams, ticks, stop=next_one)
     with_ticks = by_then + fed(sync, streams, start=next_one)
     assert [x.stamps for x in with_ticks] == [x.stamps for x in without]

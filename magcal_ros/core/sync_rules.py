@@ -557,9 +557,10 @@ class SensorStream:
         if receipt is None or last is None:
             return False
         seen = (receipt - last) - (stamp - self.last)
-        if not self.bunched(receipt, period) and -period <= 2 * seen and not self.off_grid(stamp):
+        off = self.off_grid(stamp)
+        if not self.bunched(receipt, period) and -period <= 2 * seen and not off:
             return False
-        return bool(self.unseen(stamp, receipt, period) or self.timed() and self.off_grid(stamp))
+        return bool(self.unseen(stamp, receipt, period) or off and self.timed())
 
     def record(self, interval: int, pause_ns: int) -> int:
         """Record one accepted stamp interval; the exact rule's window cap (half the short period; after a pause
@@ -901,7 +902,6 @@ class AcceptanceRule:
             if self._stepped_ahead(index, held):
                 self._step(index, [held[:4], message], out)
                 return True
-            period = s.suspect_period()
             if period is None or held[0] - s.last > LOST_PERIODS * period:  # lost samples are no jump of the clock
                 s.jumps.append((s.last, held[0], held[3], s.base))
             self._take(index, held[:4], False, out)  # a pause or lost samples
@@ -1209,8 +1209,10 @@ class AcceptanceRule:
         came bunched (a driver's backlog delivered at once, whose order says nothing of when its messages came) bound it
         only where a third sensor was late too: then the receiver was draining its queue, which every sensor's messages
         came to on time."""
+        if previous is None:
+            return None, receipt
         late = self._late_others(index, receipt, period)
-        if previous is None or bunched(receipt, previous, period) and not late:
+        if bunched(receipt, previous, period) and not late:
             return None, receipt
         lower, upper = None, None
         for j, other in enumerate(self.streams):
