@@ -375,3 +375,34 @@ def test_a_stamp_back_while_learning_is_dropped() -> None:
     got, clock = clocked(np.array(stamps, dtype=np.int64))
     assert got[10] is None and got[20] is None
     assert clock.period_ns == pytest.approx(PERIOD, rel=1e-6) and clock.lost == 0
+
+
+def test_a_clock_taking_over_with_nothing_queued_counts_the_gap_before_its_first_stamp() -> None:
+    """Exact matching ends on a message that follows a lost sample while nothing is queued: the new clock's first
+    stamp is that message's. The old clock never saw it and the new one has no stamp before it: the lost sample
+    between them was counted by neither (a live loss count one short of the truth). The new clock counts it, from
+    the old one's last stamp and period; across a pause, nothing."""
+    for lost_before, step in ((0, 1), (1, 2), (3, 4)):
+        old = SampleClock()
+        for k in range(100):
+            old.offer(10**12 + k * PERIOD, k)
+        new = SampleClock()
+        new.carry_counts(old, [])
+        first = 10**12 + (99 + step) * PERIOD
+        for k in range(40):
+            new.offer(first + k * PERIOD, k)
+        assert (new.lost, new.gaps) == (lost_before, int(lost_before > 0))
+    learning = SampleClock()  # an old clock still learning: its stamps' median interval is the period
+    for k in (0, 1, 2):
+        learning.offer(10**12 + k * PERIOD, k)
+    new = SampleClock()
+    new.carry_counts(learning, [])
+    new.offer(10**12 + 4 * PERIOD, 0)
+    assert (new.lost, new.gaps) == (1, 1)
+    paused = SampleClock()
+    for k in range(100):
+        paused.offer(10**12 + k * PERIOD, k)
+    new = SampleClock()
+    new.carry_counts(paused, [])
+    new.offer(10**12 + 99 * PERIOD + paused.pause_ns + PERIOD, 0)
+    assert (new.lost, new.gaps) == (0, 0)

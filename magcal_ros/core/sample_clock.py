@@ -148,7 +148,7 @@ class SampleClock:
 
     __slots__ = ("memory", "pause_ns", "_lam", "lost", "gaps", "dropped", "_learn", "_held", "ready", "regular",
                  "_t0", "_n0", "_n", "_a", "_b", "_s0", "_s1", "_s2", "_y1", "_y2", "_var", "_bad", "_last",
-                 "_raw_count", "_hint", "_shift", "_follow")
+                 "_raw_count", "_hint", "_shift", "_follow", "_before")
 
     def __init__(self, memory: int = MEMORY, pause_ns: int = PAUSE) -> None:
         if memory < 2:
@@ -174,6 +174,9 @@ class SampleClock:
         """Added to every stamp of this run (a restart placed on the old grid)."""
         self._follow: SampleClock | None = None
         """The clock whose restart this run's stamps share (its correction is this run's too)."""
+        self._before: tuple[int, float] | None = None
+        """(stamp ns, period ns) of the sample before this clock's first, counted by a clock it took over from
+        (:meth:`carry_counts`): the samples lost between them are this clock's to count."""
         self._reset_fit()
 
     def _reset_fit(self) -> None:
@@ -214,6 +217,8 @@ class SampleClock:
     def offer(self, stamp: int, payload: Any = None) -> Released:
         """One accepted stamp (ns); the samples this releases (see the class docstring)."""
         out: Released = []
+        if self._before is not None:
+            self._count_from_before(stamp)
         pause = stamp - self._last > self.pause_ns
         self._last = stamp
         stamp += self._shift
@@ -282,6 +287,21 @@ class SampleClock:
                                     _median([b - a for a, b in zip(held, held[1:])]))
             lost, gaps = lost + sum(missing), gaps + len(missing)
         self.lost, self.gaps, self.dropped = max(lost, 0), max(gaps, 0), old.dropped
+        held = [t for t, _ in old._learn]
+        last_period = period or (_median([b - a for a, b in zip(held, held[1:])]) if len(held) > 1 else None)
+        if not stamps and old._last > -(2**62) and last_period:  # the next stamp offered follows old's last
+            self._before = (old._last, last_period)
+
+    def _count_from_before(self, stamp: int) -> None:
+        """Count the samples lost between the sample before this clock's first (:attr:`_before`) and ``stamp``
+        (ns, this clock's first), unless a pause lies between them."""
+        last, period = self._before  # type: ignore[misc]
+        self._before = None
+        if 0 < stamp - last <= self.pause_ns:
+            missing = round((stamp - last) / period) - 1
+            if missing > 0:
+                self.lost += missing
+                self.gaps += 1
 
     def _missing(self, stamps: list[int], period: float) -> list[int]:
         """The samples lost in each gap of ``stamps`` (ns) at ``period`` (ns) that is not a pause (gaps with none left
