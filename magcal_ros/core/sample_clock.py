@@ -277,31 +277,26 @@ class SampleClock:
         offered ``stamps`` (ns) again, which ``old`` counted already: what it counted between them is left
         for this clock to count)."""
         lost, gaps = old.lost, old.gaps
-        period = old.period_ns
-        if period:
+        held = [t for t, _ in old._learn]
+        period = old.period_ns or (_median([b - a for a, b in zip(held, held[1:])]) if len(held) > 1 else None)
+        if old.period_ns:
             missing = self._missing(stamps, period)
             lost, gaps = lost - sum(missing), gaps - len(missing)
-        elif len(old._learn) > 3:  # still learning: what it held before ``stamps`` is not offered again, count it here
-            held = [t for t, _ in old._learn]
-            missing = self._missing([t for t in held if not stamps or t < stamps[0]] + stamps[:1],
-                                    _median([b - a for a, b in zip(held, held[1:])]))
+        elif len(held) > 3:  # still learning: what it held before ``stamps`` is not offered again, count it here
+            missing = self._missing([t for t in held if not stamps or t < stamps[0]] + stamps[:1], period)
             lost, gaps = lost + sum(missing), gaps + len(missing)
         self.lost, self.gaps, self.dropped = max(lost, 0), max(gaps, 0), old.dropped
-        held = [t for t, _ in old._learn]
-        last_period = period or (_median([b - a for a, b in zip(held, held[1:])]) if len(held) > 1 else None)
-        if not stamps and old._last > -(2**62) and last_period:  # the next stamp offered follows old's last
-            self._before = (old._last, last_period)
+        if not stamps and old._last > -(2**62) and period:  # the next stamp offered follows old's last
+            self._before = (old._last, period)
 
     def _count_from_before(self, stamp: int) -> None:
         """Count the samples lost between the sample before this clock's first (:attr:`_before`) and ``stamp``
-        (ns, this clock's first), unless a pause lies between them."""
+        (ns, this clock's first), unless a pause lies between them (:meth:`_missing`)."""
         last, period = self._before  # type: ignore[misc]
         self._before = None
-        if 0 < stamp - last <= self.pause_ns:
-            missing = round((stamp - last) / period) - 1
-            if missing > 0:
-                self.lost += missing
-                self.gaps += 1
+        missing = self._missing([last, stamp], period)
+        self.lost += sum(missing)
+        self.gaps += len(missing)
 
     def _missing(self, stamps: list[int], period: float) -> list[int]:
         """The samples lost in each gap of ``stamps`` (ns) at ``period`` (ns) that is not a pause (gaps with none left
