@@ -9,7 +9,8 @@ synchronised offline and live; every published set's members must stand for one 
 message must be counted, the clean reference samples must make sets, and live must equal offline. The
 side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off; the
 last parts, a fifth as many recordings each: one sensor steps forward while the receiver is blocked
-(``hidden_steps``); one sensor's stamps step either way while it is silent (``silent_steps``).
+(``hidden_steps``); one sensor's stamps step either way while it is silent (``silent_steps``); general
+recordings where topics are taken late for a while, the stamps right (``late_topics``).
 Unlike the suite (a fixed number of derandomised examples), this draws fresh examples from ``--seed``.
 """
 
@@ -102,6 +103,7 @@ def main() -> int:
 
     hidden = family(props.hidden_steps(), "hidden", "hidden step")
     silent = family(props.silent_steps(), "silent", "silent step")
+    late = family(props.late_topics(), "late", "late topic")
 
     t0 = time.perf_counter()
     sets()
@@ -112,6 +114,8 @@ def main() -> int:
     t3 = time.perf_counter()
     silent()
     t4 = time.perf_counter()
+    late()
+    t5 = time.perf_counter()
     print(f"recordings: {tally['examples']} examples, {tally['sensors']} sensors, {tally['messages']:,} messages, "
           f"{tally['sets checked']:,} sets checked (offline and live), {t1 - t0:.1f} s "
           f"({(t1 - t0) / max(tally['examples'], 1) * 1e3:.0f} ms each)")
@@ -123,6 +127,8 @@ def main() -> int:
           f"{t3 - t2:.1f} s")
     print(f"steps inside a sensor's silence: {tally['silent']} examples, {tally['silent failures']} failing, "
           f"{t4 - t3:.1f} s")
+    print(f"topics taken late for a while: {tally['late']} examples, {tally['late failures']} failing, "
+          f"{t5 - t4:.1f} s")
     print(f"failures: {len(failures)}")
     for line in failures[:10]:
         print("  " + line)

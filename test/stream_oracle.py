@@ -15,7 +15,11 @@ break its rules in any of these ways:
   ``restamp`` the backlog is stamped on delivery (a driver stamping on receipt), otherwise
   with its true stamps;
 - *loss*: samples never delivered, at random;
-- a *bad reading*: NaN or 1e30 T.
+- a *bad reading*: NaN or 1e30 T;
+- a *late topic*: the receiver takes none of the sensor's messages for a while (a loaded machine
+  serving other topics), then takes them at the sensor's own pace, so they stay that late, for a
+  while more, then drains the topic a little faster than it fills until it has caught up; the
+  stamps are right throughout (the other sensors' topics on time).
 
 Every message also has its receipt (bag time, or the node's arrival time): its sample instant plus
 a transport delay, in its sensor's order (a topic delivers in order); a stall delays it to the
@@ -67,6 +71,9 @@ class SensorPlan:
     """(start, length, restamp)."""
     bad: list[float] = field(default_factory=list)
     """True times of a NaN or 1e30 T reading (the sample nearest each)."""
+    late: list[tuple[float, float, float, float]] = field(default_factory=list)
+    """(start, block, hold, drain): the topic's messages late by ``block`` s from ``start`` for ``hold`` s more,
+    then taken one every ``drain`` periods (below 1) until on time."""
 
 
 @dataclass
@@ -114,6 +121,8 @@ def make_stream(plan: SensorPlan, duration: float, rng: np.random.Generator) -> 
             offset = sum(jump for at, jump in plan.steps if at <= end)
             stamp[k] = end + offset + 1e-5 * np.arange(len(k))
             trusted[k] = False
+    for start, block, hold, drain in plan.late:
+        late_topic(receipt, period, start, block, hold, drain)
     receipt = np.maximum.accumulate(receipt)  # a topic delivers in order
     x = X0 + SCALE * t
     vectors = np.column_stack([x, np.full(n, YZ[0]), np.full(n, YZ[1])])
@@ -138,6 +147,18 @@ def make_stream(plan: SensorPlan, duration: float, rng: np.random.Generator) -> 
     dup[1:] = order[1:] == order[:-1]
     tr = trusted[order] & ~dup
     return Stream(stamps, receipts, vectors[order], t[order], tr)
+
+
+def late_topic(receipt: NDArray[np.float64], period: float, start: float, block: float, hold: float,
+               drain: float) -> None:
+    """One topic's receipts (s, in place) from ``start``: none taken for ``block`` s, then one a period until
+    ``start + block + hold``, then one every ``drain`` periods until they are on time again."""
+    free, paced = start + block, start + block + hold
+    for i in np.flatnonzero(receipt >= start):
+        if receipt[i] >= free and free > paced:
+            break  # caught up
+        receipt[i] = max(receipt[i], free)
+        free = receipt[i] + (period if receipt[i] < paced else drain * period)
 
 
 def arrivals(streams: list[Stream]) -> list[tuple[int, int, int]]:

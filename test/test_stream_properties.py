@@ -500,6 +500,35 @@ def test_a_step_a_blocked_receiver_hides_keeps_every_set_one_instant(case: Case)
     check_pairing(case)
 
 
+@st.composite
+def late_topics(draw: st.DrawFn) -> Case:
+    """A general recording (:func:`cases`) where one or more sensors' topics are taken late for a while: none of
+    its messages for 20-600 ms (a loaded machine serving other topics), then at the sensor's pace, so they stay that
+    late, for up to 3 s more, then drained a little faster than they come. The stamps are right throughout: a rule
+    that reads a topic's delay as a step of its stamps pairs that sensor off. Drawn by the benchmark and, a few
+    derandomised draws, by the suite."""
+    case = draw(cases())
+    chosen = draw(st.lists(st.integers(0, len(case.plans) - 1), min_size=1, max_size=len(case.plans), unique=True))
+    for k in chosen:
+        start, block, hold, drain = (draw(st.floats(2.0, max(2.0, case.duration - 4.0))), draw(st.floats(0.02, 0.6)),
+                                     draw(st.floats(0.0, 3.0)), draw(st.floats(0.3, 0.95)))
+        case.plans[k] = apart(case.plans[k], start - 1.0, start + block + hold + block / (1.0 - drain) + 1.0)
+        case.plans[k].late.append((start, block, hold, drain))
+    return case
+
+
+def apart(plan: SensorPlan, a: float, b: float) -> SensorPlan:
+    """``plan`` without its faults between ``a`` and ``b`` s (a topic's delay on its own: the stamps' faults while
+    the receipts are late by a delay that holds are another question)."""
+    def out(t0: float, t1: float) -> bool:
+        return t1 < a or t0 > b
+
+    return replace(plan, steps=[f for f in plan.steps if out(f[0], f[0])],
+                   glitches=[f for f in plan.glitches if out(f[0], f[0])],
+                   duplicates=[t for t in plan.duplicates if out(t, t)], bad=[t for t in plan.bad if out(t, t)],
+                   silences=[f for f in plan.silences if out(*f)], stalls=[f for f in plan.stalls if out(f[0], f[0] + f[1])])
+
+
 HIDDEN_BY_A_QUEUE = {
     # 100 Hz, two sensors: a step of 23 whole periods while the receiver is blocked 0.78 s (a gap on the grid)
     "whole periods": Case([SensorPlan(rate=100.0, steps=[(5.4989, 0.23004)]), SensorPlan(rate=100.0)], 11.7,
@@ -548,6 +577,21 @@ def test_a_step_a_blocked_receiver_hides_is_read_from_the_queues_order(name: str
     tells when that one came at the latest (and one delivered before, at the earliest): its decision waits for one,
     and the new segment is placed between those bounds. Offline and live, every set one instant, all counted."""
     check_case(HIDDEN_BY_A_QUEUE[name])
+
+
+@settings(max_examples=EXAMPLES // 2, derandomize=True, database=None, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(late_topics())
+# two sensors at 20 Hz, the second's topic taken 0.5 s late for 3 s; the first silent for 0.5 s meanwhile, on time
+# before and after: the second's late messages, read as a busy receiver's queue, put the first's resumption 0.45 s
+# early, a step forward, and it was paired 0.45 s off for the rest
+@example(Case([SensorPlan(rate=20.0, silences=[(4.0, 4.5)], late=[(2.0, 0.25, 0.0, 0.5)]),
+               SensorPlan(rate=20.0, late=[(2.0, 0.5, 2.0, 0.5)])], 12.0, 0))
+def test_a_topic_taken_late_for_a_while_keeps_every_set_one_instant(case: Case) -> None:
+    """A loaded machine delays one topic's messages alike for a while, the stamps right throughout: every published
+    set stands for one true instant, the clean samples are covered, live and offline agree and losses are counted
+    (all of :func:`check_case`)."""
+    check_case(case)
 
 
 def test_the_oracle_sees_a_wrong_pairing() -> None:

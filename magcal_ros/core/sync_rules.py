@@ -1013,7 +1013,7 @@ class AcceptanceRule:
         on time."""
         late = []
         for j, other in enumerate(self.streams):
-            if j == index or not other.arrivals:
+            if j == index or not other.arrivals or self._own_queue(index, j, period):
                 continue
             latest = _latest_by(other, receipt)
             if latest is None or latest[1] is None or receipt - latest[1] > self.restart_ns // 4:
@@ -1022,6 +1022,23 @@ class AcceptanceRule:
                 return []
             late.append(j)
         return late
+
+    def _own_queue(self, index: int, j: int, period: int) -> bool:
+        """Whether sensor ``j``'s topic waited in a queue of its own at sensor ``index``'s previous message: a message
+        of ``j`` that came more than two ``period``\ s (ns) before that one (each when its stamps' lead says) was
+        delivered after it. A receiver takes its queue in the order the messages came; a topic served late on its
+        own (a loaded machine, a driver's backlog) breaks that order, and its lateness and order then tell nothing
+        of when ``index``'s messages came."""
+        s, other = self.streams[index], self.streams[j]
+        if s.last_receipt is None or not s.arrivals:
+            return False
+        came, lead = s.lastc - s.lead(), other.lead()
+        for common, r in reversed(other.arrivals):
+            if r <= s.last_receipt:
+                return False
+            if came - (common - lead) > 2 * period:
+                return True
+        return False
 
     def _decide_behind(self, index: int, message: Message, out: Accepted) -> bool:
         """The held suspect is behind its sequence: a step back when ``message`` goes on from it below the
@@ -1216,7 +1233,7 @@ class AcceptanceRule:
             return None, receipt
         lower, upper = None, None
         for j, other in enumerate(self.streams):
-            if j == index or not other.arrivals:
+            if j == index or not other.arrivals or self._own_queue(index, j, period):
                 continue
             after, before = None, None
             for common, r in reversed(other.arrivals):
