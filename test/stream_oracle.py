@@ -74,6 +74,9 @@ class SensorPlan:
     late: list[tuple[float, float, float, float]] = field(default_factory=list)
     """(start, block, hold, drain): the topic's messages late by ``block`` s from ``start`` for ``hold`` s more,
     then taken one every ``drain`` periods (below 1) until on time."""
+    depth: int | None = None
+    """The receiver's history depth for the topic (keep last): while it is late, a message that more than
+    ``depth - 1`` later ones reach before it is taken is lost. None: unbounded."""
 
 
 @dataclass
@@ -122,7 +125,9 @@ def make_stream(plan: SensorPlan, duration: float, rng: np.random.Generator) -> 
             stamp[k] = end + offset + 1e-5 * np.arange(len(k))
             trusted[k] = False
     for start, block, hold, drain in plan.late:
-        late_topic(receipt, period, start, block, hold, drain)
+        kept = late_topic(receipt, period, start, block, hold, drain, plan.depth)
+        t, stamp, receipt, trusted = t[kept], stamp[kept], receipt[kept], trusted[kept]
+    n = len(t)
     receipt = np.maximum.accumulate(receipt)  # a topic delivers in order
     x = X0 + SCALE * t
     vectors = np.column_stack([x, np.full(n, YZ[0]), np.full(n, YZ[1])])
@@ -150,15 +155,23 @@ def make_stream(plan: SensorPlan, duration: float, rng: np.random.Generator) -> 
 
 
 def late_topic(receipt: NDArray[np.float64], period: float, start: float, block: float, hold: float,
-               drain: float) -> None:
+               drain: float, depth: int | None = None) -> NDArray[np.bool_]:
     """One topic's receipts (s, in place) from ``start``: none taken for ``block`` s, then one a period until
-    ``start + block + hold``, then one every ``drain`` periods until they are on time again."""
+    ``start + block + hold``, then one every ``drain`` periods until they are on time again. The messages kept:
+    with a history ``depth``, one that ``depth`` later ones reach before its turn is lost."""
+    kept = np.ones(len(receipt), bool)
+    come = receipt.copy()
     free, paced = start + block, start + block + hold
     for i in np.flatnonzero(receipt >= start):
-        if receipt[i] >= free and free > paced:
+        if come[i] >= free and free > paced:
             break  # caught up
-        receipt[i] = max(receipt[i], free)
-        free = receipt[i] + (period if receipt[i] < paced else drain * period)
+        taken = max(come[i], free)
+        if depth is not None and int(np.searchsorted(come, taken, side="right")) - (i + 1) >= depth:
+            kept[i] = False  # overwritten in the history before its turn
+            continue
+        receipt[i] = taken
+        free = taken + (period if taken < paced else drain * period)
+    return kept
 
 
 def arrivals(streams: list[Stream]) -> list[tuple[int, int, int]]:

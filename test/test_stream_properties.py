@@ -504,7 +504,9 @@ def test_a_step_a_blocked_receiver_hides_keeps_every_set_one_instant(case: Case)
 def late_topics(draw: st.DrawFn) -> Case:
     """A general recording (:func:`cases`) where one or more sensors' topics are taken late for a while: none of
     its messages for 20-600 ms (a loaded machine serving other topics), then at the sensor's pace, so they stay that
-    late, for up to 3 s more, then drained a little faster than they come. The stamps are right throughout: a rule
+    late, for up to 3 s more, then drained a little faster than they come (a third of them with a history of 100
+    messages, the nodes' default: those that overflow it meanwhile lost, the oldest first). The stamps are right
+    throughout: a rule
     that reads a topic's delay as a step of its stamps pairs that sensor off. Drawn by the benchmark and, a few
     derandomised draws, by the suite."""
     case = draw(cases())
@@ -514,6 +516,7 @@ def late_topics(draw: st.DrawFn) -> Case:
                                      draw(st.floats(0.0, 3.0)), draw(st.floats(0.3, 0.95)))
         case.plans[k] = apart(case.plans[k], start - 1.0, start + block + hold + block / (1.0 - drain) + 1.0)
         case.plans[k].late.append((start, block, hold, drain))
+        case.plans[k].depth = draw(st.sampled_from([None, None, 100]))
     return case
 
 
@@ -587,6 +590,20 @@ def test_a_step_a_blocked_receiver_hides_is_read_from_the_queues_order(name: str
 # early, a step forward, and it was paired 0.45 s off for the rest
 @example(Case([SensorPlan(rate=20.0, silences=[(4.0, 4.5)], late=[(2.0, 0.25, 0.0, 0.5)]),
                SensorPlan(rate=20.0, late=[(2.0, 0.5, 2.0, 0.5)])], 12.0, 0))
+# a topic falling 0.4 s late on its own as it lost a sample: its arrivals trailed the stamps across the gap, read as
+# the stamps stepping back in a silence and placed by the late arrivals (0.38 s off for the rest)
+@example(Case([SensorPlan(rate=100.0, jitter=0.0008, silences=[(4.0, 4.015)], late=[(4.0, 0.4, 0.86, 0.34)]),
+               SensorPlan(rate=100.0, jitter=0.0008)], 12.0, 1))
+# the same at 8.29 s, and at 15.5 s a third sensor's topic 0.4 s late while the second's driver stalled and stamped its
+# backlog on delivery, the first on time: the third's order placed the second's next segment 0.4 s early
+@example(Case([SensorPlan(rate=100.0, jitter=0.0008, loss=0.02, duplicates=[2.3398161103469013],
+                          late=[(8.293451971738786, 0.4014342472811948, 0.8589935915953866, 0.34478579152324573)]),
+               SensorPlan(rate=100.0, jitter=0.0008, stalls=[(5.120513212128063, 2.718521811052925, True),
+                                                            (13.406881279464194, 2.6030891035767594, True)],
+                          bad=[12.037388892060267]),
+               SensorPlan(rate=100.0, jitter=0.0008, glitches=[(2.5926871892539562, -18.106564065838338)],
+                          late=[(15.507315762265074, 0.40332135754830667, 0.5, 0.5091040009671908)])],
+              23.11309625173192, 63480, (18.775435442173293, 1.4899417077396129, 0.001630583394108103)))
 def test_a_topic_taken_late_for_a_while_keeps_every_set_one_instant(case: Case) -> None:
     """A loaded machine delays one topic's messages alike for a while, the stamps right throughout: every published
     set stands for one true instant, the clean samples are covered, live and offline agree and losses are counted
