@@ -200,3 +200,46 @@ def test_both_nodes_form_a_late_delivered_collection_on_their_timer(kind: str) -
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_a_collection_started_while_messages_are_held_collects_only_what_came_after() -> None:
+    """``~/start`` while the previous stretch's messages are still held (a collection a busy receiver delivered late,
+    1 s before the next): those messages are decided by the next ones, after the start, and their sets were collected
+    with the new ones (a test saw 702 sets collected of 700 sent). Now the calibration node collects only sets after
+    the newest instant its synchroniser had taken at the start: exactly the new collection's sets."""
+    import rclpy
+    from rclpy.context import Context
+    from sensor_msgs.msg import MagneticField
+    from std_srvs.srv import Trigger
+
+    from magcal_ros.app.ros_driver import isolate_this_process, pick_domain_id
+    from magcal_ros.nodes.calibration_node import CalibrationNode
+
+    streams, spans = collections(400.0, [800, 500, 400, 300], [2.5, 0.7, 1.0, 0.0], [0.0] * 4,
+                                 np.random.default_rng(11))
+    busy_through(streams, spans[2], 0.95, 0.22, 6.6e-5)
+    began = min(int(s.receipts[np.searchsorted(s.instants, spans[3][0] - 1e-3)]) for s in streams)
+    domain = pick_domain_id()
+    isolate_this_process(domain)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, args=["test"])
+    node: Any = CalibrationNode(context=context)
+    try:
+        msg = MagneticField()
+        started = False
+        for receipt, k, i in arrivals(streams):
+            if not started and receipt >= began:
+                held = node._sync.pending
+                assert node._on_start(Trigger.Request(), Trigger.Response()).success
+                started = True
+            s = streams[k]
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(s.stamps[i]), 10**9)
+            msg.magnetic_field.x, msg.magnetic_field.y, msg.magnetic_field.z = s.vectors[i].tolist()
+            node._raw_callback(k)(msg, {"received_timestamp": receipt})
+        assert held > 1000  # the third stretch, held when the collection starts
+        node._receipt_clock = lambda: latest(streams) + STILL_NS
+        node._release_quiet()
+        assert node._buffer.offered + len(node._pending) == true_sets(streams, spans[3])
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
