@@ -590,14 +590,9 @@ def test_a_step_a_blocked_receiver_hides_is_read_from_the_queues_order(name: str
 # early, a step forward, and it was paired 0.45 s off for the rest
 @example(Case([SensorPlan(rate=20.0, silences=[(4.0, 4.5)], late=[(2.0, 0.25, 0.0, 0.5)]),
                SensorPlan(rate=20.0, late=[(2.0, 0.5, 2.0, 0.5)])], 12.0, 0))
-# a topic falling 0.4 s late on its own as it lost a sample: its arrivals trailed the stamps across the gap, read as
-# the stamps stepping back in a silence and placed by the late arrivals (0.38 s off for the rest)
-@example(Case([SensorPlan(rate=100.0, jitter=0.0008, silences=[(4.0, 4.015)], late=[(4.0, 0.4, 0.86, 0.34)]),
-               SensorPlan(rate=100.0, jitter=0.0008)], 12.0, 1))
-# the same at 8.29 s, and at 15.5 s a third sensor's topic 0.4 s late while the second's driver stalled and stamped its
-# backlog on delivery, the first on time: the third's order placed the second's next segment 0.4 s early
-@example(Case([SensorPlan(rate=100.0, jitter=0.0008, loss=0.02, duplicates=[2.3398161103469013],
-                          late=[(8.293451971738786, 0.4014342472811948, 0.8589935915953866, 0.34478579152324573)]),
+# a third sensor's topic 0.4 s late while the second's driver stalled and stamped its backlog on delivery, the first
+# on time: the third's order placed the second's next segment 0.4 s early (paired 0.4 s off for the rest)
+@example(Case([SensorPlan(rate=100.0, jitter=0.0008, loss=0.02, duplicates=[2.3398161103469013]),
                SensorPlan(rate=100.0, jitter=0.0008, stalls=[(5.120513212128063, 2.718521811052925, True),
                                                             (13.406881279464194, 2.6030891035767594, True)],
                           bad=[12.037388892060267]),

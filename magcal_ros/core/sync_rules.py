@@ -980,10 +980,9 @@ class AcceptanceRule:
             s.hidden = True  # a queue's delay hides how far the stamps went: placed by the arrivals once they catch up
             return True
         if unseen is False and came == held[3] and s.trails(held[0], held[3], period) and \
-                not self._receiver_late(index, held[3], period) and not self._lost_on_grid(index, held, period):
+                not self._receiver_late(index, held[3], period):
             s.seen_step = True  # the arrivals saw more of the gap pass than the stamps: they stepped back in it
-            return True  # (not where the receiver was late with every sensor: a queue delayed this arrival; nor
-            # for a few samples lost on the grid as this sensor's topic fell late on its own)
+            return True  # (not where the receiver was late with every sensor: a queue delayed this arrival)
         if unseen is not None:
             return unseen
         if s.resumed_on_time(held[0], held[3], period):
@@ -994,31 +993,6 @@ class AcceptanceRule:
                 jump > PACED_PAUSE * self.restart_ns and 2 * (held[3] - s.last_receipt) >= ratio * jump:
             return False  # arrivals that keep no time (a replay at another speed, a busy receiver) saw the gap pass
         return held[0] - s.last > self.restart_ns or s.off_grid(held[0])
-
-    def _lost_on_grid(self, index: int, held: tuple[int, Any, str | None, int | None, int], period: int) -> bool:
-        """Whether the gap of sensor ``index``'s stamps up to the suspect ``held`` (its arrival trailing) is its lost
-        samples: at most :data:`LOST_PERIODS` sample ``period``\ s (ns), on the sensor's grid, and no other sensor's
-        stamps stepped back by as much (to a quarter period) during the gap. A topic served late on its own often
-        loses a few samples as it falls late; a clock stepping back in a silence leaves a gap that small, on the
-        grid, only by chance, or shows on another sensor it stamps too."""
-        s = self.streams[index]
-        stamp, receipt = held[0], held[3]
-        if stamp - s.last > LOST_PERIODS * period or s.grid_period() is None or s.off_grid(stamp) or \
-                receipt is None or s.last_receipt is None:
-            return False
-        trail = receipt - s.last_receipt - (stamp - s.last)
-        return not any(j != index and self._stepped_back_by(other, trail, s.last_receipt, period)
-                       for j, other in enumerate(self.streams))
-
-    @staticmethod
-    def _stepped_back_by(other: SensorStream, size: int, since: int, period: int) -> bool:
-        """Whether ``other``'s stamps stepped back by ``size`` (ns, to a quarter ``period``) since receipt ``since``
-        (ns): its latest jump, or the step it still holds or places (its first stamp after it a period on)."""
-        if other.jumps and other.jumps[-1][2] is not None and other.jumps[-1][2] >= since and \
-                4 * abs(_shift(other) - size) <= period:
-            return True
-        first = other.placing[0] if other.placing else other.held if other.held and other.held[4] == BEHIND else None
-        return first is not None and 4 * abs(period - (first[0] - other.last) - size) <= period
 
     def _hidden_by_queue(self, index: int, held: tuple[int, Any, str | None, int | None, int], came: int | None,
                          period: int) -> bool:
