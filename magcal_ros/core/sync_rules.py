@@ -1432,19 +1432,24 @@ class AcceptanceRule:
             return held is not None and held[4] in (AHEAD, BEHIND) and same(other.last, held[0], held[3]) or \
                 placing(other)
 
-        def later_alike(r: int | None, base: int) -> bool:
-            """Whether the other's jump received at ``r`` came as much before or after this one as the two sensors'
-            bases (``base`` its after it) say the same stamps lie apart in time: the same stamps at another instant
-            (a lost sample each, say), not one clock's jump."""
+        def later_alike(a: int, r: int | None, base: int, before: int) -> bool:
+            """Whether the other's jump from ``a`` received at ``r`` came as much before or after this one as the two
+            sensors' bases say the same stamps lie apart in time: the same stamps at another instant (a lost sample
+            each, say; or a step of this sensor alone from the stamps another left by the same step before, its base
+            ``before`` then), not one clock's jump. The stamps it left where they are this one's last (the same jump),
+            else those it went to (``base`` its after it)."""
             if r is None or receipt is None:
                 return False
             apart = r - receipt
-            return abs(apart - (base - s.base)) < abs(apart)
+            other_base = before if abs(a - s.last) <= near else base
+            return abs(apart - (other_base - s.base)) < abs(apart)
 
         others = [(j, other) for j, other in enumerate(self.streams) if j != index]
         for j, other in others:  # one that decided the jump (unless it is making it again: a step repeated from
-            for a, b, r, base in reversed(other.jumps):  # the same stamp to the same stamp, not decided yet) ...
-                if same(a, b, r) and not later_alike(r, base):
+            jumps = other.jumps
+            for k in range(len(jumps) - 1, -1, -1):  # the same stamp to the same stamp, not decided yet) ...
+                a, b, r, base = jumps[k]
+                if same(a, b, r) and not later_alike(a, r, base, jumps[k - 1][3] if k else base):
                     return (j, None) if deciding(other, r) else (j, base)
         for j, other in others:  # ... else one still placing it
             if placing(other):
