@@ -259,9 +259,9 @@ class SetSynchronizer(AcceptanceRule):
         if not formed:
             self._compact(keep_values=True)  # messages given up for a silent sensor are consumed too
             return []
-        stamps, values, commons = self._raws, self._values, self._stamps[0]
+        stamps, values = self._raws, self._values
         out = [SyncedSet(tuple(stamps[k][i] for k, i in enumerate(members)),
-                         tuple(values[k][i] for k, i in enumerate(members)), commons[members[0]]) for members in formed]
+                         tuple(values[k][i] for k, i in enumerate(members))) for members in formed]
         self._compact(keep_values=True)
         return out
 
@@ -847,13 +847,6 @@ class StreamSynchronizer:
         if self.engine is None:
             return sum(len(h) for h in self._held) + sum(len(b[0]) for h in self._held_batches for b in h)
         return self.engine.pending
-
-    def newest_instant(self) -> int | None:
-        """The newest instant (ns, the common timeline of :attr:`SyncedSet.instant`) of any message taken or held so
-        far: a set formed later at or before it was completed by messages that had come by now. None before one, or
-        while the first messages are held for the choice of mode."""
-        newest = None if self.engine is None else self.engine.newest_heard()
-        return None if newest is None or newest == NEVER else newest
 
     @property
     def effective_tolerance_ns(self) -> int:

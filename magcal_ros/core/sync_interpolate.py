@@ -311,7 +311,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
                 if prior >= 0:
                     used[prior] = True
             stamp = self._out[i0]
-            out.append(SyncedSet((stamp,) * self.size, tuple(values), t))
+            out.append(SyncedSet((stamp,) * self.size, tuple(values)))
             st.sets += 1
             st.used += 1
             self._discard_before(t, formed=True)

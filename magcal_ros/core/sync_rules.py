@@ -229,9 +229,6 @@ class SyncedSet:
 
     stamps: tuple[int, ...]
     values: tuple[Vector, ...]
-    instant: int | None = None
-    """The set's instant on the synchroniser's common timeline (ns; steps and restarts placed on it, so it only
-    grows), None where unknown."""
 
     @property
     def stamp(self) -> int:
@@ -784,15 +781,6 @@ class AcceptanceRule:
             if last is not None and now - last <= lag:
                 return False
         return True
-
-    def newest_heard(self) -> int:
-        """The newest instant (ns, common timeline) of any message taken or held (a held one where its sensor is
-        placed now); :data:`NEVER` before one."""
-        newest = self.newest
-        for s in self.streams:
-            for m in ([s.held] if s.held is not None else []) + (s.waiting or []) + (s.placing or []):
-                newest = max(newest, m[0] + s.base)
-        return newest
 
     @property
     def held(self) -> int:

@@ -4,8 +4,7 @@ Subscribes ``<name>/raw`` (sensor_msgs/MagneticField, T) like the correction nod
 while collecting, keeps up to ``max_samples`` synchronized sets spread over the
 attitudes. Services (std_srvs/srv/Trigger):
 
-- ``~/start``: forget collected sets and start collecting (the sets of messages that came before it are not
-  collected, even where the synchroniser held them for a decision until after it);
+- ``~/start``: forget collected sets and start collecting;
 - ``~/calibrate``: solve with the core (:func:`magcal_ros.methods.pipeline.calibrate_array`),
   write the calibration file (atomic; the previous file kept as a timestamped backup,
   the last ``backups``), then set the result on the running correction node through its
@@ -187,7 +186,6 @@ class CalibrationNode(CalibrationParameters, Collection, ProgressReports, Missio
             self._buffer.clear()
             self._pending.clear()
             self._collecting = True
-            self._collect_after = self._sync.newest_instant()  # sets of messages that came before are not collected
             self._generation += 1
         response.success = True
         response.message = (

@@ -31,9 +31,6 @@ class Collection:
         mode, gap = common.sync_settings({n: self._value(n, {}) for n in ("sync_mode", "max_gap")})
         self._sync = common.synchronizer(geo.names, common.tolerance_ns(self.get_parameter("sync_tolerance").value),
                                          mode, gap)
-        self._collect_after: int | None = None
-        """Sets at or before this instant (ns, the synchroniser's timeline) are not collected: their messages came
-        before ``~/start`` (held for a decision until after it)."""
         self._health = ArrayHealth(geo.names, self._sync, self._limits, common.now_ns(self))
         self._buffer = SetBuffer(int(self.get_parameter("max_samples").value), geo.size, channels=len(inputs.channels))
         window_ns = self._watch.window_ns
@@ -162,12 +159,10 @@ class Collection:
         """Synchronised sets into the mission's rolling window (for a recalibration at sea) and, while
         collecting, the buffer, once the side streams due at them came (:meth:`_flush_pending`). Lock held."""
         for synced in sets:
-            collect = self._collecting and not (synced.instant is not None and self._collect_after is not None
-                                                and synced.instant <= self._collect_after)
-            if not self._mission.due(synced.stamp) and not collect:
+            if not self._mission.due(synced.stamp) and not self._collecting:
                 continue
             self._newest_set = max(self._newest_set, synced.stamp)
-            self._pending.append((synced.stamp, synced.values, self._receipt_clock(), collect))
+            self._pending.append((synced.stamp, synced.values, self._receipt_clock(), self._collecting))
         self._flush_pending(force=False)
 
     def _release_quiet(self) -> None:
