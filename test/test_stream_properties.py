@@ -479,6 +479,18 @@ def test_a_step_of_the_stamps_while_a_sensor_is_silent_is_placed_by_its_arrivals
     check_case(Case(plans, 14.0, 5))
 
 
+@pytest.mark.parametrize("size", [-0.1, -0.33])
+@pytest.mark.parametrize("rate", [20.0, 50.0])
+def test_a_step_back_in_a_silence_is_seen_while_another_topic_is_late_on_its_own(size: float, rate: float) -> None:
+    """A sensor silent from 4 to 4.5 s whose stamps step back by ``size`` meanwhile, while the other sensor's topic is
+    taken 0.5 s late from 2 s for 3 s more: that topic's lateness is its own (its order broken against the first
+    sensor's on-time messages), not a receiver's queue. Read as one, the receiver looked late with every sensor, so
+    the arrivals' trail after the silence was put down to a queue and the step back taken for a pause (paired the
+    step's size off for the rest)."""
+    check_case(Case([SensorPlan(rate=rate, silences=[(4.0, 4.5)], steps=[(4.2, size)]),
+                     SensorPlan(rate=rate, late=[(2.0, 0.5, 3.0, 0.5)])], 12.0, 0))
+
+
 @st.composite
 def silent_steps(draw: st.DrawFn) -> Case:
     """One sensor silent for a while (0.3-4 s) whose stamps step either way inside the silence (from 2.6 periods to
