@@ -1014,14 +1014,15 @@ class AcceptanceRule:
         late, on_time = self._others_at(index, receipt, period)
         return [] if on_time else late
 
-    def _others_at(self, index: int, receipt: int, period: int) -> tuple[list[int], bool]:
+    def _others_at(self, index: int, receipt: int, period: int,
+                   mates: list[int] | None = None) -> tuple[list[int], bool]:
         """(the other sensors whose latest message received by ``receipt`` (ns), within a quarter of ``restart_ns``,
         came later than its stamps' lead says by more than half a ``period`` (ns); whether any such latest came on
-        time). Sensors whose topic waited in a queue of their own (:meth:`_own_queue`) tell nothing."""
+        time), among ``mates`` (default :meth:`_queue_mates`): sensors whose topic waited in a queue of their own
+        tell nothing."""
         late = []
-        for j, other in enumerate(self.streams):
-            if j == index or not other.arrivals or self._own_queue(index, j, period):
-                continue
+        for j in self._queue_mates(index, period) if mates is None else mates:
+            other = self.streams[j]
             latest = _latest_by(other, receipt)
             if latest is None or latest[1] is None or receipt - latest[1] > self.restart_ns // 4:
                 continue
@@ -1029,6 +1030,11 @@ class AcceptanceRule:
                 return late, True
             late.append(j)
         return late, False
+
+    def _queue_mates(self, index: int, period: int) -> list[int]:
+        """The other sensors with arrivals whose topic shares sensor ``index``'s queue (not :meth:`_own_queue`)."""
+        return [j for j, other in enumerate(self.streams)
+                if j != index and other.arrivals and not self._own_queue(index, j, period)]
 
     def _own_queue(self, index: int, j: int, period: int) -> bool:
         """Whether sensor ``j``'s topic waited in a queue of its own at sensor ``index``'s previous message: a message
@@ -1235,13 +1241,13 @@ class AcceptanceRule:
         came to on time."""
         if previous is None:
             return None, receipt
-        late, on_time = self._others_at(index, receipt, period)
+        mates = self._queue_mates(index, period)
+        late, on_time = self._others_at(index, receipt, period, mates)
         if on_time or bunched(receipt, previous, period) and not late:
             return None, receipt  # (one on time: no queue held the receiver; a topic late on its own bounds nothing)
         lower, upper = None, None
-        for j, other in enumerate(self.streams):
-            if j == index or not other.arrivals or self._own_queue(index, j, period):
-                continue
+        for j in mates:
+            other = self.streams[j]
             after, before = None, None
             for common, r in reversed(other.arrivals):
                 if r < receipt:
