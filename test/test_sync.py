@@ -578,3 +578,28 @@ def test_a_stream_offered_one_by_one_can_be_popped_at_its_end(mode: str) -> None
     assert last.stamps.tolist() == [[jump, jump]]
     assert np.allclose(last.vectors, [[[4e-5, 5e-5, 6e-5], [4e-5, 5e-5, 6e-5 + 1e-9]]], rtol=0, atol=1e-15)
     assert sync.stats.used + sync.stats.dropped() + sync.pending == 83
+
+
+def test_a_pause_set_on_a_running_synchroniser_reaches_the_sensors_clocks() -> None:
+    """Two sensors at 50 Hz, 100 sets, then silent 0.72 s and on again. With the default pause (1 s) the silence is
+    35 lost samples in one gap per sensor; a node sets its own pause (``set_pause``, 0.5 s) once the sensors' clocks
+    run: then it is a pause, nothing lost. (No test set a pause after the clocks were made: a rule that skipped
+    them passed the suite.)"""
+    t0 = 1_700_000_000 * 10**9
+
+    def counted(pause_ns: int | None) -> tuple[list[int], list[int]]:
+        sync = StreamSynchronizer(2, 1e-3, "exact")
+
+        def feed(ks: range) -> None:
+            for k in ks:
+                for i in range(2):
+                    t = t0 + k * 20_000_000
+                    sync.add(i, t, 1e-5, 2e-5, 3e-5 + i * 1e-9, t + 1_000_000)
+        feed(range(100))
+        if pause_ns is not None:
+            sync.set_pause(pause_ns)
+        feed(range(135, 235))
+        return [sync.lost(i) for i in range(2)], [sync.gaps(i) for i in range(2)]
+
+    assert counted(None) == ([35, 35], [1, 1])
+    assert counted(500_000_000) == ([0, 0], [0, 0])
