@@ -10,7 +10,8 @@ message must be counted, the clean reference samples must make sets, and live mu
 side-stream part draws temperature streams with swaps, pauses, values out of range and stamps far off; the
 last parts, a fifth as many recordings each: one sensor steps forward while the receiver is blocked
 (``hidden_steps``); one sensor's stamps step either way while it is silent (``silent_steps``); general
-recordings where topics are taken late for a while, the stamps right (``late_topics``).
+recordings where topics are taken late for a while, the stamps right (``late_topics``); hidden steps with each
+sensor at a rate of its own (``hidden_steps(mixed=True)``).
 Unlike the suite (a fixed number of derandomised examples), this draws fresh examples from ``--seed``.
 """
 
@@ -104,6 +105,7 @@ def main() -> int:
     hidden = family(props.hidden_steps(), "hidden", "hidden step")
     silent = family(props.silent_steps(), "silent", "silent step")
     late = family(props.late_topics(), "late", "late topic")
+    mixed = family(props.hidden_steps(mixed=True), "mixed", "hidden step, mixed rates")
 
     t0 = time.perf_counter()
     sets()
@@ -116,6 +118,8 @@ def main() -> int:
     t4 = time.perf_counter()
     late()
     t5 = time.perf_counter()
+    mixed()
+    t6 = time.perf_counter()
     print(f"recordings: {tally['examples']} examples, {tally['sensors']} sensors, {tally['messages']:,} messages, "
           f"{tally['sets checked']:,} sets checked (offline and live), {t1 - t0:.1f} s "
           f"({(t1 - t0) / max(tally['examples'], 1) * 1e3:.0f} ms each)")
@@ -129,6 +133,8 @@ def main() -> int:
           f"{t4 - t3:.1f} s")
     print(f"topics taken late for a while: {tally['late']} examples, {tally['late failures']} failing, "
           f"{t5 - t4:.1f} s")
+    print(f"hidden steps with the sensors at rates of their own: {tally['mixed']} examples, "
+          f"{tally['mixed failures']} failing, {t6 - t5:.1f} s")
     print(f"failures: {len(failures)}")
     for line in failures[:10]:
         print("  " + line)

@@ -92,8 +92,11 @@ arrivals' own pace (a replay at another speed, a busy receiver) is a pause of th
 gaps are left to the stamps: sensors whose stamps all jump by a second or so (a replay started again) would
 otherwise be judged one by one, some paused and some stepped, and never pair again."""
 WAIT_MESSAGES: int = 4
-"""How many of its own messages a suspect ahead from a busy receiver's queue waits at most for another sensor's
-message delivered after it (:meth:`AcceptanceRule._queue_unread`)."""
+"""How many of its own messages a suspect ahead from a busy receiver's queue waits at least for another sensor's
+message delivered after it (:meth:`AcceptanceRule._queue_unread`); more where another sensor is slower
+(:meth:`AcceptanceRule._wait_messages`)."""
+MAX_WAIT_MESSAGES: int = 64
+"""... and at most (a sensor at 200 Hz beside one at 5 Hz)."""
 PLACE_MESSAGES: int = 16
 """Messages of a new segment whose arrivals place it (the least delayed of them decides; their stamps'
 jitter averages out)."""
@@ -914,16 +917,28 @@ class AcceptanceRule:
         later than its stamps' lead says by over half a period) before any other sensor's message delivered after
         it: the queue's order tells when it came only once one is (:meth:`_came_between`; a step forward as large as the
         queue's delay makes the suspect look on time), so its decision waits for one, for up to
-        :data:`WAIT_MESSAGES` of its own."""
+        :meth:`_wait_messages` of its own."""
         s = self.streams[index]
         receipt, period = held[3], s.suspect_period()
-        if receipt is None or period is None or receipt == s.waited or len(s.waiting or ()) >= WAIT_MESSAGES or \
+        if receipt is None or period is None or receipt == s.waited or \
+                len(s.waiting or ()) >= self._wait_messages(index, period, held[0] - s.last) or \
                 not s.arrivals:
             return False
         for j, other in enumerate(self.streams):
             if j != index and other.arrivals and receipt < other.arrivals[-1][1] <= receipt + self.restart_ns // 4:
                 return False
         return self._receiver_late(index, receipt, period)
+
+    def _wait_messages(self, index: int, period: int, ahead: int) -> int:
+        """How many of its own messages sensor ``index`` (period ``period`` ns) waits at most for another sensor's
+        message with a suspect ``ahead`` ns of its sequence: :data:`WAIT_MESSAGES`; for a gap lost samples cannot
+        explain (over :data:`LOST_PERIODS`), as many as two periods of the slowest other sensor take (one of its
+        samples lost: at 200 Hz beside 20 Hz, 20), at most :data:`MAX_WAIT_MESSAGES`. (Its messages held meanwhile
+        tell the other sensors nothing: a lost sample's suspect held for the long wait misplaced another's step.)"""
+        if ahead <= LOST_PERIODS * period:
+            return WAIT_MESSAGES
+        slowest = max((o.suspect_period() or 0 for j, o in enumerate(self.streams) if j != index), default=0)
+        return min(max(WAIT_MESSAGES, -(-2 * slowest // max(period, 1))), MAX_WAIT_MESSAGES)
 
     def _wait_for_queue(self, index: int, message: Message) -> Accepted:
         """A message of sensor ``index`` while its suspect waits (:attr:`SensorStream.waiting`): held too while the
