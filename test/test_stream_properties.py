@@ -554,6 +554,15 @@ def test_a_step_a_blocked_receiver_hides_keeps_every_set_one_instant(case: Case)
 @example(Case([SensorPlan(rate=20.0, jitter=0.0004, loss=0.02),
                SensorPlan(rate=100.0, jitter=0.0004, loss=0.02, steps=[(4.096, 0.23132)])],
               10.9, 505, (3.8755, 1.0262, 0.0041667)))
+# 200 Hz stepping 0.81 s as a 1 s block ends, the other sensor at 100 Hz and drained at 1.2 ms a message: the other's
+# messages around the step's first came 1.2 ms apart, a tenth of its period, so they were read as its driver's
+# backlog and bounded nothing, with no third sensor late to show the receiver's drain (the step taken for a pause,
+# 0.81 s off); the step's own sensor late too shows it
+@example(Case([SensorPlan(rate=100.0), SensorPlan(rate=200.0, loss=0.02, steps=[(4.6827, 0.80905)])],
+              10.74, 0, (3.697, 1.0442, 0.0011511)))
+# the same with 200 Hz beside 50 Hz, a 0.3 s step: 0.3 s off
+@example(Case([SensorPlan(rate=200.0, loss=0.02, steps=[(3.025, 0.3)]), SensorPlan(rate=50.0)], 9.5, 0,
+              (3.0, 0.5, 0.0012)))
 def test_a_step_a_blocked_receiver_hides_at_mixed_rates_keeps_every_set_one_instant(case: Case) -> None:
     """As :func:`test_a_step_a_blocked_receiver_hides_keeps_every_set_one_instant`, each sensor at a rate of its own
     (20-200 Hz): a suspect waits for a slower sensor's message in the queue as long as two of its periods take."""

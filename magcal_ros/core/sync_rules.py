@@ -1252,8 +1252,8 @@ class AcceptanceRule:
         ``period`` (ns), or where the message came bunched with its own previous while no other sensor was late, or no
         other sensor's message was delivered within a quarter of ``restart_ns`` after it. Another sensor's messages that
         came bunched (a driver's backlog delivered at once, whose order says nothing of when its messages came) bound it
-        only where a third sensor was late too: then the receiver was draining its queue, which every sensor's messages
-        came to on time."""
+        only where a third sensor, or this one's previous message, was late too: then the receiver was draining its
+        queue, which every sensor's messages came to on time."""
         if previous is None:
             return None, receipt
         mates = self._queue_mates(index, period)
@@ -1261,6 +1261,8 @@ class AcceptanceRule:
         if on_time or bunched(receipt, previous, period) and not late:
             return None, receipt  # (one on time: no queue held the receiver; a topic late on its own bounds nothing)
         lower, upper = None, None
+        s = self.streams[index]  # its previous message late (its lead still right): the receiver's drain too
+        own_late = s.last_receipt is not None and 2 * _lateness(s, (s.last, s.last_receipt)) > period
         for j in mates:
             other = self.streams[j]
             after, before = None, None
@@ -1271,7 +1273,7 @@ class AcceptanceRule:
                 after = (common, r)
             if after is None or before is None or after[1] - receipt > self.restart_ns // 4 or \
                     bunched(after[1], before[1], other.suspect_period() or self.restart_ns) and \
-                    not any(k != j for k in late):  # a third sensor late too: the receiver's drain, not j's backlog
+                    not (own_late or any(k != j for k in late)):  # a third sensor late too: the receiver's drain too
                 continue
             lead = other.lead()
             upper = after[0] - lead if upper is None else max(upper, after[0] - lead)
