@@ -1328,6 +1328,13 @@ def test_the_batched_helpers_equal_numpys_stacked_products():
     mats, vectors, columns = rng.normal(size=(s, 3, 3)), rng.normal(size=(n, s, 3)), rng.normal(size=(n, s, 3, 2))
     np.testing.assert_allclose(per_sensor(mats, vectors), np.matmul(mats[None], vectors[..., None])[..., 0],
                                rtol=1e-13, atol=1e-13)
+    wide = rng.normal(size=(s, 3, 5))  # (the offsets and interference gains times each sensor's features)
+    features = rng.normal(size=(n, s, 5))
+    np.testing.assert_allclose(per_sensor(wide, features), np.einsum("sac,nsc->nsa", wide, features), rtol=1e-13,
+                               atol=1e-13)
+    vectors[7, 1, 2] = np.nan  # one sensor's NaN stays its own (not spread by a product over every sensor)
+    out = per_sensor(mats, vectors)
+    assert np.isnan(out[7, 1]).all() and np.isfinite(np.delete(out.reshape(n * s, 3), 7 * s + 1, axis=0)).all()
     shared = rng.normal(size=(n, 3, 2))  # (every sensor's the same: the tangent bases of the set's direction)
     np.testing.assert_allclose(per_sensor_shared(mats, shared), np.matmul(mats[None], shared[:, None]), rtol=1e-13,
                                atol=1e-13)

@@ -124,6 +124,43 @@ def test_the_pass_over_every_set_on_spare_cores_gives_the_same_result_to_the_bit
     assert two.envelope == one.envelope and two.inflation == one.inflation
 
 
+def test_a_long_recordings_pass_sums_a_spread_samples_normal_equations_and_weighs_every_set(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond ``PASS_SETS`` sets the pass sums the normal equations of one set in k (spread over the whole
+    recording, every part of the jackknife), but decides the outliers on every set: spikes in sets outside the
+    sample are excluded all the same, the calibration agrees with the one from every set's normal equations
+    within the sample's stated uncertainty (which is the larger by about sqrt(k)), and corrects fresh sets at
+    the truth's tensor floor."""
+    from magcal_ros.core import array_fit
+
+    import truth_tools as tt
+
+    sim = _array(11)
+    rec, _ = sim.run(tumble(6000, 2.0, 5), rng=6, rate=50.0, continuous=True)
+    raw = rec.vectors.copy()
+    spikes = np.arange(7, 6000, 600)  # 10 sets, none a multiple of 4: outside the sample
+    raw[spikes, 2, 0] += 3000 * NT
+    opts = SolveOptions(max_solve_sets=1500)
+    every = calibrate_array(raw, sim.geometry, F, stamps=rec.stamps, options=opts)
+    monkeypatch.setattr(array_fit, "PASS_SETS", 1500)
+    sampled = calibrate_array(raw, sim.geometry, F, stamps=rec.stamps, options=opts)
+    assert "refined on all (outliers on every set, the normal equations of 1 set in 4)" in sampled.summary()
+    assert "1 set in" not in every.summary()
+    assert sampled.outliers[2] >= len(spikes) and sampled.outliers[2] == every.outliers[2]
+    a, b = _quantities(every), _quantities(sampled)
+    assert a.keys() == b.keys() and len(a) >= 40
+    # the sample's estimate less every set's: the sample's variance less every set's (1 - 1/4 of it)
+    z = np.array([(b[k][0] - a[k][0]) / np.sqrt(max(b[k][1] ** 2 - a[k][1] ** 2, 1e-300)) for k in a])
+    assert np.max(np.abs(z)) < 3.5 and np.sqrt(np.mean(z**2)) < 1.4, sorted(zip(np.abs(z), a))[-3:]
+    ratio = np.median([b[k][1] / a[k][1] for k in a])
+    assert 1.6 < ratio < 2.4, ratio  # sqrt(4)
+    fresh, _ = sim.run(tumble(3000, 2.0, 17), rng=18)
+    floor = tt.rms(tt.cross_rows(tt.correct(*tt.true_correction(sim), fresh.vectors), sim.geometry.positions))
+    cal = sampled.calibration
+    got = tt.rms(tt.cross_rows(tt.correct(cal.matrices, cal.offsets, fresh.vectors), sim.geometry.positions))
+    assert got < 1.05 * floor, (got / floor)
+
+
 def test_pieces_run_side_by_side_with_spare_cores_and_one_by_one_without(monkeypatch: pytest.MonkeyPatch) -> None:
     """``map_in_threads`` keeps the items' order; with two workers two items are in flight at once (a
     barrier both must reach; one at a time would never pass it), with ``MAGCAL_WORKERS=1`` none is."""

@@ -1053,7 +1053,7 @@ class AcceptanceRule:
 
     def _own_queue(self, index: int, j: int, period: int) -> bool:
         """Whether sensor ``j``'s topic waited in a queue of its own at sensor ``index``'s previous message: a message
-        of ``j`` that came more than two ``period``\ s (ns) before that one (each when its stamps' lead says) was
+        of ``j`` that came more than two periods (``period``, ns) before that one (each when its stamps' lead says) was
         delivered after it. A receiver takes its queue in the order the messages came; a topic served late on its
         own (a loaded machine, a driver's backlog) breaks that order, and its lateness and order then tell nothing
         of when ``index``'s messages came."""

@@ -173,9 +173,11 @@ class CalibrationResult:
                          "temperature or calibrate over a shorter time")
         parts += self.block_notes()
         if self.extras.get("solved_on"):
-            used, total, refined = self.extras["solved_on"]
+            used, total, stride = self.extras["solved_on"]  # stride: the refinement's (0: not refined)
+            refined = "" if not stride else ", refined on all" + (
+                f" (outliers on every set, the normal equations of 1 set in {stride})" if stride > 1 else "")
             parts.append(f"solved on {used} of {total} sets (runs of consecutive sets chosen to keep the attitude "
-                         f"coverage and the time span){', refined on all' if refined else ''}")
+                         f"coverage and the time span){refined}")
         parts.append(f"coverage {self.excitation.coverage:.0%}")
         return ", ".join(parts)
 
@@ -849,6 +851,8 @@ class _Run:
     # -- the result
     excluded: Array | None = None
     """(S,) readings excluded on every set (after the refinement), None: from :attr:`sol`'s weights."""
+    pass_stride: int = 0
+    """The refinement summed the normal equations of one set in this many (0: not refined)."""
     keep: NDArray[np.int64] | None = None
     """The sets of the subset (indices into every set), None: every set."""
     vertical: Array = field(init=False)
@@ -1135,6 +1139,7 @@ def _refine_on_every_set(run: _Run) -> tuple[Covariance | None, Array | None]:
     run.stage(f"refine on all {run.full.count} sets")
     refined = _refine(run.sol, run.full, run.param_prior, run.blocks, bool(run.channels), run.free)
     run.sol, run.excluded, run.vertical = refined.solution, refined.excluded, refined.vertical
+    run.pass_stride = refined.stride
     return run.cov, refined.leave_out
 
 
@@ -1313,7 +1318,7 @@ def _report(run: _Run, gated: _Gated) -> CalibrationResult:
                 "temperature_range": span, "temperature_stored": gated.thermal,
                 "block_notes": blocks.notes + tuple(() if imu_report is None else imu_report.notes()),
                 "drift": gated.verdict.drift, "imu": imu_report,
-                "solved_on": None if run.full is None else (n, run.full.count, run.excluded is not None)},
+                "solved_on": None if run.full is None else (n, run.full.count, run.pass_stride)},
     )
     object.__setattr__(gated.calibration, "metadata",
                        provenance(result, run.spec.source, run.call.reference_field, gated.verdict))
