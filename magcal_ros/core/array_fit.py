@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as att_blocks
 from magcal_ros.core.attitude_blocks import AttitudeInputs, GlobalState
-from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_dot, per_sensor_gram, per_sensor_shared,
+from magcal_ros.core.batched import (gram2, per_sensor, per_sensor_dot, per_sensor_shared,
                                      row_norms, times_lower2)
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.metrics import chi2_isf
@@ -435,9 +435,7 @@ class _Eval:
                         x_cols[:, :, a, a] = inputs.temperatures * kd[:, :, a] * gain[:, :, a] ** 2
                 if lag:
                     x_cols[:, :, :, -1] = gain * per_sensor(k, d_tau)
-            seen_a = seen[:, :, None, :] if gain.shape[0] == 1 else gain[..., None] * seen[:, :, None, :]
-            phi = np.concatenate([seen_a, np.broadcast_to(psi[:, :, None, :], seen_a.shape[:3] + (q - 3,))], axis=3)
-            g_sum = self._structured(phi, x_cols, ws)
+            g_sum = self._structured(_sets_last_features(seen, psi, gain), x_cols, ws)
             b = None
         else:
             self._features = None
@@ -489,12 +487,12 @@ class _Eval:
 
     def _structured(self, phi: Array, x_cols: Array | None, ws: Array) -> Array:
         """The sensors' normal matrices from the features, without the (N, S, 3, P) Jacobian: axis a has
-        ``phi`` (N, S, 1 or 3, q; shared by the axes without temperature) in its own q columns and zeros
-        elsewhere, then the extra columns ``x_cols`` (N, S, 3, X: a gain tempco in its axis only, the lag
+        ``phi`` (S, 1 or 3, q, N, the sets last; shared by the axes without temperature) in its own q columns and
+        zeros elsewhere, then the extra columns ``x_cols`` (N, S, 3, X: a gain tempco in its axis only, the lag
         in every axis). The gradient summed over the sets, (S, P); each set's is built when asked for."""
-        s, q = phi.shape[1], phi.shape[3]
+        s, q = phi.shape[0], phi.shape[2]
         lin, p = 3 * q, self.shape[1]
-        wphi = phi * ws[:, :, None, None]
+        wphi = phi * np.ascontiguousarray(ws.T)[:, None, None, :]
         g_sum = np.empty((s, p))
         g_sum[:, :lin] = _axis_sums(self.e, wphi)
         wx = None
@@ -514,7 +512,7 @@ class _Eval:
             jac, wj = (a[rows] for a in self._dense)
             return np.stack([wj[:, i].reshape(-1, p).T @ jac[:, i].reshape(-1, p) for i in range(self.shape[0])])
         (wphi, wx), (phi, x_cols) = self._features, self._unweighted
-        return _linear_blocks(phi[rows], wphi[rows], None if x_cols is None else x_cols[rows],
+        return _linear_blocks(phi[..., rows], wphi[..., rows], None if x_cols is None else x_cols[rows],
                               None if wx is None else wx[rows], p)
 
     def _global_blocks(self, rows: slice | NDArray[np.int64]) -> tuple[Array, Array]:
@@ -532,7 +530,7 @@ class _Eval:
             a_sg[:, :, cols] = np.stack([wj[:, i].reshape(-1, p).T @ jac_g[:, i].reshape(-1, nc) for i in range(s)])
         else:
             wphi, wx = self._features
-            a_sg[:, :, cols] = _summed_by_features(wphi[rows], None if wx is None else wx[rows], jac_g, p)
+            a_sg[:, :, cols] = _summed_by_features(wphi[..., rows], None if wx is None else wx[rows], jac_g, p)
         a_gg[np.ix_(cols, cols)] += wjg.reshape(-1, nc).T @ jac_g.reshape(-1, nc)
         return a_sg, a_gg
 
@@ -540,10 +538,11 @@ class _Eval:
         """(N, S P, ...) each set's structured Jacobian rows times ``v`` (N, S, 3, ...) (whitened, ``J^T W v``
         per set): each axis's features times ``v`` in its linear columns, then the extra columns."""
         wphi, wx = self._features  # type: ignore[misc]
-        n, s, _, q = wphi.shape
+        s, _, q, n = wphi.shape
         tail = v.shape[3:]
         out = np.empty((n, s, self.shape[1]) + tail)
-        out[:, :, : 3 * q] = (v[:, :, :, None] * _axes(wphi).reshape((n, s, 3, q) + (1,) * len(tail))).reshape(
+        by_set = _axes(wphi).transpose(3, 0, 1, 2)  # (N, S, 3, q), a view
+        out[:, :, : 3 * q] = (v[:, :, :, None] * by_set.reshape((n, s, 3, q) + (1,) * len(tail))).reshape(
             (n, s, 3 * q) + tail)
         if wx is not None:
             out[:, :, 3 * q :] = np.einsum("nsax,nsa...->nsx...", wx, v)
@@ -572,10 +571,10 @@ class _Eval:
         if self._b is not None or self._features is None:
             return np.einsum("npc,p->nc", self.b, step)
         wphi, wx = self._features
-        s, q = wphi.shape[1], wphi.shape[3]
+        s, q = wphi.shape[0], wphi.shape[2]
         p, lin = self.shape[1], 3 * q
         st = step[: s * p].reshape(s, p)
-        pulled = np.einsum("nsaj,saj->nsa", _axes(wphi), st[:, :lin].reshape(s, 3, q))  # (N, S, 3)
+        pulled = np.matmul(st[:, :lin].reshape(s, 3, 1, q), _axes(wphi))[:, :, 0].transpose(2, 0, 1)  # (N, S, 3)
         if wx is not None:
             pulled = pulled + np.einsum("nsax,sx->nsa", wx, st[:, lin:])
         out = np.einsum("nsac,nsa->nc", self.m, pulled)
@@ -597,7 +596,7 @@ class _Eval:
             info = self.a_matrix() - np.matmul(self.b, c_inv).transpose(0, 2, 1).reshape(-1, self.b.shape[1]).T @ flat_b
             return info, self.g_theta - y.reshape(-1) @ flat_b, cost
         wphi, wx = self._features
-        s, q = wphi.shape[1], wphi.shape[3]
+        s, q = wphi.shape[0], wphi.shape[2]
         lin = 3 * q
         my = np.einsum("nsac,nc->nsa", self.m, y)  # M_k C_k^-1 g_k
         corr = np.empty((s, self.shape[1]))
@@ -622,15 +621,14 @@ class _Eval:
             self._rows = times_lower2(self.b, lower).transpose(1, 2, 0)
             return self._rows
         wphi, wx = self._features
-        n, s, _, q = wphi.shape
+        s, _, q, n = wphi.shape
         p, lin = self.shape[1], 3 * q
         g = np.ascontiguousarray(times_lower2(self.m, lower).transpose(1, 2, 3, 0))  # (S, 3, 2, N): M_k L_k
         globals_b = None if self._globals_rows is None else self._globals_rows[0]  # (N, G, 2)
         flat = np.empty((s * p + (0 if globals_b is None else globals_b.shape[1]), 2, n))
         rows = flat[: s * p].reshape(s, p, 2, n)
         # written in place: splitting an axis of the view is a view too
-        np.multiply(g[:, :, None], np.ascontiguousarray(wphi.transpose(1, 2, 3, 0))[:, :, :, None],
-                    out=rows[:, :lin].reshape(s, 3, q, 2, n))
+        np.multiply(g[:, :, None], wphi[:, :, :, None], out=rows[:, :lin].reshape(s, 3, q, 2, n))
         if wx is not None:  # sum_a g[s, a, c, n] wx[n, s, a, x]
             wxt = np.ascontiguousarray(wx.transpose(1, 2, 3, 0))  # (S, 3, X, N)
             extra = rows[:, lin:]
@@ -696,31 +694,46 @@ def _as_slice(rows: NDArray[np.int64]) -> slice | NDArray[np.int64]:
     return rows
 
 
+def _sets_last_features(seen: Array, psi: Array, gain: Array) -> Array:
+    """(S, 1 or 3, q, N) each axis's linear features ``[gain_a seen, psi]`` with the sets along the last axis
+    (one for every axis without temperature, ``gain`` (1, 1, 1)): the sums over the sets below are then long
+    contiguous products. ``seen`` (N, S, 3) the field each sensor saw, ``psi`` (N, S, q - 3) the rest's
+    features, ``gain`` (N, S, 3) or (1, 1, 1)."""
+    n, s, _ = seen.shape
+    axes = 1 if gain.shape[0] == 1 else 3
+    out = np.empty((s, axes, 3 + psi.shape[2], n))
+    seen_t = seen.transpose(1, 2, 0)  # (S, 3, N), a view
+    if axes == 1:
+        out[:, 0, :3] = seen_t
+    else:
+        np.multiply(np.ascontiguousarray(gain.transpose(1, 2, 0))[:, :, None, :], seen_t[:, None], out=out[:, :, :3])
+    out[:, :, 3:] = psi.transpose(1, 2, 0)[:, None]
+    return out
+
+
 def _axes(features: Array) -> Array:
-    """(N, S, 3, q) each axis's features from (N, S, 1 or 3, q) (shared by the axes: a view)."""
-    n, s, _, q = features.shape
-    return np.broadcast_to(features, (n, s, 3, q))
+    """(S, 3, q, N) each axis's features from (S, 1 or 3, q, N) (shared by the axes: a view)."""
+    s, _, q, n = features.shape
+    return np.broadcast_to(features, (s, 3, q, n))
 
 
 def _linear_blocks(phi: Array, wphi: Array, x_cols: Array | None, wx: Array | None, p: int) -> Array:
-    """(S, P, P) each sensor's normal matrix from its features (:meth:`_Eval._structured`: ``phi`` (N, S, 1 or 3,
-    q) in each axis's q columns, the extra columns ``x_cols`` (N, S, 3, X) after them; ``wphi``, ``wx`` the same
-    weighted), summed over the N sets."""
-    n, s, axes, q = phi.shape
+    """(S, P, P) each sensor's normal matrix from its features (:meth:`_Eval._structured`: ``phi`` (S, 1 or 3,
+    q, N) in each axis's q columns, the extra columns ``x_cols`` (N, S, 3, X) after them; ``wphi``, ``wx`` the
+    same weighted), summed over the N sets."""
+    s, axes, q, n = phi.shape
     lin = 3 * q
     a_blocks = np.zeros((s, p, p))
+    own = np.matmul(wphi, phi.transpose(0, 1, 3, 2))  # (S, 1 or 3, q, q)
     for i in range(s):
-        if axes == 1:
-            a_blocks[i, :lin, :lin] = np.kron(np.eye(3), wphi[:, i, 0].T @ phi[:, i, 0])
-            continue
         for a in range(3):
-            a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = wphi[:, i, a].T @ phi[:, i, a]
+            a_blocks[i, a * q : (a + 1) * q, a * q : (a + 1) * q] = own[i, min(a, axes - 1)]
     if x_cols is not None and wx is not None:
         x = x_cols.shape[3]
+        cross = np.matmul(_axes(phi), np.ascontiguousarray(wx.transpose(1, 2, 0, 3))).reshape(s, lin, x)
+        a_blocks[:, :lin, lin:] = cross
+        a_blocks[:, lin:, :lin] = cross.transpose(0, 2, 1)
         for i in range(s):
-            cross = np.matmul(_axes(phi)[:, i].transpose(1, 2, 0), wx[:, i].transpose(1, 0, 2)).reshape(lin, x)
-            a_blocks[i, :lin, lin:] = cross
-            a_blocks[i, lin:, :lin] = cross.T
             a_blocks[i, lin:, lin:] = wx[:, i].reshape(n * 3, x).T @ x_cols[:, i].reshape(n * 3, x)
     return a_blocks
 
@@ -728,11 +741,11 @@ def _linear_blocks(phi: Array, wphi: Array, x_cols: Array | None, wx: Array | No
 def _summed_by_features(wphi: Array, wx: Array | None, v: Array, p: int) -> Array:
     """(S, P, G) the structured Jacobian's whitened products with ``v`` (N, S, 3, G) summed over the sets
     (``sum_k J_k^T W v_k`` for each sensor; features as :func:`_linear_blocks`)."""
-    s, q = wphi.shape[1], wphi.shape[3]
+    s, q = wphi.shape[0], wphi.shape[2]
     n, g = v.shape[0], v.shape[3]
     out = np.empty((s, p, g))
     vt = v.transpose(1, 2, 0, 3)  # (S, 3, N, G): the sets summed by matrix products
-    out[:, : 3 * q] = np.matmul(_axes(wphi).transpose(1, 2, 3, 0), vt).reshape(s, 3 * q, g)
+    out[:, : 3 * q] = np.matmul(_axes(wphi), vt).reshape(s, 3 * q, g)
     if wx is not None:
         x = wx.shape[3]
         out[:, 3 * q :] = [wx[:, i].reshape(3 * n, x).T @ v[:, i].reshape(3 * n, g) for i in range(s)]
@@ -740,12 +753,13 @@ def _summed_by_features(wphi: Array, wx: Array | None, v: Array, p: int) -> Arra
 
 
 def _axis_sums(v: Array, features: Array) -> Array:
-    """(S, 3 q) ``sum_n v[n, s, a] features[n, s, a, j]`` for ``v`` (N, S, 3) and each axis's features (N, S, 1
-    or 3, q; one for every axis: a matrix product per sensor)."""
-    s, q = features.shape[1], features.shape[3]
-    if features.shape[2] == 1:
-        return per_sensor_gram(v, features[:, :, 0]).reshape(s, 3 * q)
-    return np.einsum("nsa,nsaj->saj", v, features).reshape(s, 3 * q)
+    """(S, 3 q) ``sum_n v[n, s, a] features[s, a, j, n]`` for ``v`` (N, S, 3) and each axis's features (S, 1
+    or 3, q, N; one for every axis: a matrix product per sensor)."""
+    s, axes, q, _ = features.shape
+    vt = v.transpose(1, 2, 0)  # (S, 3, N)
+    if axes == 1:
+        return np.matmul(vt, features[:, 0].transpose(0, 2, 1)).reshape(s, 3 * q)
+    return np.matmul(features, vt[..., None]).reshape(s, 3 * q)
 
 
 def _chol2(c: Array) -> Array:
