@@ -1682,7 +1682,7 @@ def _full_pass(model: ForwardModel, theta: Array, x: Array, inputs: SetInputs, l
             (xc, inc, rc), d, w = _take_sets(xc, inc, rc, keep), d[keep], w[keep]
         return _Eval(model, theta, d, xc, inc, rc, w, sigma).reduced()  # each direction at its optimum
 
-    step = chunk * stride
+    step = chunk * min(stride, 4)  # sets a task takes (their directions' arrays bounded: 4 chunks at most)
     tasks = [(k, part[lo : lo + step]) for k, part in enumerate(parts) for lo in range(0, len(part), step)]
     # the chunks side by side on spare cores, added up in their order (the same sums as one by one)
     for (k, _), (info, grad, c) in zip(tasks, map_in_threads(one, [sl for _, sl in tasks])):
