@@ -76,6 +76,9 @@ arrival): long enough for a backlog to catch up, short enough to follow a receip
 the stamps' (counted in messages, so a pause does not age it)."""
 BACKLOG_INTERVAL: int = 200_000
 """Stamps closer than this (ns, 5 kHz) are a backlog delivered at once, not a sensor's rate."""
+BACKLOG_LOSS: float = 0.03
+"""The share of a stall's samples its backlog may have lost: a backlog stamped on delivery this much short of the gap
+before it still shows the sensor sampled through it (:meth:`SensorStream.backlog_fills`)."""
 MAX_STALL: int = 10 * NS_PER_S
 """Longest stall (ns) a driver delivers a backlog after: stamps crowding after a longer silence are a
 faster rate, not a backlog."""
@@ -516,6 +519,27 @@ class SensorStream:
         if bounds is None:
             return False
         return bounds[0] - period // 2 <= common - receipt <= bounds[1] + period // 2
+
+    def backlog_periods(self) -> int:
+        """Sample periods the backlog dropped since this sensor's last stamp held (stamped on delivery: its count,
+        one more for the sample after it; 0 without one): a new segment goes at least that far after the last
+        sample, wherever its arrivals put it."""
+        return self.burst_count + 1 if self.burst_count and self.burst_from > self.last else 0
+
+    def backlog_fills(self, stamp: int, receipt: int | None, period: float | None) -> bool:
+        """Whether the backlog just dropped (stamped on delivery: :attr:`burst_count` messages) holds the samples of
+        the whole gap from this sensor's last stamp to its next ``stamp`` (ns), received at ``receipt`` (ns) no
+        earlier than its stamps allow: the sensor sampled through a stall and its stamps went on with its clock (no
+        step). Its count may miss a few lost samples (:data:`BACKLOG_LOSS`, and :data:`LOST_PERIODS` more), never
+        hold more than the gap; a stamp further ahead of its arrival than the sensor's are stepped forward."""
+        rhythm = self.grid_period() or period
+        if not rhythm or not self.burst_count or self.burst_from <= self.last:
+            return False
+        gap = stamp - self.last
+        held = (self.burst_count + 1) * rhythm
+        if not held - rhythm / 2 <= gap <= held / (1.0 - BACKLOG_LOSS) + LOST_PERIODS * rhythm:
+            return False
+        return receipt is None or not self.arrivals or not self.ahead_of(stamp, receipt, int(rhythm))
 
     def crowded(self, interval: int, period: int) -> bool:
         """Whether a stamp ``interval`` (ns) is far shorter than the sensor samples (a backlog stamped as it
@@ -1345,6 +1369,10 @@ class AcceptanceRule:
             if estimate is None:  # nor after the data others placed there since (one clock, this one silent)
                 since = self._placed_since(index, stamp, period, receipt)
                 steps = max(steps, math.ceil((since - period / 2 - anchor) / period))
+            if steps < s.backlog_periods():  # fewer periods than a stall's backlog held: it sampled through it
+                steps = s.backlog_periods()
+                if s.backlog_fills(stamp, receipt, period):  # its stamps as far on: they went on, no step
+                    steps = max(steps, round((stamp + s.base - anchor) / period))
             first = anchor + steps * period  # the sensor kept sampling: whole periods after its last sample
             base = int(round(sum(first + round((t - stamp) / period) * period - t for t in stamps) / len(stamps)))
         base = max(base, s.lastc + 1 - stamp)
