@@ -255,6 +255,17 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
 @settings(max_examples=EXAMPLES, derandomize=True, database=None, deadline=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(cases())
+# three sensors at 100 Hz, the third's driver stalled 2 s and stamped its backlog on delivery, its clock later
+# stepping back 81 s, then on 4.3 s: the backlog's count, still held, placed the last step's segment the stall's
+# length late (1.96 s off for the rest). A backlog tells of the gap right after it only
+@example(Case([SensorPlan(rate=100.0, phase=0.0095, ppm=85.32437986139607, jitter=0.0002, loss=0.02,
+                          steps=[(6.560011653237737, -2.617293166385296)],
+                          silences=[(4.930525679274382, 5.560011653237737)], bad=[3.9305256792743823]),
+               SensorPlan(rate=100.0, phase=0.00019617385952666125, ppm=-18.258216305729192, jitter=0.0002,
+                          steps=[(4.207763260332651, 0.2946338338618022)]),
+               SensorPlan(rate=100.0, phase=1.192092896e-07, ppm=19.408805696315284, jitter=0.0002,
+                          steps=[(7.227405450393645, -81.06649250143042), (11.170981560810128, 4.324108120055084)],
+                          stalls=[(2.6279183257115823, 1.9583399723974544, True)])], 20.662303013260107, 212615))
 # found by the whole suite's draws: a step of mag3 12.27 periods ahead while a busy receiver's drain had left
 # its arrivals keeping no time (taken as lost samples: that sensor 56 ms off, every later set lost)
 @example(Case([SensorPlan(rate=200.0), SensorPlan(rate=200.0), SensorPlan(rate=200.0, steps=[(4.0314, 0.05633)]),

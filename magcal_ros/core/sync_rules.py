@@ -1325,6 +1325,7 @@ class AcceptanceRule:
         s.last = stamp
         s.lastc = c = stamp + s.base
         s.last_receipt = receipt
+        s.burst_count = 0  # a backlog dropped before tells of the gap before this message only
         tail = s.tail
         tail.append(c)
         if len(tail) > TAIL:
