@@ -533,10 +533,10 @@ class SensorStream:
         step). Its count may miss a few lost samples (:data:`BACKLOG_LOSS`, and :data:`LOST_PERIODS` more), never
         hold more than the gap; a stamp further ahead of its arrival than the sensor's are stepped forward."""
         rhythm = self.grid_period() or period
-        if not rhythm or not self.burst_count or self.burst_from <= self.last:
+        held = self.backlog_periods() * (rhythm or 0)
+        if not held:
             return False
         gap = stamp - self.last
-        held = (self.burst_count + 1) * rhythm
         if not held - rhythm / 2 <= gap <= held / (1.0 - BACKLOG_LOSS) + LOST_PERIODS * rhythm:
             return False
         return receipt is None or not self.arrivals or not self.ahead_of(stamp, receipt, int(rhythm))
@@ -1370,8 +1370,9 @@ class AcceptanceRule:
             if estimate is None:  # nor after the data others placed there since (one clock, this one silent)
                 since = self._placed_since(index, stamp, period, receipt)
                 steps = max(steps, math.ceil((since - period / 2 - anchor) / period))
-            if steps < s.backlog_periods():  # fewer periods than a stall's backlog held: it sampled through it
-                steps = s.backlog_periods()
+            backlog = s.backlog_periods()
+            if steps < backlog:  # fewer periods than a stall's backlog held: it sampled through it
+                steps = backlog
                 if s.backlog_fills(stamp, receipt, period):  # its stamps as far on: they went on, no step
                     steps = max(steps, round((stamp + s.base - anchor) / period))
             first = anchor + steps * period  # the sensor kept sampling: whole periods after its last sample
