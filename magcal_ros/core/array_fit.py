@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -334,7 +335,12 @@ class _Att:
     """The attitude residuals' time correlation the precision divides by (:meth:`AttitudeInputs.correlation`)."""
 
     def h(self) -> Array | None:
-        """(N, S, 3) the site gradient's field at each sensor (units of F), None without the block."""
+        """(N, S, 3) the site gradient's field at each sensor (units of F), None without the block (computed once
+        per state: a fit asks for it at each evaluation, each trial step and each residual)."""
+        return self._h
+
+    @cached_property
+    def _h(self) -> Array | None:
         return att_blocks.gradient_field(self.inputs, self.state)
 
     def moved(self, step: Array, model: ForwardModel) -> "_Att":
