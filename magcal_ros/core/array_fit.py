@@ -430,8 +430,8 @@ class _Eval:
         lag = model.lag_index is not None and d_tau is not None
         self._globals_rows: tuple[Array, Array] | None = None
         self._rows: Array | None = None  # the sets' direction rows, once built (:meth:`_direction_rows`)
-        self.a_sg: Array | None = None
-        self.a_gg: Array | None = None
+        self._a_blocks: Array | None = None  # the sums over every set, once asked for (:attr:`a_blocks`)
+        self._a_globals: tuple[Array, Array] | None = None
         if STRUCTURED and extras == 3 * int(temperature) + int(lag):
             x_cols = None
             if extras:
@@ -456,7 +456,6 @@ class _Eval:
                 jac[:, :, :, model.lag_index] = gain * per_sensor(k, d_tau)
             wj = jac * ws[:, :, None, None]
             self._dense = (jac, wj)
-            self.a_blocks = self._sensor_blocks(slice(None))
             b = np.matmul(wj.transpose(0, 1, 3, 2), self.m).reshape(n, s * p, 2)
             self._set_scores = np.einsum("nsap,nsa->nsp", wj, self.e).reshape(n, s * p)
             g_sum = np.ones(n) @ self._set_scores
@@ -472,7 +471,6 @@ class _Eval:
             ja = att_blocks.attitude_jacobian(att.inputs, att.state, model)
             pa = att.precision
             self._global_jac, self._global_cols = (jac_g, wjg, ja, pa), cols
-            self.a_sg, self.a_gg = self._global_blocks(slice(None))
             per_set_g = pa[:, None] * np.matmul(ea[:, None, :], ja)[:, 0]
             per_set_g[:, cols] += np.einsum("nsag,nsa->ng", wjg, self.e)
             g_global = per_set_g.sum(axis=0)
@@ -508,8 +506,32 @@ class _Eval:
         self._set_scores = None
         self._features = (wphi, wx)  # the direction couplings B and the scores, built when asked for
         self._unweighted = (phi, x_cols)
-        self.a_blocks = self._sensor_blocks(slice(None))
         return g_sum
+
+    @property
+    def a_blocks(self) -> Array:
+        """(S, P, P) each sensor's normal matrix over every set (built once, when asked for: an evaluation whose
+        information comes from its parts' (:meth:`part_information`) never sums them whole)."""
+        if self._a_blocks is None:
+            self._a_blocks = self._sensor_blocks(slice(None))
+        return self._a_blocks
+
+    @property
+    def a_sg(self) -> Array | None:
+        """(S, P, G) the sensors' and the global parameters' cross blocks over every set; None without globals."""
+        return self._full_globals()[0]
+
+    @property
+    def a_gg(self) -> Array | None:
+        """(G, G) the global parameters' own normal matrix over every set; None without globals."""
+        return self._full_globals()[1]
+
+    def _full_globals(self) -> tuple[Array | None, Array | None]:
+        if not self.globals:
+            return None, None
+        if self._a_globals is None:
+            self._a_globals = self._global_blocks(slice(None))
+        return self._a_globals
 
     def _sensor_blocks(self, rows: slice | NDArray[np.int64]) -> Array:
         """(S, P, P) each sensor's normal matrix ``sum_k J_k^T W J_k`` over the sets ``rows``."""
@@ -1371,15 +1393,24 @@ def _final_solution(model: ForwardModel, theta: Array, d: Array, x: Array, input
         info, scores = _rank_one_information(model, theta, x, inputs, weights, sigma[0])
     else:
         final = _Eval(model, theta, d, x, inputs, rates, weights, sigma, att)
-        info, scores = final.information(), final.scores()
+        scores = final.scores()
         if parts:
             extra["part_sums"] = _part_sums(final, scores, parts)
+        # the information is additive over the sets: where the parts hold every set once, their sum
+        info = extra["part_sums"].information.sum(axis=0) if parts and _partition(parts, len(x)) else \
+            final.information()
     if att is None:
         return _solution(model, theta, d, weights, sigma * f, e * f, info, scores, f, rates, fixed, **extra)
     red_info, red_scores = _eliminate_globals(info, scores, s * model.size, att.inputs.fixed(model),
                                               att.inputs.global_precision(model))
     extra.update(full_information=info, full_scores=scores)
     return _solution(model, theta, d, weights, sigma * f, e * f, red_info, red_scores, f, rates, fixed, **extra)
+
+
+def _partition(parts: list[NDArray[np.int64]], n: int) -> bool:
+    """Whether ``parts`` (indices) hold each of ``n`` sets exactly once."""
+    every = np.concatenate(parts)
+    return len(every) == n and bool(np.all(np.bincount(every, minlength=n) == 1))
 
 
 def _part_sums(ev: "_Eval", scores: Array, parts: list[NDArray[np.int64]]) -> PartSums:
