@@ -217,13 +217,14 @@ def _explained(y: Array, x: Array) -> float:
     return _fit_explained(y, np.column_stack([np.ones(len(y)), x]))[0]
 
 
-def _fit_explained(y: Array, design: Array) -> tuple[float, Array | None]:
+def _fit_explained(y: Array, design: Array, gram: Array | None = None) -> tuple[float, Array | None]:
     """The fraction of the variance of ``y`` (N, M) the columns of ``design`` (N, K, a constant among them)
-    explain, and the coefficients (K, M) (None when there is nothing to explain)."""
+    explain, and the coefficients (K, M) (None when there is nothing to explain); ``gram``: ``design^T design``
+    where it is known (several ``y`` on one design)."""
     total = float(np.sum((y - y.mean(axis=0)) ** 2))
     if total <= 0 or len(y) <= design.shape[1] + 2:
         return 0.0, None
-    gram = design.T @ design
+    gram = design.T @ design if gram is None else gram
     if well_conditioned(gram[None])[0]:  # the normal equations: a tenth of the SVD's time
         coef = np.linalg.solve(gram, design.T @ y)
     else:  # (columns near dependence: the minimum-norm solution)
@@ -256,17 +257,56 @@ def _step_explained(y: Array, d: Array, splits: NDArray[np.int64]) -> float:
     if total <= 0 or len(y) <= 7 + 3:  # as _explained with the step's seven columns
         return 0.0
     z = np.concatenate([np.ones((1, len(y))), np.asarray(d, dtype=float).T, y[None]])  # (5, N), each row contiguous
-    running = np.cumsum((z[:, None, :] * z[None, :, :]).reshape(25, -1), axis=1)
-    before = np.where(splits > 0, running[:, np.maximum(splits - 1, 0)], 0.0).T.reshape(-1, 5, 5)  # rows < split
+    zz = (z[:, None, :] * z[None, :, :]).reshape(25, -1)
+    # the sums of the rows before each split: the pieces between the splits summed, then those sums run
+    n = len(y)
+    cuts = np.unique(splits[(splits > 0) & (splits < n)])
+    running = np.cumsum(np.add.reduceat(zz, np.concatenate([[0], cuts]).astype(np.int64), axis=1), axis=1)
+    # (running[:, j]: the rows before cuts[j]; the last column every row)
+    before = running[:, np.searchsorted(cuts, np.clip(splits, 0, n))]
+    before[:, splits <= 0] = 0.0
+    before = before.T.reshape(-1, 5, 5)  # rows < split
     sse = _segment_sse(before) + _segment_sse(running[:, -1].reshape(1, 5, 5) - before)
     return float(np.max(1.0 - sse / total))
 
 
+@dataclass(frozen=True)
+class ShapeBasis:
+    """What every sensor's :func:`residual_shape` shares over one time order: the span (s), the drift's design
+    (the constant, polynomials in time alone and times the direction, the direction) and the quadratic function
+    of the direction (with the constant), each with its Gram matrix, and the splits a step is tried at."""
+
+    span: float
+    design: Array
+    design_gram: Array
+    quad: Array
+    quad_gram: Array
+    splits: NDArray[np.int64]
+
+
+def shape_basis(times: Array, directions: Array) -> ShapeBasis | None:
+    """The :class:`ShapeBasis` of sets at ``times`` (N,) s with field ``directions`` (N, 3), in time order; None
+    where they are too few or span no time (no shape to tell)."""
+    t = np.asarray(times, dtype=float)
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    if len(t) < 4 * (DRIFT_DEGREE + 10) or span <= 0:
+        return None
+    x = (t - t[0]) / span * 2.0 - 1.0
+    poly = np.column_stack([np.polynomial.legendre.legval(x, np.eye(DRIFT_DEGREE + 1)[k])
+                            for k in range(1, DRIFT_DEGREE + 1)])
+    d = np.asarray(directions, dtype=float)
+    design = np.column_stack([np.ones(len(t)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
+    # (d_z^2 = 1 - d_x^2 - d_y^2 for unit directions: with the constant, it adds nothing)
+    quad = np.column_stack([np.ones(len(t)), d, d[:, [0, 0, 1, 1, 2]] * d[:, [0, 1, 1, 2, 0]]])
+    return ShapeBasis(span, design, design.T @ design, quad, quad.T @ quad,
+                      np.linspace(len(t) * 0.05, len(t) * 0.95, 37).astype(int))
+
+
 def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: Array, directions: Array,
-                   rates: Array | None, noise: float) -> ResidualShape:
+                   rates: Array | None, noise: float, basis: ShapeBasis | None = None) -> ResidualShape:
     """How one sensor's residual follows time (``times`` (N,) s), the field direction
     (``directions`` (N, 3)) and its rate of change (``rates`` (N, 3) 1/s, or None), against its
-    white ``noise`` (T); all in time order.
+    white ``noise`` (T); all in time order (``basis``: their :func:`shape_basis`, where already built).
 
     Time against attitude is read off the TMI residual ``tmi`` (N,) T (corrected norm minus F, every
     reading: excluded readings are where a drift shows most): an offset and a gain that follow time
@@ -275,21 +315,15 @@ def residual_shape(tmi: Array, residual: Array, used: NDArray[np.bool_], times: 
     reading late by ``tau`` is off by ``tau`` times the rate, across the field: the norm hides it).
     """
     y = np.asarray(tmi, dtype=float).reshape(-1, 1)
-    t = np.asarray(times, dtype=float)
-    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    if len(y) < 4 * (DRIFT_DEGREE + 10) or span <= 0:
-        return ResidualShape(0.0, span, 0.0, 0.0, 0.0, 0.0)
-    x = (t - t[0]) / span * 2.0 - 1.0
-    poly = np.column_stack([np.polynomial.legendre.legval(x, np.eye(DRIFT_DEGREE + 1)[k])
-                            for k in range(1, DRIFT_DEGREE + 1)])
-    d = np.asarray(directions, dtype=float)
-    design = np.column_stack([np.ones(len(y)), poly, (poly[:, :, None] * d[:, None, :]).reshape(len(d), -1), d])
-    time_part, coef = _fit_explained(y, design)
-    # (d_z^2 = 1 - d_x^2 - d_y^2 for unit directions: with the constant, it adds nothing)
-    quad = np.column_stack([d, d[:, [0, 0, 1, 1, 2]] * d[:, [0, 1, 1, 2, 0]]])
-    attitude_part = _explained(y, quad)
+    basis = shape_basis(times, directions) if basis is None else basis
+    if basis is None:
+        t = np.asarray(times, dtype=float)
+        return ResidualShape(0.0, float(t[-1] - t[0]) if len(t) > 1 else 0.0, 0.0, 0.0, 0.0, 0.0)
+    span, design = basis.span, basis.design
+    time_part, coef = _fit_explained(y, design, basis.design_gram)
+    attitude_part = _fit_explained(y, basis.quad, basis.quad_gram)[0]
     # A sudden change (iron moved) is a step, not a drift: the best single split, offset and gain.
-    step_part = _step_explained(y[:, 0], d, np.linspace(len(y) * 0.05, len(y) * 0.95, 37).astype(int))
+    step_part = _step_explained(y[:, 0], np.asarray(directions, dtype=float), basis.splits)
     rate_part = 0.0
     if rates is not None and used.sum() > 20:
         rate_part = _explained(np.asarray(residual, dtype=float)[used], np.asarray(rates, dtype=float)[used])
@@ -625,8 +659,9 @@ def judge(
     smooth = bool(smooth and directions is not None)
     shapes: list[ResidualShape | None] = [None] * len(names)
     if smooth and stamps_ns is not None:
+        basis = shape_basis(t, directions)  # type: ignore[arg-type]
         shapes = [residual_shape(tmi_residuals[:, i], residuals[:, i], weights[:, i] > 0, t, directions,  # type: ignore[arg-type]
-                                 rates, noise[i]) for i in range(len(names))]
+                                 rates, noise[i], basis) for i in range(len(names))]
     fit = _Fit(names, residuals, weights, tmi_residuals, raw, clipped, noise, resid, t, stamps_ns is not None,
                smooth, shapes)
     verdict.cause = (_outlier_gate(fit, verdict.excluded) or _step_gate(fit)
