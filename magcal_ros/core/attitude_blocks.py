@@ -476,11 +476,23 @@ def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], c
     ``rounds`` times (fewer once no mounting moves, :data:`START_TOLERANCE`); (A (K, 3, 3), fields (K, G, 3),
     costs (K,))."""
     a = np.array(starts, dtype=float)
+    n = len(d)
     member = (groups[None, :] == np.arange(count)[:, None]).astype(float)  # (G, N) each set's group
     fields = np.zeros((len(a), count, 3))
+    # Q A d is linear in A: (Q_ij d_l) times A_jl, one matrix product for every set and start (K tiny products
+    # for each set loop in numpy)
+    qd = (rot[:, :, :, None] * d[:, None, None, :]).reshape(n * 3, 9)
+    qt = np.ascontiguousarray(rot.transpose(0, 2, 1)).reshape(n * 3, 3)  # Q^T, stacked
 
     def world(mounts: Array) -> Array:
-        return np.matmul(rot, np.matmul(d, mounts.transpose(0, 2, 1))[..., None])[..., 0]  # Q A d: should be f_g
+        return (qd @ mounts.reshape(-1, 9).T).reshape(n, 3, -1).transpose(2, 0, 1)  # (K, N, 3) Q A d: should be f_g
+
+    def toward(f: Array) -> Array:  # (K, N, 3) Q^T f_g of each set's group
+        out = np.empty((len(f), n, 3))
+        for g in range(count):
+            rows = groups == g
+            out[:, rows] = (qt.reshape(n, 3, 3)[rows].reshape(-1, 3) @ f[:, g].T).reshape(-1, 3, len(f)).transpose(2, 0, 1)
+        return out
 
     for _ in range(rounds):
         if field is not None:
@@ -488,7 +500,7 @@ def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], c
         else:
             m = np.matmul(member, world(a))  # (K, G, 3) each group's sum
             fields = m / np.maximum(np.linalg.norm(m, axis=2, keepdims=True), 1e-300)
-        target = np.matmul(rot.transpose(0, 2, 1), fields[:, groups][..., None])[..., 0]  # Q^T f: should be A d
+        target = toward(fields)  # Q^T f: should be A d
         a, before = procrustes(d, target), a
         if np.max(np.abs(a - before)) < START_TOLERANCE:
             break
