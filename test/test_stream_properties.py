@@ -697,6 +697,18 @@ def test_a_step_a_blocked_receiver_hides_is_read_from_the_queues_order(name: str
               (2.43, 1.54, 0.002)))
 @example(Case([SensorPlan(rate=200.0, jitter=0.0001, loss=0.02, late=[(2.00001, 0.569, 2.383, 0.52)]),
                SensorPlan(rate=200.0, jitter=0.0001, loss=0.02, stalls=[(2.0, 2.58, True)])], 12.0, 849))
+# two sensors at 100 Hz: the first silent 1.8 s, on time after; the second's topic 20 ms late meanwhile, at its own
+# pace: its messages, read as a receiver's queue, put the first's resumption two periods early (20 ms off for the
+# rest). A queue drained faster than it filled delivers what it held closer together than stamped: messages that
+# kept their stamps' pace came through none
+@example(Case([SensorPlan(rate=100.0, jitter=0.0008, silences=[(3.0, 4.8)]),
+               SensorPlan(rate=100.0, jitter=0.0008, late=[(3.3, 0.02, 2.2, 0.32)])], 13.0, 1))
+# two sensors at 200 Hz: the second's topic taken 0.6 s late, its history of 100 overflowing (20 samples lost), then
+# drained at 0.42 periods a message: its arrivals behind its stamps read as a step back, placed by the stamps alone
+# before they caught up, one period after its last sample (100 ms off). Held while they catch up, they place it on
+# its stamps, and the 20 samples count as lost
+@example(Case([SensorPlan(rate=200.0, jitter=0.0001),
+               SensorPlan(rate=200.0, jitter=0.0001, late=[(4.8, 0.6, 0.0, 0.42)], depth=100)], 12.0, 1))
 def test_a_topic_taken_late_for_a_while_keeps_every_set_one_instant(case: Case) -> None:
     """A loaded machine delays one topic's messages alike for a while, the stamps right throughout: every published
     set stands for one true instant, the clean samples are covered, live and offline agree and losses are counted

@@ -733,6 +733,38 @@ def caught_up(held: list[Message], period: int | None) -> bool:
     return grew < (period or NS_PER_S)
 
 
+DRAIN_MESSAGES: int = 8
+"""Held messages of a new segment that show whether a receiver's queue was draining as they came
+(:func:`queue_drained`)."""
+
+
+def queue_drained(held: list[Message], period: int) -> bool:
+    """Whether a new segment's ``held`` messages could have come through a receiver draining its queue: fewer than
+    :data:`DRAIN_MESSAGES` (too few to tell), or the least delayed of the later ones leads its arrival by a quarter
+    ``period`` (ns) more than the first does (a queue drained faster than it filled delivers them closer together
+    than they were stamped until it has caught up: the first, taken from deepest in it, the latest; the jitter's
+    spread is less). Where none came that much less late than the first, another sensor's messages late meanwhile
+    were late on their own topic, and their order in the receiver says nothing of when this sensor's came."""
+    if len(held) < DRAIN_MESSAGES:
+        return True
+    first = held[0][0] - int(held[0][3])  # type: ignore[arg-type]
+    return 4 * (max(m[0] - int(m[3]) for m in held[1:]) - first) >= period  # type: ignore[arg-type]
+
+
+def catching_up(held: list[Message], period: int | None) -> bool:
+    """Whether the arrivals of a new segment's ``held`` messages are catching up with their stamps, still within
+    :data:`HOLD_NS` of receipts: over the last :data:`PLACE_MESSAGES`, the least delayed of the newer half leads its
+    arrival by half a ``period`` (ns) more than that of the older half (a queue drained faster than it filled: once
+    it has caught up, the arrivals place the segment as they would have without it)."""
+    if period is None or len(held) < PLACE_MESSAGES or held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]
+        return False
+    recent = held[-PLACE_MESSAGES:]
+    half = PLACE_MESSAGES // 2
+    older = max(m[0] - int(m[3]) for m in recent[:half])  # type: ignore[arg-type]
+    newer = max(m[0] - int(m[3]) for m in recent[half:])  # type: ignore[arg-type]
+    return 2 * (newer - older) > period
+
+
 Accepted = list[tuple[int, int, Any, int, bool]]
 """Messages accepted by one call: (stamp, common stamp, payload, window cap, starts a new segment),
 in order; the payload is None for a faulty reading (counted, but its stamp still counts)."""
@@ -1161,8 +1193,8 @@ class AcceptanceRule:
         otherwise the segment is placed at once."""
         s = self.streams[index]
         if not s.timed() or any(m[3] is None for m in messages):
-            self._place(index, [messages[0][0]], None, messages[0][3])
-            self._take(index, messages[0], True, out)
+            moved = self._place(index, [messages[0][0]], None, messages[0][3])
+            self._take(index, messages[0], moved, out)
             for m in messages[1:]:
                 self._take(index, m, False, out)
             return
@@ -1190,9 +1222,21 @@ class AcceptanceRule:
         elif s.hidden:  # a jump a queue hid waits for arrivals on time again as long as a message may wait
             if held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]
                 self._place_held(index, out, by_arrival=False)
-        elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES):
+        elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES
+                                                  and not self._waits_to_catch_up(index, held, period)):
             self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
         return True
+
+    def _waits_to_catch_up(self, index: int, held: list[Message], period: int | None) -> bool:
+        """Whether sensor ``index``'s new segment, ``held`` with arrivals that do not keep its stamps' time, waits for
+        them to catch up (:func:`catching_up`) rather than being placed now: not where, at the first such decision
+        (:data:`PLACE_MESSAGES` twice held), a queue's order bounds it (:meth:`_placed_by_queue`: placed by that, as
+        before; a long drain may outlast the wait)."""
+        if not catching_up(held, period):
+            return False
+        s = self.streams[index]
+        return len(held) > 2 * PLACE_MESSAGES or \
+            not self._placed_by_queue(index, held, s.suspect_period() or self.restart_ns, int(s.lead()))[1]
 
     def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
         """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
@@ -1213,8 +1257,8 @@ class AcceptanceRule:
         else:
             estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
             by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
-        self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
-        self._take(index, first, True, out)
+        moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
+        self._take(index, first, moved, out)
         for m in held[1:]:
             self._take(index, m, False, out)
 
@@ -1227,6 +1271,8 @@ class AcceptanceRule:
         own (the middle of its bounds, or its latest where it has no earliest): where the sensors sample together,
         a message's bounds are a period apart, with the truth at one end and their middle between two samples."""
         first = held[0][0]
+        if not queue_drained(held, period):  # its own arrivals kept their stamps' pace: no queue held them
+            return min(int(m[3]) + first + lead - m[0] for m in held), False  # type: ignore[arg-type]
         receipts = [self.streams[index].last_receipt] + [m[3] for m in held]
         lowest: int | None = None
         latest: int | None = None
@@ -1339,17 +1385,19 @@ class AcceptanceRule:
             payload = None
         out.append((stamp, c, payload, cap, restart))
 
-    def _place(self, index: int, stamps: list[int], estimate: int | None, receipt: int | None = None) -> None:
+    def _place(self, index: int, stamps: list[int], estimate: int | None, receipt: int | None = None) -> bool:
         """Place sensor ``index``'s new segment, whose first stamps are ``stamps`` (the first received at
         ``receipt`` ns, None: unknown), on the common timeline: as another sensor that made the same jump of its
         stamps placed its own (one clock stamps both); else its first sample at ``estimate`` (ns, from its
         arrivals; None: unknown, one period after its last sample) on its old sample grid (each stamp's jitter
-        averaged out), unless that is where another sensor's stamps (or its own old segment's) put it."""
+        averaged out), unless that is where another sensor's stamps (or its own old segment's) put it. Whether the
+        segment moved: False where it went back onto its own old placement (the stamps went on: the gap before it
+        is lost samples, counted as such, not a restart)."""
         s = self.streams[index]
         partner = self._partner(index, stamps[0], receipt)
         if partner is not None and partner[1] is not None:
             self._follow(index, partner, stamps[0], receipt)
-            return
+            return True
         s.follows = None
         period = s.grid_period()
         short = s.suspect_period()
@@ -1388,10 +1436,12 @@ class AcceptanceRule:
             s.base, s.follows = shared
         s.jumps.append((s.last, stamp, receipt, s.base))
         if shared is not None:
-            if s.base == s.before[1]:
-                s.before = None
-            return
+            if s.base != s.before[1]:
+                return True
+            s.before = None
+            return False
         self.stats.restarts += 1
+        return True
 
     def _placed_since(self, index: int, stamp: int, period: float, receipt: int | None) -> float:
         """The earliest common stamp (ns; :data:`NEVER`: no limit) for the new ``stamp`` (ns) of sensor ``index``
