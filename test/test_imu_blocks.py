@@ -481,6 +481,15 @@ def test_the_parts_shares_the_fit_keeps_are_each_parts_own_evaluation(with_imu):
     assert np.abs(sums.information.sum(axis=0) - whole).max() < 1e-9 * scale
     glob = af._solution_globals(sol)
     f = sol.intensity
+    # the whole information (summed from the parts where they hold every set once) is an evaluation of every set;
+    # parts that leave a set out leave it in the whole
+    every = af._Eval(sol.model, sol.theta, sol.directions, rec.vectors / f, af.SetInputs(np.zeros((len(rec.vectors), 0))),
+                     None, sol.weights, sol.sigma / f, glob).information()
+    assert np.abs(whole - every).max() < 1e-9 * scale
+    short = af.fit_array(rec.vectors, truth.calibration.matrices, truth.calibration.offsets, spec.intensity,
+                         attitude=att, parts=parts[1:])
+    short_whole = short.information if att is None else short.full_information
+    assert np.abs(short_whole - whole).max() < 1e-6 * scale
     for idx in (parts[0], parts[5]):
         ev = af._Eval(sol.model, sol.theta, sol.directions[idx], rec.vectors[idx] / f, af.SetInputs(np.zeros((len(idx), 0))),
                       None, sol.weights[idx], sol.sigma / f, None if glob is None else glob.take(idx))
