@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "magcal_ros"
-BASE = {"errors", "_lazy", ""}
+BASE = {"errors", "_lazy", "allocator", ""}  # below every layer: errors, lazy names, the process allocator
 ALLOWED: dict[str, set[str]] = {
     "core": {"core"},
     "methods": {"core", "methods"},

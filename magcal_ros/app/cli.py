@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from magcal_ros.allocator import keep_freed_memory
 from magcal_ros.app.commands import batch, calibrate, correct, plot, simulate
 from magcal_ros.app.commands.common import (  # re-exported: the option groups other modules add
     _note,
@@ -158,6 +159,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     SIGINT, SIGTERM and SIGHUP stop a run like Ctrl-C: the partial output is removed, one
     line says so, and the exit code is 128 + the signal number (130, 143, 129).
     """
+    keep_freed_memory()
     parser = build_parser()
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv, _value_options(parser)))
     previous: dict[signal.Signals, Any] = {}
