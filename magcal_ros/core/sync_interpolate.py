@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
+    HOLD_NS,
     RESTART_JUMP,
     Accepted,
     AcceptanceRule,
@@ -167,7 +168,23 @@ class InterpolatingSynchronizer(AcceptanceRule):
         released = self.release_quiet_holds(now_ns)
         for index, accepted in released:
             self._clock_in(index, accepted)
-        return self._form(False) if released else []
+        finished = self._finish_quiet_clocks(now_ns)
+        return self._form(False) if released or finished else []
+
+    def _finish_quiet_clocks(self, now_ns: int) -> bool:
+        """Live: a sensor quiet for :data:`~magcal_ros.core.sync_rules.HOLD_NS` whose sample clock still holds
+        samples (learning its period: a stream, a restart or a revision that ended within its first
+        :data:`~magcal_ros.core.sample_clock.LEARN_INTERVALS` samples) has them fitted with what there is, as
+        at the end of a recording; otherwise they waited for samples that do not come. Whether any was."""
+        finished = False
+        for k, s in enumerate(self.streams):
+            clock = s.clock
+            if clock is None or not clock.pending or s.heard is None or now_ns - s.heard <= HOLD_NS:
+                continue
+            for payload, instant in clock.finish():
+                self._push(k, payload, instant)
+            finished = True
+        return finished
 
     def add(self, index: int, stamp_ns: int, x: float, y: float, z: float,
             receipt_ns: int | None = None) -> SyncedSet | None:
