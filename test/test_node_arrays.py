@@ -141,7 +141,10 @@ def test_one_sensor_without_positions_publishes_field_and_no_gradient_topic(worl
     for topic in ("gradient", "gradient_stamped", "baseline_gradient"):
         assert d.node.get_publishers_info_by_topic(f"/one/{topic}") == [], topic
     assert d.node.get_publishers_info_by_topic("/one/field")
-    # Raw in, corrected out: uncorrected on purpose, so the vector is the raw reading itself.
+    # Raw in, corrected out: the node's calibration applied, and the field is the one sensor's corrected vector.
+    # Started uncorrected (the vector is the raw reading itself), unless the calibration test ran first.
+    calibrated = len(d.get_parameters(one.correction, ["mag1.matrix"])["mag1.matrix"]) > 0
+    live = _live_calibration(d, one.correction, ONE) if calibrated else None
     rec = one.fresh.window(None, one.fresh.stamps[49])
     mapping, published = _replay(one, rec)
     corrected = d.corrected(published)
@@ -149,7 +152,9 @@ def test_one_sensor_without_positions_publishes_field_and_no_gradient_topic(worl
     assert len(corrected) >= 48 and set(corrected) == set(fields)
     raw = {mapping[int(t)]: v for t, v in zip(rec.stamps, rec.vectors)}
     for t, v in corrected.items():
-        assert np.array_equal(v, raw[t]) and np.array_equal(fields[t], raw[t][0])
+        expected = raw[t] if live is None else live.apply(raw[t][None])[0]
+        np.testing.assert_allclose(v, expected, rtol=1e-12, atol=1e-20)
+        assert np.array_equal(fields[t], v[0]) and (live is not None or np.array_equal(v, raw[t]))
 
 
 def test_one_sensor_calibrates_over_dds_to_the_noise_floor(world: Any) -> None:
