@@ -11,7 +11,6 @@ each solve (:func:`give_back_memory`). Other C libraries: nothing is changed.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 from functools import cache
 
 LARGEST_HEAP_BLOCK: int = 32 * 1024 * 1024
@@ -29,9 +28,9 @@ _M_MMAP_THRESHOLD = -3
 def _glibc() -> ctypes.CDLL | None:
     """The C library when it is glibc (``mallopt`` and ``malloc_trim`` exist), else None."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc = ctypes.CDLL(None)  # the interpreter's own symbols, the C library's among them (no library search)
         return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
-    except OSError:
+    except (OSError, TypeError):
         return None
 
 
