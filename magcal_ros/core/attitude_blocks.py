@@ -482,16 +482,16 @@ def _alternate(starts: Array, d: Array, rot: Array, groups: NDArray[np.int64], c
     # Q A d is linear in A: (Q_ij d_l) times A_jl, one matrix product for every set and start (K tiny products
     # for each set loop in numpy)
     qd = (rot[:, :, :, None] * d[:, None, None, :]).reshape(n * 3, 9)
-    qt = np.ascontiguousarray(rot.transpose(0, 2, 1)).reshape(n * 3, 3)  # Q^T, stacked
+    qt = np.ascontiguousarray(rot.transpose(0, 2, 1))  # (N, 3, 3) Q^T
+    by_group = [(rows, qt[rows].reshape(-1, 3)) for rows in (groups == g for g in range(count))]  # Q^T stacked
 
     def world(mounts: Array) -> Array:
         return (qd @ mounts.reshape(-1, 9).T).reshape(n, 3, -1).transpose(2, 0, 1)  # (K, N, 3) Q A d: should be f_g
 
     def toward(f: Array) -> Array:  # (K, N, 3) Q^T f_g of each set's group
         out = np.empty((len(f), n, 3))
-        for g in range(count):
-            rows = groups == g
-            out[:, rows] = (qt.reshape(n, 3, 3)[rows].reshape(-1, 3) @ f[:, g].T).reshape(-1, 3, len(f)).transpose(2, 0, 1)
+        for g, (rows, stacked) in enumerate(by_group):
+            out[:, rows] = (stacked @ f[:, g].T).reshape(-1, 3, len(f)).transpose(2, 0, 1)
         return out
 
     for _ in range(rounds):

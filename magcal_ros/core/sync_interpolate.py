@@ -41,7 +41,6 @@ from numpy.typing import NDArray
 from magcal_ros.core.acceptance import reading_fault_list
 from magcal_ros.core.sync_rules import (
     DEFAULT_LAG,
-    HOLD_NS,
     RESTART_JUMP,
     Accepted,
     AcceptanceRule,
@@ -179,7 +178,7 @@ class InterpolatingSynchronizer(AcceptanceRule):
         finished = False
         for k, s in enumerate(self.streams):
             clock = s.clock
-            if clock is None or not clock.pending or s.heard is None or now_ns - s.heard <= HOLD_NS:
+            if clock is None or not clock.pending or not s.quiet(now_ns):
                 continue
             for payload, instant in clock.finish():
                 self._push(k, payload, instant)

@@ -370,6 +370,11 @@ class SensorStream:
         """How many messages are held: a suspect, those waiting after it, a new segment's first."""
         return (self.held is not None) + len(self.waiting or ()) + len(self.placing or ())
 
+    def quiet(self, now_ns: int) -> bool:
+        """Whether its latest message arrived more than :data:`HOLD_NS` before ``now_ns`` (the receiver's clock):
+        what it holds waits for messages that do not come."""
+        return self.heard is not None and now_ns - self.heard > HOLD_NS
+
     def suspect_period(self) -> int | None:
         """The period the suspect rule uses: the short median once the window is full."""
         return self.period if len(self.intervals) >= PERIOD_WINDOW else None
@@ -733,6 +738,11 @@ def caught_up(held: list[Message], period: int | None) -> bool:
     return grew < (period or NS_PER_S)
 
 
+def _best_lead(messages: list[Message]) -> int:
+    """The largest lead (ns) of ``messages``' stamps over their arrivals: the least delayed one's."""
+    return max(m[0] - int(m[3]) for m in messages)  # type: ignore[arg-type]
+
+
 DRAIN_MESSAGES: int = 8
 """Held messages of a new segment that show whether a receiver's queue was draining as they came
 (:func:`queue_drained`)."""
@@ -748,7 +758,7 @@ def queue_drained(held: list[Message], period: int) -> bool:
     if len(held) < DRAIN_MESSAGES:
         return True
     first = held[0][0] - int(held[0][3])  # type: ignore[arg-type]
-    return 4 * (max(m[0] - int(m[3]) for m in held[1:]) - first) >= period  # type: ignore[arg-type]
+    return 4 * (_best_lead(held[1:]) - first) >= period
 
 
 def catching_up(held: list[Message], period: int | None) -> bool:
@@ -760,9 +770,7 @@ def catching_up(held: list[Message], period: int | None) -> bool:
         return False
     recent = held[-PLACE_MESSAGES:]
     half = PLACE_MESSAGES // 2
-    older = max(m[0] - int(m[3]) for m in recent[:half])  # type: ignore[arg-type]
-    newer = max(m[0] - int(m[3]) for m in recent[half:])  # type: ignore[arg-type]
-    return 2 * (newer - older) > period
+    return 2 * (_best_lead(recent[half:]) - _best_lead(recent[:half])) > period
 
 
 Accepted = list[tuple[int, int, Any, int, bool]]
@@ -1159,7 +1167,7 @@ class AcceptanceRule:
         decision is the one that next message would have made, or the end of a recording does offline."""
         out: list[tuple[int, Accepted]] = []
         for k, s in enumerate(self.streams):
-            if s.holds() and s.heard is not None and now_ns - s.heard > HOLD_NS:
+            if s.holds() and s.quiet(now_ns):
                 accepted = self.release_held(k)
                 if accepted:
                     out.append((k, accepted))
@@ -1272,7 +1280,7 @@ class AcceptanceRule:
         a message's bounds are a period apart, with the truth at one end and their middle between two samples."""
         first = held[0][0]
         if not queue_drained(held, period):  # its own arrivals kept their stamps' pace: no queue held them
-            return min(int(m[3]) + first + lead - m[0] for m in held), False  # type: ignore[arg-type]
+            return first + lead - _best_lead(held), False
         receipts = [self.streams[index].last_receipt] + [m[3] for m in held]
         lowest: int | None = None
         latest: int | None = None
