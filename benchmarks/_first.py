@@ -1,6 +1,6 @@
 """Imported first by the benchmarks: this checkout's ``magcal_ros`` on the path, loaded before
-numpy so that its process settings (one BLAS thread unless set, freed memory kept for reuse) hold as
-they do for the ``magcal`` command and the nodes."""
+numpy so that its process settings (one BLAS thread unless set, as for the ``magcal`` command and the
+nodes; freed memory kept for reuse, as for the command) hold."""
 
 import sys
 from pathlib import Path

@@ -1,11 +1,12 @@
-"""The C allocator's settings for a process that solves calibrations (the CLI, the nodes, the benchmarks).
+"""The C allocator's settings for a process that solves calibrations and ends (the CLI, the benchmarks).
 
 A solve builds and drops arrays of a few to tens of MB many times over. With glibc's defaults each
 one is either a fresh ``mmap`` or heap memory handed back to the system as soon as it is freed, so
 every new array faults its pages in again: about 14,000 page faults (56 MB) per IMU-aided
 calibration of 4,000 sets, a quarter of its time. Keeping freed memory in the process for reuse
-removes them; the peak memory is unchanged, and a long-running node hands the memory back after
-each solve (:func:`give_back_memory`). Other C libraries: nothing is changed.
+removes them; the peak memory is unchanged. The nodes keep glibc's defaults: with the setting a calibration
+node's resident memory grew by about 40 MB with each recalibration of a mission soak (its solves run in a
+worker thread's arena), even with :func:`give_back_memory` after each. Other C libraries: nothing is changed.
 """
 
 from __future__ import annotations

@@ -19,7 +19,6 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_service import ParameterService
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from magcal_ros.allocator import keep_freed_memory
 from magcal_ros.core import sync
 from magcal_ros.core.geometry import DEFAULT_NAMES, ArrayGeometry
 from magcal_ros.core.interference import (
@@ -812,7 +811,6 @@ def run_node(
     """
     if stop is None:
         stop = quiet_signals()
-    keep_freed_memory()
     if hasattr(signal, "SIGUSR1"):  # kill -USR1 <pid>: every thread's stack to stderr, the node runs on
         faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
     import rclpy

@@ -16,7 +16,6 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from magcal_ros.allocator import give_back_memory
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geomagnetic import SiteField
 from magcal_ros.core.geometry import ArrayGeometry
@@ -220,8 +219,6 @@ class Solving:
                                      rec.imu)
         except MagcalError as exc:
             return self._fail(f"calibration not possible: {exc}; nothing was changed (prior: {job.prior_note})")
-        finally:
-            give_back_memory()  # the solve's arrays, kept for reuse while it ran (magcal_ros.allocator)
         self._check_stop()
         why, result = check(result, job.prior) if check is not None else (None, result)
         if why:
