@@ -298,9 +298,10 @@ def _stream_with(intervals: list[int], last: int = 10 * NS_PER_S) -> sr.SensorSt
     """A sensor whose recent intervals (ns) were ``intervals`` (recorded one by one), its last stamp ``last``."""
     s = sr.SensorStream(None)
     s.last = s.lastc = last
-    s.grid_first = last - sum(intervals)
+    s.grid_first = stamp = last - sum(intervals)
     for iv in intervals:
-        s.record(iv, 10 * NS_PER_S)
+        stamp += iv
+        s.record(iv, 10 * NS_PER_S, stamp)
     return s
 
 
@@ -311,15 +312,19 @@ def test_record_keeps_the_last_eight_intervals_their_median_and_the_window_cap(i
                                                                               pause: int) -> None:
     """The short period is the integer median of the last :data:`PERIOD_WINDOW` intervals; the window cap is
     half of it, or half the median of the intervals since the last pause (longer than ``pause``) while fewer
-    than a window of them came; the grid counts each interval in whole short periods once a window is full."""
+    than a window of them came; the grid counts each interval in whole short periods once a window is full, and
+    starts again at the stamp after a pause."""
     s = sr.SensorStream(None)
     s.grid_first = 0
-    fresh, periods, first = sr.PERIOD_WINDOW, 0, 0
+    fresh, periods, first, stamp = sr.PERIOD_WINDOW, 0, 0, 0
     for k, iv in enumerate(intervals):
         before = sr.median_int(intervals[max(0, k - sr.PERIOD_WINDOW) : k]) if k >= sr.PERIOD_WINDOW else None
-        cap = s.record(iv, pause)
+        stamp += iv
+        cap = s.record(iv, pause, stamp)
         fresh = 0 if iv > pause else min(fresh + 1, sr.PERIOD_WINDOW)
-        if before:
+        if iv > pause:
+            periods, first = 0, stamp
+        elif before:
             periods += max(1, round(iv / before))
         else:
             first += iv
@@ -333,13 +338,38 @@ def test_record_keeps_the_last_eight_intervals_their_median_and_the_window_cap(i
         assert s.suspect_period() == (s.period if k + 1 >= sr.PERIOD_WINDOW else None)
 
 
+@FIXED
+@given(intervals=st.lists(st.integers(min_value=1, max_value=3 * NS_PER_S), min_size=1, max_size=60),
+       cuts=st.lists(st.integers(min_value=1, max_value=60), max_size=4),
+       pause=st.integers(min_value=NS_PER_S // 10, max_value=2 * NS_PER_S))
+def test_a_batch_of_stamps_leaves_the_sensors_intervals_and_grid_as_one_by_one(intervals: list[int], cuts: list[int],
+                                                                             pause: int) -> None:
+    """The offline path's vectorised acceptance of a sensor's stamps (in batches cut anywhere) leaves the same window
+    caps, intervals, short period, pause count and sample grid as recording them one by one (pauses included)."""
+    from magcal_ros.core.sync import SetSynchronizer
+
+    stamps = (10 * NS_PER_S + np.concatenate([[0], np.cumsum(intervals)])).astype(np.int64)
+    one = sr.SensorStream(None)
+    one.last = one.grid_first = int(stamps[0])
+    want = [sr.NO_CAP] + [one.record(int(b - a), pause, int(b)) for a, b in zip(stamps[:-1].tolist(), stamps[1:].tolist())]
+    sync = SetSynchronizer(1, pause_ns=pause)
+    got: list[int] = []
+    for chunk in np.split(stamps, sorted({c for c in cuts if c < len(stamps)})):
+        got += sync._batch_caps(0, chunk).tolist()
+        sync.streams[0].last = int(chunk[-1])
+    batch = sync.streams[0]
+    assert got == want
+    assert (batch.intervals, batch.period, batch.fresh) == (one.intervals, one.period, one.fresh)
+    assert (batch.grid_first, batch.grid_periods) == (one.grid_first, one.grid_periods)
+
+
 def test_the_window_cap_after_a_pause_comes_from_the_intervals_since_and_the_pause_itself_resets_it() -> None:
     s = _stream_with([20 * MS] * 8)
-    assert s.record(10 * NS_PER_S, 10 * NS_PER_S) == 10 * MS  # equal to the pause: not a pause
-    assert s.record(10 * NS_PER_S + 1, 10 * NS_PER_S) == s.period // 2  # a pause: nothing since it yet
+    assert s.record(10 * NS_PER_S, 10 * NS_PER_S, 0) == 10 * MS  # equal to the pause: not a pause
+    assert s.record(10 * NS_PER_S + 1, 10 * NS_PER_S, 0) == s.period // 2  # a pause: nothing since it yet
     assert s.fresh == 0
-    assert s.record(4 * MS, 10 * NS_PER_S) == 2 * MS  # one interval since the pause: its half
-    assert s.record(6 * MS + 1, 10 * NS_PER_S) == 2_500_000  # two: their median (5 ms, rounded down) halved
+    assert s.record(4 * MS, 10 * NS_PER_S, 0) == 2 * MS  # one interval since the pause: its half
+    assert s.record(6 * MS + 1, 10 * NS_PER_S, 0) == 2_500_000  # two: their median (5 ms, rounded down) halved
     assert s.fresh == 2
 
 

@@ -509,7 +509,7 @@ class SetSynchronizer(AcceptanceRule):
         # The first few need the short history: compute them one by one, like accept().
         head = min(len(s_iv), max(0, PERIOD_WINDOW - len(st.intervals)))
         for j in range(head):
-            caps[first + j] = st.record(int(s_iv[j]), self.pause_ns)
+            caps[first + j] = st.record(int(s_iv[j]), self.pause_ns, int(s[first + j]))
         if head < len(s_iv):
             iv = np.concatenate([np.asarray(st.intervals, dtype=np.int64), s_iv[head:]])
             w = np.sort(sliding_window_view(iv, PERIOD_WINDOW)[1:], axis=1)  # windows ending at new ones
@@ -518,9 +518,14 @@ class SetSynchronizer(AcceptanceRule):
             before = np.concatenate([[st.period if st.period else 0], period[:-1]]).astype(np.float64)
             new = s_iv[head:]
             known = before > 0
-            steps = np.round(new[known] / before[known])
-            st.grid_periods += int(np.maximum(steps, 1.0).sum())
-            st.grid_first += int(new[~known].sum())  # the grid starts where a period is known
+            steps = np.where(known, np.maximum(np.round(new / np.where(known, before, 1.0)), 1.0), 0.0)
+            start = 0
+            pauses = np.flatnonzero(new > self.pause_ns)
+            if len(pauses):  # the grid starts again after the last pause (SensorStream.record)
+                start = int(pauses[-1]) + 1
+                st.grid_first, st.grid_periods = int(s[first + head + start - 1]), 0
+            st.grid_periods += int(steps[start:].sum())
+            st.grid_first += int(new[start:][~known[start:]].sum())  # the grid starts where a period is known
             self._fresh_caps(st, iv, len(iv) - len(new), caps[first + head:])
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])

@@ -594,15 +594,19 @@ class SensorStream:
             return False
         return bool(self.unseen(stamp, receipt, period) or off and self.timed())
 
-    def record(self, interval: int, pause_ns: int) -> int:
-        """Record one accepted stamp interval; the exact rule's window cap (half the short period; after a pause
-        longer than ``pause_ns``, of the intervals since)."""
+    def record(self, interval: int, pause_ns: int, stamp: int) -> int:
+        """Record one accepted stamp interval, ending at ``stamp`` (ns); the exact rule's window cap (half the short
+        period; after a pause longer than ``pause_ns``, of the intervals since). A pause starts the sample grid
+        again at ``stamp``: the periods across it, counted in the short median, may be a few off (a 2 % error in
+        the median is a period in 50), and the grid's span would then give a period as far off."""
         if interval > pause_ns:
             self.fresh = 0
         elif self.fresh < PERIOD_WINDOW:
             self.fresh += 1
         before = self.suspect_period()
-        if before:
+        if interval > pause_ns:
+            self.grid_first, self.grid_periods = stamp, 0
+        elif before:
             self.grid_periods += max(1, int(round(interval / before)))
         else:  # the grid starts where a period is known to count its intervals in (the median of a full window:
             # that of the first few may be a lost sample's double interval, which then counts two as one)
@@ -1372,7 +1376,7 @@ class AcceptanceRule:
             s.tail = []
             cap = NO_CAP
         else:
-            cap = NO_CAP if s.last == NEVER else s.record(stamp - s.last, self.pause_ns)
+            cap = NO_CAP if s.last == NEVER else s.record(stamp - s.last, self.pause_ns, stamp)
             s.since += 1
             if s.since > PERIOD_WINDOW:
                 s.before = None
