@@ -1038,7 +1038,8 @@ class AcceptanceRule:
         the other sensors' arrivals in the same queue say (:meth:`_ahead_of_queue`)."""
         s = self.streams[index]
         s.seen_step = False
-        if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns:
+        if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns and \
+                self._old_sequence_goes_on(index, held[0], s.before[2]):
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
         period = s.suspect_period() or self.restart_ns
         low, came = (None, None) if held[3] is None else self._came_between(index, held[3], s.last_receipt, period)
@@ -1634,9 +1635,23 @@ class AcceptanceRule:
         before = s.before  # back just after the old sequence's last stamp (on its grid; where arrivals say so too)
         if before is not None and 0 < stamp - before[0] <= self.restart_ns and \
                 (abs(stamp + before[1] - estimate) <= margin if by_arrival else
-                 not s.seen_step and (grid is None or _on_grid(stamp + before[1], grid))):
+                 not s.seen_step and (grid is None or _on_grid(stamp + before[1], grid)) and
+                 self._old_sequence_goes_on(index, stamp, grid[1] if grid else before[2])):
             return before[1], None
         return None
+
+    def _old_sequence_goes_on(self, index: int, stamp: int, period: float) -> bool:
+        """Whether sensor ``index``'s ``stamp`` (ns) goes on from the sequence its latest step left (the step was a
+        few bad stamps) with no more samples lost than going on from the new segment would take (``period`` ns; 0:
+        unknown, True): a gap of two lost samples after a step 0.38 s ahead is not the old sequence back 76 periods
+        on."""
+        s = self.streams[index]
+        before = s.before
+        if not period or before is None:
+            return True
+        old = (stamp - before[0]) / period - (s.since + 1)
+        new = (stamp - s.last) / period - 1
+        return old <= new
 
     def _in_line_with(self, index: int, j: int, stamps: list[int], latest: int, grid: tuple[float, float] | None) -> bool:
         """Whether sensor ``index``'s new ``stamps`` (ns, its first ones after a step) are sensor ``j``'s stamps again
