@@ -27,8 +27,10 @@ import pytest
 import ros_harness as h
 from diagnostic_msgs.msg import DiagnosticStatus
 
+from magcal_ros.api import save_calibration
 from magcal_ros.app.ros_driver import ArrayDriver, RawMessage, status_values
 from magcal_ros.core.calibration import ArrayCalibration
+from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.metrics import tmi_rms
 
 pytestmark = pytest.mark.dds  # through real nodes over DDS: `scripts/test.sh -m dds` runs them as a group
@@ -245,9 +247,11 @@ def test_a_prior_file_that_cannot_be_read_is_refused_when_set(world: dict[str, A
     missing = world["workdir"] / "no_such_calibration.yaml"
     (ok, reason), = driver.set_parameters(CALIBRATION, {"prior": str(missing)})
     assert not ok and f"prior '{missing}'" in reason and "does not exist" in reason, reason
-    (ok, reason), = driver.set_parameters(CALIBRATION, {"prior": str(world["output"])})  # a calibration file: fine
+    own = world["workdir"] / "prior_calibration.yaml"  # (not the node's output: no test before need have written it)
+    save_calibration(own, ArrayCalibration.identity(ArrayGeometry.cross(h.BASELINE)))
+    (ok, reason), = driver.set_parameters(CALIBRATION, {"prior": str(own)})  # a calibration file: fine
     assert ok, reason
-    assert driver.get_parameters(CALIBRATION, ["prior"])["prior"] == str(world["output"])
+    assert driver.get_parameters(CALIBRATION, ["prior"])["prior"] == str(own)
     assert driver.set_parameters(CALIBRATION, {"prior": "none"})[0][0]
 
 

@@ -105,6 +105,25 @@ def driver(world: World, data: h.Data) -> ArrayDriver:
     return d
 
 
+@pytest.fixture(scope="module", autouse=True)
+def loaded(driver: ArrayDriver) -> dict[str, Any]:
+    """The /array1 correction node's calibration parameters as it started (from the params files), taken before the
+    module's first test, whatever the order (one of them calibrates it)."""
+    return _params(driver, CORRECTION)
+
+
+def _file_calibration_in_force(driver: ArrayDriver, loaded: dict[str, Any]) -> None:
+    """Put the calibration the node started with back in force (a test before may have pushed another)."""
+    if _params(driver, CORRECTION) != loaded:
+        (ok, reason), = driver.set_parameters(CORRECTION, {k: v for k, v in loaded.items() if "." in k})
+        assert ok, reason
+
+
+def _text(path: Path) -> str | None:
+    """A file's text, None where there is no such file."""
+    return path.read_text() if path.exists() else None
+
+
 def _log(world: World, name: str) -> str:
     return next(p for p in world.run.processes if p.log_path.stem == name).log()
 
@@ -173,8 +192,9 @@ def _settled(status: DiagnosticStatus) -> bool:
 
 
 def test_outputs_move_with_the_namespace_with_stamped_tensor_and_covariance(
-    world: World, driver: ArrayDriver, data: h.Data
+    world: World, driver: ArrayDriver, data: h.Data, loaded: dict[str, Any]
 ) -> None:
+    _file_calibration_in_force(driver, loaded)
     stamps = h.original_stamps(data.check)
     mapping = h.replay_recording(driver, data.check)
     gradients, corrected = h.outputs_by_original(driver, mapping, stamps)
@@ -203,13 +223,14 @@ def test_outputs_move_with_the_namespace_with_stamped_tensor_and_covariance(
     assert status is not None and status.name == CORRECTION
 
 
-def test_a_calibration_keyed_for_another_node_is_named_in_a_warning(world: World, driver: ArrayDriver) -> None:
+def test_a_calibration_keyed_for_another_node_is_named_in_a_warning(world: World, driver: ArrayDriver,
+                                                                    loaded: dict[str, Any]) -> None:
     log = _log(world, "ns_correction")
     assert f"params file {world.wrong}: the calibration under 'magcal_correction' does not apply to this node " \
            f"({CORRECTION}) and was NOT loaded" in log
     assert str(world.right) not in log, "the matching file was reported too"
-    loaded = _calibration(_params(driver, CORRECTION))
-    assert np.array_equal(loaded.matrices, world.truth.matrices) and np.array_equal(loaded.offsets, world.truth.offsets)
+    started = _calibration(loaded)
+    assert np.array_equal(started.matrices, world.truth.matrices) and np.array_equal(started.offsets, world.truth.offsets)
 
 
 def test_parameter_ranges_are_described_and_enforced(world: World, driver: ArrayDriver) -> None:
@@ -293,7 +314,7 @@ def test_a_failed_write_or_push_changes_nothing_and_no_set_uses_the_new_calibrat
     world: World, driver: ArrayDriver, data: h.Data
 ) -> None:
     before_params = _params(driver, CORRECTION)
-    before_file = world.output.read_text()
+    before_file = _text(world.output)  # (None: no calibration written yet, in whatever order the tests ran)
     before_backups = [b.read_text() for b in calfile.backups(world.output)]
     cal = _calibration(before_params)
     blocker = world.workdir / "not_a_folder"
@@ -326,7 +347,7 @@ def test_a_failed_write_or_push_changes_nothing_and_no_set_uses_the_new_calibrat
                                                    "correction_node": target})[0][0]
         ok, message = driver.trigger(f"{CALIBRATION}/calibrate")
         assert not ok and f"{target} rejected the calibration" in message and "the file was left as it was" in message
-        assert world.output.read_text() == before_file
+        assert _text(world.output) == before_file
         assert [b.read_text() for b in calfile.backups(world.output)] == before_backups
         assert _params(driver, CORRECTION) == before_params
     finally:
