@@ -6,7 +6,7 @@ every new array faults its pages in again: about 14,000 page faults (56 MB) per 
 calibration of 4,000 sets, a quarter of its time. Keeping freed memory in the process for reuse
 removes them; the peak memory is unchanged. The nodes keep glibc's defaults: with the setting a calibration
 node's resident memory grew by about 40 MB with each recalibration of a mission soak (its solves run in a
-worker thread's arena), even with :func:`give_back_memory` after each. Other C libraries: nothing is changed.
+worker thread's arena), even with ``malloc_trim`` after each. Other C libraries: nothing is changed.
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ _M_MMAP_THRESHOLD = -3
 
 @cache
 def _glibc() -> ctypes.CDLL | None:
-    """The C library when it is glibc (``mallopt`` and ``malloc_trim`` exist), else None."""
+    """The C library when it is glibc (``mallopt`` exists), else None."""
     try:
         libc = ctypes.CDLL(None)  # the interpreter's own symbols, the C library's among them (no library search)
-        return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
+        return libc if hasattr(libc, "mallopt") else None
     except (OSError, TypeError):
         return None
 
@@ -45,9 +45,3 @@ def keep_freed_memory() -> bool:
     return bool(libc.mallopt(_M_MMAP_THRESHOLD, LARGEST_HEAP_BLOCK)) and bool(libc.mallopt(_M_TRIM_THRESHOLD,
                                                                                           KEPT_FREE))
 
-
-def give_back_memory() -> None:
-    """Hand the freed memory the process keeps back to the system (after a solve, in a process that goes on)."""
-    libc = _glibc()
-    if libc is not None:
-        libc.malloc_trim(0)

@@ -45,7 +45,6 @@ def test_kept_memory_is_reused_where_the_default_faults_every_round_in_again() -
     assert max(kept["faults"][1:]) < min(default["faults"][1:]) / 20
 
 
-def test_giving_back_and_keeping_again_are_harmless_repeated() -> None:
+def test_keeping_again_is_harmless_repeated() -> None:
     for _ in range(2):
         allocator.keep_freed_memory()
-        allocator.give_back_memory()
