@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from magcal_ros.core import sync_rules as sr
+from magcal_ros.core.sync import SetSynchronizer
 from magcal_ros.core.units import NS_PER_S
 
 MS = NS_PER_S // 1000
@@ -346,8 +347,6 @@ def test_a_batch_of_stamps_leaves_the_sensors_intervals_and_grid_as_one_by_one(i
                                                                              pause: int) -> None:
     """The offline path's vectorised acceptance of a sensor's stamps (in batches cut anywhere) leaves the same window
     caps, intervals, short period, pause count and sample grid as recording them one by one (pauses included)."""
-    from magcal_ros.core.sync import SetSynchronizer
-
     stamps = (10 * NS_PER_S + np.concatenate([[0], np.cumsum(intervals)])).astype(np.int64)
     one = sr.SensorStream(None)
     one.last = one.grid_first = int(stamps[0])

@@ -599,18 +599,17 @@ class SensorStream:
         period; after a pause longer than ``pause_ns``, of the intervals since). A pause starts the sample grid
         again at ``stamp``: the periods across it, counted in the short median, may be a few off (a 2 % error in
         the median is a period in 50), and the grid's span would then give a period as far off."""
-        if interval > pause_ns:
-            self.fresh = 0
-        elif self.fresh < PERIOD_WINDOW:
-            self.fresh += 1
         before = self.suspect_period()
         if interval > pause_ns:
+            self.fresh = 0
             self.grid_first, self.grid_periods = stamp, 0
-        elif before:
-            self.grid_periods += max(1, int(round(interval / before)))
-        else:  # the grid starts where a period is known to count its intervals in (the median of a full window:
-            # that of the first few may be a lost sample's double interval, which then counts two as one)
-            self.grid_first += interval
+        else:
+            self.fresh = min(self.fresh + 1, PERIOD_WINDOW)
+            if before:
+                self.grid_periods += max(1, int(round(interval / before)))
+            else:  # the grid starts where a period is known to count its intervals in (the median of a full
+                # window: that of the first few may be a lost sample's double interval, which then counts two as one)
+                self.grid_first += interval
         iv = self.intervals
         iv.append(interval)
         if len(iv) > PERIOD_WINDOW:
