@@ -255,9 +255,22 @@ def _fresh_outputs(driver: ArrayDriver, rec: Recording, currents: np.ndarray | N
     sets ahead the currents go out; ``before`` as :func:`_replay` takes it)."""
     driver.clear_outputs()
     mapping = _replay(driver, rec, currents, lead, before)
+    return _come_back(driver, rec, mapping, currents)
+
+
+def _come_back(driver: ArrayDriver, rec: Recording, mapping: dict[int, int], currents: np.ndarray | None,
+               published: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The sets of ``rec`` whose gradient and every corrected vector are in (see :func:`_fresh_outputs`), once
+    at least ``published`` of them are or :data:`ros_harness.OUTPUT_TIMEOUT` passed (a loaded reader can
+    still be serving the last sets' other topics when their gradients are in)."""
     back = {p: k for k, p in enumerate(mapping[int(t)] for t in rec.stamps)}
-    g, c = driver.gradients(back), driver.corrected(back)
-    stamps = sorted(t for t in g if t in c)
+    deadline = time.monotonic() + h.OUTPUT_TIMEOUT
+    while True:
+        g, c = driver.gradients(back), driver.corrected(back)
+        stamps = sorted(t for t in g if t in c)
+        if len(stamps) >= published or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
     rows = np.array([back[t] for t in stamps], dtype=int)
     s = len(rec.names)
     return rows, np.stack([c[t] for t in stamps]) if stamps else np.empty((0, s, 3)), \
@@ -279,13 +292,15 @@ def _fresh_with_currents(driver: ArrayDriver, rec: Recording,
     current can come after its set however far ahead it is sent), and most came back."""
     counters = _counts(driver, THR_CORRECTION)
     before = int(counters["published"]), int(counters["withheld"])
-    rows, b, g, used = _fresh_outputs(driver, rec, currents, before=counters)
+    driver.clear_outputs()
+    mapping = _replay(driver, rec, currents, CURRENT_LEAD, counters)
 
     def counted(s: DiagnosticStatus) -> bool:
         return sum(_set_counts(s)) - sum(before) >= len(rec)
 
     status = driver.diagnostics(THR_CORRECTION, counted, h.SAMPLES_TIMEOUT)
-    withheld = _set_counts(status)[1] - before[1]
+    published, withheld = (n - b for n, b in zip(_set_counts(status), before))
+    rows, b, g, used = _come_back(driver, rec, mapping, currents, published)
     assert len(rows) + withheld == len(rec) and len(rows) >= 0.75 * len(rec), \
         f"{len(rows)} sets back, {withheld} withheld: {status_values(status)}"
     return rows, b, g, used
