@@ -232,16 +232,19 @@ class GlobalState:
 
 
 def rotate(rotvecs: Array, v: Array) -> Array:
-    """(N, 3) vectors ``v`` (N, 3) turned by the rotations of rotation vectors ``rotvecs`` (N, 3) rad (Rodrigues)."""
+    """(N, 3) vectors ``v`` (N, 3) turned by the rotations of rotation vectors ``rotvecs`` (N, 3) rad (Rodrigues);
+    ``v`` (N, 3, K): K vectors per rotation, each turned by it."""
     angle = np.linalg.norm(rotvecs, axis=1, keepdims=True)
     axis = rotvecs / np.maximum(angle, 1e-300)
     c, s = np.cos(angle), np.sin(angle)
-    return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c)
+    if v.ndim == 3:
+        axis, c, s = axis[..., None], c[..., None], s[..., None]
+    return v * c + np.cross(axis, v, axis=1) * s + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c)
 
 
 def _back(att: AttitudeInputs, state: GlobalState, v: Array) -> Array:
-    """IMU-frame vectors (N, 3) at the sets' stamps as the IMU saw them ``lag`` earlier: ``exp(lag [w]x) v``
-    (``Q(t - lag) = Q(t) exp(-lag [w]x)``); ``v`` itself without the array lag block."""
+    """IMU-frame vectors (N, 3), or (N, 3, K), at the sets' stamps as the IMU saw them ``lag`` earlier:
+    ``exp(lag [w]x) v`` (``Q(t - lag) = Q(t) exp(-lag [w]x)``); ``v`` itself without the array lag block."""
     if att.rates is None or state.lag == 0.0:
         return v
     return rotate(state.lag * att.rates, v)
@@ -268,17 +271,28 @@ def attitude_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     u = reference_field(att, state)
     at = state.mounting.T
     if model.mounting_slice is not None:
-        jac[:, :, model.mounting_slice] = -np.einsum("ab,nbc->nac", at, skew(u))
+        jac[:, :, model.mounting_slice] = -_before_each(at, skew(u))
     for g in range(model.field_groups):
         rows = att.groups == g
         t = tangent(state.fields[g])
         cols = np.matmul(att.rotations[rows].transpose(0, 2, 1), t)  # (n, 3, 2) Q^T t
         part = replace(att, rates=None if att.rates is None else att.rates[rows])
-        cols = np.stack([_back(part, state, cols[:, :, j]) for j in range(2)], axis=2)
-        jac[rows, :, model.field_slice(g)] = -np.einsum("ab,nbd->nad", at, cols)
+        cols = _back(part, state, cols)
+        jac[rows, :, model.field_slice(g)] = -_before_each(at, cols)
     if model.array_lag_index is not None and att.rates is not None:
         jac[:, :, model.array_lag_index] = -np.cross(att.rates, u) @ state.mounting
     return jac
+
+
+def _before_each(m: Array, mats: Array) -> Array:
+    """(N, 3, K) ``m @ mats[k]`` for one (3, 3) ``m`` and each of ``mats`` (N, 3, K): one matrix product."""
+    n, _, k = mats.shape
+    return (m @ mats.transpose(1, 0, 2).reshape(3, n * k)).reshape(3, n, k).transpose(1, 0, 2)
+
+
+def _after_each(mats: Array, m: Array) -> Array:
+    """(N, 3, 3) ``mats[k] @ m`` for each of ``mats`` (N, 3, 3) and one (3, 3) ``m``: one matrix product."""
+    return (mats.reshape(-1, 3) @ m).reshape(mats.shape)
 
 
 def _times_positions(mats: Array, positions: Array) -> Array:
@@ -297,7 +311,7 @@ def gradient_field(att: AttitudeInputs, state: GlobalState) -> Array | None:
     """(N, S, 3) ``R_k^T Gamma R_k p_i`` (units of F, array frame), or None without the block."""
     if att.positions is None:
         return None
-    ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)  # array -> world
+    ra = _after_each(att.rotations, state.mounting)  # array -> world
     w = _congruent(ra, state.gradient)
     h = _times_positions(w, att.positions)
     return np.where(att.known[:, None, None], h, 0.0)
@@ -320,7 +334,7 @@ def gradient_jacobian(att: AttitudeInputs, state: GlobalState, model: ForwardMod
     cols = gradient_columns(model)
     jac = np.zeros((n, s, 3, len(cols)))
     mounted = 0 if model.mounting_slice is None else 3  # the mounting's columns first, then the gradient's
-    ra = np.einsum("nab,bc->nac", att.rotations, state.mounting)
+    ra = _after_each(att.rotations, state.mounting)
     rp = _times_positions(ra, att.positions)  # R p, world
     # d h / d gradient_j = R^T E_j R p for the 5 basis matrices at once: (E_j R p)^T R per set, batched
     j = len(GRADIENT_BASIS)
