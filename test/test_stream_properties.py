@@ -428,6 +428,19 @@ def check_coverage(case: Case, streams: list[Stream], published: np.ndarray, mod
                SensorPlan(rate=20.0, ppm=20.2, jitter=0.004),
                SensorPlan(rate=20.0, jitter=0.004, steps=[(4.0141, -0.2219), (9.9263, 19.1007)],
                           silences=[(5.0142, 7.8091)])], 17.6105, 4386))
+# four sensors at 20 Hz with 4 ms stamp jitter: one steps 17.5 s ahead, then 0.2 s back a second later. The second
+# step went onto the grid of the one-second segment between, whose period (its two ends' jitter over 11 periods) was
+# 1.3 % long: placed 12.5 ms late (14.1 ms pairing against a 13 ms bound). The grids before a step now pool their
+# spans and periods (the sensor samples at the rate it had)
+@example(Case([SensorPlan(rate=20.0, phase=0.03864, ppm=-36.8, jitter=0.004, late=[(3.42714, 0.15657, 1.35693, 0.73981)],
+                          depth=100),
+               SensorPlan(rate=20.0, phase=0.01494, jitter=0.004, loss=0.02, steps=[(7.11269, 1.86637)],
+                          silences=[(2.75272, 3.91703)], stalls=[(8.11269, 1.7232, True)],
+                          late=[(13.76012, 0.40862, 2.92404, 0.50653)], depth=100),
+               SensorPlan(rate=20.0, phase=0.01355, jitter=0.004, steps=[(2.26009, 17.45857), (3.26009, -0.20531)],
+                          late=[(16.56463, 0.33333, 2.38053, 0.39715)]),
+               SensorPlan(rate=20.0, jitter=0.004, loss=0.02, steps=[(2.0, -16.05859)],
+                          late=[(18.63652, 0.43326, 0.49585, 0.36059)])], 26.90637, 403))
 def test_every_published_set_stands_for_one_true_instant(case: Case) -> None:
     check_case(case)
 

@@ -314,16 +314,19 @@ def test_record_keeps_the_last_eight_intervals_their_median_and_the_window_cap(i
     """The short period is the integer median of the last :data:`PERIOD_WINDOW` intervals; the window cap is
     half of it, or half the median of the intervals since the last pause (longer than ``pause``) while fewer
     than a window of them came; the grid counts each interval in whole short periods once a window is full, and
-    starts again at the stamp after a pause."""
+    starts again at the stamp after a pause, the grid before kept (span and periods) where it held a window."""
     s = sr.SensorStream(None)
     s.grid_first = 0
     fresh, periods, first, stamp = sr.PERIOD_WINDOW, 0, 0, 0
+    past = (0, 0)
     for k, iv in enumerate(intervals):
         before = sr.median_int(intervals[max(0, k - sr.PERIOD_WINDOW) : k]) if k >= sr.PERIOD_WINDOW else None
         stamp += iv
         cap = s.record(iv, pause, stamp)
         fresh = 0 if iv > pause else min(fresh + 1, sr.PERIOD_WINDOW)
         if iv > pause:
+            if periods >= sr.PERIOD_WINDOW:  # a grid of a window or more is kept for the pooled period
+                past = (past[0] + stamp - iv - first, past[1] + periods)
             periods, first = 0, stamp
         elif before:
             periods += max(1, round(iv / before))
@@ -335,7 +338,7 @@ def test_record_keeps_the_last_eight_intervals_their_median_and_the_window_cap(i
         assert s.fresh == fresh
         expected = sr.median_int(window[-fresh:]) // 2 if 0 < fresh < sr.PERIOD_WINDOW else sr.median_int(window) // 2
         assert cap == expected
-        assert s.grid_periods == periods and s.grid_first == first
+        assert s.grid_periods == periods and s.grid_first == first and s.grid_past == past
         assert s.suspect_period() == (s.period if k + 1 >= sr.PERIOD_WINDOW else None)
 
 
@@ -359,7 +362,7 @@ def test_a_batch_of_stamps_leaves_the_sensors_intervals_and_grid_as_one_by_one(i
     batch = sync.streams[0]
     assert got == want
     assert (batch.intervals, batch.period, batch.fresh) == (one.intervals, one.period, one.fresh)
-    assert (batch.grid_first, batch.grid_periods) == (one.grid_first, one.grid_periods)
+    assert (batch.grid_first, batch.grid_periods, batch.grid_past) == (one.grid_first, one.grid_periods, one.grid_past)
 
 
 def test_the_window_cap_after_a_pause_comes_from_the_intervals_since_and_the_pause_itself_resets_it() -> None:
@@ -654,6 +657,49 @@ def _on_a_grid(period: int = 10 * MS, periods: int = 20, jitter: list[int] | Non
     s.period = sr.median_int(s.intervals)
     s.tail = [s.last - k * period for k in range(sr.TAIL - 1, -1, -1)]
     return s
+
+
+def test_the_grid_period_pools_the_grids_before_a_step_or_a_pause_while_the_rate_holds() -> None:
+    """A step of the stamps or a pause starts a new grid; the grids before it (a window of periods or more) keep
+    their span and periods, and the period is the spans' sum over the periods' sum: a segment a few periods long
+    after a step is placed with the rate of everything before it. A rate the recent intervals do not keep (one
+    eighth off) is the current grid's alone."""
+    s = _on_a_grid(periods=sr.PERIOD_WINDOW)
+    s.grid_first -= 80  # this grid: 10 ns a period long
+    s.grid_past = (1_000 * 10 * MS + 30, 1_000)  # earlier grids: 30 ns over 1,000 periods
+    pooled = (1_000 * 10 * MS + 30 + sr.PERIOD_WINDOW * 10 * MS + 80) / (1_000 + sr.PERIOD_WINDOW)
+    assert s.grid_period() == pooled
+    s.grid_periods, s.grid_first = 2, s.last - 2 * 10 * MS - 20  # a short grid adds its own periods too
+    assert s.grid_period() == (1_000 * 10 * MS + 30 + 2 * 10 * MS + 20) / 1_002
+    s.grid_periods = 0
+    assert s.grid_period() == (1_000 * 10 * MS + 30) / 1_000
+    s.intervals = [12 * MS] * sr.PERIOD_WINDOW  # the recent rate is another: the grids before do not count
+    s.period = 12 * MS
+    assert s.grid_period() == 12 * MS
+    s.grid_periods, s.grid_first = sr.PERIOD_WINDOW, s.last - sr.PERIOD_WINDOW * 12 * MS
+    assert s.grid_period() == 12 * MS
+    s.keep_grid(s.last)  # kept: a window of periods
+    assert s.grid_past == (1_000 * 10 * MS + 30 + sr.PERIOD_WINDOW * 12 * MS, 1_000 + sr.PERIOD_WINDOW)
+    s.grid_periods = sr.PERIOD_WINDOW - 1
+    s.keep_grid(s.last)  # not kept: fewer (its two ends' jitter over too few periods)
+    assert s.grid_past[1] == 1_000 + sr.PERIOD_WINDOW
+
+
+def test_a_step_of_the_stamps_keeps_the_grid_it_ends_for_the_period() -> None:
+    """The acceptance rule keeps a sensor's grid when its stamps step (a restart) and starts the next at the
+    new stamp."""
+    rule = SetSynchronizer(1)
+    stamps = [10 * NS_PER_S + k * 10 * MS for k in range(40)]
+    for t in stamps:
+        rule.add(0, t, 1.0, 2.0, 3.0, t + MS)
+    s = rule.streams[0]
+    periods, span = s.grid_periods, s.last - s.grid_first
+    assert periods >= sr.PERIOD_WINDOW and span == periods * 10 * MS
+    jump = stamps[-1] + 60 * NS_PER_S
+    for k in range(2 * sr.PERIOD_WINDOW + 4):  # (a new segment's first messages wait for their placement)
+        rule.add(0, jump + k * 10 * MS, 1.0, 2.0, 3.0, stamps[-1] + (k + 1) * 10 * MS + MS)
+    assert s.grid_past == (span, periods)
+    assert s.grid_first >= jump and s.last == jump + (2 * sr.PERIOD_WINDOW + 3) * 10 * MS
 
 
 def test_the_grid_period_is_the_segments_span_over_its_periods_once_they_are_a_window() -> None:

@@ -292,7 +292,8 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "tail", "burst_from",
+                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past", "tail",
+                 "burst_from",
                  "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
 
     def __init__(self, clock: SampleClock | None) -> None:
@@ -337,6 +338,9 @@ class SensorStream:
         """First stamp (ns) of the current segment ..."""
         self.grid_periods = 0
         """... and the sample periods from it to the last stamp (each interval in whole short periods)."""
+        self.grid_past = (0, 0)
+        """(span ns, periods) of the sensor's earlier grids, each of :data:`PERIOD_WINDOW` periods or more, summed:
+        a step of the stamps or a pause starts a new grid, but the sensor samples at the rate it had."""
         self.tail: list[int] = []
         """The last :data:`TAIL` common stamps (ns) of the current segment."""
         self.burst_from = NEVER
@@ -390,9 +394,20 @@ class SensorStream:
         counted), a precision the short median lacks when a step is placed many periods on; the short
         median while the segment holds fewer than :data:`PERIOD_WINDOW` periods. The same on every path
         (the sample clock is fed only where a path needs it)."""
+        short = self.suspect_period()
+        span, periods = self.grid_past
+        own = self.grid_periods >= PERIOD_WINDOW
+        if self.grid_periods:
+            span, periods = span + self.last - self.grid_first, periods + self.grid_periods
+        if periods >= PERIOD_WINDOW and (short is None or 8 * abs(span / periods - short) <= short):
+            return span / periods  # with the grids before (the same rate): each adds its span's precision
+        return (self.last - self.grid_first) / self.grid_periods if own else short
+
+    def keep_grid(self, last: int) -> None:
+        """The grid ends at stamp ``last`` (ns; a step or a pause starts another): keep its span and periods."""
         if self.grid_periods >= PERIOD_WINDOW:
-            return (self.last - self.grid_first) / self.grid_periods
-        return self.suspect_period()
+            span, periods = self.grid_past
+            self.grid_past = (span + last - self.grid_first, periods + self.grid_periods)
 
     def anchor(self, period: float) -> float:
         """The common time (ns) of the last sample on the segment's grid of ``period``: the last stamp with
@@ -602,6 +617,7 @@ class SensorStream:
         before = self.suspect_period()
         if interval > pause_ns:
             self.fresh = 0
+            self.keep_grid(stamp - interval)
             self.grid_first, self.grid_periods = stamp, 0
         else:
             self.fresh = min(self.fresh + 1, PERIOD_WINDOW)
@@ -1372,6 +1388,8 @@ class AcceptanceRule:
         if restart or s.last == NEVER:
             s.intervals, s.period, s.fresh = [], None, PERIOD_WINDOW
             s.since = 0
+            if s.last != NEVER:
+                s.keep_grid(s.last)
             s.grid_first, s.grid_periods = stamp, 0
             s.tail = []
             cap = NO_CAP
