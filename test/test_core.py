@@ -1341,3 +1341,15 @@ def test_the_batched_helpers_equal_numpys_stacked_products():
     other = rng.normal(size=(n, s, 3, 2))
     np.testing.assert_allclose(gram2(other, columns), np.matmul(other.transpose(0, 1, 3, 2), columns).sum(axis=1),
                                rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("sensors", [1, 2, 4, 7])
+def test_the_sets_sensor_means_equal_numpys_and_keep_a_nan_in_its_own_axis(sensors: int) -> None:
+    from magcal_ros.core.batched import sensor_means
+
+    v = np.random.default_rng(sensors).normal(size=(40, sensors, 3)) * 5e-5
+    np.testing.assert_allclose(sensor_means(v), v.mean(axis=1), rtol=1e-13, atol=1e-20)
+    v[3, 0, 1] = np.nan
+    out = sensor_means(v)
+    assert np.isnan(out[3, 1]) and np.isfinite(np.delete(out.reshape(-1), 3 * 3 + 1)).all()
+    assert sensor_means(np.zeros((0, sensors, 3))).shape == (0, 3)

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from magcal_ros.core import attitude_blocks as ab
 from magcal_ros.core.array_fit import JointSolution
+from magcal_ros.core.batched import sensor_means
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.geometry import ArrayGeometry
 from magcal_ros.core.imu import NED_TO_ENU
@@ -74,7 +75,7 @@ def check_follows(imu: ImuSamples | None, raw: Array) -> None:
         return
     q = imu.orientation[np.all(np.isfinite(imu.orientation), axis=1)]
     imu_turn = float(np.degrees(2.0 * np.arccos(np.clip(np.abs(q @ q[0]), 0.0, 1.0))).max())
-    centre = np.asarray(raw, dtype=float).mean(axis=1)
+    centre = sensor_means(raw)
     d = centre / np.maximum(np.linalg.norm(centre, axis=1, keepdims=True), 1e-300)
     readings_turn = float(np.degrees(np.arccos(np.clip(d @ d[0], -1.0, 1.0))).max())
     if readings_turn >= MIN_READINGS_TURN_DEG and imu_turn < IMU_STILL_FRACTION * readings_turn:

@@ -44,6 +44,7 @@ from magcal_ros.core.array_fit import (
     refine_on_all,
 )
 from magcal_ros.core.attitude_blocks import AttitudeInputs
+from magcal_ros.core.batched import sensor_means
 from magcal_ros.core.calibration import ArrayCalibration, check_sensor
 from magcal_ros.core.forward_model import ForwardModel
 from magcal_ros.core.geometry import ArrayGeometry
@@ -932,7 +933,7 @@ def _check_manoeuvre(r: Array, exc: Excitation, prior: ArrayCalibration | None) 
     """:class:`ObservabilityError` for too few sets (N, S, 3), or readings that barely change without a prior."""
     n = len(r)
     if n < MIN_SAMPLES:
-        axis, flat = _manoeuvre_axis(r.mean(axis=1))
+        axis, flat = _manoeuvre_axis(sensor_means(r))
         one_axis = f"; and the array was rotated about one axis only (about {axis}): turn it about " + " or ".join(
             a for a in "xyz" if a != axis) + " too" if flat < 0.05 else ""
         raise ObservabilityError(f"only {n} synchronized sets; need at least {MIN_SAMPLES}, collected while turning "
@@ -961,7 +962,7 @@ def _checked_input(call: _Call, t0: float) -> _Run:
         raise InputError(f"a prior calibration and current channels need method 'ml', not {call.method!r}")
     f_ref = _reference_intensity(call, spec)
     order = _order(call.stamps, n)
-    exc = excitation(r.mean(axis=1))
+    exc = excitation(sensor_means(r))
     _check_manoeuvre(r, exc, call.prior)
     clipped, saturated = quality.saturation(call.geometry.names, r)
     if saturated:

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magcal_ros.core.alignment import affine_regression, align_angles, align_procrustes
+from magcal_ros.core.batched import sensor_means
 from magcal_ros.core.scalar_fit import ScalarFit, algebraic_fit, ml_fit
 
 if TYPE_CHECKING:
@@ -102,7 +103,7 @@ def align_by_regression(raw: Array, reference: Array, intensity: float, solver: 
 # -- references -----------------------------------------------------------------------
 def centre_reference(raw: Array) -> tuple[Array, int | None]:
     """The virtual centre sensor: mean of the raw readings of all sensors (no sensor of its own)."""
-    return raw.mean(axis=1), None
+    return sensor_means(raw), None
 
 
 def first_reference(raw: Array) -> tuple[Array, int | None]:
