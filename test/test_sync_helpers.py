@@ -678,10 +678,10 @@ def test_the_grid_period_pools_the_grids_before_a_step_or_a_pause_while_the_rate
     assert s.grid_period() == 12 * MS
     s.grid_periods, s.grid_first = sr.PERIOD_WINDOW, s.last - sr.PERIOD_WINDOW * 12 * MS
     assert s.grid_period() == 12 * MS
-    s.keep_grid(s.last)  # kept: a window of periods
+    s.new_grid(s.last, s.last)  # kept: a window of periods
     assert s.grid_past == (1_000 * 10 * MS + 30 + sr.PERIOD_WINDOW * 12 * MS, 1_000 + sr.PERIOD_WINDOW)
     s.grid_periods = sr.PERIOD_WINDOW - 1
-    s.keep_grid(s.last)  # not kept: fewer (its two ends' jitter over too few periods)
+    s.new_grid(s.last, s.last)  # not kept: fewer (its two ends' jitter over too few periods)
     assert s.grid_past[1] == 1_000 + sr.PERIOD_WINDOW
 
 

@@ -522,22 +522,14 @@ class SetSynchronizer(AcceptanceRule):
             ends = s[first + head:]  # the stamp each new interval ends at
             start = 0
             for p in np.flatnonzero(new > self.pause_ns).tolist():  # a pause starts the grid again (SensorStream.record)
-                self._grow_grid(st, steps[start:p], new[start:p], known[start:p])
-                st.keep_grid(int(ends[p] - new[p]))
-                st.grid_first, st.grid_periods = int(ends[p]), 0
+                st.grow_grid(steps[start:p], new[start:p], known[start:p])
+                st.new_grid(int(ends[p] - new[p]), int(ends[p]))
                 start = p + 1
-            self._grow_grid(st, steps[start:], new[start:], known[start:])
+            st.grow_grid(steps[start:], new[start:], known[start:])
             self._fresh_caps(st, iv, len(iv) - len(new), caps[first + head:])
             st.intervals = iv[-PERIOD_WINDOW:].tolist()
             st.period = int(period[-1])
         return caps
-
-    @staticmethod
-    def _grow_grid(st: Any, steps: NDArray[np.float64], intervals: NDArray[np.int64], known: NDArray[np.bool_]) -> None:
-        """Add ``intervals`` (ns) to sensor ``st``'s grid: ``steps`` periods each where the period is ``known``;
-        where it is not, the grid starts after them (SensorStream.record)."""
-        st.grid_periods += int(steps.sum())
-        st.grid_first += int(intervals[~known].sum())
 
     def _fresh_caps(self, st: Any, iv: NDArray[np.int64], start: int, caps: NDArray[np.int64]) -> None:
         """The caps (in place) of the stamps whose intervals ``iv[start:]`` follow a pause by fewer than

@@ -292,9 +292,8 @@ class SensorStream:
     over their arrivals, and its sample clock."""
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
-                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past", "tail",
-                 "burst_from",
-                 "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
+                 "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past",
+                 "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -403,11 +402,19 @@ class SensorStream:
             return span / periods  # with the grids before (the same rate): each adds its span's precision
         return (self.last - self.grid_first) / self.grid_periods if own else short
 
-    def keep_grid(self, last: int) -> None:
-        """The grid ends at stamp ``last`` (ns; a step or a pause starts another): keep its span and periods."""
+    def new_grid(self, last: int, first: int) -> None:
+        """A step or a pause: the grid ends at stamp ``last`` (ns; its span and periods kept where it held a
+        window of periods) and another starts at stamp ``first``."""
         if self.grid_periods >= PERIOD_WINDOW:
             span, periods = self.grid_past
             self.grid_past = (span + last - self.grid_first, periods + self.grid_periods)
+        self.grid_first, self.grid_periods = first, 0
+
+    def grow_grid(self, steps: NDArray[np.float64], intervals: NDArray[np.int64], known: NDArray[np.bool_]) -> None:
+        """Add ``intervals`` (ns) to the grid at once: ``steps`` periods each where the period is ``known``; where
+        it is not, the grid starts after them (what :meth:`record` does one by one)."""
+        self.grid_periods += int(steps.sum())
+        self.grid_first += int(intervals[~known].sum())
 
     def anchor(self, period: float) -> float:
         """The common time (ns) of the last sample on the segment's grid of ``period``: the last stamp with
@@ -617,8 +624,7 @@ class SensorStream:
         before = self.suspect_period()
         if interval > pause_ns:
             self.fresh = 0
-            self.keep_grid(stamp - interval)
-            self.grid_first, self.grid_periods = stamp, 0
+            self.new_grid(stamp - interval, stamp)
         else:
             self.fresh = min(self.fresh + 1, PERIOD_WINDOW)
             if before:
@@ -1388,9 +1394,7 @@ class AcceptanceRule:
         if restart or s.last == NEVER:
             s.intervals, s.period, s.fresh = [], None, PERIOD_WINDOW
             s.since = 0
-            if s.last != NEVER:
-                s.keep_grid(s.last)
-            s.grid_first, s.grid_periods = stamp, 0
+            s.new_grid(s.last, stamp)  # (a first stamp: no grid before it to keep)
             s.tail = []
             cap = NO_CAP
         else:
