@@ -182,10 +182,9 @@ def arrivals(streams: list[Stream]) -> list[tuple[int, int, int]]:
     return events
 
 
-def busy_receiver(streams: list[Stream], start: float, length: float, service: float) -> float:
+def busy_receiver(streams: list[Stream], start: float, length: float, service: float) -> None:
     """The receiver is busy from ``start`` for ``length`` s (seconds after the start), then takes what queued
-    one message every ``service`` s until it has caught up: every later receipt (ns) moves, in place. When (s after
-    the start) it had caught up."""
+    one message every ``service`` s until it has caught up: every later receipt (ns) moves, in place."""
     events = arrivals(streams)
     free = START_NS + int((start + length) * 1e9)
     begin = START_NS + int(start * 1e9)
@@ -197,7 +196,6 @@ def busy_receiver(streams: list[Stream], start: float, length: float, service: f
             break
         streams[k].receipts[i] = free
         free += step
-    return (free - START_NS) / 1e9
 
 
 def true_lost(stream: Stream, plan: SensorPlan) -> int:

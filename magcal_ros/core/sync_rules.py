@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -171,9 +171,6 @@ class SyncStats:
     delivered, whose stamps say nothing of when its samples were taken."""
     side_value: int = 0
     """Messages of CSV rows whose current or temperature is out of its range (no value)."""
-    unplaced: int = 0
-    """Messages of a new segment placed by its stamps alone while a busy receiver's queue hid where it lies (a
-    sample lost at the step puts it a period off), held for arrivals on time longer than a message may wait."""
 
     def dropped(self) -> int:
         """Messages dropped for any reason."""
@@ -210,8 +207,7 @@ class SyncStats:
 DISORDER_MIN: int = 10
 """Out-of-order messages a recording may have whatever its length before :meth:`SyncStats.disorder` refuses it."""
 DROP_FIELDS: tuple[str, ...] = ("unmatched", "nonfinite", "duplicate", "out_of_order", "zero_stamp", "malformed",
-                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value",
-                                "unplaced")
+                                "glitch", "gap", "negative_stamp", "out_of_range", "burst", "side_value")
 """The counters of dropped messages."""
 _PHRASES = {
     "unmatched": "messages without a complete set dropped",
@@ -227,7 +223,6 @@ _PHRASES = {
     "out_of_range": "readings beyond any magnetometer's range dropped",
     "burst": "messages of a backlog stamped on delivery dropped",
     "side_value": "messages of rows whose current or temperature is out of range dropped",
-    "unplaced": "messages of a stamp step a busy receiver hid dropped (their arrivals too late to place it)",
 }
 
 
@@ -291,28 +286,6 @@ Message = tuple[int, Any, "str | None", "int | None"]
 """One message of a sensor as acceptance holds it: (stamp ns, payload, reading fault or None, receipt ns or None)."""
 
 
-@dataclass
-class Unsure:
-    """A new segment placed by its stamps alone while a busy receiver's queue hid its arrivals
-    (:attr:`SensorStream.unsure`): a sample lost at the step puts it a period off, which only arrivals on time
-    show."""
-
-    floor: tuple[int, int]
-    """The sensor's least delay before the step (:attr:`SensorStream.floor`): where arrivals on time lie."""
-    period: int
-    """The sample period (ns): the placement is right or off by whole ones."""
-    taken: int = 0
-    """Arrivals noted since the placement (:attr:`SensorStream.arrivals`: they move with a correction)."""
-    leads: list[int] = field(default_factory=list)
-    """Leads (ns, common stamp less receipt) of the segment's messages that came while another sensor's came on
-    time."""
-    pending: list[tuple[tuple[int, int, Any, int, bool], int | None]] = field(default_factory=list)
-    """The segment's messages as taken (see :data:`Accepted`) with their receipts (ns), let through once the
-    placement is settled (moved with it)."""
-    kept: bool = False
-    """Another sensor of the same clock followed the placement: it stays (the sensors line up by their stamps)."""
-
-
 class SensorStream:
     """Acceptance state of one sensor: its previous stamp, short period, a held suspect, its
     placement on the common timeline (``base``: common = stamp + base), the lead of its stamps
@@ -320,8 +293,7 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past",
-                 "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited",
-                 "unsure")
+                 "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -391,20 +363,15 @@ class SensorStream:
         self.seen_step = False
         """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
         a few bad stamps that the old sequence's placement could take back."""
-        self.unsure: Unsure | None = None
-        """A new segment placed by its stamps alone while its arrivals were late by a queue: its messages wait
-        until arrivals on time confirm the placement or correct it by whole periods."""
 
     @property
     def busy(self) -> bool:
-        """Whether messages are held (a suspect, or a new segment being placed or settled)."""
-        return self.held is not None or self.placing is not None or self.unsure is not None
+        """Whether messages are held (a suspect, or a new segment being placed)."""
+        return self.held is not None or self.placing is not None
 
     def holds(self) -> int:
-        """How many messages are held: a suspect, those waiting after it, a new segment's first, those of a
-        segment whose placement waits to be settled."""
-        return (self.held is not None) + len(self.waiting or ()) + len(self.placing or ()) + \
-            (0 if self.unsure is None else len(self.unsure.pending))
+        """How many messages are held: a suspect, those waiting after it, a new segment's first."""
+        return (self.held is not None) + len(self.waiting or ()) + len(self.placing or ())
 
     def quiet(self, now_ns: int) -> bool:
         """Whether its latest message arrived more than :data:`HOLD_NS` before ``now_ns`` (the receiver's clock):
@@ -554,25 +521,6 @@ class SensorStream:
         self.arrivals.extend(zip(commons[-LEAD_WINDOW:].tolist(), receipts[-LEAD_WINDOW:].tolist()))
         lead, drift = commons - receipts, commons // LEAD_DRIFT
         self._raise_floor(int(np.max(lead + drift)), int(np.max(lead - drift)))
-
-    def moved_by(self, shift: int, noted: int, floor: tuple[int, int]) -> None:
-        """The current segment's placement moved by ``shift`` (ns) after ``noted`` of its arrivals were noted: they
-        move with it, and the least delay is ``floor`` (the one before them) raised by them again."""
-        self.base += shift
-        self.lastc += shift
-        self.tail = [c + shift for c in self.tail]
-        if self.placed_at is not None:
-            self.placed_at += shift
-        if self.jumps:
-            self.jumps[-1] = self.jumps[-1][:3] + (self.base,)
-        self.floor = floor
-        arrivals = self.arrivals
-        for k in range(max(len(arrivals) - noted, 0), len(arrivals)):
-            c, r = arrivals[k]
-            c += shift
-            arrivals[k] = (c, r)
-            drift = c // LEAD_DRIFT
-            self._raise_floor(c - r + drift, c - r - drift)
 
     def _raise_floor(self, low: int, high: int) -> None:
         floor = self.floor
@@ -1260,7 +1208,6 @@ class AcceptanceRule:
             out += self._end_wait(index)
         if s.placing is not None:
             self._place_held(index, out)
-        self._undoubted(index, out)
         held, s.held = s.held, None
         if held is not None:
             if held[4] == BURST:
@@ -1279,11 +1226,8 @@ class AcceptanceRule:
         known they are held until :data:`PLACE_MESSAGES` have come (the least delayed places the segment);
         otherwise the segment is placed at once."""
         s = self.streams[index]
-        self._undoubted(index, out)
         if not s.timed() or any(m[3] is None for m in messages):
             moved = self._place(index, [messages[0][0]], None, messages[0][3])
-            if moved and messages[0][3] is not None:  # arrivals that keep no time: a queue's
-                self._doubt(index, s.suspect_period() or self.restart_ns)
             self._take(index, messages[0], moved, out)
             for m in messages[1:]:
                 self._take(index, m, False, out)
@@ -1348,74 +1292,9 @@ class AcceptanceRule:
             estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
             by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
-        if moved and not by_arrival:
-            self._doubt(index, period)
         self._take(index, first, moved, out)
         for m in held[1:]:
             self._take(index, m, False, out)
-
-    def _kept(self, leader: int | None) -> None:
-        """Another sensor's new segment followed sensor ``leader``'s placement (one clock's jump): a placement in
-        doubt stays, the sensors lining up by their stamps wherever it lies."""
-        doubt = None if leader is None else self.streams[leader].unsure
-        if doubt is not None:
-            doubt.kept = True
-
-    def _undoubted(self, index: int, out: Accepted, shift: int = 0) -> None:
-        """End the doubt of sensor ``index``'s placement (:attr:`SensorStream.unsure`): the messages held let through
-        moved by ``shift`` (ns) where it was settled (or kept: another sensor of its clock followed it); otherwise
-        (the stream ended or went quiet, or stepped again first) without their readings, counted ``unplaced``: as
-        they would have been once they had waited :data:`HOLD_NS`."""
-        s = self.streams[index]
-        u = s.unsure
-        if u is None:
-            return
-        s.unsure = None
-        settled = u.kept or len(u.leads) >= PLACE_MESSAGES
-        for (stamp, common, payload, cap, restart), _ in u.pending:
-            if not settled and payload is not None:
-                self.stats.count("unplaced")
-                payload = None
-            out.append((stamp, common + shift, payload, cap, restart))
-
-    def _doubt(self, index: int, period: int) -> None:
-        """Sensor ``index``'s new segment was placed by its stamps alone, its arrivals late by a queue: unless another
-        sensor's placed it (one clock), its messages wait for arrivals on time (:meth:`_settled`); a sensor alone
-        has none to tell the receiver on time."""
-        s = self.streams[index]
-        if s.follows is None and s.floor is not None and self._queue_mates(index, period):
-            s.unsure = Unsure(s.floor, period)
-
-    def _settled(self, index: int, receipt: int | None, out: Accepted) -> None:
-        """One more message (received at ``receipt`` ns, already taken) of a segment placed by its stamps alone
-        (:attr:`SensorStream.unsure`). Once :data:`PLACE_MESSAGES` of its messages came while another sensor's came
-        on time, the least delayed of those says whether the placement holds (it leads its arrival as the sensor's
-        least delayed did before the step, to half a period) or is off by whole periods (moved by them, within half
-        of ``restart_ns``): the held messages go through, moved with it. Until then, those that waited longer than
-        :data:`HOLD_NS` are let through without their reading (counted: ``unplaced``)."""
-        s = self.streams[index]
-        u = s.unsure
-        assert u is not None
-        if u.kept:
-            self._undoubted(index, out)
-            return
-        if receipt is None:
-            return
-        u.taken += 1
-        if self._others_at(index, receipt, u.period)[1]:
-            u.leads.append(u.pending[-1][0][1] - receipt)
-        if len(u.leads) < PLACE_MESSAGES:
-            while u.pending and u.pending[0][1] is not None and receipt - u.pending[0][1] > HOLD_NS:  # type: ignore[operator]
-                (stamp, common, payload, cap, restart), _ = u.pending.pop(0)
-                if payload is not None:
-                    self.stats.count("unplaced")
-                out.append((stamp, common, None, cap, restart))
-            return
-        expected = (u.floor[0] + u.floor[1]) // 2  # (the bounds' middle, the receipt clock's drift either way)
-        steps = round((max(u.leads[-PLACE_MESSAGES:]) - expected) / u.period)
-        shift = -steps * u.period if 2 * abs(steps * u.period) <= self.restart_ns else 0
-        s.moved_by(shift, u.taken, u.floor)
-        self._undoubted(index, out, shift)
 
     def _placed_by_queue(self, index: int, held: list[Message], period: int, lead: int) -> tuple[int, bool]:
         """Where (ns, common) the first of a new segment's ``held`` messages of sensor ``index`` lies by their arrivals
@@ -1510,8 +1389,6 @@ class AcceptanceRule:
     def _take(self, index: int, message: Message, restart: bool, out: Accepted) -> None:
         stamp, payload, fault, receipt = message
         s = self.streams[index]
-        if restart and s.unsure is not None and s.unsure.pending:  # another segment: the held one goes as placed
-            self._undoubted(index, out)
         if s.last == NEVER:  # its first stamp: where others of its clock that jump to it follow it
             s.jumps.append((NEVER, stamp, receipt, s.base))
         if restart or s.last == NEVER:
@@ -1540,11 +1417,7 @@ class AcceptanceRule:
         if fault is not None:
             self.stats.count(fault)
             payload = None
-        if s.unsure is None:
-            out.append((stamp, c, payload, cap, restart))
-        else:  # held until arrivals on time settle where the segment lies
-            s.unsure.pending.append(((stamp, c, payload, cap, restart), receipt))
-            self._settled(index, receipt, out)
+        out.append((stamp, c, payload, cap, restart))
 
     def _place(self, index: int, stamps: list[int], estimate: int | None, receipt: int | None = None) -> bool:
         """Place sensor ``index``'s new segment, whose first stamps are ``stamps`` (the first received at
@@ -1595,7 +1468,6 @@ class AcceptanceRule:
         s.placed_at = estimate
         if shared is not None:
             s.base, s.follows = shared
-            self._kept(shared[1])
         s.jumps.append((s.last, stamp, receipt, s.base))
         if shared is not None:
             if s.base != s.before[1]:
@@ -1715,7 +1587,6 @@ class AcceptanceRule:
         s = self.streams[index]
         j, base = partner
         assert base is not None
-        self._kept(j)
         s.before = (s.last, s.base, int(s.grid_period() or 0)) if s.before is None else s.before
         s.base = base
         s.follows = self._leader(index, j)
