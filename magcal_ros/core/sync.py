@@ -503,7 +503,7 @@ class SetSynchronizer(AcceptanceRule):
         caps = np.full(len(s), NO_CAP, dtype=np.int64)
         if st.last == NEVER:
             first, s_iv = 1, np.diff(s)
-            st.grid_first, st.grid_periods = int(s[0]), 0
+            st.new_grid(st.last, int(s[0]))  # (a first stamp: no grid before it to keep)
         else:
             first, s_iv = 0, np.diff(np.concatenate([[st.last], s]))
         # The first few need the short history: compute them one by one, like accept().
