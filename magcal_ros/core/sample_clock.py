@@ -169,7 +169,8 @@ class SampleClock:
         """True while the line is in use (after learning)."""
         self.regular = True
         self._raw_count = 0
-        self._hint: tuple[int, float] | None = None
+        self._hint: tuple[int, float, int] | None = None
+        """After a restart: the old run's newest instant (ns), its period (ns) and its correction (ns)."""
         self._shift = 0
         """Added to every stamp of this run (a restart placed on the old grid)."""
         self._follow: SampleClock | None = None
@@ -263,7 +264,7 @@ class SampleClock:
         ``follow``: another sensor's clock whose stamps made the same jump (one stamping clock
         restarted for both). This run then takes that clock's correction once it is known, not one
         of its own: the sensors stay aligned exactly as their stamps say, whichever restarted first."""
-        hint = (self.instant(self._n), self._b) if self.ready and follow is None else None
+        hint = (self.instant(self._n), self._b, self._shift) if self.ready and follow is None else None
         out = self.finish()
         self._relearn()
         self._hint = hint
@@ -328,14 +329,16 @@ class SampleClock:
 
     def _flush_learning(self) -> Released:
         """A run ended before its clock was learnt: release its samples (fitted when there are a few;
-        no losses counted from so few stamps) and learn the next run afresh."""
+        no losses counted from so few stamps) and learn the next run afresh. A run that follows another
+        clock still follows it (a pause, or a quiet spell of the receiver, does not part two sensors that one
+        stamping clock serves: each snapped onto its own old grid, they would stand apart by up to half a
+        period)."""
         if len(self._learn) > 3:
             out = self._bootstrap(final=True)
         else:
             out = [(p, s) for s, p in self._learn]
             self._learn = []
         self._relearn()
-        self._follow = None
         return out
 
     def _bootstrap(self, final: bool = False) -> Released:
@@ -414,10 +417,8 @@ class SampleClock:
             y1 += shift * s0
             y2 += shift * s1
         elif self._hint is not None:  # a restart: onto the old grid if it is within a quarter period
-            before, old = self._hint
-            first = t0 + int(round(a))
-            shift = int(round(before + round((first - before) / old) * old - first))
-            if abs(shift) <= 0.25 * b:  # every stamp of this run moves with it
+            shift = self._snap(t0 + a, b)
+            if shift:  # every stamp of this run moves with it
                 self._shift = shift
                 a += shift
                 y1 += shift * s0
@@ -431,6 +432,16 @@ class SampleClock:
         return [(p, t0 + int(round(a + b * i))) for (_, p), i in zip(released, index)]
 
     # -- tracking ---------------------------------------------------------------------
+    def _snap(self, first: float, period: float) -> int:
+        """The correction (ns) of a run after a restart whose line starts at ``first`` (ns, as placed): the old
+        run's correction carried on, plus the new line's distance from the old grid where that is within a
+        quarter period (the placement's own error); the old correction alone where it is not."""
+        assert self._hint is not None
+        before, old, carried = self._hint
+        off = before - (first + carried)
+        off -= round(off / old) * old
+        return int(round(carried + off)) if abs(off) <= 0.25 * period else carried
+
     def _assign(self, k: int, y: float) -> int:
         """Sample index ``k`` (relative to the origin) for a stamp at ``y``; update the line; the instant."""
         a, b = self._a, self._b
