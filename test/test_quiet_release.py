@@ -17,6 +17,7 @@ drains its queue. The truth is each reading's instant (:mod:`stream_oracle`).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -215,8 +216,7 @@ def test_sets_after_a_revision_to_interpolation_form_once_the_sensors_are_quiet(
 
 def joined(first: Stream, then: Stream) -> Stream:
     """One sensor's messages: ``first``'s, then ``then``'s."""
-    return Stream(*(np.concatenate([getattr(first, f), getattr(then, f)])
-                    for f in ("stamps", "receipts", "vectors", "instants", "trusted")))
+    return Stream(*(np.concatenate([getattr(first, f.name), getattr(then, f.name)]) for f in fields(Stream)))
 
 
 MISSION = 3.0

@@ -431,7 +431,6 @@ class SampleClock:
         self.ready = True
         return [(p, t0 + int(round(a + b * i))) for (_, p), i in zip(released, index)]
 
-    # -- tracking ---------------------------------------------------------------------
     def _snap(self, first: float, period: float) -> int:
         """The correction (ns) of a run after a restart whose line starts at ``first`` (ns, as placed): the old
         run's correction carried on, plus the new line's distance from the old grid where that is within a
@@ -442,6 +441,7 @@ class SampleClock:
         off -= round(off / old) * old
         return int(round(carried + off)) if abs(off) <= 0.25 * period else carried
 
+    # -- tracking ---------------------------------------------------------------------
     def _assign(self, k: int, y: float) -> int:
         """Sample index ``k`` (relative to the origin) for a stamp at ``y``; update the line; the instant."""
         a, b = self._a, self._b
