@@ -402,6 +402,16 @@ class SensorStream:
             return span / periods  # with the grids before (the same rate): each adds its span's precision
         return (self.last - self.grid_first) / self.grid_periods if own else short
 
+    def grid_spread(self) -> float:
+        """The standard deviation (ns) of :meth:`grid_period`: one interval's (a quarter of :meth:`jitter`) over the
+        periods its spans hold (a span's error is its two ends' jitter, an interval's); the short median's while the
+        segment holds fewer than :data:`PERIOD_WINDOW` periods and no grid came before it."""
+        span, periods = self.grid_past
+        periods += self.grid_periods
+        if not periods or self.grid_periods < PERIOD_WINDOW and periods == self.grid_periods:
+            periods = len(self.intervals)  # the short median's precision, about
+        return self.jitter() / 4.0 / max(periods, 1)
+
     def new_grid(self, last: int, first: int) -> None:
         """A step or a pause: the grid ends at stamp ``last`` (ns; its span and periods kept where it held a
         window of periods) and another starts at stamp ``first``."""
@@ -703,6 +713,42 @@ def _in_line(offset: int, grid: tuple[float, float] | None, phase: float = 0.0, 
     k = round((offset - phase) / period)
     limit = 0.25 * period if tol is None else min(tol, 0.25 * period)
     return abs(offset) <= 1.25 * period and abs(offset - phase - k * period) <= limit
+
+
+ANEW_SIGMAS: float = 4.0
+"""A new segment's period differs from its old grid's when it does by this many standard deviations of its own
+estimate ..."""
+ANEW_DRIFT: float = 0.125
+"""... and by enough that the old grid, carried over the silence at the old period, would misplace the segment's first
+sample by this fraction of a period or more; an old grid whose own period's error, carried over the silence, may
+misplace it by half as much (one standard deviation) places nothing either."""
+
+
+def sampled_anew(stamps: Sequence[int], period: float, periods: float, spread: float) -> bool:
+    """Whether a sensor's old sample grid of ``period`` (ns; its standard deviation ``spread`` ns), carried over
+    ``periods`` of silence (from its last sample to the new segment's first, by the arrivals), cannot place the new
+    segment whose first ``stamps`` (ns, those held to place it) came: the grid is too uncertain that far on, or the
+    stamps run at another rate (the sensor started sampling anew: a driver restarted at another rate). The new period
+    is the stamps' least-squares line over their sample indices (counted in old periods: lost samples kept), its
+    standard deviation from that line's residuals; a rate's difference misplaces the segment over the silence and
+    over the stamps' mean index (each stamp is brought back to the first by whole old periods) (:data:`ANEW_SIGMAS`,
+    :data:`ANEW_DRIFT`). Too few stamps, or one out of order, say nothing of the rate."""
+    far = max(periods, 1.0)
+    if 2.0 * spread * far > ANEW_DRIFT * period:
+        return True
+    if len(stamps) < PLACE_MESSAGES // 2:
+        return False
+    t = np.asarray(stamps, dtype=float) - stamps[0]
+    k = np.concatenate([[0.0], np.cumsum(np.round(np.diff(t) / period))])
+    if np.any(np.diff(k) <= 0):
+        return False
+    far += float(k.mean())
+    kc = k - k.mean()
+    new = float(kc @ t) / float(kc @ kc)
+    residual = t - t.mean() - new * kc
+    sd = math.sqrt(float(residual @ residual) / max(len(t) - 2, 1) / float(kc @ kc))
+    change = abs(new - period)
+    return change > ANEW_SIGMAS * sd and change * far > ANEW_DRIFT * period
 
 
 def bunched(receipt: int, previous: int, period: int) -> bool:
@@ -1424,7 +1470,8 @@ class AcceptanceRule:
         ``receipt`` ns, None: unknown), on the common timeline: as another sensor that made the same jump of its
         stamps placed its own (one clock stamps both); else its first sample at ``estimate`` (ns, from its
         arrivals; None: unknown, one period after its last sample) on its old sample grid (each stamp's jitter
-        averaged out), unless that is where another sensor's stamps (or its own old segment's) put it. Whether the
+        averaged out; by its arrivals alone where that grid cannot place it, :func:`sampled_anew`), unless that is
+        where another sensor's stamps (or its own old segment's) put it. Whether the
         segment moved: False where it went back onto its own old placement (the stamps went on: the gap before it
         is lost samples, counted as such, not a restart)."""
         s = self.streams[index]
@@ -1443,7 +1490,8 @@ class AcceptanceRule:
             margin = min(margin, int(known) // 2)
         stamp = stamps[0]
         grid = None
-        if not period:
+        if not period or estimate is not None and \
+                sampled_anew(stamps, period, (estimate - s.anchor(period)) / period, s.grid_spread()):
             base = (s.lastc if estimate is None else estimate) - stamp
         else:
             anchor = s.anchor(period)
