@@ -293,7 +293,8 @@ class SensorStream:
 
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past",
-                 "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited")
+                 "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited",
+                 "queued_at")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -357,6 +358,9 @@ class SensorStream:
         least delayed arrivals at common stamp ``c`` is at least ``floor[0] - c // LEAD_DRIFT`` and, the least
         delayed it saw being on time, at most ``floor[1] + c // LEAD_DRIFT`` (a receipt clock may drift from the
         stamps': :meth:`resumed_on_time`)."""
+        self.queued_at: int | None = None
+        """Where (ns, common) the queue's order put the first of the new segment being placed when the segment was
+        first held long enough to decide (:meth:`AcceptanceRule._waits_to_catch_up`); None: it did not."""
         self.hidden = False
         """Whether the new segment being placed follows a jump forward a busy receiver's queue hid (a pause or a
         step): placed by its arrivals once they catch up, else taken as a pause."""
@@ -1278,7 +1282,7 @@ class AcceptanceRule:
             for m in messages[1:]:
                 self._take(index, m, False, out)
             return
-        s.placing = list(messages)
+        s.placing, s.queued_at = list(messages), None
 
     def _placing(self, index: int, message: Message, out: Accepted) -> bool:
         """Add ``message`` to the new segment being placed (placing it once there are enough); whether it
@@ -1315,8 +1319,10 @@ class AcceptanceRule:
         if not catching_up(held, period):
             return False
         s = self.streams[index]
-        return len(held) > 2 * PLACE_MESSAGES or \
-            not self._placed_by_queue(index, held, s.suspect_period() or self.restart_ns, int(s.lead()))[1]
+        if len(held) > 2 * PLACE_MESSAGES:
+            return True
+        s.queued_at, bounded = self._placed_by_queue(index, held, s.suspect_period() or self.restart_ns, int(s.lead()))
+        return not bounded
 
     def _place_held(self, index: int, out: Accepted, by_arrival: bool = True) -> None:
         """Place the held new segment of sensor ``index`` by its least delayed arrival (or, ``by_arrival``
@@ -1337,6 +1343,12 @@ class AcceptanceRule:
         else:
             estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
             by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
+            if s.queued_at is not None and not bounded and \
+                    not timed_arrivals([(m[0], int(m[3])) for m in held[-PLACE_MESSAGES:]]):  # type: ignore[arg-type]
+                # still draining when it ended: the others' arrivals that ordered its first messages are gone by
+                # now, and its own, late, say too late; the order they gave when it was first decided, if earlier
+                estimate = min(estimate, s.queued_at)
+        s.queued_at = None
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, moved, out)
         for m in held[1:]:
