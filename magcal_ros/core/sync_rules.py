@@ -410,10 +410,8 @@ class SensorStream:
         """The standard deviation (ns) of :meth:`grid_period`: one interval's (a quarter of :meth:`jitter`) over the
         periods its spans hold (a span's error is its two ends' jitter, an interval's); the short median's while the
         segment holds fewer than :data:`PERIOD_WINDOW` periods and no grid came before it."""
-        span, periods = self.grid_past
-        periods += self.grid_periods
-        if not periods or self.grid_periods < PERIOD_WINDOW and periods == self.grid_periods:
-            periods = len(self.intervals)  # the short median's precision, about
+        past = self.grid_past[1]
+        periods = past + self.grid_periods if past or self.grid_periods >= PERIOD_WINDOW else len(self.intervals)
         return self.jitter() / 4.0 / max(periods, 1)
 
     def new_grid(self, last: int, first: int) -> None:
@@ -800,6 +798,12 @@ def _stale(receipt: int | None, since: int | None) -> bool:
     """Whether another sensor's latest message (received at ``receipt`` ns) came before this one's previous
     (``since`` ns): its latest stamp is where its topic was held back, not where its stamps are now."""
     return receipt is not None and since is not None and receipt < since
+
+
+def held_timed(held: list[Message]) -> bool:
+    """Whether the arrivals of a new segment's last :data:`PLACE_MESSAGES` held messages keep their stamps' time
+    (:func:`timed_arrivals`)."""
+    return timed_arrivals([(m[0], int(m[3])) for m in held[-PLACE_MESSAGES:]])  # type: ignore[arg-type]
 
 
 def caught_up(held: list[Message], period: int | None) -> bool:
@@ -1300,7 +1304,7 @@ class AcceptanceRule:
         held.append(message)
         if len(held) < PLACE_MESSAGES:
             return True
-        timed = timed_arrivals([(m[0], m[3]) for m in held[-PLACE_MESSAGES:]])  # type: ignore[misc]
+        timed = held_timed(held)
         if timed and caught_up(held, period):
             self._place_held(index, out)
         elif s.hidden:  # a jump a queue hid waits for arrivals on time again as long as a message may wait
@@ -1343,12 +1347,10 @@ class AcceptanceRule:
         else:
             estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
             by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
-            if s.queued_at is not None and not bounded and \
-                    not timed_arrivals([(m[0], int(m[3])) for m in held[-PLACE_MESSAGES:]]):  # type: ignore[arg-type]
+            if s.queued_at is not None and not bounded and not held_timed(held):
                 # still draining when it ended: the others' arrivals that ordered its first messages are gone by
                 # now, and its own, late, say too late; the order they gave when it was first decided, if earlier
                 estimate = min(estimate, s.queued_at)
-        s.queued_at = None
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, moved, out)
         for m in held[1:]:
@@ -1502,11 +1504,11 @@ class AcceptanceRule:
             margin = min(margin, int(known) // 2)
         stamp = stamps[0]
         grid = None
+        anchor = s.anchor(period) if period else 0.0
         if not period or estimate is not None and \
-                sampled_anew(stamps, period, (estimate - s.anchor(period)) / period, s.grid_spread()):
+                sampled_anew(stamps, period, (estimate - anchor) / period, s.grid_spread()):
             base = (s.lastc if estimate is None else estimate) - stamp
         else:
-            anchor = s.anchor(period)
             grid = (anchor, period)
             steps = 1 if estimate is None else max(1, round((estimate - anchor) / period))
             if estimate is None:  # nor after the data others placed there since (one clock, this one silent)
