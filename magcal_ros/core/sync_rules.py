@@ -842,10 +842,16 @@ def queue_drained(held: list[Message], period: int) -> bool:
 
 def catching_up(held: list[Message], period: int | None) -> bool:
     """Whether the arrivals of a new segment's ``held`` messages are catching up with their stamps, still within
-    :data:`HOLD_NS` of receipts: over the last :data:`PLACE_MESSAGES`, the least delayed of the newer half leads its
-    arrival by half a ``period`` (ns) more than that of the older half (a queue drained faster than it filled: once
-    it has caught up, the arrivals place the segment as they would have without it)."""
-    if period is None or len(held) < PLACE_MESSAGES or held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]
+    :data:`HOLD_NS` of receipts (:func:`draining`; once it has caught up, the arrivals place the segment as they
+    would have without the queue)."""
+    return draining(held, period) and held[-1][3] - held[0][3] <= HOLD_NS  # type: ignore[operator]
+
+
+def draining(held: list[Message], period: int | None) -> bool:
+    """Whether the arrivals of a new segment's ``held`` messages come through a queue draining faster than it
+    filled: over the last :data:`PLACE_MESSAGES`, the least delayed of the newer half leads its arrival by half a
+    ``period`` (ns) more than that of the older half."""
+    if period is None or len(held) < PLACE_MESSAGES:
         return False
     recent = held[-PLACE_MESSAGES:]
     half = PLACE_MESSAGES // 2
@@ -1312,7 +1318,9 @@ class AcceptanceRule:
                 self._place_held(index, out, by_arrival=False)
         elif len(held) >= MAX_PLACE_MESSAGES or (not timed and len(held) >= 2 * PLACE_MESSAGES
                                                   and not self._waits_to_catch_up(index, held, period)):
-            self._place_held(index, out, by_arrival=False)  # arrivals that do not keep the stamps' time
+            # arrivals that do not keep the stamps' time: the stamps alone place it, unless a queue still drains
+            # them as long as a message may wait (a stall of seconds: its first messages came on time)
+            self._place_held(index, out, by_arrival=draining(held, period))
         return True
 
     def _waits_to_catch_up(self, index: int, held: list[Message], period: int | None) -> bool:
@@ -1348,9 +1356,10 @@ class AcceptanceRule:
             estimate, bounded = self._placed_by_queue(index, held, period, int(lead))
             by_arrival = by_arrival or bounded  # a queue's order places what the drained arrivals' pace could not
             if s.queued_at is not None and not bounded and not held_timed(held):
-                # still draining when it ended: the others' arrivals that ordered its first messages are gone by
-                # now, and its own, late, say too late; the order they gave when it was first decided, if earlier
-                estimate = min(estimate, s.queued_at)
+                # still draining when the wait (or the hold) ended: the others' arrivals that ordered its first
+                # messages are gone by now, and its own, late, say too late; the order they gave when it was first
+                # decided places it if earlier (not its stamps alone: a stall's backlog as the hold ran out)
+                estimate, by_arrival = min(estimate, s.queued_at), True
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, moved, out)
         for m in held[1:]:
