@@ -294,7 +294,7 @@ class SensorStream:
     __slots__ = ("last", "lastc", "base", "last_receipt", "intervals", "period", "held", "clock", "before",
                  "follows", "arrivals", "placing", "since", "placed_at", "grid_first", "grid_periods", "grid_past",
                  "tail", "burst_from", "burst_count", "seen_step", "jumps", "heard", "floor", "hidden", "fresh", "waiting", "waited",
-                 "queued_at")
+                 "queued_at", "trailing")
 
     def __init__(self, clock: SampleClock | None) -> None:
         self.last = NEVER
@@ -364,6 +364,9 @@ class SensorStream:
         self.hidden = False
         """Whether the new segment being placed follows a jump forward a busy receiver's queue hid (a pause or a
         step): placed by its arrivals once they catch up, else taken as a pause."""
+        self.trailing = False
+        """Whether the new segment being placed follows a gap its arrivals saw longer than its stamps did (a step
+        back in a silence, or a topic served late at its own pace: alike until it drains)."""
         self.seen_step = False
         """Whether the latest step forward was one the arrivals showed (they did not see the time pass): not
         a few bad stamps that the old sequence's placement could take back."""
@@ -1118,7 +1121,7 @@ class AcceptanceRule:
         off the sensor's sample grid; where a busy receiver delivered it in a bunch, when it runs ahead of what
         the other sensors' arrivals in the same queue say (:meth:`_ahead_of_queue`)."""
         s = self.streams[index]
-        s.seen_step = False
+        s.seen_step = s.trailing = False
         if s.before is not None and 0 < held[0] - s.before[0] <= self.restart_ns and \
                 self._old_sequence_goes_on(index, held[0], s.before[2]):
             return True  # back to the sequence a step had just left: a few bad stamps (placed back on it)
@@ -1134,7 +1137,7 @@ class AcceptanceRule:
             return True
         if unseen is False and came == held[3] and s.trails(held[0], held[3], period) and \
                 not self._receiver_late(index, held[3], period):
-            s.seen_step = True  # the arrivals saw more of the gap pass than the stamps: they stepped back in it
+            s.seen_step = s.trailing = True  # the arrivals saw more of the gap pass than the stamps: they stepped back
             return True  # (not where the receiver was late with every sensor: a queue delayed this arrival)
         if unseen is not None:
             return unseen
@@ -1304,6 +1307,8 @@ class AcceptanceRule:
         step = message[0] - held[-1][0]
         period = s.suspect_period()
         limit = self.restart_ns if period is None else min(self.restart_ns, SUSPECT_PERIODS[0] * period // 2)
+        if s.trailing and period is not None:  # (held for seconds: lost samples go on from it)
+            limit = max(limit, LOST_PERIODS * period)
         if message[3] is None or not (0 < step <= limit):
             self._place_held(index, out)
             return False
@@ -1311,7 +1316,11 @@ class AcceptanceRule:
         if len(held) < PLACE_MESSAGES:
             return True
         timed = held_timed(held)
-        if timed and caught_up(held, period):
+        s.trailing = s.trailing and (timed or len(held) > PLACE_MESSAGES)  # (first held at pace: no queue's drain)
+        if s.trailing:  # a topic late at its own pace trails as a step back does until it drains: it waits for the
+            if held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]  drain as long as a message may wait
+                self._place_held(index, out)
+        elif timed and caught_up(held, period):
             self._place_held(index, out)
         elif s.hidden:  # a jump a queue hid waits for arrivals on time again as long as a message may wait
             if held[-1][3] - held[0][3] > HOLD_NS:  # type: ignore[operator]
@@ -1348,7 +1357,10 @@ class AcceptanceRule:
         # each message's arrival says where the segment lies; a late one says too late: the earliest wins
         period = s.suspect_period() or self.restart_ns
         hidden, s.hidden = s.hidden, False
-        if hidden:  # by the latest arrivals alone, on time again (a queue's order placed the drained ones)
+        trailing, s.trailing = s.trailing, False
+        if trailing:  # by the least delayed of every held arrival: a late topic's drain puts it back
+            estimate, by_arrival = first[0] + int(lead) - _best_lead(held), True
+        elif hidden:  # by the latest arrivals alone, on time again (a queue's order placed the drained ones)
             estimate = min(first[0] + int(m[3]) + int(lead) - m[0] for m in held[-PLACE_MESSAGES:])  # type: ignore[arg-type]
             if self._hidden_pause(index, held, estimate if by_arrival else None, period, out):
                 return
