@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 from stream_oracle import (START_NS, SensorPlan, Stream, arrivals, busy_receiver, make_stream, set_instants,
                            spread)
 
+from magcal_ros.core.matching import LatestValues
 from magcal_ros.core.sync import StreamSynchronizer, stream_synchronizer
 from magcal_ros.core.sync_rules import HOLD_NS
 
@@ -224,33 +225,36 @@ MISSION = 3.0
 
 
 def probed_mission(rate: float, phases: list[float], probe: float, jump: float, stall: tuple[float, float] | None,
-                   seed: int, slow: float = 1.03, start: float = MISSION) -> list[Stream]:
+                   seed: int, slow: float = 1.03, start: float = MISSION, speed: float = 1.0) -> list[Stream]:
     """As the soak runs the nodes: four sensors on one stamping clock (each ``phases`` of a period after it) send
     ``probe`` s of probes at ``rate`` / ``slow`` (a few lost), then, from ``start`` s, 40 s of the mission:
-    every stamp ``jump`` s ahead of the probes', and mag3's driver restarting 17 s in (its stamps 30 s back).
-    The receiver stalls for ``stall[1]`` s from ``stall[0]`` s into the mission, then drains its queue (None: it
-    never stalls)."""
+    every stamp ``jump`` s ahead of the probes', and mag3's driver restarting 17 s in (its stamps 30 s back),
+    sent at ``speed`` x real time (its stamps at the mission's pace, its receipts that much closer together).
+    The receiver stalls for ``stall[1]`` s from ``stall[0]`` s into the mission (receipts), then drains its queue
+    (None: it never stalls)."""
     rng = np.random.default_rng(seed)
     streams = []
+    begin = START_NS + int(start * 1e9)
     for k, phase in enumerate(phases):
         probes = make_stream(SensorPlan(rate=rate / slow, phase=phase / rate, jitter=5e-4, loss=0.06), probe, rng)
         steps = [(0.0, jump)] + ([(start + 17.0, -30.0)] if k == 2 else [])
         mission = make_stream(SensorPlan(rate=rate, phase=start + phase / rate, jitter=5e-4, steps=steps),
                               start + 40.0, rng)
+        mission.receipts = begin + np.rint((mission.receipts - begin) / speed).astype(np.int64)
         streams.append(joined(probes, mission))
     if stall is not None:
         busy_receiver(streams, start + stall[0], stall[1], 5e-4)
     return streams
 
 
-def worst_spread(streams: list[Stream], start: float = MISSION) -> tuple[float, int, Any]:
+def worst_spread(streams: list[Stream], start: float = MISSION, settle: float = 1.0) -> tuple[float, int, Any]:
     """Fed to an interpolating synchroniser with the quiet release every half second (as a node runs it): the
-    widest spread (s) of the sets after the mission's first second (it starts at ``start`` s), how many there are,
-    and the placements."""
+    widest spread (s) of the sets after the mission's first ``settle`` s (it starts at ``start`` s; a set with a
+    member of the mission counts), how many there are, and the placements."""
     end = max(int(s.receipts[-1]) for s in streams)
     ticks = list(range(START_NS, end + STILL_NS + 10**9, 500_000_000))
     sync = interpolating()
-    sets = [x for x in fed(sync, streams, ticks) if set_instants(x.values).min() > start + 1.0]
+    sets = [x for x in fed(sync, streams, ticks) if set_instants(x.values).max() > start + settle]
     return max(spread(x.values) for x in sets), len(sets), sync.placements()
 
 
@@ -304,6 +308,66 @@ def test_a_mission_start_a_stall_delivers_as_the_hold_ends_is_placed_by_the_queu
     worst, count, placed = worst_spread(streams)
     assert worst < 0.1 / rate, (worst, placed)
     assert count >= 0.9 * 39.0 * rate
+
+
+def with_currents(streams: list[Stream], store: LatestValues, start: float) -> tuple[int, int]:
+    """Fed as :func:`worst_spread` feeds them, with a current stamped as each of the first sensor's readings and
+    received a millisecond before it into ``store``: (sets of the mission after ``start`` s, those whose current
+    was still in the store when they formed)."""
+    end = max(int(s.receipts[-1]) for s in streams)
+    ticks = list(range(START_NS, end + STILL_NS + 10**9, 500_000_000))
+    sync, ref = interpolating(), streams[0]
+    events = sorted([(r, 0, k, i) for r, k, i in arrivals(streams)] + [(int(r) - 10**6, 1, 0, i) for i, r in
+                                                                       enumerate(ref.receipts)]
+                    + [(t, 2, 0, 0) for t in ticks])
+    count = found = 0
+    for receipt, kind, k, i in events:
+        formed: list[Any] = []
+        if kind == 1:
+            store.add(0, int(ref.stamps[i]), float(i))
+        elif kind == 2:
+            formed = sync.release_quiet(receipt)
+        else:
+            s = streams[k]
+            formed = sync.add(k, int(s.stamps[i]), *s.vectors[i].tolist(), receipt)
+        for x in formed:
+            if set_instants(x.values).min() > start:
+                count += 1
+                found += store.at(x.stamp)[1][0]
+    return count, found
+
+
+def test_the_sets_of_a_held_segment_find_the_currents_sent_with_their_readings() -> None:
+    """A new segment held for its arrivals forms its sets up to ``HOLD_NS`` after their readings came (the soak's
+    mission start, a receiver stalled 3.7 s a few samples in, the hold ending as it drains). A current sent with
+    each reading used to be gone by then (a live store kept 2 s of stamps): the correction node withheld those
+    sets as without a current. Now the store keeps ``KEEP_NS`` and every set of the mission finds its current."""
+    rate = 20.0
+    streams = probed_mission(rate, [0.79, 0.45, 0.93, 0.4], 36.3 * 1.03 / rate, 23.026, (0.44, 3.73), 26460, 1.03)
+    count, found = with_currents(streams, LatestValues(1, 100_000_000), MISSION)
+    assert count >= 0.9 * 40.0 * rate and found == count, (count, found)
+
+
+@settings(max_examples=EXAMPLES, derandomize=True, database=None, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(phases=st.lists(st.floats(0.0, 0.99), min_size=4, max_size=4), probe=st.floats(25.0, 37.0),
+       jump=st.floats(20.0, 60.0), speed=st.sampled_from([2.0, 4.0, 10.0]),
+       stall=st.none() | st.tuples(st.floats(0.0, 0.3), st.floats(0.1, 0.8)), slow=st.sampled_from([1.0, 1.03]),
+       seed=st.integers(0, 2**16))
+@example(phases=[0.4, 0.1, 0.7, 0.9], probe=27.0, jump=29.0, speed=2.0, stall=(0.0, 0.3), slow=1.03, seed=68)
+def test_a_mission_sent_faster_than_its_probes_pairs_no_probe_with_it(
+        phases: list[float], probe: float, jump: float, speed: float, stall: tuple[float, float] | None, slow: float,
+        seed: int) -> None:
+    """The soak sends its mission at 2x real time after probes at real time: from the step on, the stamps run
+    twice as fast as the arrivals, which looks like a queue draining while the new segment is held. Placed by
+    those arrivals, its first sample went before the probes' last, and the first set of the mission paired mag1's
+    first reading with the other sensors' probes (7,000x the floor: the soak's first minute at 260x). Now no set
+    of the mission, its first reading on, pairs readings more than a tenth of a period apart."""
+    rate = 20.0
+    streams = probed_mission(rate, phases, probe * slow / rate, jump, stall, seed, slow, speed=speed)
+    worst, count, placed = worst_spread(streams, settle=0.0)
+    assert worst < 0.1 / rate, (worst, placed)
+    assert count >= 0.9 * 40.0 * rate
 
 
 @settings(max_examples=8, derandomize=True, database=None, deadline=None,

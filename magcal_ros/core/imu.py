@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magcal_ros.core.matching import MatchStats, latest_before
+from magcal_ros.core.matching import KEEP_NS, MatchStats, latest_before
 from magcal_ros.core.recording import ImuSamples
 from magcal_ros.core.side_streams import SideAcceptance, SideCounts, imu_check, usable_imu
 from magcal_ros.core.units import NS_PER_S
@@ -231,7 +231,7 @@ class LatestImu:
     latest sample is propagated, or the set is stale.
     """
 
-    def __init__(self, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096) -> None:
+    def __init__(self, tolerance_ns: int, keep_ns: int = KEEP_NS, most: int = 4096) -> None:
         self.tolerance_ns = int(tolerance_ns)
         self.keep_ns = max(int(keep_ns), 4 * self.tolerance_ns)
         self.most = most

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magcal_ros.core.side_streams import Check, SideAcceptance, SideCounts, accepted_samples
+from magcal_ros.core.sync_rules import HOLD_NS
 from magcal_ros.core.units import NS_PER_S
 from magcal_ros.errors import InputError
 
@@ -170,6 +171,11 @@ def checked_samples(what: str, stamps: ArrayLike, values: ArrayLike) -> tuple[ND
     return t.astype(np.int64), v
 
 
+KEEP_NS: int = 2 * NS_PER_S + HOLD_NS
+"""How far (ns of stamps, behind the newest) a live store keeps side-stream values by default: the sets of a new
+segment the synchroniser holds for up to ``HOLD_NS`` come that much later than their values, and still find them."""
+
+
 class LatestValues:
     """Scalar streams as a live node receives them, matched to each set by the module's rule: a
     stream's value at a set stamped ``t`` is its latest value stamped in ``[t - tolerance_ns, t]``.
@@ -180,7 +186,7 @@ class LatestValues:
     stamp) and at most ``most`` of them. Stamps are int ns.
     """
 
-    def __init__(self, streams: int, tolerance_ns: int, keep_ns: int = 2 * NS_PER_S, most: int = 4096,
+    def __init__(self, streams: int, tolerance_ns: int, keep_ns: int = KEEP_NS, most: int = 4096,
                  check: Check | None = None) -> None:
         self.tolerance_ns = int(tolerance_ns)
         self.keep_ns = max(int(keep_ns), 2 * self.tolerance_ns)

@@ -1372,6 +1372,8 @@ class AcceptanceRule:
                 # messages are gone by now, and its own, late, say too late; the order they gave when it was first
                 # decided places it if earlier (not its stamps alone: a stall's backlog as the hold ran out)
                 estimate, by_arrival = min(estimate, s.queued_at), True
+        if estimate <= s.lastc:  # arrivals that put its first sample before the old segment's last changed their
+            by_arrival = False  # pace with the step (a replay at another speed from then on): its stamps place it
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, moved, out)
         for m in held[1:]:

@@ -95,7 +95,7 @@ from magcal_ros.core import sync
 from magcal_ros.core.calibration import ArrayCalibration
 from magcal_ros.core.calibration_health import CalibrationHealth, with_unknown_currents
 from magcal_ros.core.interference import CurrentWatch, LatestCurrents
-from magcal_ros.core.matching import LatestValues
+from magcal_ros.core.matching import KEEP_NS, LatestValues
 from magcal_ros.core.sync import StreamSynchronizer, SyncedSet
 from magcal_ros.core.tensor import GRADIENT_METHODS, gradient
 from magcal_ros.errors import InputError
@@ -760,7 +760,7 @@ class CorrectionNode(Node):
             self.destroy_subscription(s)
         names = state.names if state.heard_temperatures else ()
         self._temperatures = LatestValues(len(names), state.temperature_tolerance_ns, check=side.TEMPERATURE.check,
-                                          keep_ns=max(2 * state.temperature_tolerance_ns, 2 * 10**9))
+                                          keep_ns=max(2 * state.temperature_tolerance_ns, KEEP_NS))
         self._temperature_health = TemperatureHealth(
             names, tuple(self.resolve_topic_name(topics.temperature(n)) for n in names), state.temperature_tolerance_ns)
         self._temperature_subs = common.subscribe_temperatures(self, names, self._temperatures, self._raw_qos,
