@@ -247,14 +247,19 @@ def probed_mission(rate: float, phases: list[float], probe: float, jump: float, 
     return streams
 
 
+def quiet_ticks(streams: list[Stream]) -> list[int]:
+    """Receiver times (ns) of the quiet release, every half second as a node runs it, until the last message's
+    hold has passed."""
+    end = max(int(s.receipts[-1]) for s in streams)
+    return list(range(START_NS, end + STILL_NS + 10**9, 500_000_000))
+
+
 def worst_spread(streams: list[Stream], start: float = MISSION, settle: float = 1.0) -> tuple[float, int, Any]:
     """Fed to an interpolating synchroniser with the quiet release every half second (as a node runs it): the
     widest spread (s) of the sets after the mission's first ``settle`` s (it starts at ``start`` s; a set with a
     member of the mission counts), how many there are, and the placements."""
-    end = max(int(s.receipts[-1]) for s in streams)
-    ticks = list(range(START_NS, end + STILL_NS + 10**9, 500_000_000))
     sync = interpolating()
-    sets = [x for x in fed(sync, streams, ticks) if set_instants(x.values).max() > start + settle]
+    sets = [x for x in fed(sync, streams, quiet_ticks(streams)) if set_instants(x.values).max() > start + settle]
     return max(spread(x.values) for x in sets), len(sets), sync.placements()
 
 
@@ -314,12 +319,10 @@ def with_currents(streams: list[Stream], store: LatestValues, start: float) -> t
     """Fed as :func:`worst_spread` feeds them, with a current stamped as each of the first sensor's readings and
     received a millisecond before it into ``store``: (sets of the mission after ``start`` s, those whose current
     was still in the store when they formed)."""
-    end = max(int(s.receipts[-1]) for s in streams)
-    ticks = list(range(START_NS, end + STILL_NS + 10**9, 500_000_000))
     sync, ref = interpolating(), streams[0]
     events = sorted([(r, 0, k, i) for r, k, i in arrivals(streams)] + [(int(r) - 10**6, 1, 0, i) for i, r in
                                                                        enumerate(ref.receipts)]
-                    + [(t, 2, 0, 0) for t in ticks])
+                    + [(t, 2, 0, 0) for t in quiet_ticks(streams)])
     count = found = 0
     for receipt, kind, k, i in events:
         formed: list[Any] = []

@@ -1372,8 +1372,6 @@ class AcceptanceRule:
                 # messages are gone by now, and its own, late, say too late; the order they gave when it was first
                 # decided places it if earlier (not its stamps alone: a stall's backlog as the hold ran out)
                 estimate, by_arrival = min(estimate, s.queued_at), True
-        if estimate <= s.lastc:  # arrivals that put its first sample before the old segment's last changed their
-            by_arrival = False  # pace with the step (a replay at another speed from then on): its stamps place it
         moved = self._place(index, [m[0] for m in held], estimate if by_arrival else None, first[3])
         self._take(index, first, moved, out)
         for m in held[1:]:
@@ -1506,9 +1504,9 @@ class AcceptanceRule:
         """Place sensor ``index``'s new segment, whose first stamps are ``stamps`` (the first received at
         ``receipt`` ns, None: unknown), on the common timeline: as another sensor that made the same jump of its
         stamps placed its own (one clock stamps both); else its first sample at ``estimate`` (ns, from its
-        arrivals; None: unknown, one period after its last sample) on its old sample grid (each stamp's jitter
-        averaged out; by its arrivals alone where that grid cannot place it, :func:`sampled_anew`), unless that is
-        where another sensor's stamps (or its own old segment's) put it. Whether the
+        arrivals; None, or at or before its last sample: unknown, one period after it) on its old sample grid (each
+        stamp's jitter averaged out; by its arrivals alone where that grid cannot place it, :func:`sampled_anew`),
+        unless that is where another sensor's stamps (or its own old segment's) put it. Whether the
         segment moved: False where it went back onto its own old placement (the stamps went on: the gap before it
         is lost samples, counted as such, not a restart)."""
         s = self.streams[index]
@@ -1517,6 +1515,8 @@ class AcceptanceRule:
             self._follow(index, partner, stamps[0], receipt)
             return True
         s.follows = None
+        if estimate is not None and estimate <= s.lastc:  # arrivals that put its first sample at or before the old
+            estimate = None  # segment's last changed their pace with the step (a replay at another speed): stamps
         period = s.grid_period()
         short = s.suspect_period()
         if period and short and 8 * abs(period - short) > short:
